@@ -1,0 +1,165 @@
+"""Shared pieces of every LDR codec: the raw 16-bit sample format, bit packing, playout.
+
+Why a raw 16-bit format: the paper's baseline is a 16-bit quantised stream (Section V.C), and
+compression c:1 is counted against it.  Every codec therefore ships values in that format (or, for
+``cq``, fewer bits of it), so the payload bytes on the wire are exactly what eq. (9) predicts.
+
+Every conversion from a real value to integers rounds toward zero and saturates, so
+``|decoded| <= |original|`` per DoF: eq. (11) holds for the format itself, and the energy
+conditions (8) and (10) are never broken by the representation.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+Array = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+RAW_BITS = 16
+
+
+class CodecError(ValueError):
+    """A codec spec is invalid, or a payload does not match its codec."""
+
+
+@dataclass(frozen=True)
+class RawFormat:
+    """Signed fixed point over ``[-full_scale, full_scale]`` with ``bits`` bits, symmetric."""
+
+    full_scale: float
+    bits: int = RAW_BITS
+
+    def __post_init__(self) -> None:
+        if not np.isfinite(self.full_scale) or self.full_scale <= 0:
+            raise CodecError(f"full scale (range) must be finite and > 0, got {self.full_scale!r}")
+        if not 2 <= self.bits <= RAW_BITS:
+            raise CodecError(f"bits must be in 2..{RAW_BITS}, got {self.bits}")
+
+    @property
+    def max_code(self) -> int:
+        return (1 << (self.bits - 1)) - 1
+
+    @property
+    def step(self) -> float:
+        return self.full_scale / self.max_code
+
+    def quantize(self, x: Array) -> IntArray:
+        """Round toward zero and saturate: ``|dequantize(quantize(x))| <= |x|`` (eq. 11)."""
+        m = self.max_code
+        return np.clip(np.trunc(x / self.step), -m, m).astype(np.int64)
+
+    def dequantize(self, q: IntArray) -> Array:
+        return q.astype(np.float64) * self.step
+
+
+def pack(q: IntArray, bits: int) -> bytes:
+    """Pack signed integers of ``bits`` bits each, little-endian bit order, zero-padded."""
+    if bits == 16:
+        return q.astype("<i2").tobytes()
+    if bits == 8:
+        return q.astype("i1").tobytes()
+    mask = (1 << bits) - 1
+    acc = 0
+    for i, v in enumerate(q.tolist()):
+        acc |= (int(v) & mask) << (i * bits)
+    return acc.to_bytes(packed_size(len(q), bits), "little")
+
+
+def unpack(data: bytes, bits: int, n: int) -> IntArray:
+    """Inverse of :func:`pack`; raises :class:`CodecError` on a wrong length."""
+    want = packed_size(n, bits)
+    if len(data) != want:
+        raise CodecError(f"payload has {len(data)} bytes, expected {want} ({n} values of {bits} bits)")
+    if bits == 16:
+        return np.frombuffer(data, dtype="<i2").astype(np.int64)
+    if bits == 8:
+        return np.frombuffer(data, dtype="i1").astype(np.int64)
+    acc = int.from_bytes(data, "little")
+    mask = (1 << bits) - 1
+    sign = 1 << (bits - 1)
+    out = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        v = (acc >> (i * bits)) & mask
+        out[i] = v - (1 << bits) if v & sign else v
+    if acc >> (n * bits):
+        raise CodecError("payload has non-zero padding bits")
+    return out
+
+
+def packed_size(n: int, bits: int) -> int:
+    return (n * bits + 7) // 8
+
+
+class Encoder:
+    """Turns one wave sample per tick into a payload, or ``None`` when it does not transmit."""
+
+    def encode(self, x: Array) -> bytes | None:  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+class _Run:
+    """``value`` still to be played for ``remaining`` ticks."""
+
+    __slots__ = ("remaining", "value")
+
+    def __init__(self, value: Array, remaining: int) -> None:
+        self.value = value
+        self.remaining = remaining
+
+
+class PlayoutDecoder:
+    """Receives payloads, yields one sample per tick from a playout queue.
+
+    A payload becomes ``(value, count)``: play ``value`` for ``count`` ticks.  When the queue runs
+    dry the output is zero, never a held value: holding would replay energy that was never sent
+    (DESIGN.md, "hold-last-sample generates energy").  When it grows beyond ``max_queue`` ticks
+    (a burst after a stall) the oldest samples are dropped, which only removes energy.
+    """
+
+    def __init__(self, dof: int, max_queue: int) -> None:
+        self.dof = dof
+        self.max_queue = max_queue
+        self._queue: deque[_Run] = deque()
+        self._queued = 0
+        self._zero = np.zeros(dof)
+        self.underruns = 0
+        self.dropped_samples = 0
+
+    def parse(self, payload: bytes) -> tuple[Array, int]:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def push(self, payload: bytes) -> None:
+        """Queue a payload; a malformed one raises :class:`CodecError` and changes nothing."""
+        value, count = self.parse(payload)
+        self._queue.append(_Run(value, count))
+        self._queued += count
+        while self._queued > self.max_queue:
+            head = self._queue[0]
+            excess = min(self._queued - self.max_queue, head.remaining)
+            head.remaining -= excess
+            self._queued -= excess
+            self.dropped_samples += excess
+            if head.remaining == 0:
+                self._queue.popleft()
+
+    @property
+    def queued(self) -> int:
+        """Ticks of signal waiting to be played."""
+        return self._queued
+
+    def next(self) -> Array:
+        """The sample to play this tick (zero on underrun)."""
+        if not self._queue:
+            self.underruns += 1
+            return self._zero
+        head = self._queue[0]
+        head.remaining -= 1
+        self._queued -= 1
+        if head.remaining == 0:
+            self._queue.popleft()
+        return head.value

@@ -1,0 +1,36 @@
+"""Direct LDR (Section IV.D): every sample is sent, each reduced on its own.
+
+``none`` ships the raw 16-bit sample; ``cq:BITS`` keeps only the top BITS bits of it, rounding
+toward zero so that ``|g_r(t+T)| <= |g_l(t)|`` (eq. 11).  No delay is added.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .base import RAW_BITS, Array, Encoder, PlayoutDecoder, RawFormat, pack, unpack
+
+
+class DirectEncoder(Encoder):
+    def __init__(self, raw: RawFormat, bits: int) -> None:
+        self.raw = raw
+        self.bits = bits
+        self.shift = 1 << (RAW_BITS - bits)
+
+    def encode(self, x: Array) -> bytes:
+        q16 = self.raw.quantize(x)
+        # Integer division toward zero (np.trunc), not floor: eq. (11) needs |Q(x)| <= |x|.
+        q = q16 if self.shift == 1 else np.trunc(q16 / self.shift).astype(np.int64)
+        return pack(q, self.bits)
+
+
+class DirectDecoder(PlayoutDecoder):
+    def __init__(self, raw: RawFormat, bits: int, dof: int, max_queue: int) -> None:
+        super().__init__(dof, max_queue)
+        self.raw = raw
+        self.bits = bits
+        self.shift = 1 << (RAW_BITS - bits)
+
+    def parse(self, payload: bytes) -> tuple[Array, int]:
+        q = unpack(payload, self.bits, self.dof)
+        return self.raw.dequantize(q * self.shift), 1

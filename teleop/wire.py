@@ -1,0 +1,104 @@
+"""Versioned msgpack packet carrying one codec payload between the two nodes.
+
+A packet is a msgpack array (arrays, not maps: field names would cost more than the payload)::
+
+    [magic, version, session, direction, seq, tick, t_us, codec_id, payload, energy]
+
+=========  =========  ==============================================================
+field      msgpack    meaning
+=========  =========  ==============================================================
+magic      bin "TW"   identifies teleop packets
+version    uint       ``VERSION`` (1); another version is rejected
+session    uint32     session id agreed in the handshake; others are dropped
+direction  uint       0 forward (operator -> TO, wave g), 1 backward (TO -> operator, wave h)
+seq        uint32     per-direction sequence number of transmitted packets, from 0
+tick       uint64     sender's loop tick at which the payload was produced
+t_us       uint64     sender's monotonic clock, microseconds
+codec_id   uint       0 none, 1 ids, 2 eds, 3 cq
+payload    bin        the codec's bytes (see ``teleop.codecs``)
+energy     float64    sender's cumulative transmitted wave energy, J (eq. 4-5), for the watchdog
+=========  =========  ==============================================================
+
+``decode`` raises :class:`WireError` (and nothing else) with an exact message for any input that
+is not such a packet; transports catch it, count the packet as malformed and drop it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import math
+
+import msgpack
+
+MAGIC = b"TW"
+VERSION = 1
+FORWARD = 0
+BACKWARD = 1
+DIRECTIONS = ("forward", "backward")
+_U32 = 0xFFFFFFFF
+_U64 = 0xFFFFFFFFFFFFFFFF
+
+
+class WireError(ValueError):
+    """Bytes that are not a valid teleop packet."""
+
+
+@dataclass(frozen=True, slots=True)
+class Packet:
+    session: int
+    direction: int
+    seq: int
+    tick: int
+    t_us: int
+    codec_id: int
+    payload: bytes
+    energy: float = 0.0
+
+
+def encode(p: Packet) -> bytes:
+    out: bytes = msgpack.packb(
+        [MAGIC, VERSION, p.session, p.direction, p.seq, p.tick, p.t_us, p.codec_id, p.payload,
+         float(p.energy)],
+        use_bin_type=True,
+    )
+    return out
+
+
+def _uint(name: str, v: object, hi: int) -> int:
+    if type(v) is not int or not 0 <= v <= hi:
+        raise WireError(f"field {name} must be an unsigned integer <= {hi}, got {v!r}")
+    return v
+
+
+def decode(data: bytes) -> Packet:
+    """Parse one packet; raises :class:`WireError` only."""
+    try:
+        obj = msgpack.unpackb(data, raw=False, use_list=True, strict_map_key=True)
+    except Exception as e:  # msgpack raises several unrelated types for garbage input
+        raise WireError(f"not msgpack: {type(e).__name__}: {e}") from None
+    if not isinstance(obj, list):
+        raise WireError(f"packet must be a msgpack array, got {type(obj).__name__}")
+    if len(obj) != 10:
+        raise WireError(f"packet must have 10 fields, got {len(obj)}")
+    magic, version, session, direction, seq, tick, t_us, codec_id, payload, energy = obj
+    if magic != MAGIC:
+        raise WireError(f"bad magic {magic!r}, expected {MAGIC!r}")
+    if version != VERSION:
+        raise WireError(f"unsupported version {version!r}, expected {VERSION}")
+    if direction not in (FORWARD, BACKWARD) or type(direction) is not int:
+        raise WireError(f"field direction must be 0 or 1, got {direction!r}")
+    if type(payload) is not bytes:
+        raise WireError(f"field payload must be bin, got {type(payload).__name__}")
+    if type(energy) is not float or not math.isfinite(energy) or energy < 0.0:
+        raise WireError(f"field energy must be a finite float >= 0, got {energy!r}")
+    return Packet(
+        session=_uint("session", session, _U32),
+        direction=direction,
+        seq=_uint("seq", seq, _U32),
+        tick=_uint("tick", tick, _U64),
+        t_us=_uint("t_us", t_us, _U64),
+        codec_id=_uint("codec_id", codec_id, 255),
+        payload=payload,
+        energy=energy,
+    )
