@@ -61,7 +61,9 @@ def _codec(text: str) -> str:
 
 
 def format_table(cases: list[dict[str, Any]]) -> str:
-    head = f"{'codec':<10} {'I':>11} {'I_norm':>7} {'c:1':>7} {'min c:1':>8} {'passive':>8} {'min margin J':>13}"
+    head = (
+        f"{'codec':<10} {'I':>11} {'I_norm':>7} {'c:1':>7} {'min c:1':>8} {'passive':>8} {'min margin J':>13}"
+    )
     lines = [head, "-" * len(head)]
     for c in cases:
         lines.append(
@@ -77,14 +79,22 @@ def cmd_sim(args: argparse.Namespace) -> int:
     from .sim import SECTION_V_CODECS, SimConfig, run_set
 
     codecs = args.codec or list(SECTION_V_CODECS)
-    base = SimConfig(delay_ms=args.delay, duration=args.duration, dof=args.dof, b=args.b,
-                     full_scale=args.range, scenario=args.scenario)
+    base = SimConfig(
+        delay_ms=args.delay,
+        duration=args.duration,
+        dof=args.dof,
+        b=args.b,
+        full_scale=args.range,
+        scenario=args.scenario,
+    )
     try:
         doc, cases = run_set(codecs, base)
     except (ValueError, CodecError) as e:
         raise CliError(str(e)) from None
-    print(f"teleop sim: scenario {base.scenario}, {base.dof} DoF, b = {base.b:g}, delay {base.delay_ms:g} ms, "
-          f"{base.duration:g} s at {1 / base.dt:g} Hz, wave range +-{base.full_scale:g}")
+    print(
+        f"teleop sim: scenario {base.scenario}, {base.dof} DoF, b = {base.b:g}, delay {base.delay_ms:g} ms, "
+        f"{base.duration:g} s at {1 / base.dt:g} Hz, wave range +-{base.full_scale:g}"
+    )
     print(format_table(doc["cases"]))
     if args.out is not None:
         out = Path(args.out)
@@ -92,9 +102,15 @@ def cmd_sim(args: argparse.Namespace) -> int:
         (out / "results.json").write_text(json.dumps(doc, indent=2) + "\n")
         for c in cases:
             tr = c.trace
-            plots.velocity_force(out / f"{plots.safe_name(c.codec)}.png", tr.t, tr.v_hsi, tr.v_to,
-                                 tr.f_hsi, tr.f_to,
-                                 f"{c.codec}: I = {c.summary['I']:.3e}, c = {c.summary['compression']:.3g}:1")
+            plots.velocity_force(
+                out / f"{plots.safe_name(c.codec)}.png",
+                tr.t,
+                tr.v_hsi,
+                tr.v_to,
+                tr.f_hsi,
+                tr.f_to,
+                f"{c.codec}: I = {c.summary['I']:.3e}, c = {c.summary['compression']:.3g}:1",
+            )
         print(f"wrote {out / 'results.json'} and {len(cases)} PNG plots")
     return 0 if all(c["passive"] for c in doc["cases"]) else 1
 
@@ -103,21 +119,45 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="teleop", description="Networked haptic teleoperation with passive LDR.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    s = sub.add_parser("sim", help="deterministic virtual-time run of both nodes (paper Section V)",
-                       description="Run the operator and teleoperator nodes in virtual time joined by a "
-                       "channel with constant delay; print a table and optionally write results.json "
-                       "and plots. Exit status 1 if any case lost passivity.")
-    s.add_argument("--codec", action="append", type=_codec, metavar="SPEC",
-                   help=f"codec, repeatable (default: the paper's set). Accepted: {ACCEPTED}")
-    s.add_argument("--delay", type=_nonneg_float("delay"), default=0.0, metavar="MS",
-                   help="one-way delay per direction in ms (default 0)")
-    s.add_argument("--duration", type=_positive_float("duration"), default=5.0, metavar="S",
-                   help="simulated seconds (default 5)")
+    s = sub.add_parser(
+        "sim",
+        help="deterministic virtual-time run of both nodes (paper Section V)",
+        description="Run the operator and teleoperator nodes in virtual time joined by a "
+        "channel with constant delay; print a table and optionally write results.json "
+        "and plots. Exit status 1 if any case lost passivity.",
+    )
+    s.add_argument(
+        "--codec",
+        action="append",
+        type=_codec,
+        metavar="SPEC",
+        help=f"codec, repeatable (default: the paper's set). Accepted: {ACCEPTED}",
+    )
+    s.add_argument(
+        "--delay",
+        type=_nonneg_float("delay"),
+        default=0.0,
+        metavar="MS",
+        help="one-way delay per direction in ms (default 0)",
+    )
+    s.add_argument(
+        "--duration",
+        type=_positive_float("duration"),
+        default=5.0,
+        metavar="S",
+        help="simulated seconds (default 5)",
+    )
     s.add_argument("--dof", type=_dof, default=1, help="degrees of freedom (default 1)")
-    s.add_argument("--b", type=_positive_float("wave impedance b"), default=1.0,
-                   help="wave impedance b > 0 (default 1)")
-    s.add_argument("--range", type=_positive_float("range"), default=None, metavar="R",
-                   help="full scale of the raw 16-bit wave format (default: the scenario's)")
+    s.add_argument(
+        "--b", type=_positive_float("wave impedance b"), default=1.0, help="wave impedance b > 0 (default 1)"
+    )
+    s.add_argument(
+        "--range",
+        type=_positive_float("range"),
+        default=None,
+        metavar="R",
+        help="full scale of the raw 16-bit wave format (default: the scenario's)",
+    )
     s.add_argument("--scenario", choices=["step"], default="step", help="scenario (default step)")
     s.add_argument("--out", metavar="DIR", help="write DIR/results.json and one PNG per codec")
     s.set_defaults(func=cmd_sim)

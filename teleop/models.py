@@ -109,8 +109,15 @@ class Environment(Protocol):
 class StepHuman:
     """Section V: a velocity step ``amplitude`` at ``t_step`` through the admittance s/(s+0.5)."""
 
-    def __init__(self, dof: int, dt: float, amplitude: float = 1.0, t_step: float = 0.1,
-                 num: Sequence[float] = (1.0, 0.0), den: Sequence[float] = (1.0, 0.5)) -> None:
+    def __init__(
+        self,
+        dof: int,
+        dt: float,
+        amplitude: float = 1.0,
+        t_step: float = 0.1,
+        num: Sequence[float] = (1.0, 0.0),
+        den: Sequence[float] = (1.0, 0.5),
+    ) -> None:
         self.amplitude = amplitude
         self.t_step = t_step
         self.admittance = DiscreteLTI(num, den, dt, dof)
@@ -131,8 +138,9 @@ class StepHuman:
 class LtiEnvironment:
     """An impedance ``F = Z_e(s) v`` per DoF; Section V uses ``Z_e = 1/(s+1)``."""
 
-    def __init__(self, dof: int, dt: float, num: Sequence[float] = (1.0,),
-                 den: Sequence[float] = (1.0, 1.0)) -> None:
+    def __init__(
+        self, dof: int, dt: float, num: Sequence[float] = (1.0,), den: Sequence[float] = (1.0, 1.0)
+    ) -> None:
         self.impedance = DiscreteLTI(num, den, dt, dof)
         self._z = np.full(dof, self.impedance.feedthrough)
 

@@ -53,8 +53,16 @@ class _Port:
 
     tx_direction: int
 
-    def __init__(self, *, wave: WaveImpedance, tx: Codec, rx: Codec, session: int, dt: float,
-                 max_queue: int | None = None) -> None:
+    def __init__(
+        self,
+        *,
+        wave: WaveImpedance,
+        tx: Codec,
+        rx: Codec,
+        session: int,
+        dt: float,
+        max_queue: int | None = None,
+    ) -> None:
         if tx.dof != wave.dof or rx.dof != wave.dof:
             raise ValueError(f"codec DoF ({tx.dof}, {rx.dof}) must match wave DoF {wave.dof}")
         self.wave = wave
@@ -134,8 +142,16 @@ class _Port:
         self.ticks += 1
         if payload is None:
             return None
-        pkt = wire.Packet(self.session, self.tx_direction, self.seq & 0xFFFFFFFF, tick,
-                          int(now * 1e6), self.tx_codec.codec_id, payload, self.energy_sent)
+        pkt = wire.Packet(
+            self.session,
+            self.tx_direction,
+            self.seq & 0xFFFFFFFF,
+            tick,
+            int(now * 1e6),
+            self.tx_codec.codec_id,
+            payload,
+            self.energy_sent,
+        )
         self.seq += 1
         return pkt
 
@@ -145,8 +161,17 @@ class OperatorNode(_Port):
 
     tx_direction = wire.FORWARD
 
-    def __init__(self, *, human: Human, wave: WaveImpedance, tx: Codec, rx: Codec, session: int,
-                 dt: float, max_queue: int | None = None) -> None:
+    def __init__(
+        self,
+        *,
+        human: Human,
+        wave: WaveImpedance,
+        tx: Codec,
+        rx: Codec,
+        session: int,
+        dt: float,
+        max_queue: int | None = None,
+    ) -> None:
         super().__init__(wave=wave, tx=tx, rx=rx, session=session, dt=dt, max_queue=max_queue)
         self.human = human
 
@@ -166,8 +191,17 @@ class TeleoperatorNode(_Port):
 
     tx_direction = wire.BACKWARD
 
-    def __init__(self, *, environment: Environment, wave: WaveImpedance, tx: Codec, rx: Codec,
-                 session: int, dt: float, max_queue: int | None = None) -> None:
+    def __init__(
+        self,
+        *,
+        environment: Environment,
+        wave: WaveImpedance,
+        tx: Codec,
+        rx: Codec,
+        session: int,
+        dt: float,
+        max_queue: int | None = None,
+    ) -> None:
         super().__init__(wave=wave, tx=tx, rx=rx, session=session, dt=dt, max_queue=max_queue)
         self.environment = environment
 

@@ -24,8 +24,9 @@ def safe_name(spec: str) -> str:
     return spec.replace(":", "_").replace("/", "_").replace(".", "p")
 
 
-def velocity_force(path: Path, t: Array, v_hsi: Array, v_to: Array, f_hsi: Array, f_to: Array,
-                   title: str) -> None:
+def velocity_force(
+    path: Path, t: Array, v_hsi: Array, v_to: Array, f_hsi: Array, f_to: Array, title: str
+) -> None:
     """Two panels like the paper's Figs. 6-9, one line per DoF and side."""
     plt = _plt()
     dof = v_hsi.shape[1]

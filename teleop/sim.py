@@ -137,9 +137,15 @@ def run_case(cfg: SimConfig) -> CaseResult:
     fwd, bwd = ConstantDelayLink(delay), ConstantDelayLink(delay)
 
     shape = (n_ticks, dof)
-    tr = Trace(t=np.arange(n_ticks) * dt, v_hsi=np.empty(shape), f_hsi=np.empty(shape),
-               v_to=np.empty(shape), f_to=np.empty(shape), margin_fwd=np.empty(n_ticks),
-               margin_bwd=np.empty(n_ticks))
+    tr = Trace(
+        t=np.arange(n_ticks, dtype=np.float64) * dt,
+        v_hsi=np.empty(shape),
+        f_hsi=np.empty(shape),
+        v_to=np.empty(shape),
+        f_to=np.empty(shape),
+        margin_fwd=np.empty(n_ticks),
+        margin_bwd=np.empty(n_ticks),
+    )
     pay = {d: np.zeros(n_ticks) for d in wire.DIRECTIONS}
     pkt_bytes = {d: np.zeros(n_ticks) for d in wire.DIRECTIONS}
     for n in range(n_ticks):
@@ -191,10 +197,16 @@ def run_case(cfg: SimConfig) -> CaseResult:
         "min_energy_margin": min_margin,
         "added_delay_ticks": codec.added_delay_ticks,
         "energy": {
-            "forward": {"sent": op.energy_sent, "played": to.energy_played,
-                        "min_margin": float(tr.margin_fwd.min())},
-            "backward": {"sent": to.energy_sent, "played": op.energy_played,
-                         "min_margin": float(tr.margin_bwd.min())},
+            "forward": {
+                "sent": op.energy_sent,
+                "played": to.energy_played,
+                "min_margin": float(tr.margin_fwd.min()),
+            },
+            "backward": {
+                "sent": to.energy_sent,
+                "played": op.energy_played,
+                "min_margin": float(tr.margin_bwd.min()),
+            },
         },
         "directions": per_dir,
         "counters": counters,

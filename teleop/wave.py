@@ -56,7 +56,7 @@ class WaveImpedance:
 
     def _check(self, *xs: Array) -> None:
         for x in xs:
-            if np.shape(x) != self.b.shape:
+            if getattr(x, "shape", None) != self.b.shape:
                 raise WaveError(f"signal shape {np.shape(x)} does not match dof {self.dof}")
 
     # --- eq. (3) and its inverse -------------------------------------------------------------

@@ -25,9 +25,8 @@ is not such a packet; transports catch it, count the packet as malformed and dro
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import math
+from dataclasses import dataclass
 
 import msgpack
 
@@ -58,8 +57,18 @@ class Packet:
 
 def encode(p: Packet) -> bytes:
     out: bytes = msgpack.packb(
-        [MAGIC, VERSION, p.session, p.direction, p.seq, p.tick, p.t_us, p.codec_id, p.payload,
-         float(p.energy)],
+        [
+            MAGIC,
+            VERSION,
+            p.session,
+            p.direction,
+            p.seq,
+            p.tick,
+            p.t_us,
+            p.codec_id,
+            p.payload,
+            float(p.energy),
+        ],
         use_bin_type=True,
     )
     return out

@@ -92,7 +92,9 @@ def _int_param(spec: str, text: str, what: str, lo: int, hi: int | None = None) 
     try:
         v = int(text)
     except ValueError:
-        raise CodecError(f"codec {spec!r}: {what} must be an integer, got {text!r}; accepted: {ACCEPTED}") from None
+        raise CodecError(
+            f"codec {spec!r}: {what} must be an integer, got {text!r}; accepted: {ACCEPTED}"
+        ) from None
     if v < lo or (hi is not None and v > hi):
         bound = f"in {lo}..{hi}" if hi is not None else f">= {lo}"
         raise CodecError(f"codec {spec!r}: {what} must be {bound}, got {v}; accepted: {ACCEPTED}")
@@ -103,9 +105,18 @@ def _none(spec: str, params: list[str], dof: int, fs: float) -> Codec:
     if params:
         raise CodecError(f"codec {spec!r}: 'none' takes no parameter; accepted: {ACCEPTED}")
     raw = RawFormat(fs)
-    return Codec("none", "none", 0, "direct", dof, raw, 1, RAW_BITS,
-                 lambda: DirectEncoder(raw, RAW_BITS),
-                 lambda q: DirectDecoder(raw, RAW_BITS, dof, q))
+    return Codec(
+        "none",
+        "none",
+        0,
+        "direct",
+        dof,
+        raw,
+        1,
+        RAW_BITS,
+        lambda: DirectEncoder(raw, RAW_BITS),
+        lambda q: DirectDecoder(raw, RAW_BITS, dof, q),
+    )
 
 
 def _frame(name: str) -> Callable[[str, list[str], int, float], Codec]:
@@ -115,10 +126,30 @@ def _frame(name: str) -> Callable[[str, list[str], int, float], Codec]:
         k = _int_param(spec, params[0], "K", 1)
         raw = RawFormat(fs)
         if name == "ids":
-            return Codec(f"ids:{k}", "ids", 1, "interpolative", dof, raw, k, RAW_BITS,
-                         lambda: IdsEncoder(raw, k, dof), lambda q: IdsDecoder(raw, k, dof, q))
-        return Codec(f"eds:{k}", "eds", 2, "extrapolative", dof, raw, k, RAW_BITS,
-                     lambda: EdsEncoder(raw, k, dof), lambda q: EdsDecoder(raw, k, dof, q))
+            return Codec(
+                f"ids:{k}",
+                "ids",
+                1,
+                "interpolative",
+                dof,
+                raw,
+                k,
+                RAW_BITS,
+                lambda: IdsEncoder(raw, k, dof),
+                lambda q: IdsDecoder(raw, k, dof, q),
+            )
+        return Codec(
+            f"eds:{k}",
+            "eds",
+            2,
+            "extrapolative",
+            dof,
+            raw,
+            k,
+            RAW_BITS,
+            lambda: EdsEncoder(raw, k, dof),
+            lambda q: EdsDecoder(raw, k, dof, q),
+        )
 
     return make
 
@@ -137,8 +168,18 @@ def _cq(spec: str, params: list[str], dof: int, fs: float) -> Codec:
     except CodecError as e:
         raise CodecError(f"codec {spec!r}: {e}") from None
     canon = f"cq:{bits}" if len(params) == 1 else f"cq:{bits}:{fs:g}"
-    return Codec(canon, "cq", 3, "direct", dof, raw, 1, bits,
-                 lambda: DirectEncoder(raw, bits), lambda q: DirectDecoder(raw, bits, dof, q))
+    return Codec(
+        canon,
+        "cq",
+        3,
+        "direct",
+        dof,
+        raw,
+        1,
+        bits,
+        lambda: DirectEncoder(raw, bits),
+        lambda q: DirectDecoder(raw, bits, dof, q),
+    )
 
 
 #: name -> factory(spec, params, dof, full_scale)

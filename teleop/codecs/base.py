@@ -12,7 +12,7 @@ conditions (8) and (10) are never broken by the representation.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
@@ -39,6 +39,9 @@ class RawFormat:
             raise CodecError(f"full scale (range) must be finite and > 0, got {self.full_scale!r}")
         if not 2 <= self.bits <= RAW_BITS:
             raise CodecError(f"bits must be in 2..{RAW_BITS}, got {self.bits}")
+        object.__setattr__(self, "_inv_step", self.max_code / self.full_scale)
+
+    _inv_step: float = field(init=False, repr=False, compare=False, default=0.0)
 
     @property
     def max_code(self) -> int:
@@ -50,8 +53,9 @@ class RawFormat:
 
     def quantize(self, x: Array) -> IntArray:
         """Round toward zero and saturate: ``|dequantize(quantize(x))| <= |x|`` (eq. 11)."""
-        m = self.max_code
-        return np.clip(np.trunc(x / self.step), -m, m).astype(np.int64)
+        m = float(self.max_code)
+        # astype truncates toward zero; saturating first keeps |code| <= max_code.
+        return np.minimum(np.maximum(x * self._inv_step, -m), m).astype(np.int64)
 
     def dequantize(self, q: IntArray) -> Array:
         return q.astype(np.float64) * self.step

@@ -19,8 +19,8 @@ class DirectEncoder(Encoder):
 
     def encode(self, x: Array) -> bytes:
         q16 = self.raw.quantize(x)
-        # Integer division toward zero (np.trunc), not floor: eq. (11) needs |Q(x)| <= |x|.
-        q = q16 if self.shift == 1 else np.trunc(q16 / self.shift).astype(np.int64)
+        # Division toward zero (astype truncates), not floor: eq. (11) needs |Q(x)| <= |x|.
+        q = q16 if self.shift == 1 else (q16 / self.shift).astype(np.int64)
         return pack(q, self.bits)
 
 

@@ -1,0 +1,49 @@
+"""The `teleop` command: contract of results.json, and clear errors for bad arguments."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from teleop.cli import main
+
+
+def test_sim_writes_contract(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rc = main(["sim", "--codec", "ids:2", "--codec", "eds:2", "--duration", "1", "--out", str(tmp_path)])
+    assert rc == 0
+    doc = json.loads((tmp_path / "results.json").read_text())
+    assert doc["dt"] == 0.001 and doc["duration"] == 1.0 and doc["delay_ms"] == 0
+    assert [c["codec"] for c in doc["cases"]] == ["ids:2", "eds:2"]
+    for c in doc["cases"]:
+        for key, typ in [
+            ("I", float),
+            ("I_norm", float),
+            ("compression", float),
+            ("min_instant_compression", float),
+            ("passive", bool),
+            ("min_energy_margin", float),
+        ]:
+            assert isinstance(c[key], typ), key
+    assert (tmp_path / "ids_2.png").stat().st_size > 10_000
+    out = capsys.readouterr().out
+    assert "ids:2" in out and "passive" in out
+
+
+@pytest.mark.parametrize(
+    "args,msg",
+    [
+        (["sim", "--codec", "mp3"], "unknown codec 'mp3'"),
+        (["sim", "--delay", "-5"], "delay must be >= 0"),
+        (["sim", "--duration", "abc"], "duration must be a number"),
+        (["sim", "--dof", "0"], "DoF must be an integer 1..64"),
+        (["sim", "--b", "0"], "wave impedance b must be > 0"),
+    ],
+)
+def test_bad_arguments(args: list[str], msg: str) -> None:
+    r = subprocess.run([sys.executable, "-m", "teleop.cli", *args], capture_output=True, text=True)
+    assert r.returncode == 2
+    assert msg in r.stderr

@@ -1,0 +1,77 @@
+"""Tustin-discretised models: accuracy against the analytic responses, and passivity."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from teleop.models import DiscreteLTI, LtiEnvironment, ModelError, StepHuman
+
+DT = 1e-3
+
+
+def step_response(num: tuple[float, ...], den: tuple[float, ...], n: int) -> np.ndarray:
+    lti = DiscreteLTI(num, den, DT, 1)
+    return np.array([lti.advance(np.ones(1))[0] for _ in range(n)])
+
+
+def test_environment_step_matches_analytic() -> None:
+    """1/(s+1): y = 1 - exp(-t); Tustin's trapezoid error is O(dt^2)."""
+    y = step_response((1.0,), (1.0, 1.0), 3001)
+    t = np.arange(3001) * DT
+    np.testing.assert_allclose(y[1:], 1 - np.exp(-t[1:]), atol=1e-3)  # first sample: half-step of Tustin
+    assert abs(y[1000] - (1 - np.exp(-1.0))) < 1e-3
+
+
+def test_human_admittance_step_matches_analytic() -> None:
+    """s/(s+0.5): y = exp(-t/2)."""
+    y = step_response((1.0, 0.0), (1.0, 0.5), 3001)
+    t = np.arange(3001) * DT
+    np.testing.assert_allclose(y[10:], np.exp(-0.5 * t[10:]), atol=1e-3)
+
+
+def test_second_order_is_supported() -> None:
+    """A mass-spring-damper admittance s/(m s^2 + d s + k) settles to zero velocity under a step force."""
+    y = step_response((1.0, 0.0), (1.0, 2.0, 100.0), 20000)
+    assert abs(y[-1]) < 1e-6 and np.max(np.abs(y)) > 0.01
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    hnp.arrays(np.float64, st.integers(1, 400), elements=st.floats(-10, 10)),
+    st.sampled_from([((1.0,), (1.0, 1.0)), ((1.0, 0.0), (1.0, 0.5)), ((2.0, 3.0), (1.0, 0.1))]),
+)
+def test_discrete_models_are_passive(u: np.ndarray, tf: tuple[tuple[float, ...], tuple[float, ...]]) -> None:
+    """Tustin keeps positive-real models passive: sum(u y) >= 0 from rest, for any input (eq. 1)."""
+    lti = DiscreteLTI(tf[0], tf[1], DT, 1)
+    acc = 0.0
+    for x in u:
+        y = lti.advance(np.array([x]))[0]
+        acc += x * y
+        assert acc >= -1e-9 * (1 + abs(acc))
+
+
+def test_affine_matches_advance() -> None:
+    """affine() predicts exactly what advance() will output for the settled input."""
+    env = LtiEnvironment(2, DT)
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        v = rng.normal(size=2)
+        f0, z = env.affine(0.0)
+        predicted = f0 + z * v
+        out = env.impedance.advance(v)
+        np.testing.assert_allclose(out, predicted, rtol=1e-12)
+
+
+def test_step_human_reference() -> None:
+    h = StepHuman(1, DT, amplitude=2.0, t_step=0.1)
+    assert h.reference(0.099)[0] == 0.0 and h.reference(0.0995)[0] == 2.0 and h.reference(3.0)[0] == 2.0
+
+
+@pytest.mark.parametrize("num,den", [((1.0, 0.0, 0.0), (1.0, 1.0)), ((1.0,), (0.0,)), ((1.0,), ())])
+def test_improper_rejected(num: tuple[float, ...], den: tuple[float, ...]) -> None:
+    with pytest.raises(ModelError, match="proper"):
+        DiscreteLTI(num, den, DT, 1)
