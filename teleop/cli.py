@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from .codecs import ACCEPTED, CodecError, make_codec
+from .scenarios import SCENARIOS
 
 
 class CliError(Exception):
@@ -79,15 +80,15 @@ def cmd_sim(args: argparse.Namespace) -> int:
     from .sim import SECTION_V_CODECS, SimConfig, run_set
 
     codecs = args.codec or list(SECTION_V_CODECS)
-    base = SimConfig(
-        delay_ms=args.delay,
-        duration=args.duration,
-        dof=args.dof,
-        b=args.b,
-        full_scale=args.range,
-        scenario=args.scenario,
-    )
     try:
+        base = SimConfig(
+            delay_ms=args.delay,
+            duration=args.duration,
+            dof=args.dof,
+            b=args.b,
+            full_scale=args.range,
+            scenario=args.scenario,
+        ).resolved()
         doc, cases = run_set(codecs, base)
     except (ValueError, CodecError) as e:
         raise CliError(str(e)) from None
@@ -115,6 +116,37 @@ def cmd_sim(args: argparse.Namespace) -> int:
     return 0 if all(c["passive"] for c in doc["cases"]) else 1
 
 
+def _add_model_args(p: argparse.ArgumentParser) -> None:
+    """Scenario and model options shared by every command that runs the nodes."""
+    p.add_argument(
+        "--scenario",
+        choices=list(SCENARIOS),
+        default="step",
+        help="step (Section V) or protocol (Section VI); default step",
+    )
+    p.add_argument(
+        "--duration",
+        type=_positive_float("duration"),
+        default=None,
+        metavar="S",
+        help="seconds to run (default: the scenario's, 5 for step, 15 for protocol)",
+    )
+    p.add_argument("--dof", type=_dof, default=None, help="degrees of freedom (default: the scenario's)")
+    p.add_argument(
+        "--b",
+        type=_positive_float("wave impedance b"),
+        default=None,
+        help="wave impedance b > 0, N s/m (default: the scenario's, 1 for step, 20 for protocol)",
+    )
+    p.add_argument(
+        "--range",
+        type=_positive_float("range"),
+        default=None,
+        metavar="R",
+        help="full scale of the raw 16-bit wave format, sqrt(W) (default: the scenario's)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="teleop", description="Networked haptic teleoperation with passive LDR.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -140,25 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="MS",
         help="one-way delay per direction in ms (default 0)",
     )
-    s.add_argument(
-        "--duration",
-        type=_positive_float("duration"),
-        default=5.0,
-        metavar="S",
-        help="simulated seconds (default 5)",
-    )
-    s.add_argument("--dof", type=_dof, default=1, help="degrees of freedom (default 1)")
-    s.add_argument(
-        "--b", type=_positive_float("wave impedance b"), default=1.0, help="wave impedance b > 0 (default 1)"
-    )
-    s.add_argument(
-        "--range",
-        type=_positive_float("range"),
-        default=None,
-        metavar="R",
-        help="full scale of the raw 16-bit wave format (default: the scenario's)",
-    )
-    s.add_argument("--scenario", choices=["step"], default="step", help="scenario (default step)")
+    _add_model_args(s)
     s.add_argument("--out", metavar="DIR", help="write DIR/results.json and one PNG per codec")
     s.set_defaults(func=cmd_sim)
     return p

@@ -149,3 +149,106 @@ class LtiEnvironment:
 
     def advance(self, now: float, v: Array, f: Array) -> None:
         self.impedance.advance(v)
+
+
+def _smooth_steps(t: float, knots: Sequence[tuple[float, float]], ramp: float) -> float:
+    """Piecewise-constant profile ``[(t_start, value), ...]`` with raised-cosine ramps of ``ramp`` s."""
+    v = 0.0
+    for t0, target in knots:
+        if t < t0:
+            break
+        a = min(1.0, (t - t0) / ramp)
+        v = v + (target - v) * 0.5 * (1.0 - np.cos(np.pi * a)) if a < 1.0 else target
+    return v
+
+
+class ProtocolHuman:
+    """Section VI's operator: free motion 0-5 s, a push into foam 5-10 s, two wall pushes 10-15 s.
+
+    Intended velocity ``v_ref(t)`` per DoF; the arm yields to force through the admittance of a
+    mass-spring-damper, ``Y(s) = s / (m s^2 + d s + k)``: pushing against something stiff, the hand
+    ends up pressing with ``k`` times the intended penetration.  DoF 0 is the pushing direction;
+    any further DoF moves laterally (a slow sine), so every DoF carries signal.
+    """
+
+    def __init__(self, dof: int, dt: float, m: float = 1.0, d: float = 20.0, k: float = 300.0) -> None:
+        self.dof = dof
+        self.admittance = DiscreteLTI((1.0, 0.0), (m, d, k), dt, dof)
+        self._y = np.full(dof, self.admittance.feedthrough)
+        self._ref = np.zeros(dof)
+
+    @staticmethod
+    def push_profile(t: float) -> float:
+        w = 2 * np.pi * 0.5
+        if t < 5.0:  # free space: 0.5 Hz strokes of +-5 cm
+            return float(0.05 * w * np.sin(w * t))
+        knots = [
+            (5.0, 0.04),
+            (7.0, 0.0),
+            (7.5, -0.04),
+            (9.5, 0.0),  # into the foam and out
+            (10.0, 0.05),
+            (11.0, -0.05),
+            (12.0, 0.0),  # first wall push
+            (12.5, 0.05),
+            (13.5, -0.05),
+            (14.5, 0.0),
+        ]  # second wall push
+        return _smooth_steps(t, knots, 0.15)
+
+    def reference(self, now: float) -> Array:
+        self._ref[0] = self.push_profile(now)
+        for j in range(1, self.dof):
+            # Starts from rest: a jump would ring the one-tick wave loop (see README, reflections).
+            self._ref[j] = 0.03 * np.sin(2 * np.pi * 0.3 * j * now)
+        return self._ref
+
+    def affine(self, now: float) -> tuple[Array, Array]:
+        return self.reference(now) - self.admittance.free(), self._y
+
+    def advance(self, now: float, v: Array, f: Array) -> None:
+        self.admittance.advance(f)
+
+
+class ProtocolEnvironment:
+    """Free space 0-5 s, foam (a damper) 5-10 s, foam plus a stiff wall on DoF 0 from 10 s.
+
+    The wall is a unilateral spring-damper placed ``wall_gap`` ahead of where the TO is at 10 s.
+    Its spring is integrated implicitly (force from the end-of-tick penetration), which is passive;
+    contact is decided from the start-of-tick position, so in the tick that leaves the wall the
+    force may pull slightly (at most ``k v dt``), which still absorbs energy.
+    """
+
+    def __init__(
+        self,
+        dof: int,
+        dt: float,
+        foam: float = 40.0,
+        k_wall: float = 3000.0,
+        c_wall: float = 20.0,
+        wall_gap: float = 0.02,
+    ) -> None:
+        self.dt = dt
+        self.foam = foam
+        self.k = k_wall
+        self.c = c_wall
+        self.gap = wall_gap
+        self.x = np.zeros(dof)
+        self.wall: float | None = None
+        self._f0 = np.zeros(dof)
+        self._z = np.zeros(dof)
+
+    def affine(self, now: float) -> tuple[Array, Array]:
+        self._f0[:] = 0.0
+        self._z[:] = self.foam if now >= 5.0 else 0.0
+        if now >= 10.0:
+            if self.wall is None:
+                self.wall = float(self.x[0]) + self.gap
+            pen = self.x[0] - self.wall
+            if pen > 0:
+                self._f0[0] = self.k * pen
+                self._z[0] += self.k * self.dt + self.c
+        return self._f0, self._z
+
+    def advance(self, now: float, v: Array, f: Array) -> None:
+        self.x += v * self.dt

@@ -16,15 +16,14 @@ the real processes, and payload and packet sizes are counted, not estimated.
 from __future__ import annotations
 
 import heapq
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from . import metrics, wire
+from . import metrics, scenarios, wire
 from .codecs import make_codec
-from .models import Environment, Human, LtiEnvironment, StepHuman
 from .node import OperatorNode, TeleoperatorNode
 from .wave import WaveImpedance
 
@@ -33,10 +32,6 @@ Array = npt.NDArray[np.float64]
 #: The paper's Section V set.
 SECTION_V_CODECS = ("none", "ids:2", "ids:50", "eds:2", "eds:50", "cq:8")
 ENERGY_TOLERANCE = 1e-9  # J: float rounding in cumulative sums, far below any real violation
-SCENARIOS = ("step",)
-#: Full scale of the raw 16-bit wave format per scenario, sqrt(W): the signals' peak with headroom
-#: (Section V's waves peak near 1.3 with b = 1), so that cq:BITS spends its bits on the signal.
-SCENARIO_FULL_SCALE = {"step": 2.0}
 
 
 class ConstantDelayLink:
@@ -64,40 +59,42 @@ class ConstantDelayLink:
         return out
 
 
-def make_scenario(name: str, dof: int, dt: float) -> tuple[Human, Environment]:
-    if name == "step":
-        return StepHuman(dof, dt), LtiEnvironment(dof, dt)
-    raise ValueError(f"unknown scenario {name!r}; accepted: {', '.join(SCENARIOS)}")
-
-
 @dataclass
 class SimConfig:
+    """One run.  ``None`` means the scenario's default (``teleop.scenarios``)."""
+
     codec: str = "none"
     delay_ms: float = 0.0
-    duration: float = 5.0
+    duration: float | None = None
     dt: float = 0.001
-    dof: int = 1
-    b: float = 1.0
-    full_scale: float | None = None  # None: the scenario's default (SCENARIO_FULL_SCALE)
+    dof: int | None = None
+    b: float | None = None
+    full_scale: float | None = None
     scenario: str = "step"
     window_ms: float = 100.0
     session: int = 1
 
-    def validate(self) -> None:
-        if self.scenario not in SCENARIOS:
-            raise ValueError(f"unknown scenario {self.scenario!r}; accepted: {', '.join(SCENARIOS)}")
-        if self.full_scale is None:
-            self.full_scale = SCENARIO_FULL_SCALE[self.scenario]
-        if not self.dt > 0:
-            raise ValueError(f"dt must be > 0 s, got {self.dt}")
-        if not self.duration > 0:
-            raise ValueError(f"duration must be > 0 s, got {self.duration}")
-        if not self.delay_ms >= 0:
-            raise ValueError(f"delay must be >= 0 ms, got {self.delay_ms}")
-        if self.dof < 1:
-            raise ValueError(f"dof must be >= 1, got {self.dof}")
-        if not self.window_ms >= self.dt * 1e3:
-            raise ValueError(f"window must be at least one tick ({self.dt * 1e3} ms), got {self.window_ms}")
+    def resolved(self) -> SimConfig:
+        """A copy with every default filled in and every value checked (ValueError says what is wrong)."""
+        sc = scenarios.get(self.scenario)
+        c = replace(
+            self,
+            duration=sc.duration if self.duration is None else self.duration,
+            dof=sc.dof if self.dof is None else self.dof,
+            b=sc.b if self.b is None else self.b,
+            full_scale=sc.full_scale if self.full_scale is None else self.full_scale,
+        )
+        if not c.dt > 0:
+            raise ValueError(f"dt must be > 0 s, got {c.dt}")
+        if not c.duration or not c.duration > 0:
+            raise ValueError(f"duration must be > 0 s, got {c.duration}")
+        if not c.delay_ms >= 0:
+            raise ValueError(f"delay must be >= 0 ms, got {c.delay_ms}")
+        if not c.dof or c.dof < 1:
+            raise ValueError(f"dof must be >= 1, got {c.dof}")
+        if not c.window_ms >= c.dt * 1e3:
+            raise ValueError(f"window must be at least one tick ({c.dt * 1e3} ms), got {c.window_ms}")
+        return c
 
 
 @dataclass
@@ -124,13 +121,15 @@ class CaseResult:
 
 def run_case(cfg: SimConfig) -> CaseResult:
     """One deterministic run; same config, same bits out."""
-    cfg.validate()
+    cfg = cfg.resolved()
+    assert (
+        cfg.dof is not None and cfg.duration is not None and cfg.b is not None and cfg.full_scale is not None
+    )
     dof, dt = cfg.dof, cfg.dt
     n_ticks = round(cfg.duration / dt)
     wave = WaveImpedance.of(cfg.b, dof)
-    assert cfg.full_scale is not None
     codec = make_codec(cfg.codec, dof, cfg.full_scale)
-    human, env = make_scenario(cfg.scenario, dof, dt)
+    human, env = scenarios.get(cfg.scenario).make(dof, dt)
     op = OperatorNode(human=human, wave=wave, tx=codec, rx=codec, session=cfg.session, dt=dt)
     to = TeleoperatorNode(environment=env, wave=wave, tx=codec, rx=codec, session=cfg.session, dt=dt)
     delay = cfg.delay_ms / 1e3
@@ -216,11 +215,8 @@ def run_case(cfg: SimConfig) -> CaseResult:
 
 def run_set(codecs: list[str], base: SimConfig) -> tuple[dict[str, Any], list[CaseResult]]:
     """Run each codec with the same config; returns the ``results.json`` document and the traces."""
-    base.validate()
-    cases = []
-    for spec in codecs:
-        cfg = SimConfig(**{**base.__dict__, "codec": spec})
-        cases.append(run_case(cfg))
+    base = base.resolved()
+    cases = [run_case(replace(base, codec=spec)) for spec in codecs]
     i_max = max((c.summary["I"] for c in cases), default=0.0)
     for c in cases:
         c.summary["I_norm"] = c.summary["I"] / i_max if i_max > 0 else 0.0

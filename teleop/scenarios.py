@@ -1,0 +1,52 @@
+"""Scenarios: a human and an environment model with the defaults that suit them.
+
+Shared by ``teleop sim`` and the two real processes, so a simulated and a real run of the same
+scenario use the same models.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from .models import Environment, Human, LtiEnvironment, ProtocolEnvironment, ProtocolHuman, StepHuman
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    description: str
+    dof: int  # default DoF
+    b: float  # default wave impedance, N s/m: of the order of the impedances met
+    full_scale: float  # default range of the raw 16-bit wave format, sqrt(W): peak waves plus headroom
+    duration: float  # default length, s
+    make: Callable[[int, float], tuple[Human, Environment]]
+
+
+SCENARIOS: dict[str, Scenario] = {
+    "step": Scenario(
+        name="step",
+        description="Section V: velocity step, human s/(s+0.5), environment 1/(s+1)",
+        dof=1,
+        b=1.0,
+        full_scale=2.0,  # waves peak at 1.15 (measured with none)
+        duration=5.0,
+        make=lambda dof, dt: (StepHuman(dof, dt), LtiEnvironment(dof, dt)),
+    ),
+    "protocol": Scenario(
+        name="protocol",
+        description="Section VI: free space 0-5 s, foam 5-10 s, two wall pushes 10-15 s",
+        dof=2,
+        b=20.0,
+        full_scale=2.0,  # waves peak at 1.26 (measured with none)
+        duration=15.0,
+        make=lambda dof, dt: (ProtocolHuman(dof, dt), ProtocolEnvironment(dof, dt)),
+    ),
+}
+
+
+def get(name: str) -> Scenario:
+    try:
+        return SCENARIOS[name]
+    except KeyError:
+        raise ValueError(f"unknown scenario {name!r}; accepted: {', '.join(SCENARIOS)}") from None
