@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
@@ -147,6 +148,217 @@ def _add_model_args(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _addr(what: str) -> Any:
+    def parse(text: str) -> tuple[str, int]:
+        from transport.udp import parse_addr
+
+        try:
+            return parse_addr(text, what)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+
+    return parse
+
+
+def _session_params(args: argparse.Namespace, session: int) -> Any:
+    from transport.session import SessionParams
+
+    sc = SCENARIOS[args.scenario]
+    try:
+        return SessionParams(
+            session=session,
+            codec=args.codec,
+            scenario=args.scenario,
+            dof=args.dof if args.dof is not None else sc.dof,
+            b=args.b if args.b is not None else sc.b,
+            full_scale=args.range if args.range is not None else sc.full_scale,
+            duration=args.duration if args.duration is not None else sc.duration,
+            phase=args.phase,
+        ).validate()
+    except (ValueError, CodecError) as e:
+        raise CliError(str(e)) from None
+
+
+def _endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int]) -> Any:
+    from transport.session import EndpointOptions
+
+    return EndpointOptions(
+        role=role,
+        listen=listen,
+        peer=getattr(args, "peer", None),
+        log_dir=Path(args.log) if args.log else None,
+        connect_timeout=args.connect_timeout,
+        rt_priority=None if args.no_rt else 10,
+        use_uvloop=not args.asyncio,
+        quiet=args.quiet,
+        grace_us=args.grace_us,
+    )
+
+
+def cmd_operator(args: argparse.Namespace) -> int:
+    from transport.session import new_session_id, run_endpoint
+
+    params = _session_params(args, args.session or new_session_id())
+    return run_endpoint(_endpoint_options(args, "operator", args.listen), params)
+
+
+def cmd_teleoperator(args: argparse.Namespace) -> int:
+    from transport.session import run_endpoint
+
+    expect = {
+        "codec": make_codec(args.codec).spec if args.codec else None,
+        "scenario": args.scenario,
+        "dof": args.dof,
+        "b": args.b,
+        "full_scale": args.range,
+        "duration": args.duration,
+    }
+    return run_endpoint(_endpoint_options(args, "teleoperator", args.listen), None, expect)
+
+
+def _free_udp_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def _die_with_parent() -> None:
+    """In a child: get SIGTERM if the launcher dies, so no process is left orphaned."""
+    import ctypes
+    import signal
+
+    with contextlib.suppress(OSError):
+        ctypes.CDLL("libc.so.6").prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    import signal
+    import subprocess
+    import time
+
+    from transport.session import new_session_id
+
+    from . import report
+
+    params = _session_params(args, new_session_id())
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    logs = out / "logs"
+    for stale in ("operator.json", "teleoperator.json", "operator.npz", "teleoperator.npz"):
+        (logs / stale).unlink(missing_ok=True)
+    port = args.port or _free_udp_port()
+    common = ["--log", str(logs), "--connect-timeout", str(args.connect_timeout), "--quiet"]
+    common += ["--no-rt"] if args.no_rt else []
+    common += ["--asyncio"] if args.asyncio else []
+    to_cmd = [sys.executable, "-m", "teleop.cli", "teleoperator", "--listen", f"127.0.0.1:{port}", *common]
+    op_cmd = [
+        sys.executable,
+        "-m",
+        "teleop.cli",
+        "operator",
+        "--peer",
+        f"127.0.0.1:{port}",
+        "--listen",
+        "127.0.0.1:0",
+        "--session",
+        str(params.session),
+        "--codec",
+        params.codec,
+        "--scenario",
+        params.scenario,
+        "--dof",
+        str(params.dof),
+        "--b",
+        repr(params.b),
+        "--range",
+        repr(params.full_scale),
+        "--duration",
+        repr(params.duration),
+        "--phase",
+        repr(params.phase),
+        *common,
+    ]
+    print(
+        f"teleop run: teleoperator on 127.0.0.1:{port}, operator -> it; {params.codec}, "
+        f"{params.scenario}, {params.duration:g} s; logs in {logs}",
+        flush=True,
+    )
+    procs = [subprocess.Popen(to_cmd, preexec_fn=_die_with_parent)]
+    time.sleep(0.3)  # let the teleoperator bind before the operator says hello
+    procs.append(subprocess.Popen(op_cmd, preexec_fn=_die_with_parent))
+    interrupted = False
+    limit = time.monotonic() + params.duration + 2 * args.connect_timeout + 10
+    try:
+        while any(p.poll() is None for p in procs):
+            if time.monotonic() > limit:
+                raise CliError("the processes did not finish in time; stopped them")
+            if any(p.returncode not in (None, 0) for p in procs):
+                for p in procs:  # one side failed: do not leave the other waiting
+                    if p.poll() is None:
+                        p.send_signal(signal.SIGTERM)
+            time.sleep(0.05)
+    except KeyboardInterrupt:
+        interrupted = True
+        print("teleop run: interrupted; stopping both processes", file=sys.stderr)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in procs:
+            try:
+                p.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+    codes = {"teleoperator": procs[0].returncode, "operator": procs[1].returncode}
+    if not all((logs / f"{r}.json").exists() for r in codes):
+        raise CliError(f"no report: a process failed before its loop ran (exit codes {codes})")
+    rep = report.build(logs, "udp", compare_sim=not args.no_sim)
+    rep["exit_codes"] = codes
+    (out / "report.json").write_text(json.dumps(rep, indent=2) + "\n")
+    files = [] if args.no_plots else report.write_plots(logs, out, rep)
+    print(report.summary_text(rep))
+    print(f"wrote {out / 'report.json'}" + (f" and {', '.join(f.name for f in files)}" if files else ""))
+    if interrupted:
+        return 130
+    return 0 if all(c == 0 for c in codes.values()) else 1
+
+
+def _add_endpoint_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--log", metavar="DIR", help="write ROLE.json and ROLE.npz logs to DIR")
+    p.add_argument(
+        "--connect-timeout",
+        type=_positive_float("connect timeout"),
+        default=10.0,
+        metavar="S",
+        help="give up if the peer does not answer within S seconds (default 10)",
+    )
+    p.add_argument("--no-rt", action="store_true", help="do not ask for SCHED_FIFO priority")
+    p.add_argument("--asyncio", action="store_true", help="use the stdlib asyncio loop instead of uvloop")
+    p.add_argument("--quiet", action="store_true", help="no summary line at the end")
+    p.add_argument(
+        "--grace-us",
+        type=_nonneg_float("grace"),
+        default=400.0,
+        metavar="US",
+        help="wait up to US microseconds into a tick for a payload that is due (default 400)",
+    )
+
+
+def _add_session_args(p: argparse.ArgumentParser, codec_default: str | None) -> None:
+    p.add_argument(
+        "--codec",
+        type=_codec,
+        default=codec_default,
+        metavar="SPEC",
+        help=f"codec (default {codec_default}). Accepted: {ACCEPTED}",
+    )
+    _add_model_args(p)
+    p.add_argument("--phase", type=float, default=0.5, help=argparse.SUPPRESS)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="teleop", description="Networked haptic teleoperation with passive LDR.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -175,6 +387,71 @@ def build_parser() -> argparse.ArgumentParser:
     _add_model_args(s)
     s.add_argument("--out", metavar="DIR", help="write DIR/results.json and one PNG per codec")
     s.set_defaults(func=cmd_sim)
+
+    r = sub.add_parser(
+        "run",
+        help="launch operator and teleoperator as two processes on 127.0.0.1 and report",
+        description="Launch both processes on 127.0.0.1 over UDP, wait for them, gather both logs and "
+        "write OUT/report.json, PNG plots and a printed summary. Ctrl-C stops both cleanly.",
+    )
+    _add_session_args(r, "eds:50")
+    r.set_defaults(scenario="protocol")
+    r.add_argument("--transport", choices=["udp"], default="udp", help="transport (default udp)")
+    r.add_argument("--out", default="teleop-run", metavar="DIR", help="report folder (default ./teleop-run)")
+    r.add_argument("--port", type=int, default=0, help="teleoperator UDP port (default: a free one)")
+    r.add_argument(
+        "--connect-timeout",
+        type=_positive_float("connect timeout"),
+        default=10.0,
+        metavar="S",
+        help="each process gives up if its peer does not answer within S seconds (default 10)",
+    )
+    r.add_argument("--no-rt", action="store_true", help="do not ask for SCHED_FIFO priority")
+    r.add_argument("--asyncio", action="store_true", help="use the stdlib asyncio loop instead of uvloop")
+    r.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    r.add_argument("--no-sim", action="store_true", help="skip the teleop sim comparison in the report")
+    r.set_defaults(func=cmd_run)
+
+    o = sub.add_parser(
+        "operator",
+        help="the HSI side: simulated human and haptic device",
+        description="Run the operator (HSI) process: it says hello to the teleoperator at "
+        "--peer, agrees the session, and runs its 1 kHz loop.",
+    )
+    o.add_argument(
+        "--peer", type=_addr("--peer"), required=True, metavar="HOST:PORT", help="the teleoperator's address"
+    )
+    o.add_argument(
+        "--listen",
+        type=_addr("--listen"),
+        default=("0.0.0.0", 0),
+        metavar="HOST:PORT",
+        help="local address to bind (default 0.0.0.0:0, any free port)",
+    )
+    o.add_argument("--session", type=int, default=0, help="session id (default: random)")
+    _add_session_args(o, "eds:50")
+    o.set_defaults(scenario="protocol")
+    _add_endpoint_args(o)
+    o.set_defaults(func=cmd_operator)
+
+    t = sub.add_parser(
+        "teleoperator",
+        help="the TO side: simulated robot and environment",
+        description="Run the teleoperator (TO) process: it waits on --listen for an operator, "
+        "accepts its session (or rejects it if an option given here differs), and runs its "
+        "1 kHz loop.",
+    )
+    t.add_argument(
+        "--listen",
+        type=_addr("--listen"),
+        required=True,
+        metavar="HOST:PORT",
+        help="address to wait on, for example 0.0.0.0:7000",
+    )
+    _add_session_args(t, None)
+    t.set_defaults(scenario=None)
+    _add_endpoint_args(t)
+    t.set_defaults(func=cmd_teleoperator)
     return p
 
 

@@ -165,15 +165,35 @@ def _smooth_steps(t: float, knots: Sequence[tuple[float, float]], ramp: float) -
 class ProtocolHuman:
     """Section VI's operator: free motion 0-5 s, a push into foam 5-10 s, two wall pushes 10-15 s.
 
-    Intended velocity ``v_ref(t)`` per DoF; the arm yields to force through the admittance of a
-    mass-spring-damper, ``Y(s) = s / (m s^2 + d s + k)``: pushing against something stiff, the hand
-    ends up pressing with ``k`` times the intended penetration.  DoF 0 is the pushing direction;
-    any further DoF moves laterally (a slow sine), so every DoF carries signal.
+    Intended velocity ``v_ref(t)`` per DoF; the hand yields to force through the sum of two
+    admittances: the arm, a mass-spring-damper ``s / (m s^2 + d s + k)``, and the grip on the handle,
+    a spring-damper ``s / (c s + k_g)``.  Pushing against something stiff, the hand ends up pressing
+    with about ``k`` times the intended penetration.
+
+    Why the grip matters: at high frequency the arm's mass alone would make the HSI a velocity
+    source, which reflects every incoming wave (reflection coefficient -1), and a discrete loop
+    whose other end also reflects (the TO in free space, +1) then rings at the Nyquist frequency
+    after any glitch.  The grip's damping ``c`` is what the port sees at high frequency; with
+    ``c`` equal to the wave impedance ``b`` (20 N s/m by default) the HSI absorbs reflections.
+    DoF 0 is the pushing direction; any further DoF moves laterally (a slow sine).
     """
 
-    def __init__(self, dof: int, dt: float, m: float = 1.0, d: float = 20.0, k: float = 300.0) -> None:
+    def __init__(
+        self,
+        dof: int,
+        dt: float,
+        m: float = 1.0,
+        d: float = 20.0,
+        k: float = 300.0,
+        c_grip: float = 20.0,
+        k_grip: float = 2000.0,
+    ) -> None:
         self.dof = dof
-        self.admittance = DiscreteLTI((1.0, 0.0), (m, d, k), dt, dof)
+        arm_num, arm_den = np.array([1.0, 0.0]), np.array([m, d, k])
+        grip_num, grip_den = np.array([1.0, 0.0]), np.array([c_grip, k_grip])
+        num = np.polyadd(np.polymul(arm_num, grip_den), np.polymul(grip_num, arm_den))
+        den = np.polymul(arm_den, grip_den)
+        self.admittance = DiscreteLTI(tuple(num), tuple(den), dt, dof)
         self._y = np.full(dof, self.admittance.feedthrough)
         self._ref = np.zeros(dof)
 

@@ -91,18 +91,23 @@ class _Port:
     # --- inbound -------------------------------------------------------------------------
     def receive(self, data: bytes) -> bool:
         """Take one datagram.  Returns whether it was accepted; anything else is counted."""
-        c = self.counters
-        c.received += 1
         try:
             pkt = wire.decode(data)
         except wire.WireError as e:
-            c.malformed += 1
-            self.last_error = str(e)
+            self.malformed(str(e))
             return False
         return self.receive_packet(pkt)
 
+    def malformed(self, error: str) -> None:
+        """Count a datagram that did not parse (a transport that parsed it already calls this)."""
+        self.counters.received += 1
+        self.counters.malformed += 1
+        self.last_error = error
+
     def receive_packet(self, pkt: wire.Packet) -> bool:
+        """Take one parsed packet.  Returns whether it was accepted; anything else is counted."""
         c = self.counters
+        c.received += 1
         if pkt.session != self.session:
             c.wrong_session += 1
             return False
@@ -138,7 +143,7 @@ class _Port:
         self.wave_out = x
         self.energy_sent += self.half_dt * float(np.dot(x, x))
         payload = self.encoder.encode(x)
-        tick = self.ticks
+        tick = int(now / self.dt + 0.5)  # from the session clock: stays true if the loop skips ticks
         self.ticks += 1
         if payload is None:
             return None

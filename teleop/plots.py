@@ -47,3 +47,46 @@ def velocity_force(
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def bandwidth(path: Path, dt: float, series: dict[str, tuple[Array, Array]], window: int = 100) -> None:
+    """Per direction: kbit/s on the wire and the baseline over ``window`` ticks; compression over time."""
+    plt = _plt()
+    fig, axes = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True)
+    kernel = np.ones(window)
+    for name, (sent, base) in series.items():
+        s = np.convolve(sent, kernel, "valid")
+        b = np.convolve(base, kernel, "valid")
+        t = (np.arange(s.size) + window) * dt
+        secs = window * dt
+        axes[0].plot(t, s * 8 / secs / 1e3, label=f"{name} (sent)")
+        axes[0].plot(t, b * 8 / secs / 1e3, ls="--", lw=0.8, label=f"{name} (uncompressed baseline)")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            axes[1].plot(t, np.where(s > 0, b / s, np.nan), label=name)
+    axes[0].set_ylabel("kbit/s on the wire")
+    axes[1].set_ylabel(f"compression c (per {window * dt * 1e3:g} ms)")
+    axes[1].set_xlabel("time [s]")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def timing_histogram(path: Path, lateness_ns: dict[str, Array]) -> None:
+    """Histogram of each loop's tick lateness (start minus deadline), log count axis."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(8, 4))
+    hi = max((float(np.max(v)) for v in lateness_ns.values() if v.size), default=1.0) / 1e3
+    bins = np.linspace(0, max(hi, 10.0), 120)
+    for name, v in lateness_ns.items():
+        ax.hist(v / 1e3, bins=bins, alpha=0.6, label=f"{name} ({v.size} ticks)")
+    ax.set_yscale("log")
+    ax.set_xlabel("tick lateness (start - deadline) [us]")
+    ax.set_ylabel("ticks")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -84,8 +84,14 @@ class Codec:
         return self.make_encoder()
 
     def decoder(self, max_queue: int | None = None) -> PlayoutDecoder:
-        """A decoder; its playout queue holds at most ``max_queue`` ticks (default 4 payloads, >= 8)."""
-        return self.make_decoder(max_queue if max_queue is not None else max(4 * self.k, 8))
+        """A decoder whose playout queue holds at most ``max_queue`` ticks.
+
+        The default, K (one payload), is "newest wins": a payload that arrives while an older one
+        still has ticks left (jitter, a late packet) replaces the leftover instead of adding its
+        latency to the rest of the run.  Dropping only removes energy.  On a constant-delay channel
+        the queue is empty whenever a payload arrives, so nothing is ever dropped there.
+        """
+        return self.make_decoder(max_queue if max_queue is not None else self.k)
 
 
 def _int_param(spec: str, text: str, what: str, lo: int, hi: int | None = None) -> int:

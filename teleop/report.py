@@ -1,0 +1,187 @@
+"""Merge the two processes' logs into one report: ``report.json``, PNG plots and a text summary.
+
+Every figure here is read from the logs: bytes counted at the sockets, ticks counted by the loops,
+signals recorded by the nodes.  Signals are aligned by tick index (the handshake's common start).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from . import metrics, plots
+from .sim import SimConfig, run_case
+
+Array = npt.NDArray[np.float64]
+
+
+def _load(log_dir: Path, role: str) -> tuple[dict[str, Any], dict[str, Array]]:
+    summary = json.loads((log_dir / f"{role}.json").read_text())
+    with np.load(log_dir / f"{role}.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    return summary, arrays
+
+
+def _wire(sender: dict[str, Any], receiver: dict[str, Any]) -> dict[str, Any]:
+    s, r = sender["sent"], receiver["received"]
+    keys = (
+        "packets",
+        "payload_bytes",
+        "wire_bytes",
+        "baseline_packets",
+        "baseline_payload_bytes",
+        "baseline_wire_bytes",
+        "compression_payload",
+        "compression_wire",
+        "min_instant_compression_payload",
+        "min_instant_compression_wire",
+    )
+    out = {k: s[k] for k in keys}
+    out.update(
+        received_packets=r["packets"],
+        received_wire_bytes=r["wire_bytes"],
+        received_payload_bytes=r["payload_bytes"],
+        received_malformed=r["malformed"],
+        lost=s["packets"] - r["packets"],
+    )
+    return out
+
+
+def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, Any]:
+    op, a_op = _load(log_dir, "operator")
+    to, a_to = _load(log_dir, "teleoperator")
+    p = op["params"]
+    dt = p["dt"]
+    valid = ~(np.isnan(a_op["v"]).any(axis=1) | np.isnan(a_to["v"]).any(axis=1))
+    i_real = metrics.transparency(a_op["v"][valid], a_to["v"][valid], a_op["f"][valid], a_to["f"][valid], dt)
+    m_fwd = a_op["energy_sent"] - a_to["energy_played"]
+    m_bwd = a_to["energy_sent"] - a_op["energy_played"]
+    rep: dict[str, Any] = {
+        "transport": transport,
+        "codec": p["codec"],
+        "scenario": p["scenario"],
+        "duration_s": p["duration"],
+        "session": p["session"],
+        "dof": p["dof"],
+        "b": p["b"],
+        "range": p["full_scale"],
+        "phase": p["phase"],
+        "processes": {
+            role: {
+                "pid": s["pid"],
+                "completed": s["completed"],
+                "event_loop": s.get("event_loop"),
+                "warnings": s.get("warnings", []),
+                "loop": s["loop"],
+                "inbound": s["node"],
+                "grace": s["grace"],
+            }
+            for role, s in (("operator", op), ("teleoperator", to))
+        },
+        "handshake": {"rtt_us": op.get("handshake_rtt_us"), "clock_offset_ns": op.get("clock_offset_ns")},
+        "wire": {"forward": _wire(op, to), "backward": _wire(to, op)},
+        "transparency": {"I": i_real, "ticks_compared": int(valid.sum())},
+        "energy": {
+            "forward": {
+                "sent": op["energy"]["sent"],
+                "played": to["energy"]["played"],
+                "min_margin": float(np.nanmin(m_fwd)) if valid.any() else None,
+            },
+            "backward": {
+                "sent": to["energy"]["sent"],
+                "played": op["energy"]["played"],
+                "min_margin": float(np.nanmin(m_bwd)) if valid.any() else None,
+            },
+        },
+    }
+    if compare_sim:
+        sim = run_case(
+            SimConfig(
+                codec=p["codec"],
+                scenario=p["scenario"],
+                duration=p["duration"],
+                dof=p["dof"],
+                b=p["b"],
+                full_scale=p["full_scale"],
+                dt=dt,
+            )
+        )
+        i_sim = sim.summary["I"]
+        rep["transparency"].update(
+            I_sim=i_sim, relative_difference=abs(i_real - i_sim) / i_sim if i_sim else None
+        )
+    return rep
+
+
+def write_plots(log_dir: Path, out: Path, rep: dict[str, Any]) -> list[Path]:
+    _, a_op = _load(log_dir, "operator")
+    _, a_to = _load(log_dir, "teleoperator")
+    dt = 1e-3
+    n = a_op["v"].shape[0]
+    t = np.arange(n, dtype=np.float64) * dt
+    files = []
+    f1 = out / "signals.png"
+    plots.velocity_force(
+        f1,
+        t,
+        a_op["v"],
+        a_to["v"],
+        a_op["f"],
+        a_to["f"],
+        f"{rep['codec']} over {rep['transport']}: I = {rep['transparency']['I']:.3e}",
+    )
+    files.append(f1)
+    f2 = out / "bandwidth.png"
+    plots.bandwidth(
+        f2,
+        dt,
+        {
+            "forward": (a_op["tx_wire"], a_op["tx_baseline_wire"]),
+            "backward": (a_to["tx_wire"], a_to["tx_baseline_wire"]),
+        },
+        window=100,
+    )
+    files.append(f2)
+    f3 = out / "loop_timing.png"
+    plots.timing_histogram(f3, {"operator": a_op["lateness_ns"], "teleoperator": a_to["lateness_ns"]})
+    files.append(f3)
+    return files
+
+
+def summary_text(rep: dict[str, Any]) -> str:
+    lines = [
+        f"teleop run: {rep['scenario']} scenario, codec {rep['codec']}, {rep['dof']} DoF, "
+        f"{rep['duration_s']:g} s over {rep['transport']}"
+    ]
+    for role, pr in rep["processes"].items():
+        lp = pr["loop"]
+        pe = lp["period_error_us"]
+        lines.append(
+            f"  {role:<12} pid {pr['pid']:<7} ticks {lp['ticks']:>6}  overruns {lp['overruns']:>3}  "
+            f"skipped {lp['skipped']:>3}  period error p50 {pe['p50']:6.1f}  p99 {pe['p99']:7.1f}  "
+            f"p99.9 {pe['p999']:7.1f}  max {pe['max']:7.0f} us  CPU {100 * lp['cpu_fraction']:4.1f}%  "
+            f"late packets waited for {pr['grace']['waits']}, missed {pr['grace']['missed']}"
+        )
+    for d, w in rep["wire"].items():
+        lines.append(
+            f"  {d:<9} {w['packets']:>6} packets  {w['wire_bytes']:>8} B on the wire "
+            f"(baseline {w['baseline_wire_bytes']} B)  compression payload {w['compression_payload']:.2f}:1 "
+            f"wire {w['compression_wire']:.2f}:1  min instantaneous (100 ms) "
+            f"{w['min_instant_compression_wire']:.2f}:1  received {w['received_packets']}"
+        )
+    tr = rep["transparency"]
+    extra = ""
+    if "I_sim" in tr:
+        diff = 100 * tr["relative_difference"]
+        extra = f"  (teleop sim, same settings: {tr['I_sim']:.4e}; difference {diff:.1f}%)"
+    lines.append(f"  transparency I = {tr['I']:.4e}{extra}")
+    e = rep["energy"]
+    lines.append(
+        f"  energy margin (sent - played) min: forward {e['forward']['min_margin']:.3e} J, "
+        f"backward {e['backward']['min_margin']:.3e} J"
+    )
+    return "\n".join(lines)

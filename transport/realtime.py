@@ -1,0 +1,172 @@
+"""A 1 kHz scheduler on absolute deadlines of the monotonic clock.
+
+Why not asyncio timers: libuv (uvloop) timers have millisecond resolution and Linux's default
+timer slack is 50 us, so a loop on ``call_later`` or relative sleeps drifts and jitters.  Here tick
+``k`` is due at ``t0 + k * period`` exactly; the loop sleeps (``time.sleep``, which uses
+``clock_nanosleep`` on Linux) until ``spin`` before the deadline, then spins on the clock for the
+last stretch.  Deadlines never accumulate error, because they are computed, not chained.
+
+Lateness is ``start - deadline`` of each tick; period error is ``(start_k - start_{k-1}) - period``.
+An *overrun* is a tick started more than one period late.  When the loop falls more than
+``max_catchup`` ticks behind (a stall: the VM's host stole the CPU), the missed ticks are *skipped*
+(counted) instead of run back to back, so the session clock stays true.
+
+Real-time priority (SCHED_FIFO) and 1 ns timer slack are requested where permitted; where not,
+``setup_realtime`` returns warnings and the run goes on.  Under SCHED_FIFO a thread that never
+sleeps is throttled by the kernel, which is another reason to sleep most of the period.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+PR_SET_TIMERSLACK = 29
+
+
+def setup_realtime(priority: int | None = 10, timer_slack_ns: int = 1) -> list[str]:
+    """Ask for SCHED_FIFO at ``priority`` (None: leave the policy) and a tight timer slack.
+
+    Returns human-readable warnings for what was not permitted; never raises.
+    """
+    warnings: list[str] = []
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        if libc.prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(timer_slack_ns), 0, 0, 0) != 0:
+            warnings.append(
+                f"timer slack not set (errno {ctypes.get_errno()}); sleeps may wake up to 50 us late"
+            )
+    except (OSError, AttributeError) as e:
+        warnings.append(f"timer slack not set ({e}); sleeps may wake up to 50 us late")
+    if priority is not None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        except (PermissionError, OSError, AttributeError) as e:
+            warnings.append(f"SCHED_FIFO priority {priority} not permitted ({e}); running at normal priority")
+    return warnings
+
+
+def percentiles_us(samples_ns: npt.NDArray[np.int64]) -> dict[str, float]:
+    """p50, p99, p99.9 and max of absolute values, in microseconds."""
+    if samples_ns.size == 0:
+        return {"p50": 0.0, "p99": 0.0, "p999": 0.0, "max": 0.0}
+    a = np.abs(samples_ns.astype(np.float64)) / 1e3
+    p50, p99, p999 = np.percentile(a, [50, 99, 99.9])
+    return {"p50": float(p50), "p99": float(p99), "p999": float(p999), "max": float(a.max())}
+
+
+@dataclass
+class LoopStats:
+    """What the scheduler saw; ``lateness_ns[i]`` is tick i's start minus its deadline."""
+
+    period_ns: int
+    ticks: int
+    overruns: int
+    skipped: int
+    lateness_ns: npt.NDArray[np.int64]
+    period_error_ns: npt.NDArray[np.int64]
+    cpu_s: float
+    wall_s: float
+
+    def summary(self) -> dict[str, object]:
+        return {
+            "ticks": self.ticks,
+            "overruns": self.overruns,
+            "skipped": self.skipped,
+            "period_us": self.period_ns / 1e3,
+            "period_error_us": percentiles_us(self.period_error_ns),
+            "lateness_us": percentiles_us(self.lateness_ns),
+            "cpu_s": self.cpu_s,
+            "wall_s": self.wall_s,
+            "cpu_fraction": self.cpu_s / self.wall_s if self.wall_s > 0 else 0.0,
+        }
+
+
+class Ticker:
+    """Blocking absolute-deadline ticker: ``start(t0_ns)``, then ``wait() -> k`` for each tick."""
+
+    def __init__(
+        self,
+        period_ns: int = 1_000_000,
+        spin_ns: int = 150_000,
+        max_catchup: int = 20,
+        capacity: int = 0,
+        clock: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        if period_ns <= 0 or spin_ns < 0 or max_catchup < 1:
+            raise ValueError("period must be > 0, spin >= 0, max_catchup >= 1")
+        self.period = period_ns
+        self.spin = spin_ns
+        self.max_catchup = max_catchup
+        self.clock = clock
+        self.k = 0
+        self.t0 = 0
+        self.overruns = 0
+        self.skipped = 0
+        self._lateness = np.zeros(max(capacity, 1024), dtype=np.int64)
+        self._perr = np.zeros_like(self._lateness)
+        self._n = 0
+        self._last_start = 0
+        self._cpu0 = 0.0
+        self._wall0 = 0
+
+    def start(self, t0_ns: int) -> None:
+        self.t0 = t0_ns
+        self.k = 0
+        self._cpu0 = time.process_time()
+        self._wall0 = self.clock()
+
+    def deadline(self, k: int) -> int:
+        return self.t0 + k * self.period
+
+    def wait(self) -> int:
+        """Block until tick ``k``'s deadline; returns ``k`` (which may jump after a skip)."""
+        clock = self.clock
+        deadline = self.t0 + self.k * self.period
+        remaining = deadline - clock()
+        if remaining > self.spin:
+            time.sleep((remaining - self.spin) / 1e9)
+        while clock() < deadline:
+            pass
+        now = clock()
+        late = now - deadline
+        if late > self.max_catchup * self.period:
+            jump = late // self.period
+            self.skipped += int(jump)
+            self.k += int(jump)
+            late -= jump * self.period
+        if late > self.period:
+            self.overruns += 1
+        self._record(late, now)
+        k = self.k
+        self.k += 1
+        return k
+
+    def _record(self, late: int, now: int) -> None:
+        if self._n == self._lateness.size:
+            self._lateness = np.concatenate([self._lateness, np.zeros_like(self._lateness)])
+            self._perr = np.concatenate([self._perr, np.zeros_like(self._perr)])
+        self._lateness[self._n] = late
+        self._perr[self._n] = (now - self._last_start - self.period) if self._n else 0
+        self._last_start = now
+        self._n += 1
+
+    def stats(self) -> LoopStats:
+        n = self._n
+        return LoopStats(
+            period_ns=self.period,
+            ticks=n,
+            overruns=self.overruns,
+            skipped=self.skipped,
+            lateness_ns=self._lateness[:n].copy(),
+            period_error_ns=self._perr[1:n].copy(),
+            cpu_s=time.process_time() - self._cpu0,
+            wall_s=(self.clock() - self._wall0) / 1e9,
+        )

@@ -1,0 +1,521 @@
+"""The operator and teleoperator processes: handshake, the 1 kHz loop, logs.
+
+**Handshake** (msgpack maps; data packets are msgpack arrays, so the two never mix up):
+
+1. operator -> TO ``hello``: session id, codec, DoF, b, range, scenario, duration, and the operator's
+   monotonic clock ``t_ns``; resent every 100 ms until answered or ``--connect-timeout``.
+2. TO -> operator ``welcome`` (echoes ``t_ns``, adds its own clock ``peer_ns``) or ``reject`` with
+   the reason.  From the quickest of a few exchanges the operator estimates the clock offset
+   (NTP style: ``offset = peer_ns - (t_ns + rtt/2)``).
+3. operator -> TO ``start`` with the common start time in the TO's clock; TO -> operator
+   ``started``.  Tick ``k`` of both processes is then due at ``start + k * dt`` in its own clock,
+   so both logs align by tick.  The TO runs ``phase`` of a period (default 0.5) behind the
+   operator: a forward packet reaches the TO within the same tick and a backward packet reaches
+   the operator at the next tick, exactly the order ``teleop sim`` uses.
+
+**Loop.** Each tick: wait for the deadline (``transport.realtime``), let the event loop deliver
+datagrams (one ``await asyncio.sleep(0)``), hand them to the node, tick the node at session time
+``now = k dt``, send its packet.  Bytes are counted at the socket (``transport.counters``).
+
+**End.** Both run the agreed number of ticks, linger briefly to count packets still in flight,
+say ``bye``, and write ``<role>.json`` (summary) and ``<role>.npz`` (per-tick signals) to the log
+folder.  SIGINT/SIGTERM stop the loop at the next tick; the logs are still written.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import random
+import signal
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from teleop import scenarios, wire
+from teleop.codecs import CodecError, make_codec
+from teleop.node import OperatorNode, TeleoperatorNode
+from teleop.wave import WaveImpedance
+
+from .counters import DirectionCounters
+from .realtime import Ticker, setup_realtime
+from .udp import Addr, UdpTransport, new_event_loop
+
+PROTOCOL_VERSION = 1
+ROLES = ("operator", "teleoperator")
+
+
+class SessionError(Exception):
+    """The session could not start or run: printed as one clear line, non-zero exit."""
+
+
+@dataclass(frozen=True)
+class SessionParams:
+    """What the handshake agrees on."""
+
+    session: int
+    codec: str
+    scenario: str
+    dof: int
+    b: float
+    full_scale: float
+    duration: float
+    dt: float = 0.001
+    phase: float = 0.5
+
+    def validate(self) -> SessionParams:
+        """Raise ValueError/CodecError saying what is wrong; returns self with the codec canonical."""
+        scenarios.get(self.scenario)
+        if not 1 <= self.dof <= 64:
+            raise ValueError(f"dof must be 1..64, got {self.dof}")
+        if not self.duration > 0 or not self.dt > 0:
+            raise ValueError(f"duration and dt must be > 0, got {self.duration}, {self.dt}")
+        if not 0.0 <= self.phase < 1.0:
+            raise ValueError(f"phase must be in [0, 1) periods, got {self.phase}")
+        WaveImpedance.of(self.b, self.dof)
+        spec = make_codec(self.codec, self.dof, self.full_scale).spec
+        return SessionParams(**{**asdict(self), "codec": spec})
+
+    @property
+    def ticks(self) -> int:
+        return round(self.duration / self.dt)
+
+    @classmethod
+    def from_msg(cls, m: dict[str, Any]) -> SessionParams:
+        try:
+            p = cls(
+                session=int(m["session"]),
+                codec=str(m["codec"]),
+                scenario=str(m["scenario"]),
+                dof=int(m["dof"]),
+                b=float(m["b"]),
+                full_scale=float(m["range"]),
+                duration=float(m["duration"]),
+                dt=float(m["dt"]),
+                phase=float(m["phase"]),
+            )
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"bad hello: {type(e).__name__}: {e}") from None
+        return p.validate()
+
+    def to_msg(self) -> dict[str, Any]:
+        return {
+            "session": self.session,
+            "codec": self.codec,
+            "scenario": self.scenario,
+            "dof": self.dof,
+            "b": self.b,
+            "range": self.full_scale,
+            "duration": self.duration,
+            "dt": self.dt,
+            "phase": self.phase,
+        }
+
+
+@dataclass
+class EndpointOptions:
+    role: str
+    listen: Addr
+    peer: Addr | None = None
+    log_dir: Path | None = None
+    connect_timeout: float = 10.0
+    rt_priority: int | None = 10
+    use_uvloop: bool = True
+    spin_us: int = 100
+    linger: float = 0.2
+    grace_us: float = 400.0
+    quiet: bool = False
+
+
+def _control(kind: str, **fields: Any) -> bytes:
+    out: bytes = msgpack.packb({"t": kind, "v": PROTOCOL_VERSION, **fields}, use_bin_type=True)
+    return out
+
+
+def _parse_control(data: bytes) -> dict[str, Any] | None:
+    """A control map, or None if ``data`` is not one (data packets are arrays)."""
+    if not data or (data[0] & 0xF0 != 0x80 and data[0] not in (0xDE, 0xDF)):
+        return None
+    try:
+        m = msgpack.unpackb(data, raw=False)
+    except Exception:
+        return None
+    return m if isinstance(m, dict) and isinstance(m.get("t"), str) else None
+
+
+class _Stop:
+    def __init__(self) -> None:
+        self.requested = False
+        self.signal: int | None = None
+
+    def __call__(self, signum: int) -> None:
+        self.requested = True
+        self.signal = signum
+
+
+# --------------------------------------------------------------------------------------------
+# handshake
+# --------------------------------------------------------------------------------------------
+async def _operator_handshake(
+    tr: UdpTransport, peer: Addr, params: SessionParams, timeout: float, stop: _Stop
+) -> tuple[int, int, int]:
+    """Returns (offset_ns, rtt_ns, start_ns in the operator's clock).
+
+    Clock offset from NTP's four timestamps of the quickest of several exchanges: hello sent at t1,
+    received by the TO at t2, welcome sent at t3, received here at t4;
+    ``offset = ((t2 - t1) + (t3 - t4)) / 2``, ``rtt = (t4 - t1) - (t3 - t2)``.
+    """
+    clock = time.monotonic_ns
+    give_up = clock() + int(timeout * 1e9)
+    best: tuple[int, int] | None = None  # (rtt, offset)
+    answers = 0
+    hello = params.to_msg()
+    while answers < 8:
+        if stop.requested:
+            raise SessionError("interrupted during the handshake")
+        if clock() > give_up:
+            if best is not None:
+                break
+            raise SessionError(
+                f"peer {peer[0]}:{peer[1]} never answered within {timeout:g} s "
+                f"(is `teleop teleoperator --listen {peer[0]}:{peer[1]}` running?)"
+            )
+        t1 = clock()
+        tr.send(_control("hello", t_ns=t1, **hello), peer)
+        wait_until = t1 + 100_000_000
+        answered = False
+        while not answered and clock() < wait_until:
+            await tr.wait((wait_until - clock()) / 1e9)
+            for data, addr, t4 in tr.drain():
+                m = _parse_control(data)
+                if m is None or addr != peer or m.get("session") != params.session:
+                    continue
+                if m["t"] == "reject":
+                    raise SessionError(f"peer {peer[0]}:{peer[1]} rejected the session: {m.get('why')}")
+                if m["t"] == "welcome" and m.get("t_ns") == t1:
+                    t2, t3 = int(m["t2"]), int(m["t3"])
+                    rtt = (t4 - t1) - (t3 - t2)
+                    offset = ((t2 - t1) + (t3 - t4)) // 2
+                    if best is None or rtt < best[0]:
+                        best = (rtt, offset)
+                    answers += 1
+                    answered = True
+    assert best is not None
+    rtt, offset = best
+    start = clock() + 300_000_000
+    while clock() < start - 50_000_000:
+        tr.send(_control("start", session=params.session, start_ns=start + offset), peer)
+        t_wait = clock() + 20_000_000
+        while clock() < t_wait:
+            await tr.wait((t_wait - clock()) / 1e9)
+            for data, addr, _ in tr.drain():
+                m = _parse_control(data)
+                if m and addr == peer and m["t"] == "started" and m.get("session") == params.session:
+                    return offset, rtt, start
+    raise SessionError(f"peer {peer[0]}:{peer[1]} did not confirm the start")
+
+
+async def _teleoperator_handshake(
+    tr: UdpTransport, timeout: float, expect: dict[str, Any], stop: _Stop
+) -> tuple[SessionParams, Addr, int]:
+    """Wait for an operator; returns (params, operator address, start_ns in this clock)."""
+    clock = time.monotonic_ns
+    give_up = clock() + int(timeout * 1e9)
+    params: SessionParams | None = None
+    peer: Addr | None = None
+    while True:
+        if stop.requested:
+            raise SessionError("interrupted during the handshake")
+        if clock() > give_up:
+            what = "no operator said hello" if params is None else "the operator never sent start"
+            raise SessionError(f"{what} within {timeout:g} s on {tr.local_address[0]}:{tr.local_address[1]}")
+        await tr.wait(min(0.1, (give_up - clock()) / 1e9))
+        for data, addr, t2 in tr.drain():
+            m = _parse_control(data)
+            if m is None:
+                continue
+            if m["t"] == "hello":
+                if peer is not None and addr != peer:
+                    tr.send(
+                        _control("reject", session=m.get("session"), why="busy with another operator"), addr
+                    )
+                    continue
+                try:
+                    p = SessionParams.from_msg(m)
+                    for k, v in expect.items():
+                        if v is not None and getattr(p, k) != v:
+                            raise ValueError(f"{k} {getattr(p, k)!r} differs from this teleoperator's {v!r}")
+                except (ValueError, CodecError) as e:
+                    tr.send(_control("reject", session=m.get("session"), why=str(e)), addr)
+                    raise SessionError(f"rejected the operator at {addr[0]}:{addr[1]}: {e}") from None
+                params, peer = p, addr
+                tr.send(
+                    _control("welcome", session=p.session, t_ns=m.get("t_ns", 0), t2=t2, t3=clock()), addr
+                )
+            elif (
+                m["t"] == "start"
+                and params is not None
+                and addr == peer
+                and m.get("session") == params.session
+            ):
+                tr.send(_control("started", session=params.session), addr)
+                assert peer is not None
+                return params, peer, int(m["start_ns"])
+
+
+# --------------------------------------------------------------------------------------------
+# the loop
+# --------------------------------------------------------------------------------------------
+class _Inbound:
+    """Sorts what the socket received: data packets to the node, control messages, strangers."""
+
+    def __init__(
+        self,
+        tr: UdpTransport,
+        peer: Addr,
+        node: OperatorNode | TeleoperatorNode,
+        rx: DirectionCounters,
+        session: int,
+    ) -> None:
+        self.tr = tr
+        self.peer = peer
+        self.node = node
+        self.rx = rx
+        self.session = session
+        self.foreign = 0
+        self.peer_bye = False
+
+    def handle(self, k: int, play: bool = True) -> None:
+        """Drain the inbox during tick ``k``; with ``play`` False only count (after the loop)."""
+        rx, node = self.rx, self.node
+        for data, addr, _ in self.tr.drain():
+            if addr != self.peer:
+                self.foreign += 1
+                continue
+            if data[:1] == b"\x9a":  # a 10-element msgpack array: a data packet
+                try:
+                    pkt = wire.decode(data)
+                except wire.WireError as e:
+                    rx.packet(k, len(data), None)
+                    node.malformed(str(e))
+                    continue
+                rx.packet(k, len(data), len(pkt.payload))
+                if play:
+                    node.receive_packet(pkt)
+                continue
+            m = _parse_control(data)
+            if m is None:
+                rx.packet(k, len(data), None)
+                node.malformed("neither a data packet nor a control message")
+            elif m["t"] == "start":
+                self.tr.send(_control("started", session=self.session), self.peer)
+            elif m["t"] == "bye":
+                self.peer_bye = True
+
+
+async def _run_loop(
+    opts: EndpointOptions,
+    tr: UdpTransport,
+    peer: Addr,
+    params: SessionParams,
+    node: OperatorNode | TeleoperatorNode,
+    t0_ns: int,
+    stop: _Stop,
+) -> dict[str, Any]:
+    n = params.ticks
+    dt = params.dt
+    dof = params.dof
+    tx_dir = node.tx_direction
+    tx = DirectionCounters(n)
+    rx = DirectionCounters(n)
+    raw_payload = bytes(make_codec("none", dof, params.full_scale).raw_bytes_per_tick)
+    rec = {name: np.full((n, dof), np.nan) for name in ("v", "f", "wave_out", "wave_in")}
+    e_sent = np.full(n, np.nan)
+    e_played = np.full(n, np.nan)
+    inbound = _Inbound(tr, peer, node, rx, params.session)
+    grace_ns = round(opts.grace_us * 1000)
+    grace_waits = grace_missed = grace_ns_total = 0
+    clock = time.monotonic_ns
+    period_ns = round(dt * 1e9)
+    ticker = Ticker(period_ns=period_ns, spin_ns=opts.spin_us * 1000, capacity=n + 16)
+    ticker.start(t0_ns)
+    send = tr.send
+    encode = wire.encode
+    k = 0
+    while not stop.requested and ticker.k < n:
+        k = ticker.wait()
+        if k >= n:  # a stall skipped past the end
+            break
+        await asyncio.sleep(0)  # one event-loop pass: datagrams received since the last tick
+        inbound.handle(k)
+        if grace_ns and node.decoder.queued == 0 and node.counters.accepted:
+            # A payload is due and not here yet: poll for it a little rather than play a gap.
+            limit = ticker.deadline(k) + grace_ns
+            grace_waits += 1
+            t_wait = clock()
+            while node.decoder.queued == 0 and clock() < limit:
+                await asyncio.sleep(0)
+                inbound.handle(k)
+            grace_ns_total += clock() - t_wait
+            grace_missed += node.decoder.queued == 0
+        now = k * dt
+        pkt = node.tick(now)
+        t_us = int(now * 1e6)
+        if pkt is not None:
+            data = encode(pkt)
+            send(data, peer)
+            tx.packet(k, len(data), len(pkt.payload))
+        base = encode(wire.Packet(params.session, tx_dir, k, k, t_us, 0, raw_payload, node.energy_sent))
+        tx.baseline(k, len(base), len(raw_payload))
+        rec["v"][k] = node.v
+        rec["f"][k] = node.f
+        rec["wave_out"][k] = node.wave_out
+        rec["wave_in"][k] = node.wave_in
+        e_sent[k] = node.energy_sent
+        e_played[k] = node.energy_played
+    stats = ticker.stats()
+    completed = not stop.requested and ticker.k >= n
+    # Linger: count what is still in flight, so sender and receiver counts can be compared.
+    for _ in range(3):
+        send(_control("bye", session=params.session), peer)
+    t_end = time.monotonic() + opts.linger
+    while time.monotonic() < t_end:
+        await asyncio.sleep(0.005)
+        inbound.handle(n - 1, play=False)
+    direction = wire.DIRECTIONS[tx_dir]
+    other = wire.DIRECTIONS[1 - tx_dir]
+    window = max(1, round(0.1 / dt))
+    summary: dict[str, Any] = {
+        "role": opts.role,
+        "pid": os.getpid(),
+        "completed": completed,
+        "stopped_by_signal": stop.signal,
+        "peer_said_bye": inbound.peer_bye,
+        "grace": {
+            "limit_us": opts.grace_us,
+            "waits": grace_waits,
+            "missed": grace_missed,
+            "waited_us_total": grace_ns_total / 1e3,
+        },
+        "params": asdict(params),
+        "loop": stats.summary(),
+        "sent": {"direction": direction, **tx.summary(window)},
+        "received": {
+            "direction": other,
+            **rx.summary(window),
+            "foreign": inbound.foreign,
+            "inbox_overflow": tr.inbox_overflow,
+            "socket_errors": tr.socket_errors,
+        },
+        "node": {
+            **node.counters.as_dict(),
+            "last_error": node.last_error,
+            "decoder_underruns": node.decoder.underruns,
+            "decoder_dropped_samples": node.decoder.dropped_samples,
+        },
+        "energy": {
+            "sent": node.energy_sent,
+            "played": node.energy_played,
+            "peer_reported_sent": node.peer_energy_sent,
+        },
+    }
+    arrays: dict[str, Any] = {
+        **rec,
+        "energy_sent": e_sent,
+        "energy_played": e_played,
+        "lateness_ns": stats.lateness_ns,
+        **tx.arrays("tx"),
+        **rx.arrays("rx"),
+    }
+    if opts.log_dir is not None:
+        opts.log_dir.mkdir(parents=True, exist_ok=True)
+        (opts.log_dir / f"{opts.role}.json").write_text(json.dumps(summary, indent=2) + "\n")
+        np.savez_compressed(opts.log_dir / f"{opts.role}.npz", **arrays)
+    return summary
+
+
+# --------------------------------------------------------------------------------------------
+# entry points
+# --------------------------------------------------------------------------------------------
+async def _endpoint(
+    opts: EndpointOptions, params: SessionParams | None, expect: dict[str, Any]
+) -> dict[str, Any]:
+    loop = asyncio.get_running_loop()
+    stop = _Stop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop, sig)
+    tr = await UdpTransport.bind(opts.listen)
+    try:
+        if opts.role == "operator":
+            assert params is not None and opts.peer is not None
+            peer = opts.peer
+            offset, rtt, start = await _operator_handshake(tr, peer, params, opts.connect_timeout, stop)
+            t0 = start
+            extra = {"clock_offset_ns": offset, "handshake_rtt_us": rtt / 1e3}
+        else:
+            params, peer, start = await _teleoperator_handshake(tr, opts.connect_timeout, expect, stop)
+            t0 = start + round(params.phase * params.dt * 1e9)
+            extra = {}
+        warnings = setup_realtime(opts.rt_priority)
+        for w in warnings:
+            print(f"teleop {opts.role}: warning: {w}", file=sys.stderr)
+        sc = scenarios.get(params.scenario)
+        human, env = sc.make(params.dof, params.dt)
+        wave = WaveImpedance.of(params.b, params.dof)
+        codec = make_codec(params.codec, params.dof, params.full_scale)
+        node: OperatorNode | TeleoperatorNode
+        if opts.role == "operator":
+            node = OperatorNode(
+                human=human, wave=wave, tx=codec, rx=codec, session=params.session, dt=params.dt
+            )
+        else:
+            node = TeleoperatorNode(
+                environment=env, wave=wave, tx=codec, rx=codec, session=params.session, dt=params.dt
+            )
+        summary = await _run_loop(opts, tr, peer, params, node, t0, stop)
+        summary.update(extra, warnings=warnings, event_loop=type(loop).__module__.split(".")[0])
+        if opts.log_dir is not None:
+            (opts.log_dir / f"{opts.role}.json").write_text(json.dumps(summary, indent=2) + "\n")
+        return summary
+    finally:
+        tr.close()
+
+
+def run_endpoint(
+    opts: EndpointOptions, params: SessionParams | None = None, expect: dict[str, Any] | None = None
+) -> int:
+    """Run one process's side of a session; returns the exit status (0 ok, 1 error, 130 interrupted)."""
+    loop, loop_name = new_event_loop(opts.use_uvloop)
+    try:
+        summary = loop.run_until_complete(_endpoint(opts, params, expect or {}))
+    except SessionError as e:
+        print(f"teleop {opts.role}: error: {e}", file=sys.stderr)
+        return 1
+    except OSError as e:
+        print(f"teleop {opts.role}: error: {e.strerror or e}", file=sys.stderr)
+        return 1
+    finally:
+        loop.close()
+    if not opts.quiet:
+        lp = summary["loop"]
+        pe = lp["period_error_us"]
+        print(
+            f"teleop {opts.role} [{loop_name}]: {lp['ticks']} ticks, overruns {lp['overruns']}, "
+            f"period error p50/p99/max {pe['p50']:.1f}/{pe['p99']:.1f}/{pe['max']:.0f} us, "
+            f"CPU {100 * lp['cpu_fraction']:.0f}%, sent {summary['sent']['packets']} packets, "
+            f"received {summary['received']['packets']}",
+            file=sys.stderr,
+        )
+    if summary["stopped_by_signal"] is not None:
+        return 128 + int(summary["stopped_by_signal"])
+    return 0
+
+
+def new_session_id() -> int:
+    return random.SystemRandom().randrange(1, 2**32)

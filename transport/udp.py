@@ -1,0 +1,119 @@
+"""UDP datagrams on asyncio, with uvloop when available (the default) and stdlib asyncio otherwise.
+
+The protocol callback only appends to a bounded inbox; the 1 kHz loop drains it once per tick.
+Anything that overflows the inbox is counted, never silently lost.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections import deque
+
+Addr = tuple[str, int]
+
+
+def new_event_loop(use_uvloop: bool = True) -> tuple[asyncio.AbstractEventLoop, str]:
+    """An event loop and its name: uvloop if asked for and installed, else stdlib asyncio."""
+    if use_uvloop:
+        try:
+            import uvloop
+
+            return uvloop.new_event_loop(), "uvloop"
+        except ImportError:  # pragma: no cover - uvloop is a dependency on Linux
+            pass
+    return asyncio.new_event_loop(), "asyncio"
+
+
+def parse_addr(text: str, what: str) -> Addr:
+    """``HOST:PORT`` -> (host, port); ValueError says what is wrong and what is allowed."""
+    host, sep, port = text.rpartition(":")
+    if not sep or not host:
+        raise ValueError(f"{what} must be HOST:PORT (for example 127.0.0.1:7000), got {text!r}")
+    try:
+        p = int(port)
+    except ValueError:
+        raise ValueError(f"{what}: port must be an integer 0..65535, got {port!r}") from None
+    if not 0 <= p <= 65535:
+        raise ValueError(f"{what}: port must be an integer 0..65535, got {p}")
+    return host.strip("[]"), p
+
+
+class _Protocol(asyncio.DatagramProtocol):
+    def __init__(self, owner: UdpTransport) -> None:
+        self.owner = owner
+
+    def datagram_received(self, data: bytes, addr: Addr) -> None:
+        o = self.owner
+        if len(o.inbox) == o.inbox.maxlen:
+            o.inbox_overflow += 1
+        o.inbox.append((data, addr, time.monotonic_ns()))
+        w = o._waiter
+        if w is not None and not w.done():
+            w.set_result(None)
+
+    def error_received(self, exc: Exception) -> None:
+        self.owner.socket_errors += 1
+        self.owner.last_socket_error = f"{type(exc).__name__}: {exc}"
+
+
+class UdpTransport:
+    """A bound UDP socket: ``send(data, addr)``, ``drain() -> [(data, addr, t_rx_ns)]``.
+
+    ``t_rx_ns`` is the monotonic clock when the event loop handed the datagram over.
+    """
+
+    def __init__(self, inbox_size: int = 4096) -> None:
+        self.inbox: deque[tuple[bytes, Addr, int]] = deque(maxlen=inbox_size)
+        self._waiter: asyncio.Future[None] | None = None
+        self.inbox_overflow = 0
+        self.socket_errors = 0
+        self.last_socket_error = ""
+        self._transport: asyncio.DatagramTransport | None = None
+
+    @classmethod
+    async def bind(cls, local: Addr, inbox_size: int = 4096) -> UdpTransport:
+        """Bind ``local``; OSError (for example EADDRINUSE) propagates with the address in it."""
+        self = cls(inbox_size)
+        loop = asyncio.get_running_loop()
+        try:
+            transport, _ = await loop.create_datagram_endpoint(lambda: _Protocol(self), local_addr=local)
+        except OSError as e:
+            raise OSError(e.errno, f"cannot bind UDP {local[0]}:{local[1]}: {e.strerror or e}") from None
+        self._transport = transport
+        return self
+
+    @property
+    def local_address(self) -> Addr:
+        assert self._transport is not None
+        host, port = self._transport.get_extra_info("sockname")[:2]
+        return str(host), int(port)
+
+    def send(self, data: bytes, addr: Addr) -> None:
+        assert self._transport is not None
+        self._transport.sendto(data, addr)
+
+    def drain(self) -> list[tuple[bytes, Addr, int]]:
+        items = list(self.inbox)
+        self.inbox.clear()
+        return items
+
+    async def wait(self, timeout: float) -> bool:
+        """Wait until a datagram is in the inbox (woken by I/O, not a timer); False on timeout."""
+        if self.inbox:
+            return True
+        self._waiter = asyncio.get_running_loop().create_future()
+        try:
+            await asyncio.wait_for(self._waiter, max(timeout, 0.0))
+        except TimeoutError:
+            return False
+        finally:
+            self._waiter = None
+        return True
+
+    def close(self) -> None:
+        if self._transport is not None:
+            with contextlib.suppress(Exception):
+                self._transport.close()
+            self._transport = None
