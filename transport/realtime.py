@@ -121,7 +121,7 @@ class Ticker:
         self.t0 = t0_ns
         self.k = 0
         self._cpu0 = time.process_time()
-        self._wall0 = self.clock()
+        self._wall0 = t0_ns  # wall time and CPU fraction cover the ticking, not the wait to start
 
     def deadline(self, k: int) -> int:
         return self.t0 + k * self.period

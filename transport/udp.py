@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import time
 from collections import deque
 
@@ -80,7 +81,10 @@ class UdpTransport:
         try:
             transport, _ = await loop.create_datagram_endpoint(lambda: _Protocol(self), local_addr=local)
         except OSError as e:
-            raise OSError(e.errno, f"cannot bind UDP {local[0]}:{local[1]}: {e.strerror or e}") from None
+            # uvloop wraps the reason (EADDRINUSE: "Address already in use") as the cause.
+            root = e.__cause__ if isinstance(e.__cause__, OSError) else e
+            reason = os.strerror(root.errno) if root.errno else str(root)
+            raise OSError(root.errno, f"cannot bind UDP {local[0]}:{local[1]}: {reason}") from None
         self._transport = transport
         return self
 

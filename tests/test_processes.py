@@ -1,0 +1,242 @@
+"""Two real OS processes on loopback: counts, compression, timing, shutdown, and clear errors.
+
+These launch `teleop run` (or one side alone) for a few seconds.  Figures asserted exactly are the
+ones the design makes exact (packet counts per codec rate, payload compression, sender and
+receiver counts on a lossless loopback); figures that depend on a shared machine's scheduling are
+asserted with a tolerance, and transparency is compared with `teleop sim` only when the report
+says that no payload missed its tick (each miss is a zero-filled tick, reported).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+pytestmark = pytest.mark.integration
+
+TELEOP = [sys.executable, "-m", "teleop.cli"]
+
+
+def _run(
+    tmp: Path, *args: str, timeout: float = 60
+) -> tuple[subprocess.CompletedProcess[str], dict[str, Any]]:
+    out = tmp / "run"
+    r = subprocess.run(
+        [*TELEOP, "run", "--out", str(out), "--no-plots", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+    rep = json.loads((out / "report.json").read_text()) if (out / "report.json").exists() else {}
+    return r, rep
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # A zombie of a reaped child cannot linger: the launcher waited for it.
+    status = Path(f"/proc/{pid}/status")
+    return status.exists() and "State:\tZ" not in status.read_text()
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _misses(rep: dict[str, Any]) -> int:
+    return sum(p["grace"]["missed"] for p in rep["processes"].values())
+
+
+@pytest.mark.parametrize(
+    "codec,per_dir,c_payload",
+    [("eds:50", 60, 50.0), ("none", 3000, 1.0), ("ids:2", 1500, 2.0), ("cq:8", 3000, 2.0)],
+)
+def test_counts_and_compression(tmp_path: Path, codec: str, per_dir: int, c_payload: float) -> None:
+    r, rep = _run(tmp_path, "--codec", codec, "--duration", "3")
+    assert r.returncode == 0, r.stderr
+    assert rep["transport"] == "udp" and rep["codec"] == codec and rep["duration_s"] == 3.0
+    for d in ("forward", "backward"):
+        w = rep["wire"][d]
+        assert w["packets"] == per_dir  # the codec's rate, counted at the sending socket
+        assert w["baseline_packets"] == 3000
+        assert w["received_packets"] == w["packets"]  # loopback loses nothing: both ends agree
+        assert w["received_wire_bytes"] == w["wire_bytes"]
+        assert w["payload_bytes"] == per_dir * (4 if codec != "cq:8" else 2)  # 2 DoF
+        assert w["compression_payload"] == c_payload
+        # On the wire the header weighs in: c_wire < c_payload unless every tick is sent.
+        assert 0.5 * c_payload < w["compression_wire"] <= 1.05 * c_payload
+        assert w["min_instant_compression_wire"] <= w["compression_wire"] * 1.05
+    for role, p in rep["processes"].items():
+        loop = p["loop"]
+        assert loop["ticks"] + loop["skipped"] == 3000, role  # every tick of the session ran or was skipped
+        assert abs(loop["wall_s"] - 3.0) < 0.1, role  # at 1 kHz of wall-clock time
+        assert loop["period_error_us"]["p50"] < 50, role
+        assert not _alive(p["pid"]), f"{role} process {p['pid']} still running"
+    tr = rep["transparency"]
+    assert 0 <= tr["I"] < 1.0  # bounded: an unstable or ringing loop gives I >> 1
+    if _misses(rep) == 0:
+        assert tr["I"] == pytest.approx(tr["I_sim"], rel=0.05)
+    e = rep["energy"]
+    assert e["forward"]["min_margin"] >= -1e-9 and e["backward"]["min_margin"] >= -1e-9
+
+
+def test_report_contract_and_logs(tmp_path: Path) -> None:
+    r, rep = _run(tmp_path, "--codec", "eds:50", "--duration", "2")
+    assert r.returncode == 0, r.stderr
+    for role in ("operator", "teleoperator"):
+        p = rep["processes"][role]
+        assert isinstance(p["pid"], int)
+        for k in ("ticks", "overruns"):
+            assert isinstance(p["loop"][k], int)
+        assert set(p["loop"]["period_error_us"]) >= {"p50", "p99", "p999", "max"}
+    for d in ("forward", "backward"):
+        assert set(rep["wire"][d]) >= {
+            "packets",
+            "payload_bytes",
+            "wire_bytes",
+            "baseline_packets",
+            "baseline_wire_bytes",
+            "compression_payload",
+            "compression_wire",
+            "min_instant_compression_wire",
+        }
+    assert isinstance(rep["transparency"]["I"], float)
+    assert "teleop run: protocol scenario, codec eds:50" in r.stdout
+    # Wire bytes are what the socket saw: each datagram's length plus 28 (UDP/IPv4).  Rebuild the
+    # datagrams eds:50 must have sent (ticks 0, 50, ...; 2 DoF, 4-byte payload) and compare.
+    import numpy as np
+
+    from teleop import wire
+
+    with np.load(tmp_path / "run" / "logs" / "operator.npz") as z:
+        sent_ticks = np.flatnonzero(z["tx_wire"])
+        per_tick = z["tx_wire"][sent_ticks]
+    assert sent_ticks.tolist() == list(range(0, 2000, 50))
+    for seq, (tick, counted) in enumerate(zip(sent_ticks.tolist(), per_tick.tolist(), strict=True)):
+        pkt = wire.Packet(rep["session"], wire.FORWARD, seq, tick, tick * 1000, 2, bytes(4), 1.0)
+        assert counted == len(wire.encode(pkt)) + 28
+    assert rep["wire"]["forward"]["wire_bytes"] == int(per_tick.sum())
+
+
+def test_ctrl_c_stops_both_cleanly(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    p = subprocess.Popen(
+        [*TELEOP, "run", "--out", str(out), "--no-plots", "--no-sim", "--duration", "30"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    time.sleep(3.0)
+    os.killpg(p.pid, signal.SIGINT)  # what a terminal's Ctrl-C does: the whole process group
+    _, stderr = p.communicate(timeout=20)
+    assert p.returncode == 130, stderr
+    rep = json.loads((out / "report.json").read_text())
+    for role, pr in rep["processes"].items():
+        assert pr["completed"] is False
+        assert 500 < pr["loop"]["ticks"] < 30000, role
+        assert not _alive(pr["pid"]), f"{role} left running"
+    assert rep["exit_codes"] == {"teleoperator": 130, "operator": 130}
+
+
+def test_peer_never_answers(tmp_path: Path) -> None:
+    port = _free_port()
+    t0 = time.monotonic()
+    r = subprocess.run(
+        [
+            *TELEOP,
+            "operator",
+            "--peer",
+            f"127.0.0.1:{port}",
+            "--listen",
+            "127.0.0.1:0",
+            "--connect-timeout",
+            "1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert r.returncode == 1
+    assert f"peer 127.0.0.1:{port} never answered within 1 s" in r.stderr
+    assert time.monotonic() - t0 < 10
+
+
+def test_port_taken(tmp_path: Path) -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        r = subprocess.run(
+            [*TELEOP, "teleoperator", "--listen", f"127.0.0.1:{port}", "--connect-timeout", "1"],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+    assert r.returncode == 1
+    assert f"cannot bind UDP 127.0.0.1:{port}" in r.stderr and "in use" in r.stderr
+
+
+def test_teleoperator_rejects_a_different_codec(tmp_path: Path) -> None:
+    port = _free_port()
+    to = subprocess.Popen(
+        [
+            *TELEOP,
+            "teleoperator",
+            "--listen",
+            f"127.0.0.1:{port}",
+            "--codec",
+            "cq:8",
+            "--connect-timeout",
+            "10",
+        ],
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    time.sleep(0.5)
+    op = subprocess.run(
+        [
+            *TELEOP,
+            "operator",
+            "--peer",
+            f"127.0.0.1:{port}",
+            "--listen",
+            "127.0.0.1:0",
+            "--codec",
+            "eds:50",
+            "--connect-timeout",
+            "5",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    _, to_err = to.communicate(timeout=20)
+    assert op.returncode == 1 and to.returncode == 1
+    assert "rejected the session: codec 'eds:50' differs from this teleoperator's 'cq:8'" in op.stderr
+    assert "rejected the operator" in to_err
+
+
+@pytest.mark.parametrize(
+    "args,msg",
+    [
+        (["run", "--codec", "zz"], "unknown codec 'zz'"),
+        (["operator", "--peer", "nohostport"], "--peer must be HOST:PORT"),
+        (["teleoperator", "--listen", "127.0.0.1:99999"], "port must be an integer 0..65535"),
+    ],
+)
+def test_bad_arguments(args: list[str], msg: str) -> None:
+    r = subprocess.run([*TELEOP, *args], capture_output=True, text=True, timeout=30)
+    assert r.returncode == 2 and msg in r.stderr
