@@ -110,11 +110,18 @@ def main() -> None:
             mn = statistics.median(bench_nodes(spec, dof, a.ticks, a.repeats))
             res["results"].append({"dof": dof, "part": "encode + decode", "codec": spec, "us": mc})
             res["results"].append(
-                {"dof": dof, "part": "operator tick + teleoperator tick + wire", "codec": spec, "us": mn,
-                 "fraction_of_period": mn / 1000.0}
+                {
+                    "dof": dof,
+                    "part": "operator tick + teleoperator tick + wire",
+                    "codec": spec,
+                    "us": mn,
+                    "fraction_of_period": mn / 1000.0,
+                }
             )
-            print(f"dof {dof}  {spec:<7} codec {mc:7.2f} us   both nodes + wire {mn:7.2f} us "
-                  f"({mn / 10:.1f}% of 1 ms)")
+            print(
+                f"dof {dof}  {spec:<7} codec {mc:7.2f} us   both nodes + wire {mn:7.2f} us "
+                f"({mn / 10:.1f}% of 1 ms)"
+            )
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=2) + "\n")
