@@ -160,6 +160,50 @@ def _addr(what: str) -> Any:
     return parse
 
 
+def _netem(args: argparse.Namespace, direction: str) -> str:
+    """The impairment spec of one direction: --netem-DIRECTION, else --netem, else none."""
+    specific = getattr(args, f"netem_{direction}", None)
+    return str(specific if specific is not None else (getattr(args, "netem", None) or ""))
+
+
+def _add_netem_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--netem",
+        metavar="SPEC",
+        help='impair both directions, netem grammar, e.g. "delay 50ms 5ms '
+        'loss 2%%" (see README); "trace FILE" for a Mahimahi-style trace',
+    )
+    p.add_argument(
+        "--netem-forward", metavar="SPEC", help="impair operator -> teleoperator only (overrides --netem)"
+    )
+    p.add_argument(
+        "--netem-backward", metavar="SPEC", help="impair teleoperator -> operator only (overrides --netem)"
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the impairment shims (default 0)")
+
+
+def _add_passivity_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--on-loss",
+        choices=["zero", "hold"],
+        default="zero",
+        help="what a receiver plays when nothing is queued (default zero; hold is bounded by the "
+        "passivity controller)",
+    )
+    p.add_argument(
+        "--no-controller",
+        action="store_true",
+        help="turn the passivity controller off (the watchdog still observes and counts violations)",
+    )
+    p.add_argument(
+        "--link-timeout",
+        type=_positive_float("link timeout"),
+        default=50.0,
+        metavar="MS",
+        help="silence before a side goes to its safe state, ms (default 50)",
+    )
+
+
 def _session_params(args: argparse.Namespace, session: int) -> Any:
     from transport.session import SessionParams
 
@@ -174,6 +218,12 @@ def _session_params(args: argparse.Namespace, session: int) -> Any:
             full_scale=args.range if args.range is not None else sc.full_scale,
             duration=args.duration if args.duration is not None else sc.duration,
             phase=args.phase,
+            netem_forward=_netem(args, "forward"),
+            netem_backward=_netem(args, "backward"),
+            seed=args.seed,
+            on_loss=args.on_loss,
+            controller=not args.no_controller,
+            link_timeout=args.link_timeout / 1e3,
         ).validate()
     except (ValueError, CodecError) as e:
         raise CliError(str(e)) from None
@@ -278,6 +328,17 @@ def cmd_run(args: argparse.Namespace) -> int:
         repr(params.duration),
         "--phase",
         repr(params.phase),
+        "--netem-forward",
+        params.netem_forward,
+        "--netem-backward",
+        params.netem_backward,
+        "--seed",
+        str(params.seed),
+        "--on-loss",
+        params.on_loss,
+        "--link-timeout",
+        repr(params.link_timeout * 1e3),
+        *(["--no-controller"] if not params.controller else []),
         *common,
     ]
     print(
@@ -395,6 +456,8 @@ def build_parser() -> argparse.ArgumentParser:
         "write OUT/report.json, PNG plots and a printed summary. Ctrl-C stops both cleanly.",
     )
     _add_session_args(r, "eds:50")
+    _add_netem_args(r)
+    _add_passivity_args(r)
     r.set_defaults(scenario="protocol")
     r.add_argument("--transport", choices=["udp"], default="udp", help="transport (default udp)")
     r.add_argument("--out", default="teleop-run", metavar="DIR", help="report folder (default ./teleop-run)")
@@ -430,6 +493,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     o.add_argument("--session", type=int, default=0, help="session id (default: random)")
     _add_session_args(o, "eds:50")
+    _add_netem_args(o)
+    _add_passivity_args(o)
     o.set_defaults(scenario="protocol")
     _add_endpoint_args(o)
     o.set_defaults(func=cmd_operator)

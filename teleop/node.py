@@ -13,20 +13,28 @@ Each tick, each port solves its algebraic loop in closed form (see ``teleop.mode
 
       v_to = (sqrt(2b) g_r - f0) / (b + Z),        h_r = g_r - sqrt(2/b) F_to
 
-The received wave (``h_l`` or ``g_r``) is what the decoder plays this tick; the transmitted wave
-goes through the encoder.  Energies are counted in scattering variables per direction (eq. 4-5):
-``E = 1/2 sum(wave**2) dt``.
+The received wave (``h_l`` or ``g_r``) is what the decoder plays this tick, after the energy guard
+(``teleop.passivity``) has admitted it; the transmitted wave goes through the encoder.  Energies
+are counted in scattering variables per direction (eq. 4-5): ``E = 1/2 sum(wave**2) dt``.
+
+**Safe state.** When nothing has been accepted for the link timeout (plus one payload interval of
+the peer's codec, so a sparse codec is not mistaken for a dead link), the node fades its
+coupling out over ``fade_time``: the HSI stops rendering force and the TO stops commanding
+motion, and both transmit a zero wave.  When packets return it fades back in.  Fading scales the
+port's coupling ``c`` in ``[0, 1]``: the HSI renders ``c F``, the TO commands ``c v``, and the
+transmitted wave is scaled by ``c``, so the safe state only removes energy.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from . import wire
 from .codecs import Array, Codec, CodecError
 from .models import Environment, Human
+from .passivity import DEFAULT_LINK_TIMEOUT, ON_LOSS, EnergyGuard, PassivityReport
 from .wave import WaveImpedance
 
 
@@ -42,14 +50,30 @@ class PortCounters:
     wrong_codec: int = 0
     stale: int = 0  # duplicate or older than one already accepted
     gaps: int = 0  # sequence numbers never seen (lost, or still in flight)
-    errors: dict[str, int] = field(default_factory=dict)  # last message per kind, for logs
 
     def as_dict(self) -> dict[str, int]:
-        return {k: v for k, v in self.__dict__.items() if k != "errors"}
+        return dict(self.__dict__)
+
+
+@dataclass(frozen=True)
+class PortOptions:
+    """How a node reconstructs what it receives and guards the channel's passivity."""
+
+    max_queue: int | None = None  # playout queue bound in ticks (default: one payload, newest wins)
+    on_loss: str = "zero"  # what to play when nothing is queued: "zero" or "hold"
+    controller: bool = True  # passivity controller on (never play more energy than was sent)
+    link_timeout: float = DEFAULT_LINK_TIMEOUT  # s of silence before the safe state
+    fade_time: float = 0.1  # s to fade the coupling out (and back in)
+
+    def __post_init__(self) -> None:
+        if self.on_loss not in ON_LOSS:
+            raise ValueError(f"on_loss must be one of {', '.join(ON_LOSS)}, got {self.on_loss!r}")
+        if not self.link_timeout > 0 or not self.fade_time > 0:
+            raise ValueError("link_timeout and fade_time must be > 0 s")
 
 
 class _Port:
-    """What both nodes share: sequence numbers, codec ends, energy counters, inbound checks."""
+    """What both nodes share: sequence numbers, codec ends, energy guard, inbound checks."""
 
     tx_direction: int
 
@@ -61,15 +85,18 @@ class _Port:
         rx: Codec,
         session: int,
         dt: float,
-        max_queue: int | None = None,
+        options: PortOptions | None = None,
     ) -> None:
         if tx.dof != wave.dof or rx.dof != wave.dof:
             raise ValueError(f"codec DoF ({tx.dof}, {rx.dof}) must match wave DoF {wave.dof}")
+        opts = options or PortOptions()
+        self.options = opts
         self.wave = wave
         self.tx_codec = tx
         self.rx_codec = rx
         self.encoder = tx.encoder()
-        self.decoder = rx.decoder(max_queue)
+        self.decoder = rx.decoder(opts.max_queue, opts.on_loss)
+        self.guard = EnergyGuard(dt, controller=opts.controller)
         self.session = session
         self.dt = dt
         self.half_dt = 0.5 * dt
@@ -79,14 +106,33 @@ class _Port:
         self.last_rx_seq = -1
         self.counters = PortCounters()
         self.energy_sent = 0.0  # J carried into the channel by the transmitted wave
-        self.energy_played = 0.0  # J played out of the channel by the received wave
-        self.peer_energy_sent = 0.0  # latest cumulative energy the peer reported in-band
         self.last_error = ""
+        # link supervision
+        self.link_timeout = opts.link_timeout + rx.k * dt
+        self._fade_step = dt / opts.fade_time
+        self.coupling = 1.0
+        self.link_lost = False
+        self._last_rx_at: float | None = None
+        self._accepted_seen = 0
         dof = wave.dof
         self.v = np.zeros(dof)
         self.f = np.zeros(dof)
         self.wave_out = np.zeros(dof)
         self.wave_in = np.zeros(dof)
+
+    @property
+    def energy_played(self) -> float:
+        """J played out of the channel by the received wave (after the controller)."""
+        return self.guard.played
+
+    @property
+    def peer_energy_sent(self) -> float:
+        """The newest cumulative energy the peer reported in-band."""
+        return self.guard.reported_in
+
+    @property
+    def passivity(self) -> PassivityReport:
+        return self.guard.report
 
     # --- inbound -------------------------------------------------------------------------
     def receive(self, data: bytes) -> bool:
@@ -128,14 +174,35 @@ class _Port:
             return False
         c.gaps += pkt.seq - self.last_rx_seq - 1
         self.last_rx_seq = pkt.seq
-        self.peer_energy_sent = max(self.peer_energy_sent, pkt.energy)
+        self.guard.sent(pkt.energy)
         c.accepted += 1
         return True
 
-    # --- outbound ------------------------------------------------------------------------
+    # --- per tick ------------------------------------------------------------------------
+    def _supervise(self, now: float) -> float:
+        """Update link supervision; returns this tick's coupling in [0, 1].
+
+        Armed by the first accepted packet: before it, silence is the channel's delay, not a loss.
+        """
+        if self.counters.accepted == 0:
+            return self.coupling
+        if self._last_rx_at is None or self.counters.accepted != self._accepted_seen:
+            self._last_rx_at = now
+            self._accepted_seen = self.counters.accepted
+        lost = now - self._last_rx_at > self.link_timeout
+        rep = self.guard.report
+        if lost:
+            rep.link_lost_ticks += 1
+            if not self.link_lost:
+                rep.link_lost_events += 1
+            self.coupling = max(0.0, self.coupling - self._fade_step)
+        else:
+            self.coupling = min(1.0, self.coupling + self._fade_step)
+        self.link_lost = lost
+        return self.coupling
+
     def _play(self) -> Array:
-        x = self.decoder.next()
-        self.energy_played += self.half_dt * float(np.dot(x, x))
+        x = self.guard.admit(self.decoder.next())
         self.wave_in = x
         return x
 
@@ -143,10 +210,10 @@ class _Port:
         self.wave_out = x
         self.energy_sent += self.half_dt * float(np.dot(x, x))
         payload = self.encoder.encode(x)
-        tick = int(now / self.dt + 0.5)  # from the session clock: stays true if the loop skips ticks
         self.ticks += 1
         if payload is None:
             return None
+        tick = int(now / self.dt + 0.5)  # from the session clock: stays true if the loop skips ticks
         pkt = wire.Packet(
             self.session,
             self.tx_direction,
@@ -175,20 +242,22 @@ class OperatorNode(_Port):
         rx: Codec,
         session: int,
         dt: float,
-        max_queue: int | None = None,
+        options: PortOptions | None = None,
     ) -> None:
-        super().__init__(wave=wave, tx=tx, rx=rx, session=session, dt=dt, max_queue=max_queue)
+        super().__init__(wave=wave, tx=tx, rx=rx, session=session, dt=dt, options=options)
         self.human = human
 
     def tick(self, now: float) -> wire.Packet | None:
         w = self.wave
+        c = self._supervise(now)
         h_l = self._play()
         v0, y = self.human.affine(now)
-        v = (v0 + y * w.sqrt2b * h_l) / (1.0 + y * w.b)
-        f = w.hsi_force(v, h_l)
+        yc = y * c  # the human feels c F
+        v = (v0 + yc * w.sqrt2b * h_l) / (1.0 + yc * w.b)
+        f = c * w.hsi_force(v, h_l)
         self.human.advance(now, v, f)
         self.v, self.f = v, f
-        return self._send(now, w.hsi_wave_out(v, h_l))
+        return self._send(now, c * w.hsi_wave_out(v, h_l))
 
 
 class TeleoperatorNode(_Port):
@@ -205,17 +274,18 @@ class TeleoperatorNode(_Port):
         rx: Codec,
         session: int,
         dt: float,
-        max_queue: int | None = None,
+        options: PortOptions | None = None,
     ) -> None:
-        super().__init__(wave=wave, tx=tx, rx=rx, session=session, dt=dt, max_queue=max_queue)
+        super().__init__(wave=wave, tx=tx, rx=rx, session=session, dt=dt, options=options)
         self.environment = environment
 
     def tick(self, now: float) -> wire.Packet | None:
         w = self.wave
+        c = self._supervise(now)
         g_r = self._play()
         f0, z = self.environment.affine(now)
-        v = (w.sqrt2b * g_r - f0) / (w.b + z)
+        v = c * (w.sqrt2b * g_r - f0) / (w.b + c * z)  # the robot is commanded c v
         f = f0 + z * v
         self.environment.advance(now, v, f)
         self.v, self.f = v, f
-        return self._send(now, w.to_wave_out(g_r, f))
+        return self._send(now, c * w.to_wave_out(g_r, f))

@@ -90,3 +90,24 @@ def timing_histogram(path: Path, lateness_ns: dict[str, Array]) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def energy(path: Path, dt: float, series: dict[str, tuple[Array, Array, Array]]) -> None:
+    """Per direction: wave energy sent and played (eq. 4-5), and the watchdog's observed margin."""
+    plt = _plt()
+    fig, axes = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True)
+    for name, (sent, played, margin) in series.items():
+        t = np.arange(sent.size) * dt
+        axes[0].plot(t, sent, label=f"{name}: sent")
+        axes[0].plot(t, played, ls="--", label=f"{name}: played")
+        axes[1].plot(t, margin, label=f"{name}: reported sent - played")
+    axes[1].axhline(0.0, color="k", lw=0.8)
+    axes[0].set_ylabel("wave energy [J]")
+    axes[1].set_ylabel("observed margin [J]")
+    axes[1].set_xlabel("time [s]")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -51,6 +51,12 @@ def _wire(sender: dict[str, Any], receiver: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _passivity(receiver: dict[str, Any]) -> dict[str, Any]:
+    p = dict(receiver["passivity"])
+    p.pop("direction", None)
+    return p
+
+
 def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, Any]:
     op, a_op = _load(log_dir, "operator")
     to, a_to = _load(log_dir, "teleoperator")
@@ -85,6 +91,10 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
         "handshake": {"rtt_us": op.get("handshake_rtt_us"), "clock_offset_ns": op.get("clock_offset_ns")},
         "wire": {"forward": _wire(op, to), "backward": _wire(to, op)},
         "transparency": {"I": i_real, "ticks_compared": int(valid.sum())},
+        # Watchdog figures of each direction, measured by its receiver.
+        "passivity": {"forward": _passivity(to), "backward": _passivity(op)},
+        # What each link did, measured at its receiver from sequence numbers and timestamps.
+        "link": {"forward": to["link_received"], "backward": op["link_received"]},
         "energy": {
             "forward": {
                 "sent": op["energy"]["sent"],
@@ -146,6 +156,16 @@ def write_plots(log_dir: Path, out: Path, rep: dict[str, Any]) -> list[Path]:
         window=100,
     )
     files.append(f2)
+    f4 = out / "energy.png"
+    plots.energy(
+        f4,
+        dt,
+        {
+            "forward": (a_op["energy_sent"], a_to["energy_played"], a_to["energy_margin_observed"]),
+            "backward": (a_to["energy_sent"], a_op["energy_played"], a_op["energy_margin_observed"]),
+        },
+    )
+    files.append(f4)
     f3 = out / "loop_timing.png"
     plots.timing_histogram(f3, {"operator": a_op["lateness_ns"], "teleoperator": a_to["lateness_ns"]})
     files.append(f3)
@@ -179,6 +199,17 @@ def summary_text(rep: dict[str, Any]) -> str:
         diff = 100 * tr["relative_difference"]
         extra = f"  (teleop sim, same settings: {tr['I_sim']:.4e}; difference {diff:.1f}%)"
     lines.append(f"  transparency I = {tr['I']:.4e}{extra}")
+    for d, pv in rep["passivity"].items():
+        lk = rep["link"][d]
+        delay = lk["delay_ms"]["mean"]
+        lines.append(
+            f"  watchdog {d:<9} violations {pv['violations']}  "
+            f"controller active {pv['controller_active_ticks']} ticks  "
+            f"dissipated {pv['energy_dissipated']:.3e} J  min margin {pv['min_margin']:.3e} J  "
+            f"link lost {pv['link_lost_events']}x  |  link: loss {100 * lk['loss']:.2f}%  "
+            f"delay {'-' if delay is None else f'{delay:.2f}'} ms  reordered {lk['reordered']}  "
+            f"duplicates {lk['duplicates']}"
+        )
     e = rep["energy"]
     lines.append(
         f"  energy margin (sent - played) min: forward {e['forward']['min_margin']:.3e} J, "

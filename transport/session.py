@@ -25,6 +25,7 @@ folder.  SIGINT/SIGTERM stop the loop at the next tick; the logs are still writt
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import os
 import random
@@ -40,10 +41,12 @@ import numpy as np
 
 from teleop import scenarios, wire
 from teleop.codecs import CodecError, make_codec
-from teleop.node import OperatorNode, TeleoperatorNode
+from teleop.node import OperatorNode, PortOptions, TeleoperatorNode
 from teleop.wave import WaveImpedance
 
 from .counters import DirectionCounters
+from .linkstats import LinkObserver
+from .netem import Link, make_link
 from .realtime import Ticker, setup_realtime
 from .udp import Addr, UdpTransport, new_event_loop
 
@@ -68,6 +71,12 @@ class SessionParams:
     duration: float
     dt: float = 0.001
     phase: float = 0.5
+    netem_forward: str = ""  # impairment of operator -> TO, applied by the operator's shim
+    netem_backward: str = ""  # impairment of TO -> operator, applied by the TO's shim
+    seed: int = 0
+    on_loss: str = "zero"  # reconstruction when nothing is queued (teleop.node.PortOptions)
+    controller: bool = True  # passivity controller
+    link_timeout: float = 0.05  # s of silence before a side goes to its safe state
 
     def validate(self) -> SessionParams:
         """Raise ValueError/CodecError saying what is wrong; returns self with the codec canonical."""
@@ -79,8 +88,15 @@ class SessionParams:
         if not 0.0 <= self.phase < 1.0:
             raise ValueError(f"phase must be in [0, 1) periods, got {self.phase}")
         WaveImpedance.of(self.b, self.dof)
+        for text in (self.netem_forward, self.netem_backward):
+            if text:
+                make_link(text, self.seed)  # NetemError (a ValueError) names the bad token
+        self.port_options()  # ValueError for a bad on_loss or timeout
         spec = make_codec(self.codec, self.dof, self.full_scale).spec
         return SessionParams(**{**asdict(self), "codec": spec})
+
+    def port_options(self) -> PortOptions:
+        return PortOptions(on_loss=self.on_loss, controller=self.controller, link_timeout=self.link_timeout)
 
     @property
     def ticks(self) -> int:
@@ -99,6 +115,12 @@ class SessionParams:
                 duration=float(m["duration"]),
                 dt=float(m["dt"]),
                 phase=float(m["phase"]),
+                netem_forward=str(m.get("netem_forward", "")),
+                netem_backward=str(m.get("netem_backward", "")),
+                seed=int(m.get("seed", 0)),
+                on_loss=str(m.get("on_loss", "zero")),
+                controller=bool(m.get("controller", True)),
+                link_timeout=float(m.get("link_timeout", 0.05)),
             )
         except (KeyError, TypeError, ValueError) as e:
             raise ValueError(f"bad hello: {type(e).__name__}: {e}") from None
@@ -115,6 +137,12 @@ class SessionParams:
             "duration": self.duration,
             "dt": self.dt,
             "phase": self.phase,
+            "netem_forward": self.netem_forward,
+            "netem_backward": self.netem_backward,
+            "seed": self.seed,
+            "on_loss": self.on_loss,
+            "controller": self.controller,
+            "link_timeout": self.link_timeout,
         }
 
 
@@ -272,8 +300,23 @@ async def _teleoperator_handshake(
 # --------------------------------------------------------------------------------------------
 # the loop
 # --------------------------------------------------------------------------------------------
+def _flush(link: Link, now: float, send: Any, peer: Addr, tx: DirectionCounters, k: int) -> None:
+    """Send what the shim says is due, counting it at the socket."""
+    for data in link.due(now):
+        send(data, peer)
+        try:
+            payload_len: int | None = len(wire.decode(data).payload)
+        except wire.WireError:  # corrupted by the shim on purpose
+            payload_len = None
+        tx.packet(k, len(data), payload_len)
+
+
 class _Inbound:
-    """Sorts what the socket received: data packets to the node, control messages, strangers."""
+    """Sorts what the socket received: data packets to the node, control messages, strangers.
+
+    Every data packet from the peer is also shown to a :class:`LinkObserver` (arrival time on the
+    common session clock), which measures the link from the receiver's side.
+    """
 
     def __init__(
         self,
@@ -282,19 +325,23 @@ class _Inbound:
         node: OperatorNode | TeleoperatorNode,
         rx: DirectionCounters,
         session: int,
+        t_common_ns: int,
+        observer: LinkObserver,
     ) -> None:
         self.tr = tr
         self.peer = peer
         self.node = node
         self.rx = rx
         self.session = session
+        self.t_common = t_common_ns
+        self.observer = observer
         self.foreign = 0
-        self.peer_bye = False
+        self.peer_bye: dict[str, Any] | None = None
 
     def handle(self, k: int, play: bool = True) -> None:
         """Drain the inbox during tick ``k``; with ``play`` False only count (after the loop)."""
         rx, node = self.rx, self.node
-        for data, addr, _ in self.tr.drain():
+        for data, addr, t_rx in self.tr.drain():
             if addr != self.peer:
                 self.foreign += 1
                 continue
@@ -306,6 +353,7 @@ class _Inbound:
                     node.malformed(str(e))
                     continue
                 rx.packet(k, len(data), len(pkt.payload))
+                self.observer.observe((t_rx - self.t_common) / 1e9, pkt.seq, pkt.t_us / 1e6, len(data))
                 if play:
                     node.receive_packet(pkt)
                 continue
@@ -316,7 +364,7 @@ class _Inbound:
             elif m["t"] == "start":
                 self.tr.send(_control("started", session=self.session), self.peer)
             elif m["t"] == "bye":
-                self.peer_bye = True
+                self.peer_bye = m
 
 
 async def _run_loop(
@@ -326,8 +374,10 @@ async def _run_loop(
     params: SessionParams,
     node: OperatorNode | TeleoperatorNode,
     t0_ns: int,
+    t_common_ns: int,
     stop: _Stop,
 ) -> dict[str, Any]:
+    """Tick ``n`` times from ``t0_ns``; ``t_common_ns`` is the session's tick 0 on this clock."""
     n = params.ticks
     dt = params.dt
     dof = params.dof
@@ -338,9 +388,15 @@ async def _run_loop(
     rec = {name: np.full((n, dof), np.nan) for name in ("v", "f", "wave_out", "wave_in")}
     e_sent = np.full(n, np.nan)
     e_played = np.full(n, np.nan)
-    inbound = _Inbound(tr, peer, node, rx, params.session)
+    e_margin = np.full(n, np.nan)  # the watchdog's view: reported in-band minus played
+    spec_tx = params.netem_forward if tx_dir == wire.FORWARD else params.netem_backward
+    spec_rx = params.netem_backward if tx_dir == wire.FORWARD else params.netem_forward
+    # The impairment shim sits between the node and the socket: what it drops never reaches the
+    # socket (and is not counted as sent); what it duplicates is sent and counted twice.
+    link: Link | None = make_link(spec_tx, params.seed + tx_dir) if spec_tx else None
+    inbound = _Inbound(tr, peer, node, rx, params.session, t_common_ns, LinkObserver(spec_rx))
     grace_ns = round(opts.grace_us * 1000)
-    grace_waits = grace_missed = grace_ns_total = 0
+    grace_waits = grace_missed = grace_ns_total = grace_streak = grace_resume = 0
     clock = time.monotonic_ns
     period_ns = round(dt * 1e9)
     ticker = Ticker(period_ns=period_ns, spin_ns=opts.spin_us * 1000, capacity=n + 16)
@@ -354,7 +410,7 @@ async def _run_loop(
             break
         await asyncio.sleep(0)  # one event-loop pass: datagrams received since the last tick
         inbound.handle(k)
-        if grace_ns and node.decoder.queued == 0 and node.counters.accepted:
+        if grace_ns and node.decoder.queued == 0 and node.counters.accepted and k >= grace_resume:
             # A payload is due and not here yet: poll for it a little rather than play a gap.
             limit = ticker.deadline(k) + grace_ns
             grace_waits += 1
@@ -363,14 +419,26 @@ async def _run_loop(
                 await asyncio.sleep(0)
                 inbound.handle(k)
             grace_ns_total += clock() - t_wait
-            grace_missed += node.decoder.queued == 0
+            if node.decoder.queued == 0:
+                grace_missed += 1
+                grace_streak += 1
+                if grace_streak >= 3:  # a delayed or jittery link: packets are ms late, not us; rest
+                    grace_resume = k + 200
+                    grace_streak = 0
+            else:
+                grace_streak = 0
         now = k * dt
         pkt = node.tick(now)
         t_us = int(now * 1e6)
         if pkt is not None:
             data = encode(pkt)
-            send(data, peer)
-            tx.packet(k, len(data), len(pkt.payload))
+            if link is None:
+                send(data, peer)
+                tx.packet(k, len(data), len(pkt.payload))
+            else:
+                link.send((clock() - t_common_ns) / 1e9, data)
+        if link is not None:
+            _flush(link, (clock() - t_common_ns) / 1e9, send, peer, tx, k)
         base = encode(wire.Packet(params.session, tx_dir, k, k, t_us, 0, raw_payload, node.energy_sent))
         tx.baseline(k, len(base), len(raw_payload))
         rec["v"][k] = node.v
@@ -379,15 +447,34 @@ async def _run_loop(
         rec["wave_in"][k] = node.wave_in
         e_sent[k] = node.energy_sent
         e_played[k] = node.energy_played
+        e_margin[k] = node.guard.margin
     stats = ticker.stats()
     completed = not stop.requested and ticker.k >= n
-    # Linger: count what is still in flight, so sender and receiver counts can be compared.
+    # Linger: deliver what the shim still holds and count what is in flight, so that sender and
+    # receiver counts can be compared; the bye tells the receiver how many packets there were.
+    t_end = clock() + int(opts.linger * 1e9)
+    while link is not None and (due := link.next_due()) is not None and clock() < t_end + 2_000_000_000:
+        await asyncio.sleep(max(0.0, min(0.005, due - (clock() - t_common_ns) / 1e9)))
+        _flush(link, (clock() - t_common_ns) / 1e9, send, peer, tx, n - 1)
+        inbound.handle(n - 1, play=False)
+    shim = dataclasses.asdict(link.stats) if link is not None else None
     for _ in range(3):
-        send(_control("bye", session=params.session), peer)
-    t_end = time.monotonic() + opts.linger
-    while time.monotonic() < t_end:
+        send(
+            _control(
+                "bye",
+                session=params.session,
+                produced=node.seq,
+                dropped_by_limit=shim["dropped_by_limit"] if shim else 0,
+            ),
+            peer,
+        )
+    while clock() < t_end:
         await asyncio.sleep(0.005)
         inbound.handle(n - 1, play=False)
+    bye = inbound.peer_bye or {}
+    link_rx = inbound.observer.summary(
+        sent=bye.get("produced"), dropped_by_limit=bye.get("dropped_by_limit", 0)
+    )
     direction = wire.DIRECTIONS[tx_dir]
     other = wire.DIRECTIONS[1 - tx_dir]
     window = max(1, round(0.1 / dt))
@@ -396,7 +483,9 @@ async def _run_loop(
         "pid": os.getpid(),
         "completed": completed,
         "stopped_by_signal": stop.signal,
-        "peer_said_bye": inbound.peer_bye,
+        "peer_said_bye": inbound.peer_bye is not None,
+        "link_received": link_rx,
+        "shim": {"spec": spec_tx, **shim} if shim else None,
         "grace": {
             "limit_us": opts.grace_us,
             "waits": grace_waits,
@@ -419,6 +508,7 @@ async def _run_loop(
             "decoder_underruns": node.decoder.underruns,
             "decoder_dropped_samples": node.decoder.dropped_samples,
         },
+        "passivity": {"direction": other, **node.passivity.as_dict()},
         "energy": {
             "sent": node.energy_sent,
             "played": node.energy_played,
@@ -429,6 +519,7 @@ async def _run_loop(
         **rec,
         "energy_sent": e_sent,
         "energy_played": e_played,
+        "energy_margin_observed": e_margin,
         "lateness_ns": stats.lateness_ns,
         **tx.arrays("tx"),
         **rx.arrays("rx"),
@@ -472,13 +563,25 @@ async def _endpoint(
         node: OperatorNode | TeleoperatorNode
         if opts.role == "operator":
             node = OperatorNode(
-                human=human, wave=wave, tx=codec, rx=codec, session=params.session, dt=params.dt
+                human=human,
+                wave=wave,
+                tx=codec,
+                rx=codec,
+                session=params.session,
+                dt=params.dt,
+                options=params.port_options(),
             )
         else:
             node = TeleoperatorNode(
-                environment=env, wave=wave, tx=codec, rx=codec, session=params.session, dt=params.dt
+                environment=env,
+                wave=wave,
+                tx=codec,
+                rx=codec,
+                session=params.session,
+                dt=params.dt,
+                options=params.port_options(),
             )
-        summary = await _run_loop(opts, tr, peer, params, node, t0, stop)
+        summary = await _run_loop(opts, tr, peer, params, node, t0, start, stop)
         summary.update(extra, warnings=warnings, event_loop=type(loop).__module__.split(".")[0])
         if opts.log_dir is not None:
             (opts.log_dir / f"{opts.role}.json").write_text(json.dumps(summary, indent=2) + "\n")

@@ -59,7 +59,7 @@ class Codec:
     k: int  # ticks covered by one payload
     bits: int  # bits per value on the wire
     make_encoder: Callable[[], Encoder]
-    make_decoder: Callable[[int], PlayoutDecoder]
+    make_decoder: Callable[[int, str], PlayoutDecoder]
 
     @property
     def payload_bytes(self) -> int:
@@ -83,7 +83,7 @@ class Codec:
     def encoder(self) -> Encoder:
         return self.make_encoder()
 
-    def decoder(self, max_queue: int | None = None) -> PlayoutDecoder:
+    def decoder(self, max_queue: int | None = None, on_loss: str = "zero") -> PlayoutDecoder:
         """A decoder whose playout queue holds at most ``max_queue`` ticks.
 
         The default, K (one payload), is "newest wins": a payload that arrives while an older one
@@ -91,7 +91,7 @@ class Codec:
         latency to the rest of the run.  Dropping only removes energy.  On a constant-delay channel
         the queue is empty whenever a payload arrives, so nothing is ever dropped there.
         """
-        return self.make_decoder(max_queue if max_queue is not None else self.k)
+        return self.make_decoder(max_queue if max_queue is not None else self.k, on_loss)
 
 
 def _int_param(spec: str, text: str, what: str, lo: int, hi: int | None = None) -> int:
@@ -121,7 +121,7 @@ def _none(spec: str, params: list[str], dof: int, fs: float) -> Codec:
         1,
         RAW_BITS,
         lambda: DirectEncoder(raw, RAW_BITS),
-        lambda q: DirectDecoder(raw, RAW_BITS, dof, q),
+        lambda q, o: DirectDecoder(raw, RAW_BITS, dof, q, o),
     )
 
 
@@ -142,7 +142,7 @@ def _frame(name: str) -> Callable[[str, list[str], int, float], Codec]:
                 k,
                 RAW_BITS,
                 lambda: IdsEncoder(raw, k, dof),
-                lambda q: IdsDecoder(raw, k, dof, q),
+                lambda q, o: IdsDecoder(raw, k, dof, q, o),
             )
         return Codec(
             f"eds:{k}",
@@ -154,7 +154,7 @@ def _frame(name: str) -> Callable[[str, list[str], int, float], Codec]:
             k,
             RAW_BITS,
             lambda: EdsEncoder(raw, k, dof),
-            lambda q: EdsDecoder(raw, k, dof, q),
+            lambda q, o: EdsDecoder(raw, k, dof, q, o),
         )
 
     return make
@@ -184,7 +184,7 @@ def _cq(spec: str, params: list[str], dof: int, fs: float) -> Codec:
         1,
         bits,
         lambda: DirectEncoder(raw, bits),
-        lambda q: DirectDecoder(raw, bits, dof, q),
+        lambda q, o: DirectDecoder(raw, bits, dof, q, o),
     )
 
 

@@ -125,12 +125,16 @@ class PlayoutDecoder:
     (a burst after a stall) the oldest samples are dropped, which only removes energy.
     """
 
-    def __init__(self, dof: int, max_queue: int) -> None:
+    def __init__(self, dof: int, max_queue: int, on_loss: str = "zero") -> None:
+        if on_loss not in ("zero", "hold"):
+            raise CodecError(f"on_loss must be 'zero' or 'hold', got {on_loss!r}")
         self.dof = dof
         self.max_queue = max_queue
+        self.hold = on_loss == "hold"
         self._queue: deque[_Run] = deque()
         self._queued = 0
         self._zero = np.zeros(dof)
+        self._last = self._zero
         self.underruns = 0
         self.dropped_samples = 0
 
@@ -160,10 +164,13 @@ class PlayoutDecoder:
         """The sample to play this tick (zero on underrun)."""
         if not self._queue:
             self.underruns += 1
-            return self._zero
+            # "hold" repeats the last value: it generates energy unless a passivity controller
+            # bounds it (teleop.passivity); "zero" is passive by itself.
+            return self._last if self.hold else self._zero
         head = self._queue[0]
         head.remaining -= 1
         self._queued -= 1
         if head.remaining == 0:
             self._queue.popleft()
+        self._last = head.value
         return head.value

@@ -25,8 +25,8 @@ class DirectEncoder(Encoder):
 
 
 class DirectDecoder(PlayoutDecoder):
-    def __init__(self, raw: RawFormat, bits: int, dof: int, max_queue: int) -> None:
-        super().__init__(dof, max_queue)
+    def __init__(self, raw: RawFormat, bits: int, dof: int, max_queue: int, on_loss: str = "zero") -> None:
+        super().__init__(dof, max_queue, on_loss)
         self.raw = raw
         self.bits = bits
         self.shift = 1 << (RAW_BITS - bits)

@@ -45,8 +45,8 @@ class EdsEncoder(Encoder):
 
 
 class EdsDecoder(PlayoutDecoder):
-    def __init__(self, raw: RawFormat, k: int, dof: int, max_queue: int) -> None:
-        super().__init__(dof, max_queue)
+    def __init__(self, raw: RawFormat, k: int, dof: int, max_queue: int, on_loss: str = "zero") -> None:
+        super().__init__(dof, max_queue, on_loss)
         self.raw = raw
         self.k = k
 

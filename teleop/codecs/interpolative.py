@@ -33,8 +33,8 @@ class IdsEncoder(Encoder):
 
 
 class IdsDecoder(PlayoutDecoder):
-    def __init__(self, raw: RawFormat, k: int, dof: int, max_queue: int) -> None:
-        super().__init__(dof, max_queue)
+    def __init__(self, raw: RawFormat, k: int, dof: int, max_queue: int, on_loss: str = "zero") -> None:
+        super().__init__(dof, max_queue, on_loss)
         self.raw = raw
         self.k = k
 

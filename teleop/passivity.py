@@ -1,0 +1,90 @@
+"""Energy watchdog (observer) and passivity controller for one received wave, per direction.
+
+The channel is passive when, per direction, the wave energy played out never exceeds the wave
+energy put in (eq. 5): ``E_in(t) - E_out(t) >= 0`` with ``E = 1/2 int(wave^2) dt``.  The sender
+carries its cumulative ``E_in`` in every packet (``teleop.wire``), so the receiver can check this
+online under any delay, loss, duplication or reordering: the newest report is a lower bound of
+what really went in, so a margin computed from it is conservative.
+
+At every tick, before a sample is played:
+
+* the **observer** computes ``margin = E_in_reported - (E_played + 1/2 x^2 dt)`` for the proposed
+  sample ``x``; a negative value is a *violation* (what the codec or a reconstruction rule would
+  have generated);
+* the **controller**, when enabled, scales ``x`` so that the margin is exactly zero instead,
+  counting the active tick and the energy it dissipated.  This is the network form of the
+  time-domain passivity approach (observer plus controller), applied in scattering variables.
+
+Link supervision: when nothing has been accepted for ``link_timeout`` seconds the link is *lost*;
+the node then goes to a safe state (see ``teleop.node``) and resumes when packets return.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+Array = npt.NDArray[np.float64]
+
+ON_LOSS = ("zero", "hold")
+DEFAULT_LINK_TIMEOUT = 0.050
+
+
+@dataclass
+class PassivityReport:
+    violations: int = 0  # ticks whose proposed sample would have made the margin negative
+    controller_active_ticks: int = 0
+    min_margin: float = math.inf  # J, after the controller (observed, in-band)
+    energy_dissipated: float = 0.0  # J removed by the controller
+    link_lost_events: int = 0
+    link_lost_ticks: int = 0
+
+    def as_dict(self) -> dict[str, float | int]:
+        d = dict(self.__dict__)
+        if math.isinf(self.min_margin):
+            d["min_margin"] = 0.0
+        return d
+
+
+class EnergyGuard:
+    """Observer + controller for the wave one node receives.  Pure: no clock, no I/O."""
+
+    def __init__(self, dt: float, controller: bool = True, tolerance: float = 1e-12) -> None:
+        self.half_dt = 0.5 * dt
+        self.controller = controller
+        self.tolerance = tolerance
+        self.reported_in = 0.0  # J, newest cumulative E_in reported by the sender
+        self.played = 0.0  # J, E_out so far
+        self.report = PassivityReport()
+
+    def sent(self, energy: float) -> None:
+        """A packet reported the sender's cumulative energy (reordered reports never lower it)."""
+        if energy > self.reported_in:
+            self.reported_in = energy
+
+    @property
+    def margin(self) -> float:
+        return self.reported_in - self.played
+
+    def admit(self, x: Array) -> Array:
+        """The sample to play instead of ``x``: ``x`` itself unless it would generate energy."""
+        e = self.half_dt * float(np.dot(x, x))
+        budget = self.reported_in - self.played
+        r = self.report
+        if e > budget + self.tolerance:
+            r.violations += 1
+            if self.controller:
+                allowed = max(budget, 0.0)
+                scale = math.sqrt(allowed / e) if e > 0 else 0.0
+                x = x * scale
+                r.controller_active_ticks += 1
+                r.energy_dissipated += e - allowed
+                e = allowed
+        self.played += e
+        m = self.reported_in - self.played
+        if m < r.min_margin:
+            r.min_margin = m
+        return x

@@ -1,0 +1,115 @@
+"""Energy guard (observer + controller) and link supervision, driven with exact fake time."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from teleop import wire
+from teleop.codecs import make_codec
+from teleop.models import LtiEnvironment, StepHuman
+from teleop.node import OperatorNode, PortOptions, TeleoperatorNode
+from teleop.passivity import EnergyGuard
+from teleop.wave import WaveImpedance
+
+DT = 1e-3
+
+
+@settings(max_examples=100, deadline=None)
+@given(hnp.arrays(np.float64, (200, 2), elements=st.floats(-10, 10)),
+       st.lists(st.floats(0, 1e-2), min_size=200, max_size=200))
+def test_controller_never_plays_more_than_reported(x: np.ndarray, increments: list[float]) -> None:
+    """Whatever is proposed, with the controller the played energy stays within what was reported."""
+    g = EnergyGuard(DT, controller=True)
+    reported = 0.0
+    for k in range(200):
+        reported += increments[k]
+        g.sent(reported)
+        y = g.admit(x[k])
+        assert np.all(np.abs(y) <= np.abs(x[k]) + 1e-15)  # only scales down
+        assert g.played <= reported + 1e-12
+    assert g.report.min_margin >= -1e-12
+    assert g.report.energy_dissipated >= 0
+
+
+def test_observer_sees_violations_without_controller() -> None:
+    g = EnergyGuard(DT, controller=False)
+    g.sent(1e-6)
+    y = g.admit(np.array([1.0]))  # 0.5 mJ proposed, 1 uJ available
+    assert y[0] == 1.0 and g.report.violations == 1 and g.report.controller_active_ticks == 0
+    assert g.report.min_margin == pytest.approx(1e-6 - 0.5e-3)
+
+
+def test_controller_scales_to_the_budget() -> None:
+    g = EnergyGuard(DT, controller=True)
+    g.sent(0.25e-3)
+    y = g.admit(np.array([1.0, 0.0]))
+    assert y[0] == pytest.approx(np.sqrt(0.5)) and g.played == pytest.approx(0.25e-3)
+    assert g.report.violations == 1 and g.report.controller_active_ticks == 1
+    assert g.report.energy_dissipated == pytest.approx(0.25e-3)
+    g.sent(0.1e-3)  # an older (reordered) report never lowers the budget
+    assert g.reported_in == 0.25e-3
+
+
+def _pair(options: PortOptions, spec: str = "none") -> tuple[OperatorNode, TeleoperatorNode]:
+    w = WaveImpedance.of(1.0, 1)
+    c = make_codec(spec, 1, 2.0)
+    op = OperatorNode(human=StepHuman(1, DT, t_step=0.0), wave=w, tx=c, rx=c, session=1, dt=DT, options=options)
+    to = TeleoperatorNode(environment=LtiEnvironment(1, DT), wave=w, tx=c, rx=c, session=1, dt=DT,
+                          options=options)
+    return op, to
+
+
+def _run(op: OperatorNode, to: TeleoperatorNode, ticks: range, deliver: bool) -> None:
+    for k in ticks:
+        p = op.tick(k * DT)
+        if deliver and p is not None:
+            to.receive(wire.encode(p))
+        q = to.tick(k * DT)
+        if deliver and q is not None:
+            op.receive(wire.encode(q))
+
+
+def test_hold_on_loss_violates_without_controller_and_not_with_it() -> None:
+    for controller in (False, True):
+        op, to = _pair(PortOptions(on_loss="hold", controller=controller, link_timeout=10.0))
+        _run(op, to, range(0, 300), deliver=True)
+        _run(op, to, range(300, 400), deliver=False)  # total loss: the TO holds g_r
+        true_margin = op.energy_sent - to.energy_played
+        if controller:
+            assert to.passivity.violations > 0 and to.passivity.controller_active_ticks > 0
+            assert true_margin >= -1e-12 and to.passivity.min_margin >= -1e-12
+        else:
+            assert to.passivity.violations > 90  # it saw every held tick generate energy
+            # It played more than every delivered packet carried: energy from nowhere.
+            assert to.energy_played > to.peer_energy_sent + 1e-4
+            assert to.passivity.min_margin < -1e-4
+
+
+def test_link_lost_safe_state_and_recovery() -> None:
+    op, to = _pair(PortOptions(link_timeout=0.05, fade_time=0.1))
+    _run(op, to, range(0, 500), deliver=True)
+    assert to.passivity.link_lost_events == 0 and to.coupling == 1.0
+    _run(op, to, range(500, 800), deliver=False)
+    assert to.link_lost and op.link_lost
+    assert to.passivity.link_lost_events == 1 and op.passivity.link_lost_events == 1
+    assert to.coupling == 0.0 and op.coupling == 0.0  # faded out after 50 ms + 100 ms
+    assert np.all(to.v == 0.0) and np.all(op.f == 0.0) and np.all(to.wave_out == 0.0)  # safe: no motion, no force
+    _run(op, to, range(800, 1100), deliver=True)
+    assert not to.link_lost and to.coupling == 1.0 and op.coupling == 1.0  # resumed
+    assert 240 <= to.passivity.link_lost_ticks <= 260  # 300 silent ticks minus the 50 ms timeout
+    assert op.energy_sent - to.energy_played >= -1e-12
+
+
+def test_sparse_codec_is_not_a_lost_link() -> None:
+    op, to = _pair(PortOptions(link_timeout=0.05), spec="eds:100")
+    _run(op, to, range(0, 1000), deliver=True)
+    assert to.passivity.link_lost_events == 0 and op.passivity.link_lost_events == 0
+
+
+def test_bad_options() -> None:
+    with pytest.raises(ValueError, match="on_loss must be one of zero, hold"):
+        PortOptions(on_loss="repeat")
