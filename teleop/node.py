@@ -219,7 +219,7 @@ class _Port:
             self.tx_direction,
             self.seq & 0xFFFFFFFF,
             tick,
-            int(now * 1e6),
+            round(now * 1e6),
             self.tx_codec.codec_id,
             payload,
             self.energy_sent,

@@ -11,20 +11,35 @@ quantisation, and the report says so.
 
 Packets cross the links as wire bytes (``teleop.wire``), so the sim exercises the same parsing as
 the real processes, and payload and packet sizes are counted, not estimated.
+
+Impairment: each direction may carry a netem spec (``SimConfig.netem_forward`` /
+``netem_backward``, grammar in ``transport.netem``; ``trace FILE`` gives a Mahimahi trace link).  A
+spec *replaces* ``delay_ms`` for its direction (write ``delay`` into the spec); ``delay_ms`` still
+applies to a direction without one.  Direction ``i`` (0 forward, 1 backward) is seeded
+``2 seed + i``, so the two directions (and neighbouring seeds) draw independent streams and the
+same config gives the same bits.  What each link actually did is measured at the receiver by
+``transport.linkstats.LinkObserver`` and reported per case under ``link``.  The sim delivers at
+tick granularity: a packet due at ``t`` is taken at the first tick ``n dt >= t``, so the observed
+one-way delay is the link's delay rounded *up* to the tick (e.g. netem's uniform jitter on
+50 +- 5 ms is observed on a 1 ms grid, mean about 0.5 ms higher).
 """
 
 from __future__ import annotations
 
 import heapq
+import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from transport.linkstats import LinkObserver
+from transport.netem import Link, NetemStats, make_link
+
 from . import metrics, scenarios, wire
 from .codecs import make_codec
-from .node import OperatorNode, TeleoperatorNode
+from .node import OperatorNode, PortOptions, TeleoperatorNode
 from .wave import WaveImpedance
 
 Array = npt.NDArray[np.float64]
@@ -37,26 +52,33 @@ ENERGY_TOLERANCE = 1e-9  # J: float rounding in cumulative sums, far below any r
 class ConstantDelayLink:
     """A lossless link with constant delay: ``send(now, data)``, ``due(now) -> [data]``.
 
-    Same interface as the netem shim's link model, so the runner does not care which it has.
+    Same interface as the netem shim's link model (``transport.netem.Link``), so the runner does not
+    care which it has.
     """
 
     def __init__(self, delay: float) -> None:
         if delay < 0:
             raise ValueError(f"delay must be >= 0 s, got {delay}")
         self.delay = delay
+        self.stats = NetemStats()
         self._heap: list[tuple[float, int, bytes]] = []
         self._n = 0
 
     def send(self, now: float, data: bytes) -> None:
         heapq.heappush(self._heap, (now + self.delay, self._n, data))
         self._n += 1
+        self.stats.sent += 1
 
     def due(self, now: float) -> list[bytes]:
         out = []
         limit = now + 1e-9
         while self._heap and self._heap[0][0] <= limit:
             out.append(heapq.heappop(self._heap)[2])
+        self.stats.delivered += len(out)
         return out
+
+    def next_due(self) -> float | None:
+        return self._heap[0][0] if self._heap else None
 
 
 @dataclass
@@ -73,6 +95,12 @@ class SimConfig:
     scenario: str = "step"
     window_ms: float = 100.0
     session: int = 1
+    netem_forward: str = ""  # netem spec for operator -> TO; non-empty replaces delay_ms there
+    netem_backward: str = ""  # netem spec for TO -> operator
+    seed: int = 0  # link seeds: 2 seed forward, 2 seed + 1 backward (a spec's own ``seed N`` wins)
+    on_loss: str = "zero"  # receivers' reconstruction when nothing is queued (teleop.node.PortOptions)
+    controller: bool = True  # passivity controller on both receivers
+    link_timeout: float = 0.05  # s of silence before a side goes to its safe state
 
     def resolved(self) -> SimConfig:
         """A copy with every default filled in and every value checked (ValueError says what is wrong)."""
@@ -92,9 +120,24 @@ class SimConfig:
             raise ValueError(f"delay must be >= 0 ms, got {c.delay_ms}")
         if not c.dof or c.dof < 1:
             raise ValueError(f"dof must be >= 1, got {c.dof}")
+        PortOptions(on_loss=c.on_loss, controller=c.controller, link_timeout=c.link_timeout)  # checks them
         if not c.window_ms >= c.dt * 1e3:
             raise ValueError(f"window must be at least one tick ({c.dt * 1e3} ms), got {c.window_ms}")
+        for spec in (c.netem_forward, c.netem_backward):
+            if spec.strip():
+                make_link(spec, c.seed)  # NetemError (a ValueError) says which token is wrong
         return c
+
+    def links(self) -> dict[str, Link]:
+        """One link per direction: the netem spec if given, else ``delay_ms`` of constant delay."""
+        out: dict[str, Link] = {}
+        for i, (d, spec) in enumerate(
+            zip(wire.DIRECTIONS, (self.netem_forward, self.netem_backward), strict=True)
+        ):
+            out[d] = (
+                make_link(spec, 2 * self.seed + i) if spec.strip() else ConstantDelayLink(self.delay_ms / 1e3)
+            )
+        return out
 
 
 @dataclass
@@ -130,10 +173,16 @@ def run_case(cfg: SimConfig) -> CaseResult:
     wave = WaveImpedance.of(cfg.b, dof)
     codec = make_codec(cfg.codec, dof, cfg.full_scale)
     human, env = scenarios.get(cfg.scenario).make(dof, dt)
-    op = OperatorNode(human=human, wave=wave, tx=codec, rx=codec, session=cfg.session, dt=dt)
-    to = TeleoperatorNode(environment=env, wave=wave, tx=codec, rx=codec, session=cfg.session, dt=dt)
-    delay = cfg.delay_ms / 1e3
-    fwd, bwd = ConstantDelayLink(delay), ConstantDelayLink(delay)
+    opts = PortOptions(on_loss=cfg.on_loss, controller=cfg.controller, link_timeout=cfg.link_timeout)
+    op = OperatorNode(human=human, wave=wave, tx=codec, rx=codec, session=cfg.session, dt=dt, options=opts)
+    to = TeleoperatorNode(
+        environment=env, wave=wave, tx=codec, rx=codec, session=cfg.session, dt=dt, options=opts
+    )
+    links = cfg.links()
+    fwd, bwd = links["forward"], links["backward"]
+    specs = {"forward": cfg.netem_forward, "backward": cfg.netem_backward}
+    observers = {d: LinkObserver(specs[d]) for d in wire.DIRECTIONS}
+    obs_fwd, obs_bwd = observers["forward"], observers["backward"]
 
     shape = (n_ticks, dof)
     tr = Trace(
@@ -150,7 +199,7 @@ def run_case(cfg: SimConfig) -> CaseResult:
     for n in range(n_ticks):
         now = n * dt
         for data in bwd.due(now):
-            op.receive(data)
+            _deliver(op, obs_bwd, now, data)
         p = op.tick(now)
         if p is not None:
             data = wire.encode(p)
@@ -158,7 +207,7 @@ def run_case(cfg: SimConfig) -> CaseResult:
             pkt_bytes["forward"][n] = len(data)
             fwd.send(now, data)
         for data in fwd.due(now):
-            to.receive(data)
+            _deliver(to, obs_fwd, now, data)
         p = to.tick(now)
         if p is not None:
             data = wire.encode(p)
@@ -169,6 +218,8 @@ def run_case(cfg: SimConfig) -> CaseResult:
         tr.margin_fwd[n] = op.energy_sent - to.energy_played
         tr.margin_bwd[n] = to.energy_sent - op.energy_played
     tr.payload_bytes, tr.packet_bytes = pay, pkt_bytes
+    for d in wire.DIRECTIONS:
+        _drain(links[d], observers[d], n_ticks, dt)
 
     window = max(1, round(cfg.window_ms / 1e3 / dt))
     raw_per_tick = np.full(n_ticks, float(codec.raw_bytes_per_tick))
@@ -207,10 +258,50 @@ def run_case(cfg: SimConfig) -> CaseResult:
                 "min_margin": float(tr.margin_bwd.min()),
             },
         },
+        # The watchdog of each direction, at its receiver (margins from in-band reports).
+        "passivity": {"forward": to.passivity.as_dict(), "backward": op.passivity.as_dict()},
         "directions": per_dir,
         "counters": counters,
+        "link": {
+            d: observers[d].summary(
+                sent=links[d].stats.sent, dropped_by_limit=links[d].stats.dropped_by_limit
+            )
+            for d in wire.DIRECTIONS
+        },
     }
     return CaseResult(codec.spec, summary, tr)
+
+
+def _deliver(node: OperatorNode | TeleoperatorNode, obs: LinkObserver, now: float, data: bytes) -> None:
+    """``node.receive(data)``, parsing once and showing every parseable datagram to the observer.
+
+    A datagram that does not parse (only a ``corrupt`` spec makes those) is counted by the node as
+    malformed and not observed: the receiver cannot tell its seq.
+    """
+    try:
+        p = wire.decode(data)
+    except wire.WireError as e:
+        node.malformed(str(e))
+        return
+    obs.observe(now, p.seq, p.t_us / 1e6, len(data))
+    node.receive_packet(p)
+
+
+def _drain(link: Link, obs: LinkObserver, n: int, dt: float) -> None:
+    """Show the observer what was still in flight at the end, at the ticks it would have arrived.
+
+    The nodes have stopped and do not see these; without them the observer would count the last
+    ``delay / dt`` packets as lost and miss the longest delays (a rate-limited queue's backlog).
+    """
+    while (t := link.next_due()) is not None:
+        n = max(n, math.ceil(t / dt - 1e-6))
+        for data in link.due(n * dt):
+            try:
+                p = wire.decode(data)
+            except wire.WireError:
+                continue
+            obs.observe(n * dt, p.seq, p.t_us / 1e6, len(data))
+        n += 1
 
 
 def run_set(codecs: list[str], base: SimConfig) -> tuple[dict[str, Any], list[CaseResult]]:
@@ -229,6 +320,8 @@ def run_set(codecs: list[str], base: SimConfig) -> tuple[dict[str, Any], list[Ca
         "b": base.b,
         "full_scale": base.full_scale,
         "window_ms": base.window_ms,
+        "netem": {"forward": base.netem_forward, "backward": base.netem_backward},
+        "seed": base.seed,
         "cases": [c.summary for c in cases],
     }
     return doc, cases

@@ -1,8 +1,14 @@
 """Versioned msgpack packet carrying one codec payload between the two nodes.
 
-A packet is a msgpack array (arrays, not maps: field names would cost more than the payload)::
+A packet is a msgpack array (arrays, not maps: field names would cost more than the payload)
+followed by a CRC-32 of the array's bytes (zlib/IEEE, 4 bytes little-endian)::
 
-    [magic, version, session, direction, seq, tick, t_us, codec_id, payload, energy]
+    msgpack([magic, version, session, direction, seq, tick, t_us, codec_id, payload, energy]) + crc32
+
+Why a CRC when UDP has a checksum: the impairment shim corrupts bits *before* the socket (the
+kernel then checksums the corrupted bytes), Zenoh carries packets over links of its own, and a
+flipped bit in ``seq`` or ``energy`` would otherwise freeze a receiver or inflate the energy budget
+the passivity controller trusts.  A corrupted packet is malformed: counted and dropped.
 
 =========  =========  ==============================================================
 field      msgpack    meaning
@@ -26,6 +32,7 @@ is not such a packet; transports catch it, count the packet as malformed and dro
 from __future__ import annotations
 
 import math
+import zlib
 from dataclasses import dataclass
 
 import msgpack
@@ -56,7 +63,7 @@ class Packet:
 
 
 def encode(p: Packet) -> bytes:
-    out: bytes = msgpack.packb(
+    body: bytes = msgpack.packb(
         [
             MAGIC,
             VERSION,
@@ -71,7 +78,7 @@ def encode(p: Packet) -> bytes:
         ],
         use_bin_type=True,
     )
-    return out
+    return body + zlib.crc32(body).to_bytes(4, "little")
 
 
 def _uint(name: str, v: object, hi: int) -> int:
@@ -82,8 +89,13 @@ def _uint(name: str, v: object, hi: int) -> int:
 
 def decode(data: bytes) -> Packet:
     """Parse one packet; raises :class:`WireError` only."""
+    if len(data) < 5:
+        raise WireError(f"packet too short: {len(data)} bytes")
+    body = data[:-4]
+    if zlib.crc32(body) != int.from_bytes(data[-4:], "little"):
+        raise WireError("CRC-32 mismatch: the packet was corrupted")
     try:
-        obj = msgpack.unpackb(data, raw=False, use_list=True, strict_map_key=True)
+        obj = msgpack.unpackb(body, raw=False, use_list=True, strict_map_key=True)
     except Exception as e:  # msgpack raises several unrelated types for garbage input
         raise WireError(f"not msgpack: {type(e).__name__}: {e}") from None
     if not isinstance(obj, list):

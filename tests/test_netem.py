@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Iterable
 from pathlib import Path
 from statistics import NormalDist
@@ -19,6 +19,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from transport.netem import (
+    PACKET_SIZE,
     FourStateModel,
     GEModel,
     Link,
@@ -547,7 +548,7 @@ def test_load_trace_errors(text: str, match: str) -> None:
 
 def test_trace_link_follows_opportunities_and_loops() -> None:
     lk = TraceLink([1, 1, 3, 5])
-    got = run(lk, [(0.0, payload(k)) for k in range(8)])
+    got = run(lk, [(0.0, payload(k, PACKET_SIZE)) for k in range(8)])  # one full opportunity each
     assert [t for t, _ in got] == pytest.approx([x * MS for x in (1, 1, 3, 5, 6, 6, 8, 10)])
     assert [seq_of(d) for _, d in got] == list(range(8))
 
@@ -555,16 +556,88 @@ def test_trace_link_follows_opportunities_and_loops() -> None:
 def test_trace_link_opportunity_at_arrival_instant_is_gone_and_idle_skips() -> None:
     lk = TraceLink([1, 1, 3, 5], start=0.0)
     got = run(lk, [(0.003, payload(0)), (100.0, payload(1)), (100.0015, payload(2))])
+    # payload(2) does not ride the leftover of the 100.001 opportunity: it had passed when it arrived
     assert [t for t, _ in got] == pytest.approx([0.005, 100.001, 100.003])
 
 
-def test_trace_link_large_packet_takes_several_opportunities() -> None:
+def test_trace_link_packs_small_packets_into_one_opportunity() -> None:
+    lk = TraceLink([1])  # an opportunity every ms
+    got = run(lk, [(0.0, payload(k, 40)) for k in range(80)])
+    # 37 * 40 = 1480 B fit in the first 1504; the 38th takes the last 24 B and finishes in the second
+    times = [round(t / MS) for t, _ in got]
+    assert times == [1] * 37 + [2] * 38 + [3] * 5  # the second carries 16 B of the 38th + 37 * 40
+    assert [seq_of(d) for _, d in got] == list(range(80))
+
+
+def test_trace_link_busy_queue_shares_the_leftover_exact_fill_does_not() -> None:
+    lk = TraceLink([2], start=0.0)
+    got = run(lk, [(0.0, bytes(100)), (0.001, bytes(100)), (0.0015, bytes(1304)), (0.0019, bytes(1))])
+    # 100 + 100 + 1304 = 1504 fill the 2 ms opportunity exactly; the 1-byte packet waits for 4 ms
+    assert [t for t, _ in got] == pytest.approx([0.002, 0.002, 0.002, 0.004])
+
+
+def test_trace_link_large_packet_spills_over_opportunities() -> None:
     lk = TraceLink([1, 2, 3, 4])
     got = run(lk, [(0.0, bytes(3000)), (0.0, bytes(100)), (0.0, bytes(1500)), (0.0, bytes(1501))])
-    assert [t for t, _ in got] == pytest.approx([2 * MS, 3 * MS, 4 * MS, 6 * MS])
+    # 3000 = 1504 + 1496 (8 B left at 2 ms); 100 = 8 + 92; 1500 = 1412 + 88; 1501 = 1416 + 85 (at 5 ms)
+    assert [t for t, _ in got] == pytest.approx([2 * MS, 3 * MS, 4 * MS, 5 * MS])
+    fresh = TraceLink([1], start=0.0)
+    assert run(fresh, [(0.0, bytes(3 * PACKET_SIZE + 1))])[0][0] == pytest.approx(4 * MS)  # ceil(len / 1504)
 
 
-def test_trace_link_capacity_one_packet_per_opportunity() -> None:
+def test_trace_link_capacity_is_1504_bytes_per_opportunity() -> None:
     lk = TraceLink([1])  # an opportunity every ms
     got = run(lk, [(0.0, bytes(1000))] * 1000)
-    assert got[-1][0] == pytest.approx(1.0) and lk.stats.delivered == 1000 and lk.in_flight == 0
+    assert [t for t, _ in got] == pytest.approx(
+        [math.ceil(1000 * (k + 1) / PACKET_SIZE) * MS for k in range(1000)]
+    )
+    assert lk.stats.delivered == 1000 and lk.in_flight == 0
+
+
+def mahimahi_reference(trace_ms: list[int], sends: list[tuple[int, int]]) -> list[int]:
+    """``link_queue.cc``'s ``rationalize`` loop, opportunity by opportunity, in integer microseconds.
+
+    ``sends`` are (arrival us, size) in time order; returns each packet's departure us.  Opportunities
+    at or before an arrival are burnt before the packet is queued, as ``read_packet`` does.
+    """
+    period = trace_ms[-1] * 1000
+    queue: deque[list[int]] = deque()  # [index, bytes left]
+    out = [-1] * len(sends)
+    i = k = 0
+    while i < len(sends) or queue:
+        c, j = divmod(k, len(trace_ms))
+        t = c * period + trace_ms[j] * 1000
+        while i < len(sends) and sends[i][0] < t:
+            queue.append([i, sends[i][1]])
+            i += 1
+        budget = PACKET_SIZE
+        while budget > 0 and queue:
+            pkt = queue[0]
+            pkt[1] -= budget
+            budget = 0
+            if pkt[1] <= 0:
+                budget = -pkt[1]
+                out[pkt[0]] = t
+                queue.popleft()
+        k += 1
+    return out
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    st.lists(st.integers(0, 6), min_size=1, max_size=6).map(lambda d: list(itertools.accumulate(d))),
+    st.lists(st.tuples(st.integers(0, 3000), st.integers(4, 4000)), min_size=1, max_size=40),
+)
+def test_trace_link_matches_mahimahi_rationalize(trace: list[int], gaps_sizes: list[tuple[int, int]]) -> None:
+    if trace[-1] == 0:
+        trace = [*trace, 1]
+    sends, t_us = [], 0
+    for gap, size in gaps_sizes:
+        t_us += gap
+        sends.append((t_us, min(size, PACKET_SIZE)))  # Mahimahi refuses larger packets
+    lk = TraceLink(trace, start=0.0)
+    got = run(lk, [(t * 1e-6, payload(k, size)) for k, (t, size) in enumerate(sends)])
+    assert [seq_of(d) for _, d in got] == list(range(len(sends)))
+    assert [t for t, _ in got] == pytest.approx(
+        [t * 1e-6 for t in mahimahi_reference(trace, sends)], abs=1e-9
+    )

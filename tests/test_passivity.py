@@ -19,8 +19,10 @@ DT = 1e-3
 
 
 @settings(max_examples=100, deadline=None)
-@given(hnp.arrays(np.float64, (200, 2), elements=st.floats(-10, 10)),
-       st.lists(st.floats(0, 1e-2), min_size=200, max_size=200))
+@given(
+    hnp.arrays(np.float64, (200, 2), elements=st.floats(-10, 10)),
+    st.lists(st.floats(0, 1e-2), min_size=200, max_size=200),
+)
 def test_controller_never_plays_more_than_reported(x: np.ndarray, increments: list[float]) -> None:
     """Whatever is proposed, with the controller the played energy stays within what was reported."""
     g = EnergyGuard(DT, controller=True)
@@ -57,9 +59,12 @@ def test_controller_scales_to_the_budget() -> None:
 def _pair(options: PortOptions, spec: str = "none") -> tuple[OperatorNode, TeleoperatorNode]:
     w = WaveImpedance.of(1.0, 1)
     c = make_codec(spec, 1, 2.0)
-    op = OperatorNode(human=StepHuman(1, DT, t_step=0.0), wave=w, tx=c, rx=c, session=1, dt=DT, options=options)
-    to = TeleoperatorNode(environment=LtiEnvironment(1, DT), wave=w, tx=c, rx=c, session=1, dt=DT,
-                          options=options)
+    op = OperatorNode(
+        human=StepHuman(1, DT, t_step=0.0), wave=w, tx=c, rx=c, session=1, dt=DT, options=options
+    )
+    to = TeleoperatorNode(
+        environment=LtiEnvironment(1, DT), wave=w, tx=c, rx=c, session=1, dt=DT, options=options
+    )
     return op, to
 
 
@@ -97,7 +102,9 @@ def test_link_lost_safe_state_and_recovery() -> None:
     assert to.link_lost and op.link_lost
     assert to.passivity.link_lost_events == 1 and op.passivity.link_lost_events == 1
     assert to.coupling == 0.0 and op.coupling == 0.0  # faded out after 50 ms + 100 ms
-    assert np.all(to.v == 0.0) and np.all(op.f == 0.0) and np.all(to.wave_out == 0.0)  # safe: no motion, no force
+    assert (
+        np.all(to.v == 0.0) and np.all(op.f == 0.0) and np.all(to.wave_out == 0.0)
+    )  # safe: no motion, no force
     _run(op, to, range(800, 1100), deliver=True)
     assert not to.link_lost and to.coupling == 1.0 and op.coupling == 1.0  # resumed
     assert 240 <= to.passivity.link_lost_ticks <= 260  # 300 silent ticks minus the 50 ms timeout

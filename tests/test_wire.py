@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import zlib
 
 import msgpack
 import pytest
@@ -67,16 +68,21 @@ def _fields(**change: object) -> bytes:
     ]
     for k, v in change.items():
         f[names.index(k)] = v
-    out: bytes = msgpack.packb(f, use_bin_type=True)
-    return out
+    return _crc(msgpack.packb(f, use_bin_type=True))
+
+
+def _crc(body: bytes) -> bytes:
+    return body + zlib.crc32(body).to_bytes(4, "little")
 
 
 @pytest.mark.parametrize(
     "data,msg",
     [
-        (b"\xc1", "not msgpack"),
-        (msgpack.packb({"a": 1}), "must be a msgpack array, got dict"),
-        (msgpack.packb([1, 2, 3]), "must have 10 fields, got 3"),
+        (b"\x01\x02", "packet too short: 2 bytes"),
+        (b"\x9a\x00\x00\x00\x00\x00", "CRC-32 mismatch"),
+        (_crc(b"\xc1"), "not msgpack"),
+        (_crc(msgpack.packb({"a": 1})), "must be a msgpack array, got dict"),
+        (_crc(msgpack.packb([1, 2, 3])), "must have 10 fields, got 3"),
         (_fields(magic=b"XX"), "bad magic b'XX'"),
         (_fields(version=2), "unsupported version 2, expected 1"),
         (_fields(direction=5), "direction must be 0 or 1, got 5"),
@@ -94,6 +100,14 @@ def test_exact_messages(data: bytes, msg: str) -> None:
         wire.decode(data)
 
 
+@pytest.mark.parametrize("bit", range(0, 8 * 40, 7))
+def test_any_flipped_bit_is_detected(bit: int) -> None:
+    data = bytearray(wire.encode(P))
+    data[bit // 8 % len(data)] ^= 1 << (bit % 8)
+    with pytest.raises(WireError):
+        wire.decode(bytes(data))
+
+
 def test_packet_overhead_is_small() -> None:
     """The header is what sets wire-level compression for sparse codecs; keep an eye on it."""
-    assert len(wire.encode(P)) - len(P.payload) <= 32
+    assert len(wire.encode(P)) - len(P.payload) <= 36

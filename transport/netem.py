@@ -65,17 +65,19 @@ is bytes/s, and ``bps``/``kbps``/... are *bytes* per second (``kbit`` is 1000 bi
 
 The trace link follows Mahimahi's ``mm-link`` (``link_queue.cc``): the trace lists millisecond
 timestamps of delivery opportunities, repeats are allowed, and the trace loops with period equal to
-its last timestamp.  Differences from Mahimahi:
+its last timestamp.  Each opportunity carries ``PACKET_SIZE`` = 1504 bytes of the FIFO queue, as in
+Mahimahi: several small packets share one opportunity, and a packet that does not fit in what is left
+of an opportunity takes those bytes and finishes in a later one (it is delivered at the opportunity
+that carries its last byte).  Bytes of an opportunity that finds the queue empty are wasted.  As in
+Mahimahi, an opportunity at the very instant a packet arrives is already gone (Mahimahi burns
+opportunities up to ``now`` before enqueueing), so a packet never takes the leftover bytes of an
+opportunity at or before its arrival.
+Differences from Mahimahi:
 
-* one opportunity delivers one packet of up to ``mtu`` = 1500 B, and a larger packet takes
-  ``ceil(len / mtu)`` consecutive opportunities (delivered at the last).  Mahimahi instead gives each
-  opportunity 1504 bytes, packs several small packets into one opportunity, splits a packet across
-  opportunities, and refuses packets over 1504 B: for small packets this link carries fewer packets
-  per second than Mahimahi would on the same trace;
+* a packet over 1504 B (Mahimahi refuses it) is carried the same way, its bytes spilling over as many
+  opportunities as they need: ``ceil(len / 1504)`` when it starts on a fresh opportunity;
 * the trace starts at ``start`` or, by default, at the first ``send`` (Mahimahi: at link creation);
 * the queue is unbounded and lossless (Mahimahi's default ``infinite`` queue).
-As in Mahimahi, an opportunity at the very instant a packet arrives is already gone (Mahimahi
-burns opportunities up to ``now`` before enqueueing).
 """
 
 from __future__ import annotations
@@ -96,6 +98,7 @@ from typing import Any, Protocol
 
 __all__ = [
     "GRAMMAR",
+    "PACKET_SIZE",
     "FourStateModel",
     "GEModel",
     "Link",
@@ -694,21 +697,33 @@ def load_trace(path_or_text: str | os.PathLike[str]) -> list[float]:
     return out
 
 
-class TraceLink:
-    """A Mahimahi-style trace-driven link: FIFO, one packet per delivery opportunity (see the module doc)."""
+#: Mahimahi's ``PACKET_SIZE``: bytes one delivery opportunity carries (its max TUN payload).
+PACKET_SIZE = 1504
 
-    def __init__(self, trace_ms: Sequence[float], *, start: float | None = None, mtu: int = 1500) -> None:
+
+class TraceLink:
+    """A Mahimahi-style trace-driven link: FIFO, 1504 bytes per delivery opportunity (see the module doc).
+
+    The queue is FIFO and the opportunities are fixed in advance, so a packet's delivery time is known
+    when it is sent: the link keeps only the opportunity that carried the last byte queued so far and
+    the bytes left in it.
+    """
+
+    def __init__(
+        self, trace_ms: Sequence[float], *, start: float | None = None, packet_size: int = PACKET_SIZE
+    ) -> None:
         if not trace_ms or trace_ms[-1] <= 0 or any(b < a for a, b in itertools.pairwise(trace_ms)):
             raise NetemError("trace must be non-empty, non-decreasing and last a nonzero time")
-        if mtu < 1:
-            raise NetemError(f"mtu must be >= 1 B, got {mtu}")
+        if packet_size < 1:
+            raise NetemError(f"packet_size must be >= 1 B, got {packet_size}")
         self.stats = NetemStats()
         self._trace = [float(t) for t in trace_ms]
         self._n = len(self._trace)
         self._period = self._trace[-1]
         self._epoch = start
-        self._mtu = mtu
-        self._next = 0  # index of the first opportunity not yet used
+        self._size = packet_size
+        self._k = -1  # opportunity that carries the last byte queued so far (-1: none yet)
+        self._left = 0  # bytes of opportunity ``_k`` not yet taken
         self._queue: deque[tuple[float, bytes]] = deque()
 
     @property
@@ -737,8 +752,20 @@ class TraceLink:
         if self._epoch is None:
             self._epoch = now
         self.stats.sent += 1
-        k = max(self._next, self._first_opp_after(now)) + max(1, -(-len(data) // self._mtu)) - 1
-        self._next = k + 1
+        if self._k >= 0 and self._opp_time(self._k) > now + EPS:
+            k, left = self._k, self._left  # queue still busy at opportunity k: share its leftover
+        else:
+            k, left = self._first_opp_after(now), self._size  # idle: the leftover went unused
+        need = len(data)
+        if left == 0:  # Mahimahi's loop stops at 0 bytes left, even for an empty packet
+            k, left = k + 1, self._size
+        if need > left:
+            need -= left
+            m = -(-need // self._size)
+            k, left = k + m, m * self._size - need
+        else:
+            left -= need
+        self._k, self._left = k, left
         self._queue.append((self._opp_time(k), data))
 
     def due(self, now: float) -> list[bytes]:
