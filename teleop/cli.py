@@ -76,6 +76,24 @@ def format_table(cases: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def format_watchdog(cases: list[dict[str, Any]]) -> str:
+    """Per case and direction: what the link did (observed) and what the watchdog saw and did."""
+    lines = [
+        f"{'codec':<10} {'dir':<9} {'loss %':>7} {'delay ms':>9} {'reord':>6} {'dup':>5} "
+        f"{'violations':>10} {'ctrl ticks':>10} {'dissipated J':>12} {'lost':>5}"
+    ]
+    for c in cases:
+        for d in ("forward", "backward"):
+            lk, pv = c["link"][d], c["passivity"][d]
+            delay = "-" if lk["delay_ms"]["mean"] is None else f"{lk['delay_ms']['mean']:.2f}"
+            lines.append(
+                f"{c['codec']:<10} {d:<9} {100 * lk['loss']:>7.2f} {delay:>9} {lk['reordered']:>6} "
+                f"{lk['duplicates']:>5} {pv['violations']:>10} {pv['controller_active_ticks']:>10} "
+                f"{pv['energy_dissipated']:>12.3e} {pv['link_lost_events']:>5}"
+            )
+    return "\n".join(lines)
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     from . import plots
     from .sim import SECTION_V_CODECS, SimConfig, run_set
@@ -89,6 +107,12 @@ def cmd_sim(args: argparse.Namespace) -> int:
             b=args.b,
             full_scale=args.range,
             scenario=args.scenario,
+            netem_forward=_netem(args, "forward"),
+            netem_backward=_netem(args, "backward"),
+            seed=args.seed,
+            on_loss=args.on_loss,
+            controller=not args.no_controller,
+            link_timeout=args.link_timeout / 1e3,
         ).resolved()
         doc, cases = run_set(codecs, base)
     except (ValueError, CodecError) as e:
@@ -97,7 +121,15 @@ def cmd_sim(args: argparse.Namespace) -> int:
         f"teleop sim: scenario {base.scenario}, {base.dof} DoF, b = {base.b:g}, delay {base.delay_ms:g} ms, "
         f"{base.duration:g} s at {1 / base.dt:g} Hz, wave range +-{base.full_scale:g}"
     )
+    impaired = bool(base.netem_forward or base.netem_backward)
+    if impaired:
+        print(
+            f"netem forward: {base.netem_forward or '-'}   backward: {base.netem_backward or '-'}   "
+            f"seed {base.seed}"
+        )
     print(format_table(doc["cases"]))
+    if impaired or base.on_loss != "zero" or not base.controller:
+        print(format_watchdog(doc["cases"]))
     if args.out is not None:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
@@ -446,6 +478,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="one-way delay per direction in ms (default 0)",
     )
     _add_model_args(s)
+    _add_netem_args(s)
+    _add_passivity_args(s)
     s.add_argument("--out", metavar="DIR", help="write DIR/results.json and one PNG per codec")
     s.set_defaults(func=cmd_sim)
 

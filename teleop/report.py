@@ -118,6 +118,12 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
                 b=p["b"],
                 full_scale=p["full_scale"],
                 dt=dt,
+                netem_forward=p["netem_forward"],
+                netem_backward=p["netem_backward"],
+                seed=p["seed"],
+                on_loss=p["on_loss"],
+                controller=p["controller"],
+                link_timeout=p["link_timeout"],
             )
         )
         i_sim = sim.summary["I"]

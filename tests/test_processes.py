@@ -240,3 +240,50 @@ def test_teleoperator_rejects_a_different_codec(tmp_path: Path) -> None:
 def test_bad_arguments(args: list[str], msg: str) -> None:
     r = subprocess.run([*TELEOP, *args], capture_output=True, text=True, timeout=30)
     assert r.returncode == 2 and msg in r.stderr
+
+
+def test_impaired_run_watchdog_and_observed_link(tmp_path: Path) -> None:
+    """Real processes through the shim: the link figures are measured at the receivers, and the
+    controller keeps the worst reconstruction (hold on loss) passive."""
+    r, rep = _run(
+        tmp_path,
+        "--codec",
+        "none",
+        "--duration",
+        "3",
+        "--netem",
+        "delay 10ms 2ms loss 5%",
+        "--on-loss",
+        "hold",
+        "--no-sim",
+    )
+    assert r.returncode == 0, r.stderr
+    for d in ("forward", "backward"):
+        lk, pv = rep["link"][d], rep["passivity"][d]
+        assert lk["spec"] == "delay 10ms 2ms loss 5%"
+        assert 0.03 < lk["loss"] < 0.07  # 3000 packets at 5%: +-5 sigma
+        assert 9.5 < lk["delay_ms"]["mean"] < 13.0  # 10 ms +-2 ms, flushed on the 1 ms tick grid
+        assert lk["reordered"] > 0  # netem: jitter without rate reorders
+        assert pv["violations"] > 0 and pv["controller_active_ticks"] == pv["violations"]
+        assert pv["min_margin"] >= -1e-9
+        assert rep["energy"][d]["min_margin"] >= -1e-9
+    assert "watchdog forward" in r.stdout and "violations" in r.stdout
+
+
+def test_impaired_run_without_controller_is_seen_violating(tmp_path: Path) -> None:
+    r, rep = _run(
+        tmp_path,
+        "--codec",
+        "none",
+        "--duration",
+        "2",
+        "--netem",
+        "loss 10%",
+        "--on-loss",
+        "hold",
+        "--no-controller",
+        "--no-sim",
+    )
+    assert r.returncode == 0, r.stderr
+    assert sum(rep["passivity"][d]["violations"] for d in ("forward", "backward")) > 0
+    assert min(rep["passivity"][d]["min_margin"] for d in ("forward", "backward")) < -1e-9
