@@ -419,6 +419,29 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0 if all(c == 0 for c in codes.values()) else 1
 
 
+def cmd_report(args: argparse.Namespace) -> int:
+    """Build the report of a session from both processes' logs (for example copied from two hosts)."""
+    from . import report
+
+    logs = Path(args.logs)
+    missing = [
+        f"{r}.{x}"
+        for r in ("operator", "teleoperator")
+        for x in ("json", "npz")
+        if not (logs / f"{r}.{x}").exists()
+    ]
+    if missing:
+        raise CliError(f"{logs} lacks {', '.join(missing)}: pass the folder both processes wrote with --log")
+    out = Path(args.out) if args.out else logs.parent
+    out.mkdir(parents=True, exist_ok=True)
+    rep = report.build(logs, args.transport, compare_sim=not args.no_sim)
+    (out / "report.json").write_text(json.dumps(rep, indent=2) + "\n")
+    files = [] if args.no_plots else report.write_plots(logs, out, rep)
+    print(report.summary_text(rep))
+    print(f"wrote {out / 'report.json'}" + (f" and {', '.join(f.name for f in files)}" if files else ""))
+    return 0
+
+
 def _add_endpoint_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log", metavar="DIR", help="write ROLE.json and ROLE.npz logs to DIR")
     p.add_argument(
@@ -551,6 +574,19 @@ def build_parser() -> argparse.ArgumentParser:
     t.set_defaults(scenario=None)
     _add_endpoint_args(t)
     t.set_defaults(func=cmd_teleoperator)
+
+    rp = sub.add_parser(
+        "report",
+        help="build a report from the two processes' logs",
+        description="Merge operator.json/.npz and teleoperator.json/.npz (written with --log) "
+        "into report.json, plots and a printed summary.",
+    )
+    rp.add_argument("logs", metavar="LOGDIR", help="folder holding both processes' logs")
+    rp.add_argument("--out", metavar="DIR", help="report folder (default: LOGDIR's parent)")
+    rp.add_argument("--transport", default="udp", help="transport name to record (default udp)")
+    rp.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    rp.add_argument("--no-sim", action="store_true", help="skip the teleop sim comparison")
+    rp.set_defaults(func=cmd_report)
     return p
 
 

@@ -481,6 +481,8 @@ async def _run_loop(
     summary: dict[str, Any] = {
         "role": opts.role,
         "pid": os.getpid(),
+        "local": f"{tr.local_address[0]}:{tr.local_address[1]}",
+        "peer": f"{peer[0]}:{peer[1]}",
         "completed": completed,
         "stopped_by_signal": stop.signal,
         "peer_said_bye": inbound.peer_bye is not None,
