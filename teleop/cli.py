@@ -274,12 +274,62 @@ def _endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, in
         use_uvloop=not args.asyncio,
         quiet=args.quiet,
         grace_us=args.grace_us,
+        transport=args.transport,
+        zenoh=_zenoh_options(args) if args.transport == "zenoh" else None,
+    )
+
+
+def _zenoh_options(args: argparse.Namespace) -> Any:
+    from transport.session import ZenohOptions
+
+    connect = list(args.zenoh_connect or [])
+    if args.zenoh_router:
+        connect.append(args.zenoh_router)
+    return ZenohOptions(
+        mode=args.zenoh_mode,
+        listen=list(args.zenoh_listen or []),
+        connect=connect,
+        prefix=args.zenoh_prefix,
+        config_file=args.zenoh_config,
+    )
+
+
+def _add_transport_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--transport", choices=["udp", "zenoh"], default="udp", help="udp (default) or zenoh")
+    z = p.add_argument_group("Zenoh (with --transport zenoh; see README)")
+    z.add_argument(
+        "--zenoh-mode",
+        choices=["peer", "client"],
+        default="peer",
+        help="peer (default: direct, explicit endpoints) or client (through a router)",
+    )
+    z.add_argument(
+        "--zenoh-router",
+        metavar="ENDPOINT",
+        help="router to connect to in client mode, e.g. tcp/10.0.0.5:7447",
+    )
+    z.add_argument(
+        "--zenoh-listen", action="append", metavar="ENDPOINT", help="endpoint to listen on (repeatable)"
+    )
+    z.add_argument(
+        "--zenoh-connect", action="append", metavar="ENDPOINT", help="endpoint to connect to (repeatable)"
+    )
+    z.add_argument(
+        "--zenoh-prefix",
+        default="teleop/default",
+        metavar="KEY",
+        help="key prefix: data on KEY/forward and KEY/backward (default teleop/default)",
+    )
+    z.add_argument(
+        "--zenoh-config", metavar="FILE", help="Zenoh JSON5 config loaded first (deploy/zenoh/*.json5)"
     )
 
 
 def cmd_operator(args: argparse.Namespace) -> int:
     from transport.session import new_session_id, run_endpoint
 
+    if args.transport == "udp" and args.peer is None:
+        raise CliError("--peer HOST:PORT is required with --transport udp (the teleoperator's address)")
     params = _session_params(args, args.session or new_session_id())
     return run_endpoint(_endpoint_options(args, "operator", args.listen), params)
 
@@ -287,6 +337,8 @@ def cmd_operator(args: argparse.Namespace) -> int:
 def cmd_teleoperator(args: argparse.Namespace) -> int:
     from transport.session import run_endpoint
 
+    if args.transport == "udp" and args.listen is None:
+        raise CliError("--listen HOST:PORT is required with --transport udp, for example 0.0.0.0:7000")
     expect = {
         "codec": make_codec(args.codec).spec if args.codec else None,
         "scenario": args.scenario,
@@ -295,7 +347,9 @@ def cmd_teleoperator(args: argparse.Namespace) -> int:
         "full_scale": args.range,
         "duration": args.duration,
     }
-    return run_endpoint(_endpoint_options(args, "teleoperator", args.listen), None, expect)
+    return run_endpoint(
+        _endpoint_options(args, "teleoperator", args.listen or ("127.0.0.1", 0)), None, expect
+    )
 
 
 def _free_udp_port() -> int:
@@ -304,6 +358,35 @@ def _free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         sock.bind(("127.0.0.1", 0))
         return int(sock.getsockname()[1])
+
+
+def _free_tcp_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    """A Zenoh session in router mode until SIGINT/SIGTERM."""
+    import asyncio
+    import signal
+
+    from transport.zenoh import TransportError, run_router
+
+    async def main() -> None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        await run_router(args.listen, args.config, stop)
+
+    try:
+        asyncio.run(main())
+    except (TransportError, ValueError) as e:
+        raise CliError(str(e)) from None
+    return 0
 
 
 def _die_with_parent() -> None:
@@ -334,16 +417,40 @@ def cmd_run(args: argparse.Namespace) -> int:
     common = ["--log", str(logs), "--connect-timeout", str(args.connect_timeout), "--quiet"]
     common += ["--no-rt"] if args.no_rt else []
     common += ["--asyncio"] if args.asyncio else []
-    to_cmd = [sys.executable, "-m", "teleop.cli", "teleoperator", "--listen", f"127.0.0.1:{port}", *common]
+    router_cmd: list[str] | None = None
+    zenoh_info: dict[str, Any] | None = None
+    if args.transport == "udp":
+        to_net = ["--listen", f"127.0.0.1:{port}"]
+        op_net = ["--peer", f"127.0.0.1:{port}", "--listen", "127.0.0.1:0"]
+        where = f"teleoperator on udp 127.0.0.1:{port}"
+    else:
+        prefix = f"teleop/run-{params.session}"
+        zport = args.port or _free_tcp_port()
+        zen = ["--transport", "zenoh", "--zenoh-prefix", prefix]
+        if args.zenoh_mode == "peer":
+            endpoint = f"tcp/127.0.0.1:{zport}"
+            to_net = [*zen, "--zenoh-mode", "peer", "--zenoh-listen", endpoint]
+            op_net = [*zen, "--zenoh-mode", "peer", "--zenoh-connect", endpoint]
+            where = f"zenoh peers, teleoperator listening on {endpoint}"
+        else:
+            endpoint = args.zenoh_router or f"tcp/127.0.0.1:{zport}"
+            if not args.zenoh_router:
+                router_cmd = [sys.executable, "-m", "teleop.cli", "router", "--listen", endpoint]
+            to_net = op_net = [*zen, "--zenoh-mode", "client", "--zenoh-router", endpoint]
+            where = f"zenoh clients through the router at {endpoint}"
+        zenoh_info = {
+            "mode": args.zenoh_mode,
+            "prefix": prefix,
+            "endpoint": endpoint,
+            "router_launched": router_cmd is not None,
+        }
+    to_cmd = [sys.executable, "-m", "teleop.cli", "teleoperator", *to_net, *common]
     op_cmd = [
         sys.executable,
         "-m",
         "teleop.cli",
         "operator",
-        "--peer",
-        f"127.0.0.1:{port}",
-        "--listen",
-        "127.0.0.1:0",
+        *op_net,
         "--session",
         str(params.session),
         "--codec",
@@ -374,10 +481,15 @@ def cmd_run(args: argparse.Namespace) -> int:
         *common,
     ]
     print(
-        f"teleop run: teleoperator on 127.0.0.1:{port}, operator -> it; {params.codec}, "
-        f"{params.scenario}, {params.duration:g} s; logs in {logs}",
+        f"teleop run: {where}; {params.codec}, {params.scenario}, {params.duration:g} s; logs in {logs}",
         flush=True,
     )
+    router = None
+    if router_cmd is not None:
+        router = subprocess.Popen(router_cmd, preexec_fn=_die_with_parent)
+        time.sleep(0.5)
+        if router.poll() is not None:
+            raise CliError(f"the Zenoh router failed to start on {zenoh_info and zenoh_info['endpoint']}")
     procs = [subprocess.Popen(to_cmd, preexec_fn=_die_with_parent)]
     time.sleep(0.3)  # let the teleoperator bind before the operator says hello
     procs.append(subprocess.Popen(op_cmd, preexec_fn=_die_with_parent))
@@ -405,11 +517,20 @@ def cmd_run(args: argparse.Namespace) -> int:
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
+        if router is not None:
+            router.send_signal(signal.SIGINT)
+            try:
+                router.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                router.kill()
+                router.wait()
     codes = {"teleoperator": procs[0].returncode, "operator": procs[1].returncode}
     if not all((logs / f"{r}.json").exists() for r in codes):
         raise CliError(f"no report: a process failed before its loop ran (exit codes {codes})")
-    rep = report.build(logs, "udp", compare_sim=not args.no_sim)
+    rep = report.build(logs, args.transport, compare_sim=not args.no_sim)
     rep["exit_codes"] = codes
+    if zenoh_info is not None:
+        rep["zenoh"] = zenoh_info
     (out / "report.json").write_text(json.dumps(rep, indent=2) + "\n")
     files = [] if args.no_plots else report.write_plots(logs, out, rep)
     print(report.summary_text(rep))
@@ -516,7 +637,15 @@ def build_parser() -> argparse.ArgumentParser:
     _add_netem_args(r)
     _add_passivity_args(r)
     r.set_defaults(scenario="protocol")
-    r.add_argument("--transport", choices=["udp"], default="udp", help="transport (default udp)")
+    r.add_argument("--transport", choices=["udp", "zenoh"], default="udp", help="transport (default udp)")
+    r.add_argument(
+        "--zenoh-mode",
+        choices=["peer", "client"],
+        default="peer",
+        help="with zenoh: peer (direct, default) or client (through a router; one is started "
+        "unless --zenoh-router is given)",
+    )
+    r.add_argument("--zenoh-router", metavar="ENDPOINT", help="with zenoh client mode: an existing router")
     r.add_argument("--out", default="teleop-run", metavar="DIR", help="report folder (default ./teleop-run)")
     r.add_argument("--port", type=int, default=0, help="teleoperator UDP port (default: a free one)")
     r.add_argument(
@@ -539,7 +668,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--peer, agrees the session, and runs its 1 kHz loop.",
     )
     o.add_argument(
-        "--peer", type=_addr("--peer"), required=True, metavar="HOST:PORT", help="the teleoperator's address"
+        "--peer",
+        type=_addr("--peer"),
+        default=None,
+        metavar="HOST:PORT",
+        help="the teleoperator's UDP address (required with --transport udp)",
     )
     o.add_argument(
         "--listen",
@@ -554,6 +687,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_passivity_args(o)
     o.set_defaults(scenario="protocol")
     _add_endpoint_args(o)
+    _add_transport_args(o)
     o.set_defaults(func=cmd_operator)
 
     t = sub.add_parser(
@@ -566,14 +700,32 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument(
         "--listen",
         type=_addr("--listen"),
-        required=True,
+        default=None,
         metavar="HOST:PORT",
-        help="address to wait on, for example 0.0.0.0:7000",
+        help="UDP address to wait on, for example 0.0.0.0:7000 (required with --transport udp)",
     )
     _add_session_args(t, None)
     t.set_defaults(scenario=None)
     _add_endpoint_args(t)
+    _add_transport_args(t)
     t.set_defaults(func=cmd_teleoperator)
+
+    ro = sub.add_parser(
+        "router",
+        help="a Zenoh router (a Zenoh session in router mode)",
+        description="Run a Zenoh router until Ctrl-C, for --zenoh-mode client sessions.",
+    )
+    ro.add_argument(
+        "--listen",
+        action="append",
+        required=True,
+        metavar="ENDPOINT",
+        help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
+    )
+    ro.add_argument(
+        "--config", metavar="FILE", help="Zenoh JSON5 config (deploy/zenoh/router.json5, TLS variants)"
+    )
+    ro.set_defaults(func=cmd_router)
 
     rp = sub.add_parser(
         "report",

@@ -32,7 +32,7 @@ import random
 import signal
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -44,11 +44,13 @@ from teleop.codecs import CodecError, make_codec
 from teleop.node import OperatorNode, PortOptions, TeleoperatorNode
 from teleop.wave import WaveImpedance
 
+from .base import Addr, Transport
 from .counters import DirectionCounters
 from .linkstats import LinkObserver
 from .netem import Link, make_link
 from .realtime import Ticker, setup_realtime
-from .udp import Addr, UdpTransport, new_event_loop
+from .udp import UdpTransport, new_event_loop
+from .zenoh import ZENOH_PEER, ZenohTransport, make_config
 
 PROTOCOL_VERSION = 1
 ROLES = ("operator", "teleoperator")
@@ -159,6 +161,19 @@ class EndpointOptions:
     linger: float = 0.2
     grace_us: float = 400.0
     quiet: bool = False
+    transport: str = "udp"  # "udp" or "zenoh"
+    zenoh: ZenohOptions | None = None
+
+
+@dataclass
+class ZenohOptions:
+    """How a process joins Zenoh (see transport.zenoh.make_config and README, Zenoh)."""
+
+    mode: str = "peer"  # peer | client
+    listen: list[str] = field(default_factory=list)
+    connect: list[str] = field(default_factory=list)
+    prefix: str = "teleop/default"
+    config_file: str | None = None
 
 
 def _control(kind: str, **fields: Any) -> bytes:
@@ -191,7 +206,7 @@ class _Stop:
 # handshake
 # --------------------------------------------------------------------------------------------
 async def _operator_handshake(
-    tr: UdpTransport, peer: Addr, params: SessionParams, timeout: float, stop: _Stop
+    tr: Transport, peer: Addr, params: SessionParams, timeout: float, stop: _Stop
 ) -> tuple[int, int, int]:
     """Returns (offset_ns, rtt_ns, start_ns in the operator's clock).
 
@@ -250,7 +265,7 @@ async def _operator_handshake(
 
 
 async def _teleoperator_handshake(
-    tr: UdpTransport, timeout: float, expect: dict[str, Any], stop: _Stop
+    tr: Transport, timeout: float, expect: dict[str, Any], stop: _Stop
 ) -> tuple[SessionParams, Addr, int]:
     """Wait for an operator; returns (params, operator address, start_ns in this clock)."""
     clock = time.monotonic_ns
@@ -269,7 +284,8 @@ async def _teleoperator_handshake(
             if m is None:
                 continue
             if m["t"] == "hello":
-                if peer is not None and addr != peer:
+                if params is not None and (addr != peer or m.get("session") != params.session):
+                    # Over Zenoh every operator has the same pseudo-address: the session id tells them apart.
                     tr.send(
                         _control("reject", session=m.get("session"), why="busy with another operator"), addr
                     )
@@ -320,7 +336,7 @@ class _Inbound:
 
     def __init__(
         self,
-        tr: UdpTransport,
+        tr: Transport,
         peer: Addr,
         node: OperatorNode | TeleoperatorNode,
         rx: DirectionCounters,
@@ -369,7 +385,7 @@ class _Inbound:
 
 async def _run_loop(
     opts: EndpointOptions,
-    tr: UdpTransport,
+    tr: Transport,
     peer: Addr,
     params: SessionParams,
     node: OperatorNode | TeleoperatorNode,
@@ -382,8 +398,8 @@ async def _run_loop(
     dt = params.dt
     dof = params.dof
     tx_dir = node.tx_direction
-    tx = DirectionCounters(n)
-    rx = DirectionCounters(n)
+    tx = DirectionCounters(n, tr.header_bytes)
+    rx = DirectionCounters(n, tr.header_bytes)
     raw_payload = bytes(make_codec("none", dof, params.full_scale).raw_bytes_per_tick)
     rec = {name: np.full((n, dof), np.nan) for name in ("v", "f", "wave_out", "wave_in")}
     e_sent = np.full(n, np.nan)
@@ -483,6 +499,7 @@ async def _run_loop(
         "pid": os.getpid(),
         "local": f"{tr.local_address[0]}:{tr.local_address[1]}",
         "peer": f"{peer[0]}:{peer[1]}",
+        "transport": opts.transport,
         "completed": completed,
         "stopped_by_signal": stop.signal,
         "peer_said_bye": inbound.peer_bye is not None,
@@ -536,6 +553,19 @@ async def _run_loop(
 # --------------------------------------------------------------------------------------------
 # entry points
 # --------------------------------------------------------------------------------------------
+async def _open_transport(opts: EndpointOptions) -> Transport:
+    if opts.transport == "udp":
+        return await UdpTransport.bind(opts.listen)
+    if opts.transport == "zenoh":
+        z = opts.zenoh or ZenohOptions()
+        try:
+            config = make_config(z.mode, z.listen, z.connect, z.config_file)
+        except ValueError as e:
+            raise SessionError(str(e)) from None
+        return await ZenohTransport.open(opts.role, z.prefix, config)
+    raise SessionError(f"unknown transport {opts.transport!r}; accepted: udp, zenoh")
+
+
 async def _endpoint(
     opts: EndpointOptions, params: SessionParams | None, expect: dict[str, Any]
 ) -> dict[str, Any]:
@@ -543,11 +573,12 @@ async def _endpoint(
     stop = _Stop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop, sig)
-    tr = await UdpTransport.bind(opts.listen)
+    tr = await _open_transport(opts)
     try:
         if opts.role == "operator":
-            assert params is not None and opts.peer is not None
-            peer = opts.peer
+            assert params is not None
+            peer = ZENOH_PEER if opts.transport == "zenoh" else opts.peer
+            assert peer is not None
             offset, rtt, start = await _operator_handshake(tr, peer, params, opts.connect_timeout, stop)
             t0 = start
             extra = {"clock_offset_ns": offset, "handshake_rtt_us": rtt / 1e3}

@@ -12,7 +12,7 @@ import os
 import time
 from collections import deque
 
-Addr = tuple[str, int]
+from .base import Addr
 
 
 def new_event_loop(use_uvloop: bool = True) -> tuple[asyncio.AbstractEventLoop, str]:
@@ -64,6 +64,8 @@ class UdpTransport:
 
     ``t_rx_ns`` is the monotonic clock when the event loop handed the datagram over.
     """
+
+    header_bytes = 28  # UDP (8) + IPv4 (20): on the wire below every datagram
 
     def __init__(self, inbox_size: int = 4096) -> None:
         self.inbox: deque[tuple[bytes, Addr, int]] = deque(maxlen=inbox_size)

@@ -1,0 +1,137 @@
+"""The same session over Zenoh: peer to peer, through a router, interoperability, clear errors.
+
+Real processes on loopback with scouting off and explicit endpoints.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.test_zenoh import readme_subscriber
+
+pytestmark = pytest.mark.integration
+TELEOP = [sys.executable, "-m", "teleop.cli"]
+
+
+def _free_tcp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _run(tmp: Path, *args: str) -> tuple[subprocess.CompletedProcess[str], dict[str, Any]]:
+    out = tmp / "run"
+    r = subprocess.run(
+        [*TELEOP, "run", "--transport", "zenoh", "--out", str(out), "--no-plots", "--no-sim", *args],
+        capture_output=True,
+        text=True,
+        timeout=90,
+    )
+    rep = json.loads((out / "report.json").read_text()) if (out / "report.json").exists() else {}
+    return r, rep
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    status = Path(f"/proc/{pid}/status")
+    return status.exists() and "State:\tZ" not in status.read_text()
+
+
+@pytest.mark.parametrize("mode", ["peer", "client"])
+def test_session_over_zenoh(tmp_path: Path, mode: str) -> None:
+    r, rep = _run(tmp_path, "--zenoh-mode", mode, "--codec", "eds:50", "--duration", "3")
+    assert r.returncode == 0, r.stderr
+    assert rep["transport"] == "zenoh" and rep["zenoh"]["mode"] == mode
+    assert rep["zenoh"]["router_launched"] is (mode == "client")
+    for d in ("forward", "backward"):
+        w = rep["wire"][d]
+        assert w["packets"] == 60 and w["received_packets"] == 60  # same counts as over UDP
+        assert w["compression_payload"] == 50.0
+        assert rep["link"][d]["loss"] == 0.0
+        assert rep["energy"][d]["min_margin"] >= -1e-9
+    for role, p in rep["processes"].items():
+        assert p["loop"]["ticks"] + p["loop"]["skipped"] == 3000, role
+        assert not _alive(p["pid"]), role
+    assert (
+        "teleop.cli router"
+        not in subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True).stdout
+    )
+
+
+def test_plain_subscriber_decodes_live_packets(tmp_path: Path) -> None:
+    """A subscriber written from the README alone (zenoh + msgpack + zlib) decodes a live session."""
+    endpoint = f"tcp/127.0.0.1:{_free_tcp_port()}"
+    router = subprocess.Popen([*TELEOP, "router", "--listen", endpoint])
+    try:
+        time.sleep(0.5)
+        got: dict[str, Any] = {}
+
+        def listen() -> None:
+            got["result"] = readme_subscriber(endpoint, "teleop/*", 20, timeout=20.0, mode="client")
+
+        th = threading.Thread(target=listen)
+        th.start()
+        time.sleep(0.5)
+        r, rep = _run(
+            tmp_path,
+            "--zenoh-mode",
+            "client",
+            "--zenoh-router",
+            endpoint,
+            "--codec",
+            "none",
+            "--duration",
+            "2",
+        )
+        th.join(timeout=30)
+        assert r.returncode == 0, r.stderr
+        assert rep["zenoh"]["router_launched"] is False
+        packets, controls, bad_crc = got["result"]
+        assert len(packets) == 20 and bad_crc == 0 and controls >= 1  # the hello/start went by too
+        seqs = [p[4] for p in packets]
+        for f in packets:
+            assert f[0] == b"TW" and f[1] == 1 and f[2] == rep["session"] and f[3] == 0  # forward
+            assert f[7] == 0 and len(f[8]) == 4 and isinstance(f[9], float)  # codec none, 2 DoF x int16
+        assert seqs == sorted(seqs) and len(set(seqs)) == 20
+    finally:
+        router.send_signal(signal.SIGINT)
+        router.wait(timeout=10)
+
+
+def test_unreachable_router_is_a_clear_error() -> None:
+    endpoint = f"tcp/127.0.0.1:{_free_tcp_port()}"
+    t0 = time.monotonic()
+    r = subprocess.run(
+        [
+            *TELEOP,
+            "operator",
+            "--transport",
+            "zenoh",
+            "--zenoh-mode",
+            "client",
+            "--zenoh-router",
+            endpoint,
+            "--connect-timeout",
+            "3",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 1
+    assert f"cannot reach Zenoh router at {endpoint}" in r.stderr
+    assert time.monotonic() - t0 < 15

@@ -1,0 +1,31 @@
+"""The one small interface the session loop needs from a transport (UDP or Zenoh)."""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+Addr = tuple[str, int]
+
+
+class Transport(Protocol):
+    """Datagrams in and out; the 1 kHz loop drains the inbox once per tick.
+
+    ``drain`` yields ``(data, sender address, receive time on the monotonic clock in ns)``.
+    ``header_bytes`` is what the transport adds per message below what we count (28 for UDP/IPv4:
+    the wire counters add it; 0 where the transport's own framing is not visible to us).
+    """
+
+    inbox_overflow: int
+    socket_errors: int
+    header_bytes: int
+
+    @property
+    def local_address(self) -> Addr: ...
+
+    def send(self, data: bytes, addr: Addr) -> None: ...
+
+    def drain(self) -> list[tuple[bytes, Addr, int]]: ...
+
+    async def wait(self, timeout: float) -> bool: ...
+
+    def close(self) -> None: ...

@@ -1,0 +1,341 @@
+"""Zenoh pub/sub as a drop-in for :class:`transport.udp.UdpTransport` in the session loop.
+
+Why Zenoh: it routes between hosts (through a router, over TLS/mTLS if needed) without the two
+processes knowing each other's address, while the 1 kHz loop keeps the same duck-typed surface
+(``send``/``drain``/``wait``).
+
+**Keys.** With a ``prefix`` agreed by both sides, the operator publishes on ``<prefix>/forward`` and
+subscribes to ``<prefix>/backward``; the teleoperator does the opposite.  Control messages (msgpack
+maps) and data packets (msgpack arrays, ``teleop.wire``) travel on the same two keys, as raw payload
+bytes: no Zenoh encoding or attachment is used, so any Zenoh subscriber can decode them.
+
+**QoS.** One publisher per process: ``express=True`` (no batching: each packet leaves at once),
+``CongestionControl.DROP`` (a stale haptic sample is worth less than a stalled loop; the handshake
+resends control messages anyway) and ``Priority.REAL_TIME``.  DROP gives up on a packet when the
+priority's transmit queue stays full for 1 ms; with Zenoh's default queue (2 batches) that lost
+~0.5 % of packets at 1 kHz on loopback whenever both cores were busy (Zenoh's I/O threads starved),
+so ``make_config`` sets the REAL_TIME queue to ``RT_QUEUE_BATCHES`` (16) unless the file changes it:
+like a UDP socket buffer, it absorbs a starved moment instead of dropping.
+
+**Threads.** The subscriber callback runs on a Zenoh thread.  It never blocks: it stamps
+``time.monotonic_ns()``, appends to a bounded deque (oldest dropped, counted in ``inbox_overflow``)
+and, if the loop is waiting, schedules the wake-up with ``loop.call_soon_threadsafe``.
+
+**Processes.** Open the session inside the process that uses it: Zenoh's runtime (Tokio threads)
+does not survive ``fork()``.
+
+**Discovery.** Scouting (multicast and gossip) is always off: every endpoint is explicit, so a
+session never joins a stranger on the LAN and nothing depends on multicast working.
+
+**Failure.** In client mode the router must be reachable: the connect is retried for
+``CLIENT_CONNECT_TIMEOUT_MS`` (2 s; ``connect/timeout_ms``, plus ``transport/unicast/open_timeout``
+for a router that accepts TCP but never answers), then :class:`TransportError` names the endpoints.
+A peer whose connect target is not up yet opens anyway (after ~0.5 s) and keeps retrying in the
+background, so the two peers may start in either order.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import re
+import time
+from collections import deque
+from typing import Any
+
+import zenoh
+
+Addr = tuple[str, int]
+ZENOH_PEER: Addr = ("zenoh", 0)
+"""The pseudo-address every received sample carries (Zenoh hides the sender's socket address)."""
+
+ROLES = ("operator", "teleoperator")
+MODES = ("peer", "client", "router")
+PROTOCOLS = ("tcp", "udp", "tls", "quic")
+CLIENT_CONNECT_TIMEOUT_MS = 2000
+RT_QUEUE_BATCHES = 16  # Zenoh's maximum; its default of 2 dropped ~0.5 % at 1 kHz on a busy 2-core host
+_RT_QUEUE = "transport/link/tx/queue/size/real_time"
+
+_ENDPOINT = re.compile(
+    r"(?P<proto>[a-z0-9-]+)/(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):(?P<port>\d+)([?#].*)?"
+)
+_KEY_FORBIDDEN = re.compile(r"[*$?#\s]")
+_RUST_LOCATION = re.compile(r"\s+at /\S+\.rs:\d+\.?")
+
+
+class TransportError(OSError):
+    """The Zenoh session could not open or connect (printed as one clear line)."""
+
+
+def _reason(e: BaseException) -> str:
+    """A ZError's message without the Rust source location it carries."""
+    return _RUST_LOCATION.sub("", str(e)).strip()
+
+
+def _check_endpoint(ep: str, what: str) -> None:
+    m = _ENDPOINT.fullmatch(ep)
+    allowed = f"PROTO/HOST:PORT with PROTO one of {', '.join(PROTOCOLS)} (for example tcp/127.0.0.1:7447)"
+    if m is None:
+        raise ValueError(f"{what} endpoint must be {allowed}, got {ep!r}")
+    if m["proto"] not in PROTOCOLS:
+        raise ValueError(f"{what} endpoint protocol must be one of {', '.join(PROTOCOLS)}, got {ep!r}")
+    if not 0 <= int(m["port"]) <= 65535 or (what == "connect" and int(m["port"]) == 0):
+        lo = 1 if what == "connect" else 0
+        raise ValueError(f"{what} endpoint port must be {lo}..65535, got {ep!r}")
+
+
+def _get(config: Any, key: str) -> Any:
+    return json.loads(config.get_json(key))
+
+
+def make_config(
+    mode: str = "peer",
+    listen: list[str] | None = None,
+    connect: list[str] | None = None,
+    config_file: str | None = None,
+) -> zenoh.Config:
+    """A Zenoh config: ``config_file`` (JSON5) first if given, then these overrides.
+
+    ``mode`` always wins; ``listen``/``connect`` replace the file's lists when given (an endpoint
+    list left unset everywhere is empty, never Zenoh's all-interfaces default).  Scouting is forced
+    off; the REAL_TIME transmit queue is ``RT_QUEUE_BATCHES`` unless the file changes it.  In client
+    mode the connect timeout is ``CLIENT_CONNECT_TIMEOUT_MS`` unless the file sets
+    one.  ValueError says what is wrong and what is allowed.
+    """
+    if mode not in MODES:
+        raise ValueError(f"Zenoh mode must be one of {', '.join(MODES)}, got {mode!r}")
+    for what, eps in (("listen", listen), ("connect", connect)):
+        if eps is not None and (not isinstance(eps, list) or not all(isinstance(e, str) for e in eps)):
+            raise ValueError(f"{what} endpoints must be a list of strings, got {eps!r}")
+        for ep in eps or []:
+            _check_endpoint(ep, what)
+    default = zenoh.Config()
+    if config_file is None:
+        config = zenoh.Config()
+    else:
+        try:
+            config = zenoh.Config.from_file(config_file)
+        except zenoh.ZError as e:
+            raise ValueError(f"cannot load Zenoh config {config_file}: {_reason(e)}") from None
+
+    def put(key: str, value: Any) -> None:
+        try:
+            config.insert_json5(key, json.dumps(value))
+        except zenoh.ZError as e:
+            raise ValueError(f"Zenoh config {key} = {value!r}: {_reason(e)}") from None
+
+    def unset(key: str) -> bool:
+        return bool(_get(config, key) == _get(default, key))
+
+    put("mode", mode)
+    put("scouting/multicast/enabled", False)
+    put("scouting/gossip/enabled", False)
+    for key, eps in (("listen/endpoints", listen), ("connect/endpoints", connect)):
+        if eps is not None:
+            put(key, eps)
+        elif unset(key):
+            put(key, [])
+    if unset(_RT_QUEUE):
+        put(_RT_QUEUE, RT_QUEUE_BATCHES)
+    listen_eps = _get(config, "listen/endpoints")
+    connect_eps = _get(config, "connect/endpoints")
+    if mode == "client":
+        if not connect_eps:
+            raise ValueError(
+                "Zenoh client mode needs a connect endpoint (the router's), e.g. tcp/127.0.0.1:7447"
+            )
+        if unset("connect/timeout_ms"):
+            put("connect/timeout_ms", CLIENT_CONNECT_TIMEOUT_MS)
+        if unset("transport/unicast/open_timeout"):
+            put("transport/unicast/open_timeout", CLIENT_CONNECT_TIMEOUT_MS)
+    elif mode == "router" and not listen_eps:
+        raise ValueError("Zenoh router mode needs a listen endpoint, e.g. tcp/127.0.0.1:7447")
+    elif mode == "peer" and not listen_eps and not connect_eps:
+        raise ValueError("Zenoh peer mode needs a listen or connect endpoint (scouting is off)")
+    return config
+
+
+def _describe(config: Any) -> tuple[str, str]:
+    """(mode, human-readable endpoints) for error messages."""
+    mode = _get(config, "mode") or "peer"
+    if mode == "client":
+        return mode, ", ".join(_get(config, "connect/endpoints")) or "(none)"
+    return mode, f"listen {_get(config, 'listen/endpoints')}, connect {_get(config, 'connect/endpoints')}"
+
+
+def _open_blocking(config: Any) -> Any:
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as e:
+        mode, where = _describe(config)
+        if mode == "client":
+            raise TransportError(f"cannot reach Zenoh router at {where}: {_reason(e)}") from None
+        raise TransportError(f"cannot open Zenoh {mode} session ({where}): {_reason(e)}") from None
+
+
+async def _open_session(config: Any) -> Any:
+    """``zenoh.open`` off the event loop (a client may wait seconds for its router)."""
+    fut = asyncio.get_running_loop().run_in_executor(None, _open_blocking, config)
+    try:
+        return await asyncio.shield(fut)
+    except asyncio.CancelledError:
+        # Cancelled while opening: close the session once the thread has it, so nothing leaks.
+        def _close(f: asyncio.Future[Any]) -> None:
+            if not f.cancelled() and f.exception() is None:
+                f.result().close()
+
+        fut.add_done_callback(_close)
+        raise
+
+
+def _keys(role: str, prefix: str) -> tuple[str, str]:
+    """(tx, rx) key expressions for a role."""
+    if role not in ROLES:
+        raise ValueError(f"role must be one of {', '.join(ROLES)}, got {role!r}")
+    p = prefix.strip("/")
+    if not p or _KEY_FORBIDDEN.search(p) or "//" in p:
+        raise ValueError(
+            f"Zenoh key prefix must be a plain key like teleop/lab1 (no wildcards), got {prefix!r}"
+        )
+    fwd, bwd = f"{p}/forward", f"{p}/backward"
+    return (fwd, bwd) if role == "operator" else (bwd, fwd)
+
+
+def _wake(fut: asyncio.Future[None]) -> None:
+    if not fut.done():
+        fut.set_result(None)
+
+
+class ZenohTransport:
+    """A Zenoh session publishing on the role's tx key and subscribed to its rx key.
+
+    ``drain() -> [(data, ZENOH_PEER, t_rx_ns)]`` with ``t_rx_ns`` the monotonic clock when the Zenoh
+    callback got the sample.  ``send`` ignores the address: there is one peer, the other key.
+    """
+
+    header_bytes = 0  # Zenoh's framing (and TCP/TLS below it) is not visible to us: count payload only
+
+    def __init__(self, inbox_size: int = 4096) -> None:
+        if inbox_size < 1:
+            raise ValueError(f"inbox_size must be >= 1, got {inbox_size}")
+        self._inbox: deque[tuple[bytes, Addr, int]] = deque()
+        self._inbox_size = inbox_size
+        self._waiter: asyncio.Future[None] | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._session: Any = None
+        self._publisher: Any = None
+        self._subscriber: Any = None
+        self._zid = "zenoh"
+        self.tx_key = ""
+        self.rx_key = ""
+        self.inbox_overflow = 0
+        self.socket_errors = 0
+        self.last_socket_error = ""
+
+    @classmethod
+    async def open(
+        cls, role: str, prefix: str, config: zenoh.Config, inbox_size: int = 4096
+    ) -> ZenohTransport:
+        """Open the session and declare the publisher and subscriber; TransportError if it can't."""
+        tx, rx = _keys(role, prefix)
+        self = cls(inbox_size)
+        self.tx_key, self.rx_key = tx, rx
+        self._loop = asyncio.get_running_loop()
+        self._session = await _open_session(config)
+        try:
+            self._zid = str(self._session.zid())
+            self._subscriber = self._session.declare_subscriber(rx, self._on_sample)
+            self._publisher = self._session.declare_publisher(
+                tx,
+                express=True,
+                congestion_control=zenoh.CongestionControl.DROP,
+                priority=zenoh.Priority.REAL_TIME,
+            )
+        except zenoh.ZError as e:
+            self.close()
+            raise TransportError(
+                f"cannot declare Zenoh publisher {tx} / subscriber {rx}: {_reason(e)}"
+            ) from None
+        return self
+
+    def _on_sample(self, sample: Any) -> None:
+        """Zenoh thread: stamp, enqueue, wake the loop. Never blocks."""
+        t_rx = time.monotonic_ns()
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        inbox = self._inbox
+        inbox.append((sample.payload.to_bytes(), ZENOH_PEER, t_rx))
+        if len(inbox) > self._inbox_size:
+            # Latest wins. popleft may race with drain() emptying the deque; then nothing is lost.
+            with contextlib.suppress(IndexError):
+                inbox.popleft()
+                self.inbox_overflow += 1
+        w, loop = self._waiter, self._loop
+        if w is not None and loop is not None:
+            self._waiter = None  # claimed: one wake-up per wait()
+            with contextlib.suppress(RuntimeError):  # loop already closed
+                loop.call_soon_threadsafe(_wake, w)
+
+    @property
+    def local_address(self) -> Addr:
+        """(Zenoh id, 0): for logs; there is no socket address to show."""
+        return self._zid, 0
+
+    def send(self, data: bytes, addr: Addr) -> None:
+        """Publish ``data`` on the tx key (``addr`` is ignored); failures are counted, not raised."""
+        if self._publisher is None:
+            raise TransportError("ZenohTransport is closed")
+        try:
+            self._publisher.put(data)
+        except zenoh.ZError as e:
+            self.socket_errors += 1
+            self.last_socket_error = f"ZError: {_reason(e)}"
+
+    def drain(self) -> list[tuple[bytes, Addr, int]]:
+        """Everything received so far, in arrival order (popleft: safe against the Zenoh thread)."""
+        items = []
+        pop = self._inbox.popleft
+        with contextlib.suppress(IndexError):
+            while True:
+                items.append(pop())
+        return items
+
+    async def wait(self, timeout: float) -> bool:
+        """Wait until a sample is in the inbox (woken by the callback, not a timer); False on timeout."""
+        if self._inbox:
+            return True
+        fut = asyncio.get_running_loop().create_future()
+        self._waiter = fut
+        try:
+            if self._inbox:  # arrived between the check and publishing the waiter
+                return True
+            await asyncio.wait_for(fut, max(timeout, 0.0))
+        except TimeoutError:
+            return bool(self._inbox)
+        finally:
+            self._waiter = None
+        return True
+
+    def close(self) -> None:
+        """Undeclare and close the session; idempotent."""
+        self._loop = None
+        for entity in (self._subscriber, self._publisher):
+            if entity is not None:
+                with contextlib.suppress(Exception):
+                    entity.undeclare()
+        self._subscriber = self._publisher = None
+        if self._session is not None:
+            with contextlib.suppress(Exception):
+                self._session.close()
+            self._session = None
+
+
+async def run_router(listen: list[str], config_file: str | None, stop: asyncio.Event) -> None:
+    """A Zenoh router (scouting off) on ``listen`` (or the file's endpoints if empty) until ``stop``."""
+    session = await _open_session(make_config("router", listen or None, None, config_file))
+    try:
+        await stop.wait()
+    finally:
+        # A router's close takes ~0.4 s (measured): keep it off the event loop.
+        await asyncio.get_running_loop().run_in_executor(None, session.close)
