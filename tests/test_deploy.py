@@ -45,3 +45,22 @@ def test_udp_between_two_namespaces(tmp_path: Path) -> None:
     assert op["completed"] and op["params"]["codec"] == "eds:50"
     assert op["peer"] == "10.77.0.2:7000" and to["peer"].startswith("10.77.0.1:")
     assert "teleop-op-" not in _netns() and "teleop-to-" not in _netns()
+
+
+@needs_netns
+@pytest.mark.integration
+def test_zenoh_through_a_router_in_a_third_namespace(tmp_path: Path) -> None:
+    teleop = str(Path(sys.executable).with_name("teleop"))
+    env = {**os.environ, "TELEOP": teleop, "OUT": str(tmp_path), "DURATION": "2", "CODEC": "eds:50"}
+    r = subprocess.run(
+        ["bash", str(ROOT / "deploy/netns/zenoh.sh")], env=env, capture_output=True, text=True, timeout=120
+    )
+    assert r.returncode == 0, r.stderr
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert rep["transport"] == "zenoh"
+    for d in ("forward", "backward"):
+        assert rep["wire"][d]["packets"] == 40 and rep["wire"][d]["received_packets"] == 40
+    op = json.loads((tmp_path / "logs" / "operator.json").read_text())
+    assert op["completed"] and op["transport"] == "zenoh"
+    left = _netns()
+    assert "teleop-op-" not in left and "teleop-to-" not in left and "teleop-rt-" not in left
