@@ -51,6 +51,22 @@ def _wire(sender: dict[str, Any], receiver: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _true_margin(sender: dict[str, Array], receiver: dict[str, Array]) -> Array:
+    """Per receiver tick: energy the sender had sent by the instant the receiver played its sample,
+    minus energy played so far (eq. 5).  Aligned on the common session clock, not by tick index:
+    a receiver tick that waits for a late payload may rightly play a sample the sender produced in
+    a *later* tick index."""
+    played = receiver["energy_played"]
+    if "send_time_s" not in sender or "play_time_s" not in receiver:
+        return sender["energy_sent"] - played  # older logs: by tick index
+    s_t, r_t = sender["send_time_s"], receiver["play_time_s"]
+    ok = ~np.isnan(s_t)
+    s_times, s_energy = s_t[ok], sender["energy_sent"][ok]
+    idx = np.searchsorted(s_times, r_t, side="left") - 1  # the sender's last send before the play
+    sent = np.where(idx >= 0, s_energy[np.clip(idx, 0, None)], 0.0)
+    return np.where(np.isnan(r_t), np.nan, sent - played)
+
+
 def _passivity(receiver: dict[str, Any]) -> dict[str, Any]:
     p = dict(receiver["passivity"])
     p.pop("direction", None)
@@ -64,8 +80,8 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
     dt = p["dt"]
     valid = ~(np.isnan(a_op["v"]).any(axis=1) | np.isnan(a_to["v"]).any(axis=1))
     i_real = metrics.transparency(a_op["v"][valid], a_to["v"][valid], a_op["f"][valid], a_to["f"][valid], dt)
-    m_fwd = a_op["energy_sent"] - a_to["energy_played"]
-    m_bwd = a_to["energy_sent"] - a_op["energy_played"]
+    m_fwd = _true_margin(a_op, a_to)
+    m_bwd = _true_margin(a_to, a_op)
     rep: dict[str, Any] = {
         "transport": transport,
         "codec": p["codec"],

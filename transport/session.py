@@ -405,6 +405,9 @@ async def _run_loop(
     e_sent = np.full(n, np.nan)
     e_played = np.full(n, np.nan)
     e_margin = np.full(n, np.nan)  # the watchdog's view: reported in-band minus played
+    # s on the common session clock: when each tick played its received sample, and when it sent
+    t_play = np.full(n, np.nan)
+    t_sent = np.full(n, np.nan)
     spec_tx = params.netem_forward if tx_dir == wire.FORWARD else params.netem_backward
     spec_rx = params.netem_backward if tx_dir == wire.FORWARD else params.netem_forward
     # The impairment shim sits between the node and the socket: what it drops never reaches the
@@ -444,6 +447,7 @@ async def _run_loop(
             else:
                 grace_streak = 0
         now = k * dt
+        t_play[k] = (clock() - t_common_ns) / 1e9
         pkt = node.tick(now)
         t_us = int(now * 1e6)
         if pkt is not None:
@@ -455,6 +459,7 @@ async def _run_loop(
                 link.send((clock() - t_common_ns) / 1e9, data)
         if link is not None:
             _flush(link, (clock() - t_common_ns) / 1e9, send, peer, tx, k)
+        t_sent[k] = (clock() - t_common_ns) / 1e9
         base = encode(wire.Packet(params.session, tx_dir, k, k, t_us, 0, raw_payload, node.energy_sent))
         tx.baseline(k, len(base), len(raw_payload))
         rec["v"][k] = node.v
@@ -539,6 +544,8 @@ async def _run_loop(
         "energy_sent": e_sent,
         "energy_played": e_played,
         "energy_margin_observed": e_margin,
+        "play_time_s": t_play,
+        "send_time_s": t_sent,
         "lateness_ns": stats.lateness_ns,
         **tx.arrays("tx"),
         **rx.arrays("rx"),
