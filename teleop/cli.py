@@ -563,8 +563,8 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_endpoint_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--log", metavar="DIR", help="write ROLE.json and ROLE.npz logs to DIR")
+def _add_process_args(p: argparse.ArgumentParser) -> None:
+    """Options of a process's loop, shared by `operator`, `teleoperator` and `run` (which passes them on)."""
     p.add_argument(
         "--connect-timeout",
         type=_positive_float("connect timeout"),
@@ -574,6 +574,11 @@ def _add_endpoint_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--no-rt", action="store_true", help="do not ask for SCHED_FIFO priority")
     p.add_argument("--asyncio", action="store_true", help="use the stdlib asyncio loop instead of uvloop")
+
+
+def _add_endpoint_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--log", metavar="DIR", help="write ROLE.json and ROLE.npz logs to DIR")
+    _add_process_args(p)
     p.add_argument("--quiet", action="store_true", help="no summary line at the end")
     p.add_argument(
         "--grace-us",
@@ -648,15 +653,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--zenoh-router", metavar="ENDPOINT", help="with zenoh client mode: an existing router")
     r.add_argument("--out", default="teleop-run", metavar="DIR", help="report folder (default ./teleop-run)")
     r.add_argument("--port", type=int, default=0, help="teleoperator UDP port (default: a free one)")
-    r.add_argument(
-        "--connect-timeout",
-        type=_positive_float("connect timeout"),
-        default=10.0,
-        metavar="S",
-        help="each process gives up if its peer does not answer within S seconds (default 10)",
-    )
-    r.add_argument("--no-rt", action="store_true", help="do not ask for SCHED_FIFO priority")
-    r.add_argument("--asyncio", action="store_true", help="use the stdlib asyncio loop instead of uvloop")
+    _add_process_args(r)
     r.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     r.add_argument("--no-sim", action="store_true", help="skip the teleop sim comparison in the report")
     r.set_defaults(func=cmd_run)

@@ -6,7 +6,6 @@ Real processes on loopback with scouting off and explicit endpoints.
 from __future__ import annotations
 
 import json
-import os
 import signal
 import socket
 import subprocess
@@ -18,6 +17,7 @@ from typing import Any
 
 import pytest
 
+from tests.test_processes import _alive
 from tests.test_zenoh import readme_subscriber
 
 pytestmark = pytest.mark.integration
@@ -40,15 +40,6 @@ def _run(tmp: Path, *args: str) -> tuple[subprocess.CompletedProcess[str], dict[
     )
     rep = json.loads((out / "report.json").read_text()) if (out / "report.json").exists() else {}
     return r, rep
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    status = Path(f"/proc/{pid}/status")
-    return status.exists() and "State:\tZ" not in status.read_text()
 
 
 @pytest.mark.parametrize("mode", ["peer", "client"])
