@@ -172,11 +172,23 @@ class _Port:
             c.malformed += 1
             self.last_error = str(e)
             return False
-        c.gaps += pkt.seq - self.last_rx_seq - 1
+        if self.last_rx_seq >= 0:  # a late joiner's first packet leaves no gap behind it
+            c.gaps += pkt.seq - self.last_rx_seq - 1
         self.last_rx_seq = pkt.seq
         self.guard.sent(pkt.energy)
         c.accepted += 1
         return True
+
+    def peer_restarted(self) -> None:
+        """The peer process was replaced mid-session: accept its sequence numbers from 0 again,
+        drop what is queued from the old one, and restart the energy account."""
+        self.last_rx_seq = -1
+        self.decoder.clear()
+        self.guard.new_epoch(joined_late=False)
+
+    def joined_late(self) -> None:
+        """This process joined a running session: its budget starts at the first packet it sees."""
+        self.guard.new_epoch(joined_late=True)
 
     # --- per tick ------------------------------------------------------------------------
     def _supervise(self, now: float) -> float:

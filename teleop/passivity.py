@@ -59,20 +59,40 @@ class EnergyGuard:
         self.reported_in = 0.0  # J, newest cumulative E_in reported by the sender
         self.played = 0.0  # J, E_out so far
         self.report = PassivityReport()
+        # Energy epochs: after a peer restarts, or when joining a session late, the account restarts
+        # so that energy sent to (or played by) another incarnation is never counted as budget.
+        self.reported_origin = 0.0
+        self.played_origin = 0.0
+        self._origin_from_next_report = False
 
     def sent(self, energy: float) -> None:
         """A packet reported the sender's cumulative energy (reordered reports never lower it)."""
-        if energy > self.reported_in:
+        if self._origin_from_next_report:
+            # Joined late: what the sender sent before this first report was played by someone else.
+            self.reported_origin = self.reported_in = energy
+            self._origin_from_next_report = False
+        elif energy > self.reported_in:
             self.reported_in = energy
+
+    def new_epoch(self, joined_late: bool) -> None:
+        """Restart the account: the peer restarted (its reports start again from 0), or this side
+        joined a running session late (the first report it sees becomes the origin)."""
+        self.reported_in = self.reported_origin = 0.0
+        self.played_origin = self.played
+        self._origin_from_next_report = joined_late
 
     @property
     def margin(self) -> float:
-        return self.reported_in - self.played
+        return (self.reported_in - self.reported_origin) - (self.played - self.played_origin)
+
+    @property
+    def played_in_epoch(self) -> float:
+        return self.played - self.played_origin
 
     def admit(self, x: Array) -> Array:
         """The sample to play instead of ``x``: ``x`` itself unless it would generate energy."""
         e = self.half_dt * float(np.dot(x, x))
-        budget = self.reported_in - self.played
+        budget = self.margin
         r = self.report
         if e > budget + self.tolerance:
             r.violations += 1
@@ -84,7 +104,7 @@ class EnergyGuard:
                 r.energy_dissipated += e - allowed
                 e = allowed
         self.played += e
-        m = self.reported_in - self.played
+        m = self.margin
         if m < r.min_margin:
             r.min_margin = m
         return x

@@ -56,15 +56,19 @@ def _true_margin(sender: dict[str, Array], receiver: dict[str, Array]) -> Array:
     minus energy played so far (eq. 5).  Aligned on the common session clock, not by tick index:
     a receiver tick that waits for a late payload may rightly play a sample the sender produced in
     a *later* tick index."""
-    played = receiver["energy_played"]
+    # Played since the receiver's last energy epoch (a restarted peer starts a new one).
+    played = receiver.get("energy_played_epoch", receiver["energy_played"])
     if "send_time_s" not in sender or "play_time_s" not in receiver:
         return sender["energy_sent"] - played  # older logs: by tick index
     s_t, r_t = sender["send_time_s"], receiver["play_time_s"]
     ok = ~np.isnan(s_t)
+    if not ok.any():
+        return np.full(r_t.shape, np.nan)
     s_times, s_energy = s_t[ok], sender["energy_sent"][ok]
     idx = np.searchsorted(s_times, r_t, side="left") - 1  # the sender's last send before the play
-    sent = np.where(idx >= 0, s_energy[np.clip(idx, 0, None)], 0.0)
-    return np.where(np.isnan(r_t), np.nan, sent - played)
+    sent = s_energy[np.clip(idx, 0, None)]
+    # Before the sender's log begins (it joined late), there is nothing to compare with.
+    return np.where(np.isnan(r_t) | (idx < 0), np.nan, sent - played)
 
 
 def _passivity(receiver: dict[str, Any]) -> dict[str, Any]:

@@ -120,3 +120,22 @@ def test_sparse_codec_is_not_a_lost_link() -> None:
 def test_bad_options() -> None:
     with pytest.raises(ValueError, match="on_loss must be one of zero, hold"):
         PortOptions(on_loss="repeat")
+
+
+def test_energy_epochs_never_carry_budget_across_incarnations() -> None:
+    g = EnergyGuard(DT, controller=True)
+    g.sent(1.0)
+    g.admit(np.array([1.0]))
+    # The peer restarted: its reports start again from 0, the old budget is gone.
+    g.new_epoch(joined_late=False)
+    assert g.margin == 0.0
+    assert g.admit(np.array([1.0]))[0] == 0.0  # nothing reported yet in this epoch
+    g.sent(0.25e-3)
+    assert g.admit(np.array([1.0]))[0] == pytest.approx(np.sqrt(0.5))
+    # Joining late: the first report is the origin, whatever the sender sent before.
+    h = EnergyGuard(DT, controller=True)
+    h.new_epoch(joined_late=True)
+    h.sent(123.0)
+    assert h.margin == 0.0
+    h.sent(123.0 + 0.5e-3)
+    assert h.admit(np.array([1.0]))[0] == pytest.approx(1.0)

@@ -287,3 +287,92 @@ def test_impaired_run_without_controller_is_seen_violating(tmp_path: Path) -> No
     assert r.returncode == 0, r.stderr
     assert sum(rep["passivity"][d]["violations"] for d in ("forward", "backward")) > 0
     assert min(rep["passivity"][d]["min_margin"] for d in ("forward", "backward")) < -1e-9
+
+
+def _spawn(*args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen([*TELEOP, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def test_teleoperator_restarted_mid_session_and_the_operator_recovers(tmp_path: Path) -> None:
+    port, logs = _free_port(), tmp_path / "logs"
+    to1 = _spawn("teleoperator", "--listen", f"127.0.0.1:{port}", "--log", str(logs), "--quiet")
+    time.sleep(0.4)
+    op = _spawn(
+        "operator",
+        "--peer",
+        f"127.0.0.1:{port}",
+        "--listen",
+        "127.0.0.1:0",
+        "--codec",
+        "none",
+        "--duration",
+        "5",
+        "--log",
+        str(logs),
+        "--quiet",
+    )
+    time.sleep(2.0)
+    to1.kill()  # a crash: no bye, no logs
+    to1.wait()
+    time.sleep(0.5)
+    to2 = _spawn("teleoperator", "--listen", f"127.0.0.1:{port}", "--log", str(logs), "--quiet")
+    assert op.wait(timeout=30) == 0 and to2.wait(timeout=30) == 0
+    o = json.loads((logs / "operator.json").read_text())
+    t = json.loads((logs / "teleoperator.json").read_text())
+    assert o["completed"] and t["completed"] and t["joined_late"]
+    assert o["passivity"]["link_lost_events"] == 1 and o["rejoin"]["rejoins"] == 1
+    assert 2000 < t["first_tick"] < 4500  # it joined the running session on its clock
+    assert t["received"]["packets"] > 500  # and the operator's packets flowed again
+    from teleop import report
+
+    rep = report.build(logs, "udp", compare_sim=False)
+    for d in ("forward", "backward"):
+        assert rep["energy"][d]["min_margin"] >= -1e-9, d  # no energy across the two incarnations
+        assert rep["link"][d]["duplicates"] == 0 and rep["link"][d]["loss"] < 0.01  # per incarnation
+
+
+def test_operator_restarted_mid_session_and_the_teleoperator_serves_the_new_one(tmp_path: Path) -> None:
+    port, logs = _free_port(), tmp_path / "logs"
+    to = _spawn("teleoperator", "--listen", f"127.0.0.1:{port}", "--log", str(logs), "--quiet")
+    time.sleep(0.4)
+    op1 = _spawn(
+        "operator",
+        "--peer",
+        f"127.0.0.1:{port}",
+        "--listen",
+        "127.0.0.1:0",
+        "--codec",
+        "none",
+        "--duration",
+        "10",
+        "--log",
+        str(logs / "op1"),
+        "--quiet",
+    )
+    time.sleep(2.0)
+    op1.kill()
+    op1.wait()
+    time.sleep(0.5)
+    op2 = _spawn(
+        "operator",
+        "--peer",
+        f"127.0.0.1:{port}",
+        "--listen",
+        "127.0.0.1:0",
+        "--codec",
+        "none",
+        "--duration",
+        "2",
+        "--log",
+        str(logs),
+        "--quiet",
+    )
+    assert op2.wait(timeout=30) == 0 and to.wait(timeout=30) == 0
+    old = list(logs.glob("teleoperator-*.json"))
+    assert len(old) == 1  # the replaced session's logs are kept under its id
+    first = json.loads(old[0].read_text())
+    assert first["replaced_by_new_session"] and not first["completed"]
+    assert first["passivity"]["link_lost_events"] == 1  # it went to its safe state first
+    new = json.loads((logs / "teleoperator.json").read_text())
+    assert new["completed"] and new["params"]["session"] != first["params"]["session"]
+    assert new["received"]["packets"] == 2000

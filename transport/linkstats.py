@@ -43,14 +43,20 @@ class LinkObserver:
         "_first_t",
         "_last_t",
         "_max_seq",
+        "_origin",
+        "_origin_from_first",
         "_received",
         "_reordered",
         "_total_bytes",
         "spec",
     )
 
-    def __init__(self, spec: str = "") -> None:
+    def __init__(self, spec: str = "", joined_late: bool = False) -> None:
+        """``joined_late``: this receiver joined a running session, so sequence numbers start at the
+        first one it sees, not at 0 (the ones before were someone else's)."""
         self.spec = spec  # what the link was configured with, echoed in the summary for reports
+        self._origin = 0
+        self._origin_from_first = joined_late
         self._bits: dict[int, bytearray] = {}
         self._delays = array("d")  # s, first arrival of each seq, in arrival order
         self._duplicates = 0
@@ -65,6 +71,8 @@ class LinkObserver:
         """One datagram arrived at receiver time ``now`` (s), sent at sender time ``t_sent`` (s)."""
         if self._received == 0:
             self._first_t = now
+            if self._origin_from_first:
+                self._origin = seq
         self._last_t = now
         self._received += 1
         self._total_bytes += size
@@ -110,10 +118,11 @@ class LinkObserver:
         span first..last arrival; 0 with fewer than 2 arrivals or a zero span), ``dropped_by_limit``.
         """
         distinct = len(self._delays)
+        o = self._origin
         if sent is None:
-            expected, got = self._max_seq + 1, distinct
+            expected, got = self._max_seq + 1 - o, distinct - self._distinct_below(o)
         else:
-            expected, got = sent, self._distinct_below(sent)
+            expected, got = sent - o, self._distinct_below(sent) - self._distinct_below(o)
         loss = (expected - got) / expected if expected > 0 else 0.0
         delay: dict[str, float | None] = {"mean": None, "p50": None, "p99": None}
         if distinct:

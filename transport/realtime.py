@@ -117,11 +117,12 @@ class Ticker:
         self._cpu0 = 0.0
         self._wall0 = 0
 
-    def start(self, t0_ns: int) -> None:
+    def start(self, t0_ns: int, k0: int = 0) -> None:
+        """Tick ``k`` is due at ``t0_ns + k * period``; the first tick run is ``k0`` (a late joiner)."""
         self.t0 = t0_ns
-        self.k = 0
+        self.k = k0
         self._cpu0 = time.process_time()
-        self._wall0 = t0_ns  # wall time and CPU fraction cover the ticking, not the wait to start
+        self._wall0 = t0_ns + k0 * self.period  # wall time and CPU cover the ticking, not the wait
 
     def deadline(self, k: int) -> int:
         return self.t0 + k * self.period

@@ -266,8 +266,11 @@ async def _operator_handshake(
 
 async def _teleoperator_handshake(
     tr: Transport, timeout: float, expect: dict[str, Any], stop: _Stop
-) -> tuple[SessionParams, Addr, int]:
-    """Wait for an operator; returns (params, operator address, start_ns in this clock)."""
+) -> tuple[SessionParams, Addr, int, bool]:
+    """Wait for an operator; returns (params, operator address, start_ns in this clock, rejoin).
+
+    ``rejoin`` is set when the operator's session was already running (this process replaces a
+    teleoperator that went away): ``start_ns`` is then in the past and the loop joins late."""
     clock = time.monotonic_ns
     give_up = clock() + int(timeout * 1e9)
     params: SessionParams | None = None
@@ -310,7 +313,7 @@ async def _teleoperator_handshake(
             ):
                 tr.send(_control("started", session=params.session), addr)
                 assert peer is not None
-                return params, peer, int(m["start_ns"])
+                return params, peer, int(m["start_ns"]), bool(m.get("rejoin", False))
 
 
 # --------------------------------------------------------------------------------------------
@@ -353,13 +356,29 @@ class _Inbound:
         self.observer = observer
         self.foreign = 0
         self.peer_bye: dict[str, Any] | None = None
+        self.welcome: tuple[dict[str, Any], int] | None = None
+        self.new_session_hello = False
+
+    def _other_hello(self, m: dict[str, Any], addr: Addr) -> None:
+        """Another operator.  If ours has gone silent it was probably restarted: end this session
+        and serve the new one (teleoperator only); otherwise we are busy."""
+        if m.get("session") == self.session:
+            return  # our own operator's rejoin offer: only a restarted teleoperator answers it
+        if self.node.link_lost and self.node.tx_direction == wire.BACKWARD:
+            self.new_session_hello = True
+        else:
+            self.tr.send(_control("reject", session=m.get("session"), why="busy with another operator"), addr)
 
     def handle(self, k: int, play: bool = True) -> None:
         """Drain the inbox during tick ``k``; with ``play`` False only count (after the loop)."""
         rx, node = self.rx, self.node
         for data, addr, t_rx in self.tr.drain():
             if addr != self.peer:
-                self.foreign += 1
+                m = _parse_control(data)
+                if m is not None and m["t"] == "hello":
+                    self._other_hello(m, addr)  # a restarted operator comes from a new port
+                else:
+                    self.foreign += 1
                 continue
             if data[:1] == b"\x9a":  # a 10-element msgpack array: a data packet
                 try:
@@ -381,6 +400,10 @@ class _Inbound:
                 self.tr.send(_control("started", session=self.session), self.peer)
             elif m["t"] == "bye":
                 self.peer_bye = m
+            elif m["t"] == "hello" and m.get("session") != self.session:
+                self._other_hello(m, addr)
+            elif m["t"] == "welcome" and m.get("session") == self.session:
+                self.welcome = (m, t_rx)  # a restarted teleoperator answering our rejoin hello
 
 
 async def _run_loop(
@@ -392,8 +415,10 @@ async def _run_loop(
     t0_ns: int,
     t_common_ns: int,
     stop: _Stop,
+    k0: int = 0,
 ) -> dict[str, Any]:
-    """Tick ``n`` times from ``t0_ns``; ``t_common_ns`` is the session's tick 0 on this clock."""
+    """Tick from ``k0`` to the session's end; tick ``k`` is due at ``t0_ns + k dt``, and
+    ``t_common_ns`` is the session's tick 0 on this clock."""
     n = params.ticks
     dt = params.dt
     dof = params.dof
@@ -405,6 +430,7 @@ async def _run_loop(
     e_sent = np.full(n, np.nan)
     e_played = np.full(n, np.nan)
     e_margin = np.full(n, np.nan)  # the watchdog's view: reported in-band minus played
+    e_epoch = np.full(n, np.nan)  # played since the last energy epoch (a peer restart)
     # s on the common session clock: when each tick played its received sample, and when it sent
     t_play = np.full(n, np.nan)
     t_sent = np.full(n, np.nan)
@@ -413,13 +439,17 @@ async def _run_loop(
     # The impairment shim sits between the node and the socket: what it drops never reaches the
     # socket (and is not counted as sent); what it duplicates is sent and counted twice.
     link: Link | None = make_link(spec_tx, params.seed + tx_dir) if spec_tx else None
-    inbound = _Inbound(tr, peer, node, rx, params.session, t_common_ns, LinkObserver(spec_rx))
+    inbound = _Inbound(
+        tr, peer, node, rx, params.session, t_common_ns, LinkObserver(spec_rx, joined_late=k0 > 0)
+    )
     grace_ns = round(opts.grace_us * 1000)
     grace_waits = grace_missed = grace_ns_total = grace_streak = grace_resume = 0
     clock = time.monotonic_ns
     period_ns = round(dt * 1e9)
     ticker = Ticker(period_ns=period_ns, spin_ns=opts.spin_us * 1000, capacity=n + 16)
-    ticker.start(t0_ns)
+    ticker.start(t0_ns, k0)
+    rejoin_offers = rejoins = 0
+    last_offer = 0
     send = tr.send
     encode = wire.encode
     k = 0
@@ -446,6 +476,30 @@ async def _run_loop(
                     grace_streak = 0
             else:
                 grace_streak = 0
+        if inbound.new_session_hello:
+            break  # teleoperator: a new operator session replaces the silent one
+        if opts.role == "operator" and node.link_lost and clock() - last_offer > 250_000_000:
+            # The teleoperator went away: offer a rejoin to whoever restarts there.  Poll for the
+            # answer right away (the link is down anyway) so that its receive time, and with it the
+            # clock offset (NTP's four timestamps), is exact to a few microseconds.
+            t1 = last_offer = clock()
+            send(_control("hello", t_ns=t1, rejoin=True, **params.to_msg()), peer)
+            rejoin_offers += 1
+            inbound.welcome = None
+            while inbound.welcome is None and clock() - t1 < 600_000:
+                await asyncio.sleep(0)
+                inbound.handle(k)
+            if inbound.welcome is not None and int(inbound.welcome[0].get("t_ns", -1)) == t1:
+                m, t4 = inbound.welcome
+                offset = ((int(m["t2"]) - t1) + (int(m["t3"]) - t4)) // 2
+                node.peer_restarted()
+                inbound.observer = LinkObserver(spec_rx)  # the link figures cover the current peer
+                send(
+                    _control("start", session=params.session, start_ns=t_common_ns + offset, rejoin=True),
+                    peer,
+                )
+                rejoins += 1
+            inbound.welcome = None
         now = k * dt
         t_play[k] = (clock() - t_common_ns) / 1e9
         pkt = node.tick(now)
@@ -469,8 +523,9 @@ async def _run_loop(
         e_sent[k] = node.energy_sent
         e_played[k] = node.energy_played
         e_margin[k] = node.guard.margin
+        e_epoch[k] = node.guard.played_in_epoch
     stats = ticker.stats()
-    completed = not stop.requested and ticker.k >= n
+    completed = not stop.requested and ticker.k >= n and not inbound.new_session_hello
     # Linger: deliver what the shim still holds and count what is in flight, so that sender and
     # receiver counts can be compared; the bye tells the receiver how many packets there were.
     t_end = clock() + int(opts.linger * 1e9)
@@ -508,6 +563,9 @@ async def _run_loop(
         "completed": completed,
         "stopped_by_signal": stop.signal,
         "peer_said_bye": inbound.peer_bye is not None,
+        "first_tick": k0,
+        "replaced_by_new_session": inbound.new_session_hello,
+        "rejoin": {"offers": rejoin_offers, "rejoins": rejoins},
         "link_received": link_rx,
         "shim": {"spec": spec_tx, **shim} if shim else None,
         "grace": {
@@ -544,6 +602,7 @@ async def _run_loop(
         "energy_sent": e_sent,
         "energy_played": e_played,
         "energy_margin_observed": e_margin,
+        "energy_played_epoch": e_epoch,
         "play_time_s": t_play,
         "send_time_s": t_sent,
         "lateness_ns": stats.lateness_ns,
@@ -582,52 +641,79 @@ async def _endpoint(
         loop.add_signal_handler(sig, stop, sig)
     tr = await _open_transport(opts)
     try:
-        if opts.role == "operator":
-            assert params is not None
-            peer = ZENOH_PEER if opts.transport == "zenoh" else opts.peer
-            assert peer is not None
-            offset, rtt, start = await _operator_handshake(tr, peer, params, opts.connect_timeout, stop)
-            t0 = start
-            extra = {"clock_offset_ns": offset, "handshake_rtt_us": rtt / 1e3}
-        else:
-            params, peer, start = await _teleoperator_handshake(tr, opts.connect_timeout, expect, stop)
-            t0 = start + round(params.phase * params.dt * 1e9)
-            extra = {}
-        warnings = setup_realtime(opts.rt_priority)
-        for w in warnings:
-            print(f"teleop {opts.role}: warning: {w}", file=sys.stderr)
-        sc = scenarios.get(params.scenario)
-        human, env = sc.make(params.dof, params.dt)
-        wave = WaveImpedance.of(params.b, params.dof)
-        codec = make_codec(params.codec, params.dof, params.full_scale)
-        node: OperatorNode | TeleoperatorNode
-        if opts.role == "operator":
-            node = OperatorNode(
-                human=human,
-                wave=wave,
-                tx=codec,
-                rx=codec,
-                session=params.session,
-                dt=params.dt,
-                options=params.port_options(),
-            )
-        else:
-            node = TeleoperatorNode(
-                environment=env,
-                wave=wave,
-                tx=codec,
-                rx=codec,
-                session=params.session,
-                dt=params.dt,
-                options=params.port_options(),
-            )
-        summary = await _run_loop(opts, tr, peer, params, node, t0, start, stop)
-        summary.update(extra, warnings=warnings, event_loop=type(loop).__module__.split(".")[0])
-        if opts.log_dir is not None:
-            (opts.log_dir / f"{opts.role}.json").write_text(json.dumps(summary, indent=2) + "\n")
-        return summary
+        while True:
+            summary = await _session(opts, tr, params, expect, stop)
+            summary.update(event_loop=type(loop).__module__.split(".")[0])
+            if opts.log_dir is not None:
+                (opts.log_dir / f"{opts.role}.json").write_text(json.dumps(summary, indent=2) + "\n")
+            if not summary.get("replaced_by_new_session"):
+                return summary
+            # The teleoperator's operator was replaced mid-session (restarted): keep the old
+            # session's logs under its id and serve the new operator.
+            if opts.log_dir is not None:
+                old = summary["params"]["session"]
+                for ext in ("json", "npz"):
+                    (opts.log_dir / f"{opts.role}.{ext}").replace(opts.log_dir / f"{opts.role}-{old}.{ext}")
+            if not opts.quiet:
+                print(
+                    f"teleop {opts.role}: session {summary['params']['session']} replaced by a new operator",
+                    file=sys.stderr,
+                )
     finally:
         tr.close()
+
+
+async def _session(
+    opts: EndpointOptions, tr: Transport, params: SessionParams | None, expect: dict[str, Any], stop: _Stop
+) -> dict[str, Any]:
+    """Handshake, build the node, run the loop: one session of this process."""
+    if opts.role == "operator":
+        assert params is not None
+        peer = ZENOH_PEER if opts.transport == "zenoh" else opts.peer
+        assert peer is not None
+        offset, rtt, start = await _operator_handshake(tr, peer, params, opts.connect_timeout, stop)
+        t0 = start
+        k0 = 0
+        extra: dict[str, Any] = {"clock_offset_ns": offset, "handshake_rtt_us": rtt / 1e3}
+    else:
+        params, peer, start, rejoin = await _teleoperator_handshake(tr, opts.connect_timeout, expect, stop)
+        t0 = start + round(params.phase * params.dt * 1e9)
+        period = round(params.dt * 1e9)
+        # Joining a running session: start at a tick a little in the future, on the session's clock.
+        k0 = max(0, -(-(time.monotonic_ns() - t0) // period) + 20) if rejoin else 0
+        extra = {"joined_late": rejoin}
+    warnings = setup_realtime(opts.rt_priority)
+    for w in warnings:
+        print(f"teleop {opts.role}: warning: {w}", file=sys.stderr)
+    human, env = scenarios.get(params.scenario).make(params.dof, params.dt)
+    wave = WaveImpedance.of(params.b, params.dof)
+    codec = make_codec(params.codec, params.dof, params.full_scale)
+    node: OperatorNode | TeleoperatorNode
+    if opts.role == "operator":
+        node = OperatorNode(
+            human=human,
+            wave=wave,
+            tx=codec,
+            rx=codec,
+            session=params.session,
+            dt=params.dt,
+            options=params.port_options(),
+        )
+    else:
+        node = TeleoperatorNode(
+            environment=env,
+            wave=wave,
+            tx=codec,
+            rx=codec,
+            session=params.session,
+            dt=params.dt,
+            options=params.port_options(),
+        )
+    if k0:
+        node.joined_late()
+    summary = await _run_loop(opts, tr, peer, params, node, t0, start, stop, k0)
+    summary.update(extra, warnings=warnings)
+    return summary
 
 
 def run_endpoint(

@@ -155,6 +155,13 @@ class PlayoutDecoder:
             if head.remaining == 0:
                 self._queue.popleft()
 
+    def clear(self) -> None:
+        """Forget everything queued (the sender was replaced); only removes energy."""
+        self.dropped_samples += self._queued
+        self._queue.clear()
+        self._queued = 0
+        self._last = self._zero
+
     @property
     def queued(self) -> int:
         """Ticks of signal waiting to be played."""
