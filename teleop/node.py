@@ -102,7 +102,6 @@ class _Port:
         self.half_dt = 0.5 * dt
         self.rx_direction = 1 - self.tx_direction
         self.seq = 0
-        self.ticks = 0
         self.last_rx_seq = -1
         self.counters = PortCounters()
         self.energy_sent = 0.0  # J carried into the channel by the transmitted wave
@@ -222,7 +221,6 @@ class _Port:
         self.wave_out = x
         self.energy_sent += self.half_dt * float(np.dot(x, x))
         payload = self.encoder.encode(x)
-        self.ticks += 1
         if payload is None:
             return None
         tick = int(now / self.dt + 0.5)  # from the session clock: stays true if the loop skips ticks
