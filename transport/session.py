@@ -438,7 +438,7 @@ async def _run_loop(
     spec_rx = params.netem_backward if tx_dir == wire.FORWARD else params.netem_forward
     # The impairment shim sits between the node and the socket: what it drops never reaches the
     # socket (and is not counted as sent); what it duplicates is sent and counted twice.
-    link: Link | None = make_link(spec_tx, params.seed + tx_dir) if spec_tx else None
+    link: Link | None = make_link(spec_tx, 2 * params.seed + tx_dir) if spec_tx else None  # as teleop sim
     inbound = _Inbound(
         tr, peer, node, rx, params.session, t_common_ns, LinkObserver(spec_rx, joined_late=k0 > 0)
     )
