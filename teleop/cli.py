@@ -107,12 +107,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
             b=args.b,
             full_scale=args.range,
             scenario=args.scenario,
-            netem_forward=_netem(args, "forward"),
-            netem_backward=_netem(args, "backward"),
-            seed=args.seed,
-            on_loss=args.on_loss,
-            controller=not args.no_controller,
-            link_timeout=args.link_timeout / 1e3,
+            **_channel_kwargs(args),
         ).resolved()
         doc, cases = run_set(codecs, base)
     except (ValueError, CodecError) as e:
@@ -236,6 +231,18 @@ def _add_passivity_args(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _channel_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    """Impairment and passivity settings, the same for `teleop sim` and a real session."""
+    return {
+        "netem_forward": _netem(args, "forward"),
+        "netem_backward": _netem(args, "backward"),
+        "seed": args.seed,
+        "on_loss": args.on_loss,
+        "controller": not args.no_controller,
+        "link_timeout": args.link_timeout / 1e3,
+    }
+
+
 def _session_params(args: argparse.Namespace, session: int) -> Any:
     from transport.session import SessionParams
 
@@ -250,12 +257,7 @@ def _session_params(args: argparse.Namespace, session: int) -> Any:
             full_scale=args.range if args.range is not None else sc.full_scale,
             duration=args.duration if args.duration is not None else sc.duration,
             phase=args.phase,
-            netem_forward=_netem(args, "forward"),
-            netem_backward=_netem(args, "backward"),
-            seed=args.seed,
-            on_loss=args.on_loss,
-            controller=not args.no_controller,
-            link_timeout=args.link_timeout / 1e3,
+            **_channel_kwargs(args),
         ).validate()
     except (ValueError, CodecError) as e:
         raise CliError(str(e)) from None
