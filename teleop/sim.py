@@ -246,6 +246,8 @@ def run_case(cfg: SimConfig) -> CaseResult:
         "passive": bool(min_margin >= -ENERGY_TOLERANCE),
         "min_energy_margin": min_margin,
         "added_delay_ticks": codec.added_delay_ticks,
+        # Eq. (4): energy into the communication two-port = forward margin + backward margin.
+        "two_port_min_energy": float((tr.margin_fwd + tr.margin_bwd).min()),
         "energy": {
             "forward": {
                 "sent": op.energy_sent,

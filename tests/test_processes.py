@@ -91,6 +91,7 @@ def test_counts_and_compression(tmp_path: Path, codec: str, per_dir: int, c_payl
         assert tr["I"] == pytest.approx(tr["I_sim"], rel=0.05)
     e = rep["energy"]
     assert e["forward"]["min_margin"] >= -1e-9 and e["backward"]["min_margin"] >= -1e-9
+    assert rep["two_port_min_energy"] >= -1e-9
 
 
 def test_report_contract_and_logs(tmp_path: Path) -> None:

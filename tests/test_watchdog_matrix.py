@@ -60,6 +60,7 @@ def run(codec: str, imp: dict[str, Any], **kw: Any) -> dict[str, Any]:
 def test_controller_keeps_every_case_passive(codec: str, name: str, imp: dict[str, Any]) -> None:
     s = run(codec, imp, on_loss="hold", controller=True)
     assert s["min_energy_margin"] >= -1e-9, (s["energy"], s["passivity"])
+    assert s["two_port_min_energy"] >= -1e-9  # eq. (4): the whole two-port never gives energy back
     assert s["passive"]
     for d in ("forward", "backward"):
         pv = s["passivity"][d]
