@@ -275,6 +275,7 @@ def _endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, in
         rt_priority=None if args.no_rt else 10,
         use_uvloop=not args.asyncio,
         quiet=args.quiet,
+        live=args.live,
         grace_us=args.grace_us,
         transport=args.transport,
         zenoh=_zenoh_options(args) if args.transport == "zenoh" else None,
@@ -453,6 +454,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         "teleop.cli",
         "operator",
         *op_net,
+        *([] if args.no_live else ["--live"]),
         "--session",
         str(params.session),
         "--codec",
@@ -582,6 +584,7 @@ def _add_endpoint_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log", metavar="DIR", help="write ROLE.json and ROLE.npz logs to DIR")
     _add_process_args(p)
     p.add_argument("--quiet", action="store_true", help="no summary line at the end")
+    p.add_argument("--live", action="store_true", help="print a status line every second (traffic, watchdog)")
     p.add_argument(
         "--grace-us",
         type=_nonneg_float("grace"),
@@ -658,6 +661,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_process_args(r)
     r.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     r.add_argument("--no-sim", action="store_true", help="skip the teleop sim comparison in the report")
+    r.add_argument("--no-live", action="store_true", help="no status line every second during the run")
     r.set_defaults(func=cmd_run)
 
     o = sub.add_parser(

@@ -161,6 +161,7 @@ class EndpointOptions:
     linger: float = 0.2
     grace_us: float = 400.0
     quiet: bool = False
+    live: bool = False  # a status line every second: traffic, link, watchdog
     transport: str = "udp"  # "udp" or "zenoh"
     zenoh: ZenohOptions | None = None
 
@@ -529,6 +530,16 @@ async def _run_loop(
         e_played[k] = node.energy_played
         e_margin[k] = node.guard.margin
         e_epoch[k] = node.guard.played_in_epoch
+        if opts.live and k % 1000 == 999:
+            pv = node.passivity
+            print(
+                f"  [{opts.role} {(k + 1) * dt:5.1f} s] sent {tx.packets} recv {rx.packets}  "
+                f"{'LINK LOST' if node.link_lost else 'link ok'}  watchdog: violations {pv.violations}, "
+                f"controller {pv.controller_active_ticks} ticks, margin {node.guard.margin:.3e} J, "
+                f"overruns {ticker.overruns}",
+                file=sys.stderr,
+                flush=True,
+            )
     stats = ticker.stats()
     completed = not stop.requested and ticker.k >= n and not inbound.new_session_hello
     # Linger: deliver what the shim still holds and count what is in flight, so that sender and
