@@ -1,0 +1,45 @@
+"""What one process can afford: the ranges every session parameter is checked against.
+
+One table for the command line, ``teleop sim`` and the handshake parser, so a value that the
+network proposes is held to the same bounds as one typed by the user (DESIGN.md: validate every
+field against a range the local side can afford).  The binding limit is memory: each process
+records per-tick arrays for the whole session (``teleop.port``), about ``32 dof + 160`` bytes a
+tick, so a session's length is bounded by :data:`RECORD_BUDGET_BYTES`.
+"""
+
+from __future__ import annotations
+
+MAX_DOF = 64
+MIN_DT = 1e-4  # s (10 kHz)
+MAX_DT = 1e-2  # s (100 Hz)
+MIN_DURATION_S = 0.1  # s: shorter sessions have too few ticks to measure anything
+RECORD_BUDGET_BYTES = 1 << 30  # per process, for the per-tick records of one session
+MAX_SESSION = 2**32 - 1  # the wire's uint32 session id (0 is never used)
+MAX_SEED = 2**32 - 1
+MAX_B = 1e6  # N s/m
+MAX_RANGE = 1e6  # sqrt(W), full scale of the raw 16-bit wave format
+MIN_LINK_TIMEOUT_S = 1e-3
+MAX_LINK_TIMEOUT_S = 10.0
+MAX_CODEC_SPEC_LEN = 64
+MAX_NETEM_SPEC_LEN = 1024
+MAX_REASON_LEN = 300  # characters of a peer's reject reason that are kept and printed
+
+
+def record_bytes_per_tick(dof: int) -> int:
+    """Bytes one process records per tick (signals, energies, times, counters, loop timing)."""
+    return 32 * dof + 160
+
+
+def max_duration_s(dof: int, dt: float = 1e-3) -> float:
+    """The longest session whose per-tick records fit in :data:`RECORD_BUDGET_BYTES`."""
+    return (RECORD_BUDGET_BYTES // record_bytes_per_tick(dof)) * dt
+
+
+def check_duration(duration: float, dof: int, dt: float = 1e-3) -> None:
+    """ValueError saying what is allowed when ``duration`` is out of range (or not finite)."""
+    hi = max_duration_s(dof, dt)
+    if not MIN_DURATION_S <= duration <= hi:
+        raise ValueError(
+            f"duration must be {MIN_DURATION_S:g} to {hi:g} s at {dof} DoF "
+            f"(the per-tick records must fit in {RECORD_BUDGET_BYTES >> 20} MiB), got {duration!r}"
+        )
