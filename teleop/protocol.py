@@ -1,0 +1,783 @@
+"""The session-control protocol, sans I/O: hello / welcome / reject / start / started / bye.
+
+Everything here is a pure function of the bytes and the ``now`` it is given (h11 / aioquic style):
+it never reads a clock, never touches a socket and never opens a file, so the whole handshake can
+be driven in memory with fake clocks and fuzzed with arbitrary bytes.  The runner
+(``transport.session``) owns the socket and the clock and filters peer addresses.
+
+**Wire format.** A control message is a msgpack map ``{"t": kind, "v": 1, ...fields}`` packed with
+``use_bin_type=True``; data packets are msgpack arrays (``teleop.wire``), so the first byte tells the
+two apart (:func:`is_control`).  Timestamps are integer nanoseconds of the sender's monotonic clock,
+except ``start_ns``, which is on the teleoperator's clock.
+
+**Trust.** Every field that comes from the network is checked for presence, exact type and the range
+this process can afford (``teleop.limits``); anything else raises :class:`ProtocolError`, and only
+that.  A netem spec from the network may not name a local file (``trace FILE``) unless the local side
+configured that exact spec itself: a peer must not make us open ``/etc/shadow`` or ``/dev/zero``.
+A teleoperator never ends its handshake because of what a stranger sent: bad hellos are answered
+with a ``reject`` and counted, and it keeps waiting for a good one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections import deque
+from collections.abc import Collection, Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar, TypeAlias
+
+import msgpack
+
+from teleop import limits, scenarios
+from teleop.codecs import CodecError, make_codec
+from teleop.node import PortOptions
+from teleop.passivity import ON_LOSS
+from teleop.scenarios import SCENARIOS
+from teleop.wave import WaveImpedance
+from transport.base import Addr
+from transport.netem import NetemError, NetemSpec, make_link, parse_netem
+
+__all__ = [
+    "MAX_CONTROL_BYTES",
+    "MAX_COUNT",
+    "MAX_TIMESTAMP",
+    "PROTOCOL_VERSION",
+    "Bye",
+    "Hello",
+    "Message",
+    "OperatorHandshake",
+    "ProtocolError",
+    "Reject",
+    "SessionParams",
+    "Start",
+    "Started",
+    "TeleoperatorHandshake",
+    "Welcome",
+    "encode",
+    "is_control",
+    "ntp_offset",
+    "parse",
+]
+
+PROTOCOL_VERSION = 1
+#: Largest control datagram accepted, checked before unpacking (a full hello is about 2.3 kB at most).
+MAX_CONTROL_BYTES = 4096
+#: Timestamps are monotonic ns: non-negative and within a signed 64-bit integer.
+MAX_TIMESTAMP = 2**63 - 1
+#: Bound of the packet counters in ``bye``.
+MAX_COUNT = 2**32
+#: Bound of the integers of a network-supplied netem spec (tc's are u32): keeps the link's
+#: arithmetic in floats finite (a 400-digit cell size would overflow at the first packet).
+_MAX_NETEM_INT = 2**32
+#: Longest scenario / on_loss name looked up (the names are short; this only bounds error texts).
+_MAX_NAME_LEN = 64
+#: Reasons of the last rejected hellos that a teleoperator keeps for its report.
+REJECTIONS_KEPT = 16
+START_AHEAD_NS = 10_000_000_000  # a start at most this far ahead of the teleoperator's clock
+START_SLACK_NS = 1_000_000_000  # or this far behind it (a fresh session: the operator leads by 300 ms)
+BUSY = "busy with another operator"
+
+
+class ProtocolError(ValueError):
+    """A message that is not valid; the text names the field and what is allowed.
+
+    ``kind`` and ``session`` are what could be read of the message before it failed (None if
+    nothing), so that a teleoperator can answer a bad hello with a ``reject`` for its session.
+    """
+
+    def __init__(self, message: str, *, kind: str | None = None, session: int | None = None) -> None:
+        super().__init__(message)
+        self.kind = kind
+        self.session = session
+
+
+# --------------------------------------------------------------------------------------------
+# field checks
+# --------------------------------------------------------------------------------------------
+def _show(v: object, width: int = 40) -> str:
+    """A short repr for error texts: a hostile value must not make a huge message."""
+    r = repr(v)
+    return r if len(r) <= width else r[: width - 3] + "..."
+
+
+def _got(v: object) -> str:
+    return f"got {type(v).__name__} {_show(v)}"
+
+
+def _num(x: float) -> str:
+    return f"{x:g}" if isinstance(x, float) else str(x)
+
+
+def _field(m: Mapping[str, object], name: str) -> object:
+    if name not in m:
+        raise ProtocolError(f"missing field {name!r}")
+    return m[name]
+
+
+def _int(m: Mapping[str, object], name: str, lo: int, hi: int) -> int:
+    v = _field(m, name)
+    if type(v) is not int:  # bool is an int subclass: refused
+        raise ProtocolError(f"{name} must be an integer in {lo}..{hi}, {_got(v)}")
+    if not lo <= v <= hi:
+        raise ProtocolError(f"{name} must be an integer in {lo}..{hi}, got {_show(v)}")
+    return v
+
+
+def _timestamp(m: Mapping[str, object], name: str) -> int:
+    return _int(m, name, 0, MAX_TIMESTAMP)
+
+
+def _float(m: Mapping[str, object], name: str) -> float:
+    """A finite number (int or float, not bool); its range is checked by the caller."""
+    v = _field(m, name)
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise ProtocolError(f"{name} must be a finite number, {_got(v)}")
+    try:
+        f = float(v)
+    except OverflowError:
+        f = math.inf
+    if not math.isfinite(f):
+        raise ProtocolError(f"{name} must be a finite number, got {_show(v)}")
+    return f
+
+
+def _str(m: Mapping[str, object], name: str, max_len: int) -> str:
+    v = _field(m, name)
+    if not isinstance(v, str):
+        raise ProtocolError(f"{name} must be a string of at most {max_len} characters, {_got(v)}")
+    if len(v) > max_len:
+        raise ProtocolError(f"{name} must be a string of at most {max_len} characters, got {len(v)}")
+    return v
+
+
+def _bool(m: Mapping[str, object], name: str, default: bool | None = None) -> bool:
+    if default is not None and name not in m:
+        return default
+    v = _field(m, name)
+    if not isinstance(v, bool):
+        raise ProtocolError(f"{name} must be true or false, {_got(v)}")
+    return v
+
+
+def _between(name: str, v: float, lo: float, hi: float) -> None:
+    if not lo <= v <= hi:  # also refuses nan
+        raise ValueError(f"{name} must be in {_num(lo)}..{_num(hi)}, got {_show(v)}")
+
+
+def _positive(name: str, v: float, hi: float) -> None:
+    if not 0 < v <= hi:
+        raise ValueError(f"{name} must be > 0 and <= {_num(hi)}, got {_show(v)}")
+
+
+def _check_netem_numbers(name: str, spec: NetemSpec) -> None:
+    """Finite floats and u32-sized integers, so the link's arithmetic never overflows."""
+    for f in dataclasses.fields(spec):
+        v = getattr(spec, f.name)
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ValueError(f"{name}: {f.name} must be finite, got {v!r}")
+        if isinstance(v, int) and not isinstance(v, bool) and not -_MAX_NETEM_INT <= v <= _MAX_NETEM_INT:
+            raise ValueError(f"{name}: {f.name} must be within +-2**32, got {_show(v)}")
+
+
+def _first_line(e: Exception) -> str:
+    """NetemError texts end with the whole grammar: a reason sent to a peer keeps the first line."""
+    return str(e).split("\n", 1)[0]
+
+
+# --------------------------------------------------------------------------------------------
+# session parameters
+# --------------------------------------------------------------------------------------------
+_NETEM_FIELDS = ("netem_forward", "netem_backward")
+
+
+@dataclass(frozen=True)
+class SessionParams:
+    """What the handshake agrees on."""
+
+    session: int
+    codec: str
+    scenario: str
+    dof: int
+    b: float
+    full_scale: float
+    duration: float
+    dt: float = 0.001
+    phase: float = 0.5
+    netem_forward: str = ""  # impairment of operator -> TO, applied by the operator's shim
+    netem_backward: str = ""  # impairment of TO -> operator, applied by the TO's shim
+    seed: int = 0
+    on_loss: str = "zero"  # reconstruction when nothing is queued (teleop.node.PortOptions)
+    controller: bool = True  # passivity controller
+    link_timeout: float = 0.05  # s of silence before a side goes to its safe state
+
+    def _check_ranges(self) -> None:
+        """ValueError naming the first field outside what this process can afford (teleop.limits).
+
+        The order matters: the duration's bound depends on dof and dt, checked first."""
+        _between("session", self.session, 1, limits.MAX_SESSION)
+        if len(self.scenario) > _MAX_NAME_LEN or self.scenario not in SCENARIOS:
+            raise ValueError(f"scenario must be one of {', '.join(SCENARIOS)}, got {_show(self.scenario)}")
+        _between("dof", self.dof, 1, limits.MAX_DOF)
+        _positive("b", self.b, limits.MAX_B)
+        _positive("range", self.full_scale, limits.MAX_RANGE)
+        _between("dt", self.dt, limits.MIN_DT, limits.MAX_DT)
+        limits.check_duration(self.duration, self.dof, self.dt)
+        if not 0.0 <= self.phase < 1.0:
+            raise ValueError(f"phase must be in [0, 1) periods, got {_show(self.phase)}")
+        _between("seed", self.seed, 0, limits.MAX_SEED)
+        if self.on_loss not in ON_LOSS:
+            raise ValueError(f"on_loss must be one of {', '.join(ON_LOSS)}, got {_show(self.on_loss)}")
+        _between("link_timeout", self.link_timeout, limits.MIN_LINK_TIMEOUT_S, limits.MAX_LINK_TIMEOUT_S)
+        if len(self.codec) > limits.MAX_CODEC_SPEC_LEN:
+            raise ValueError(f"codec must be at most {limits.MAX_CODEC_SPEC_LEN} characters")
+        for name in _NETEM_FIELDS:
+            if len(getattr(self, name)) > limits.MAX_NETEM_SPEC_LEN:
+                raise ValueError(f"{name} must be at most {limits.MAX_NETEM_SPEC_LEN} characters")
+
+    def validate(self) -> SessionParams:
+        """Check settings typed locally; raise ValueError/CodecError saying what is wrong.
+
+        Returns self with the codec spec canonical.  Unlike :meth:`from_msg`, a ``trace FILE`` spec
+        is allowed (the user named the file) and is loaded here to check it."""
+        scenarios.get(self.scenario)
+        self._check_ranges()
+        WaveImpedance.of(self.b, self.dof)
+        for name in _NETEM_FIELDS:
+            text = getattr(self, name)
+            if text:
+                try:
+                    make_link(text, self.seed)  # NetemError (a ValueError) names the bad token
+                except OSError as e:  # a trace file that cannot be read: say which, no traceback
+                    raise ValueError(f"{name}: cannot read the trace {e.filename}: {e.strerror}") from None
+                toks = text.split()
+                if toks and toks[0] != "trace":
+                    _check_netem_numbers(name, parse_netem(text))
+        self.port_options()  # ValueError for a bad on_loss or timeout
+        spec = make_codec(self.codec, self.dof, self.full_scale).spec
+        return dataclasses.replace(self, codec=spec)
+
+    def port_options(self) -> PortOptions:
+        return PortOptions(on_loss=self.on_loss, controller=self.controller, link_timeout=self.link_timeout)
+
+    @property
+    def ticks(self) -> int:
+        return round(self.duration / self.dt)
+
+    @classmethod
+    def from_msg(cls, m: Mapping[str, object], *, local_netem: Collection[str] = ()) -> SessionParams:
+        """Parameters proposed by a peer, checked strictly; raises :class:`ProtocolError` only.
+
+        Every field must be present with its exact type and within ``teleop.limits``.  A netem spec
+        naming a trace file is refused unless that exact string is in ``local_netem`` (what this
+        side configured itself); no file is ever opened here."""
+        if not isinstance(m, Mapping):
+            raise ProtocolError(f"session parameters must be a map, {_got(m)}")
+        p = cls(
+            session=_int(m, "session", 1, limits.MAX_SESSION),
+            codec=_str(m, "codec", limits.MAX_CODEC_SPEC_LEN),
+            scenario=_str(m, "scenario", _MAX_NAME_LEN),
+            dof=_int(m, "dof", 1, limits.MAX_DOF),
+            b=_float(m, "b"),
+            full_scale=_float(m, "range"),
+            duration=_float(m, "duration"),
+            dt=_float(m, "dt"),
+            phase=_float(m, "phase"),
+            netem_forward=_str(m, "netem_forward", limits.MAX_NETEM_SPEC_LEN),
+            netem_backward=_str(m, "netem_backward", limits.MAX_NETEM_SPEC_LEN),
+            seed=_int(m, "seed", 0, limits.MAX_SEED),
+            on_loss=_str(m, "on_loss", _MAX_NAME_LEN),
+            controller=_bool(m, "controller"),
+            link_timeout=_float(m, "link_timeout"),
+        )
+        try:
+            p._check_ranges()
+            for name in _NETEM_FIELDS:
+                _check_peer_netem(name, getattr(p, name), local_netem)
+            WaveImpedance.of(p.b, p.dof)
+            p.port_options()
+            spec = make_codec(p.codec, p.dof, p.full_scale).spec
+        except ProtocolError:
+            raise
+        except (CodecError, ValueError, ArithmeticError) as e:  # the validators of other modules
+            raise ProtocolError(str(e)) from None
+        return dataclasses.replace(p, codec=spec)
+
+    def to_msg(self) -> dict[str, Any]:
+        return {
+            "session": self.session,
+            "codec": self.codec,
+            "scenario": self.scenario,
+            "dof": self.dof,
+            "b": self.b,
+            "range": self.full_scale,
+            "duration": self.duration,
+            "dt": self.dt,
+            "phase": self.phase,
+            "netem_forward": self.netem_forward,
+            "netem_backward": self.netem_backward,
+            "seed": self.seed,
+            "on_loss": self.on_loss,
+            "controller": self.controller,
+            "link_timeout": self.link_timeout,
+        }
+
+
+#: Field names a teleoperator may pin in ``expect``.
+PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(SessionParams))
+
+
+def _check_peer_netem(name: str, text: str, local_netem: Collection[str]) -> None:
+    """Parse a network-supplied netem spec without ever opening a file (``make_link`` would)."""
+    toks = text.split()
+    if toks and toks[0] == "trace":
+        if text not in local_netem:
+            raise ProtocolError(
+                f"{name} {_show(text)}: a peer may not name a local file (trace FILE); "
+                "only a trace this side configured itself is accepted"
+            )
+        if len(toks) != 2:
+            raise ProtocolError(f"{name} {_show(text)}: expected exactly 'trace FILE'")
+        return  # this side's own spec: checked (and loaded) when it was configured
+    try:
+        _check_netem_numbers(name, parse_netem(text))
+    except NetemError as e:
+        raise ProtocolError(f"{name}: {_first_line(e)}") from None
+
+
+# --------------------------------------------------------------------------------------------
+# messages
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Hello:
+    """operator -> TO: the proposed session and the operator's clock when sent (NTP's t1)."""
+
+    kind: ClassVar[str] = "hello"
+    params: SessionParams
+    t_ns: int
+    rejoin: bool = False  # offered mid-session to a teleoperator that restarted
+
+
+@dataclass(frozen=True)
+class Welcome:
+    """TO -> operator: the hello's ``t_ns`` echoed, with the TO's clock at arrival (t2) and reply (t3)."""
+
+    kind: ClassVar[str] = "welcome"
+    session: int
+    t_ns: int
+    t2: int
+    t3: int
+
+
+@dataclass(frozen=True)
+class Reject:
+    """TO -> operator: the hello is refused; ``session`` is None when the hello had no valid one."""
+
+    kind: ClassVar[str] = "reject"
+    session: int | None
+    why: str
+
+
+@dataclass(frozen=True)
+class Start:
+    """operator -> TO: tick 0 of the session at ``start_ns`` on the TO's clock."""
+
+    kind: ClassVar[str] = "start"
+    session: int
+    start_ns: int
+    rejoin: bool = False
+
+
+@dataclass(frozen=True)
+class Started:
+    """TO -> operator: the start is confirmed."""
+
+    kind: ClassVar[str] = "started"
+    session: int
+
+
+@dataclass(frozen=True)
+class Bye:
+    """Either way at the end: packets the sender's node produced, and those its shim tail-dropped."""
+
+    kind: ClassVar[str] = "bye"
+    session: int
+    produced: int
+    dropped_by_limit: int
+
+
+Message: TypeAlias = Hello | Welcome | Reject | Start | Started | Bye
+KINDS = ("hello", "welcome", "reject", "start", "started", "bye")
+
+
+def encode(msg: Message) -> bytes:
+    """The datagram of a control message (the caller builds valid messages; ``why`` is truncated)."""
+    fields: dict[str, Any]
+    if isinstance(msg, Hello):
+        fields = {"t_ns": msg.t_ns, **({"rejoin": True} if msg.rejoin else {}), **msg.params.to_msg()}
+    elif isinstance(msg, Welcome):
+        fields = {"session": msg.session, "t_ns": msg.t_ns, "t2": msg.t2, "t3": msg.t3}
+    elif isinstance(msg, Reject):
+        fields = {"session": msg.session, "why": msg.why[: limits.MAX_REASON_LEN]}
+    elif isinstance(msg, Start):
+        fields = {
+            "session": msg.session,
+            "start_ns": msg.start_ns,
+            **({"rejoin": True} if msg.rejoin else {}),
+        }
+    elif isinstance(msg, Started):
+        fields = {"session": msg.session}
+    else:
+        fields = {"session": msg.session, "produced": msg.produced, "dropped_by_limit": msg.dropped_by_limit}
+    out: bytes = msgpack.packb({"t": msg.kind, "v": PROTOCOL_VERSION, **fields}, use_bin_type=True)
+    return out
+
+
+def is_control(data: bytes) -> bool:
+    """True if ``data`` starts like a msgpack map (fixmap, map16, map32): a control message, not a
+    data packet (those are arrays).  Says nothing about validity: :func:`parse` does."""
+    return bool(data) and (0x80 <= data[0] <= 0x8F or data[0] in (0xDE, 0xDF))
+
+
+def _session_of(m: Mapping[str, object]) -> int | None:
+    s = m.get("session")
+    return s if type(s) is int and 1 <= s <= limits.MAX_SESSION else None
+
+
+def _parse_fields(kind: str, m: Mapping[str, object], local_netem: Collection[str]) -> Message:
+    if kind == "hello":
+        params = SessionParams.from_msg(m, local_netem=local_netem)
+        return Hello(params, _timestamp(m, "t_ns"), _bool(m, "rejoin", False))
+    if kind == "reject":
+        session = None if m.get("session") is None else _int(m, "session", 1, limits.MAX_SESSION)
+        why = _field(m, "why")
+        if not isinstance(why, str):
+            raise ProtocolError(f"why must be a string, {_got(why)}")
+        return Reject(session, why[: limits.MAX_REASON_LEN])
+    session = _int(m, "session", 1, limits.MAX_SESSION)
+    if kind == "welcome":
+        t_ns, t2, t3 = _timestamp(m, "t_ns"), _timestamp(m, "t2"), _timestamp(m, "t3")
+        if t3 < t2:
+            raise ProtocolError(f"t3 (reply sent) must not precede t2 (hello received), got {t3} < {t2}")
+        return Welcome(session, t_ns, t2, t3)
+    if kind == "start":
+        return Start(session, _timestamp(m, "start_ns"), _bool(m, "rejoin", False))
+    if kind == "started":
+        return Started(session)
+    return Bye(session, _int(m, "produced", 0, MAX_COUNT), _int(m, "dropped_by_limit", 0, MAX_COUNT))
+
+
+def parse(data: bytes, *, local_netem: Collection[str] = ()) -> Message:
+    """The message in a control datagram; raises :class:`ProtocolError`, and only that, for any bytes.
+
+    ``local_netem``: netem specs this side configured itself, which a hello may repeat even if they
+    name a trace file (see :meth:`SessionParams.from_msg`)."""
+    if not isinstance(data, bytes | bytearray | memoryview):
+        raise ProtocolError(f"a datagram must be bytes, {_got(data)}")
+    if len(data) > MAX_CONTROL_BYTES:
+        raise ProtocolError(f"a control message must be at most {MAX_CONTROL_BYTES} bytes, got {len(data)}")
+    if not is_control(bytes(data[:1])):
+        raise ProtocolError("not a control message (a control message is a msgpack map)")
+    try:
+        m = msgpack.unpackb(
+            bytes(data),
+            raw=False,
+            strict_map_key=True,
+            max_str_len=MAX_CONTROL_BYTES,
+            max_bin_len=MAX_CONTROL_BYTES,
+            max_array_len=MAX_CONTROL_BYTES,
+            max_map_len=64,
+            max_ext_len=MAX_CONTROL_BYTES,
+        )
+    except Exception as e:  # msgpack raises several types (FormatError, StackError, UnicodeDecodeError...)
+        raise ProtocolError(f"not valid msgpack: {type(e).__name__}") from None
+    if not isinstance(m, dict):
+        raise ProtocolError("not a control message (a control message is a msgpack map)")
+    kind = m.get("t")
+    if not isinstance(kind, str) or kind not in KINDS:
+        raise ProtocolError(f"t (the kind) must be one of {', '.join(KINDS)}, got {_show(kind)}")
+    session = _session_of(m)
+    v = m.get("v")
+    if type(v) is not int or v != PROTOCOL_VERSION:
+        raise ProtocolError(
+            f"protocol version {_show(v)} is not supported; this side speaks {PROTOCOL_VERSION}",
+            kind=kind,
+            session=session,
+        )
+    try:
+        return _parse_fields(kind, m, local_netem)
+    except ProtocolError as e:
+        raise ProtocolError(f"bad {kind}: {e}", kind=kind, session=session) from None
+
+
+def ntp_offset(t1: int, t2: int, t3: int, t4: int) -> tuple[int, int]:
+    """(offset, rtt) from NTP's four timestamps: request sent t1 and reply received t4 on the local
+    clock, request received t2 and reply sent t3 on the peer's; ``peer clock = local + offset``.
+
+    The offset is exact when the two one-way delays are equal; otherwise it is off by half their
+    difference, which is why the handshake keeps the exchange with the smallest rtt."""
+    return ((t2 - t1) + (t3 - t4)) // 2, (t4 - t1) - (t3 - t2)
+
+
+# --------------------------------------------------------------------------------------------
+# the operator's side
+# --------------------------------------------------------------------------------------------
+class OperatorHandshake:
+    """The operator's handshake: hellos until enough welcomes, then the start until ``started``.
+
+    Drive it with :meth:`receive` (datagrams from the peer's address only) and :meth:`poll` (what
+    to send now), and call poll again at :meth:`next_timer` or after a receive.  It ends with
+    ``done`` (``offset_ns``, ``rtt_ns``, ``start_ns`` set) or ``error`` set.  Malformed and
+    irrelevant datagrams are counted in ``rejected``, never raised.
+
+    A hello goes out when the previous one was answered or ``hello_interval_ns`` ran out.  After
+    ``answers`` welcomes, or at the timeout with at least one, the start is set ``start_lead_ns``
+    ahead (on this clock; the message carries it on the TO's clock) and resent every
+    ``start_resend_ns`` until confirmed, giving up ``start_margin_ns`` before the start itself.
+    """
+
+    def __init__(
+        self,
+        params: SessionParams,
+        *,
+        now_ns: int,
+        timeout_s: float,
+        answers: int = 8,
+        hello_interval_ns: int = 100_000_000,
+        start_lead_ns: int = 300_000_000,
+        start_resend_ns: int = 20_000_000,
+        start_margin_ns: int = 50_000_000,
+    ) -> None:
+        if answers < 1 or hello_interval_ns <= 0 or start_resend_ns <= 0:
+            raise ValueError("answers, hello_interval_ns and start_resend_ns must be positive")
+        if not 0 <= start_margin_ns < start_lead_ns:
+            raise ValueError("start_margin_ns must be in [0, start_lead_ns)")
+        self.params = params
+        self.timeout_s = timeout_s
+        self.answers_wanted = answers
+        self.hello_interval_ns = hello_interval_ns
+        self.start_lead_ns = start_lead_ns
+        self.start_resend_ns = start_resend_ns
+        self.start_margin_ns = start_margin_ns
+        self._give_up = now_ns + round(timeout_s * 1e9)
+        self._t1: int | None = None  # t_ns of the hello in flight (None: answered or none sent)
+        self._next_hello = now_ns
+        self._best: tuple[int, int] | None = None  # (rtt, offset) of the quickest exchange
+        self._starting = False
+        self._next_start = 0
+        self._start_deadline = 0
+        self.answers = 0
+        self.hellos_sent = 0
+        self.done = False
+        self.error: str | None = None
+        self.offset_ns = 0  # TO clock - operator clock
+        self.rtt_ns = 0
+        self.start_ns = 0  # tick 0 on the operator's clock
+        self.rejected = 0
+        self.last_rejection = ""
+
+    @property
+    def finished(self) -> bool:
+        return self.done or self.error is not None
+
+    def _refuse(self, why: str) -> None:
+        self.rejected += 1
+        self.last_rejection = why
+
+    def receive(self, data: bytes, now_ns: int) -> None:
+        """A datagram from the peer, received at ``now_ns`` (NTP's t4 for a welcome)."""
+        if self.finished:
+            return
+        try:
+            msg = parse(data)
+        except ProtocolError as e:
+            self._refuse(str(e))
+            return
+        session = self.params.session
+        if isinstance(msg, Reject) and msg.session == session:
+            self.error = f"rejected the session: {msg.why}"
+        elif isinstance(msg, Welcome) and msg.session == session and not self._starting:
+            if self._t1 is None or msg.t_ns != self._t1:
+                self._refuse("a welcome that answers no hello in flight (late or duplicated)")
+                return
+            offset, rtt = ntp_offset(self._t1, msg.t2, msg.t3, now_ns)
+            if rtt < 0:
+                self._refuse(f"a welcome whose turnaround t3 - t2 exceeds the round trip (rtt {rtt} ns)")
+                return
+            if self._best is None or rtt < self._best[0]:
+                self._best = (rtt, offset)
+            self.answers += 1
+            self._t1 = None
+            self._next_hello = now_ns  # the next hello goes out at once
+        elif isinstance(msg, Started) and msg.session == session and self._starting:
+            self.done = True
+        else:
+            self._refuse(f"an unexpected {msg.kind} for session {getattr(msg, 'session', None)}")
+
+    def _begin_start(self, now_ns: int) -> None:
+        assert self._best is not None
+        self.rtt_ns, self.offset_ns = self._best
+        self.start_ns = now_ns + self.start_lead_ns
+        if not 0 <= self.start_ns + self.offset_ns <= MAX_TIMESTAMP:
+            self.error = f"the peer's clock is out of range (offset {self.offset_ns} ns)"
+            return
+        self._starting = True
+        self._next_start = now_ns
+        self._start_deadline = self.start_ns - self.start_margin_ns
+
+    def poll(self, now_ns: int) -> list[bytes]:
+        """What to send at ``now_ns``; may end the handshake with ``error`` (timeout)."""
+        if self.finished:
+            return []
+        if not self._starting:
+            if self.answers >= self.answers_wanted or (now_ns >= self._give_up and self._best is not None):
+                self._begin_start(now_ns)
+                if self.error is not None:
+                    return []
+            elif now_ns >= self._give_up:
+                self.error = f"never answered within {self.timeout_s:g} s"
+                return []
+            elif now_ns >= self._next_hello:
+                self._t1 = now_ns
+                self._next_hello = now_ns + self.hello_interval_ns
+                self.hellos_sent += 1
+                return [encode(Hello(self.params, now_ns))]
+            else:
+                return []
+        if now_ns >= self._start_deadline:
+            self.error = "did not confirm the start"
+            return []
+        if now_ns >= self._next_start:
+            self._next_start = now_ns + self.start_resend_ns
+            return [encode(Start(self.params.session, self.start_ns + self.offset_ns))]
+        return []
+
+    def next_timer(self) -> int:
+        """When :meth:`poll` must be called next (ns, this clock); meaningless once finished."""
+        if self._starting:
+            return min(self._next_start, self._start_deadline)
+        if self.answers >= self.answers_wanted:
+            return self._next_hello  # the receive time of the last welcome: at once
+        return min(self._next_hello, self._give_up)
+
+
+# --------------------------------------------------------------------------------------------
+# the teleoperator's side
+# --------------------------------------------------------------------------------------------
+class TeleoperatorHandshake:
+    """The teleoperator's handshake: welcome a good hello, confirm that operator's start.
+
+    ``expect`` maps :class:`SessionParams` field names to what this teleoperator was configured with
+    (None: anything).  ``local_netem`` lists netem specs configured here that a hello may repeat even
+    if they name a trace file; the netem specs in ``expect`` are added to it.
+
+    A bad hello (malformed, or differing from ``expect``) is answered with a ``reject`` carrying the
+    reason, counted in ``rejected`` / ``last_rejection`` / ``rejections`` (the last 16 reasons), and
+    the handshake goes on waiting: a stranger must not be able to stop the robot's endpoint.  Other
+    garbage is counted in ``ignored`` and dropped.  It ends with ``done`` (``params``, ``peer``,
+    ``start_ns`` on this clock, ``rejoin``) or, from :meth:`poll` at the timeout, ``error``.
+    """
+
+    def __init__(
+        self,
+        expect: Mapping[str, object],
+        *,
+        now_ns: int,
+        timeout_s: float,
+        local_netem: Collection[str] = (),
+    ) -> None:
+        unknown = set(expect) - set(PARAM_FIELDS)
+        if unknown:
+            raise ValueError(f"expect names unknown session parameters: {', '.join(sorted(unknown))}")
+        self.expect = dict(expect)
+        own = {v for k in _NETEM_FIELDS if isinstance(v := self.expect.get(k), str)}
+        self.local_netem = frozenset(local_netem) | own
+        self.timeout_s = timeout_s
+        self._give_up = now_ns + round(timeout_s * 1e9)
+        self.params: SessionParams | None = None
+        self.peer: Addr | None = None
+        self.start_ns = 0
+        self.rejoin = False
+        self.done = False
+        self.error: str | None = None
+        self.welcomes = 0
+        self.rejected = 0
+        self.last_rejection = ""
+        self.last_rejected_addr: Addr | None = None
+        self.rejections: deque[str] = deque(maxlen=REJECTIONS_KEPT)
+        self.ignored = 0
+        self.last_ignored = ""
+
+    @property
+    def finished(self) -> bool:
+        return self.done or self.error is not None
+
+    def _reject(self, addr: Addr, session: int | None, why: str) -> list[tuple[bytes, Addr]]:
+        why = why[: limits.MAX_REASON_LEN]
+        self.rejected += 1
+        self.last_rejection = why
+        self.last_rejected_addr = addr
+        self.rejections.append(why)
+        return [(encode(Reject(session, why)), addr)]
+
+    def _ignore(self, why: str) -> list[tuple[bytes, Addr]]:
+        self.ignored += 1
+        self.last_ignored = why
+        return []
+
+    def _busy(self, addr: Addr, session: int | None) -> bool:
+        """Another operator while one is agreed.  Over Zenoh every operator has the same
+        pseudo-address: the session id tells them apart."""
+        return self.params is not None and (addr != self.peer or session != self.params.session)
+
+    def _mismatch(self, p: SessionParams) -> str | None:
+        for k, want in self.expect.items():
+            got = getattr(p, k)
+            if want is not None and got != want:
+                return f"{k} {got!r} differs from this teleoperator's {want!r}"
+        return None
+
+    def receive(self, data: bytes, addr: Addr, now_ns: int) -> list[tuple[bytes, Addr]]:
+        """A datagram from ``addr`` received at ``now_ns``; returns the replies to send."""
+        if self.finished:
+            return self._ignore("the handshake is over")
+        try:
+            msg = parse(data, local_netem=self.local_netem)
+        except ProtocolError as e:
+            if e.kind != "hello":
+                return self._ignore(str(e))
+            return self._reject(addr, e.session, BUSY if self._busy(addr, e.session) else str(e))
+        if isinstance(msg, Hello):
+            p = msg.params
+            if self._busy(addr, p.session):
+                return self._reject(addr, p.session, BUSY)
+            why = self._mismatch(p)
+            if why is not None:
+                return self._reject(addr, p.session, why)
+            self.params, self.peer = p, addr
+            self.welcomes += 1
+            return [(encode(Welcome(p.session, msg.t_ns, t2=now_ns, t3=now_ns)), addr)]
+        if isinstance(msg, Start):
+            if self.params is not None and addr == self.peer and msg.session == self.params.session:
+                # The loop sleeps until start_ns: a start far off would park the endpoint, so it must
+                # lie within the session (a rejoin joins a running one) and a few seconds ahead.
+                earliest = now_ns - (int(self.params.duration * 1e9) if msg.rejoin else START_SLACK_NS)
+                if not earliest <= msg.start_ns <= now_ns + START_AHEAD_NS:
+                    return self._ignore(f"a start {(msg.start_ns - now_ns) / 1e9:+.3g} s from now")
+                self.start_ns, self.rejoin, self.done = msg.start_ns, msg.rejoin, True
+                return [(encode(Started(msg.session)), addr)]
+            return self._ignore(f"a start for session {msg.session} that no welcome agreed on")
+        return self._ignore(f"an unexpected {msg.kind}")
+
+    def poll(self, now_ns: int) -> None:
+        """Ends the handshake with ``error`` once ``timeout_s`` has passed without a start."""
+        if self.finished or now_ns < self._give_up:
+            return
+        what = "no operator said hello" if self.params is None else "the operator never sent start"
+        self.error = f"{what} within {self.timeout_s:g} s"
+        if self.rejected:
+            self.error += f" ({self.rejected} hello(s) rejected, the last: {self.last_rejection})"
+
+    def next_timer(self) -> int:
+        """When :meth:`poll` must be called next (ns, this clock): the timeout."""
+        return self._give_up
