@@ -1,8 +1,10 @@
 """Micro-benchmark: microseconds per 1 kHz tick of the control core, at 2 and 6 DoF.
 
-Measures, per codec: the wave transform alone, encode+decode alone, and a full operator tick plus
-teleoperator tick including wire encoding and parsing (what one loop iteration of each process
-costs, added together).  Medians over repeats; writes JSON (default ``bench/results/tick.json``).
+Measures, per codec: the wave transform alone, encode+decode alone, a full operator tick plus
+teleoperator tick including wire encoding and parsing, and the same through the two sans-I/O ports
+(``teleop.port``: adds the wire counters, the link observer and the per-tick recorder, which is
+what one loop iteration of each process costs apart from I/O, added together).  Medians over
+repeats; writes JSON (default ``bench/results/tick.json``).
 
     python -m bench.tick [--out FILE] [--ticks N] [--repeats R]
 """
@@ -23,7 +25,8 @@ import numpy as np
 from teleop import wire
 from teleop.codecs import make_codec
 from teleop.models import LtiEnvironment, StepHuman
-from teleop.node import OperatorNode, TeleoperatorNode
+from teleop.node import OperatorNode, PortOptions, TeleoperatorNode
+from teleop.port import Port, make_node
 from teleop.wave import WaveImpedance
 
 CODECS = ("none", "ids:50", "eds:50", "cq:8")
@@ -87,6 +90,42 @@ def bench_nodes(spec: str, dof: int, ticks: int, repeats: int) -> list[float]:
     return _time_per_call(run, ticks, repeats)
 
 
+def bench_ports(spec: str, dof: int, ticks: int, repeats: int) -> list[float]:
+    """Both ports per tick: node, wire encode and parse, counters, link observer, recorder."""
+    opts = PortOptions()
+    out = []
+    for _ in range(repeats):
+        ports = [
+            Port(
+                make_node(
+                    role,
+                    scenario="step",
+                    dof=dof,
+                    dt=DT,
+                    b=1.0,
+                    codec=spec,
+                    full_scale=2.0,
+                    session=1,
+                    options=opts,
+                ),
+                ticks=ticks,
+            )
+            for role in ("operator", "teleoperator")
+        ]
+        op, to = ports
+        t0 = time.perf_counter_ns()
+        for k in range(ticks):
+            now = k * DT
+            for d in op.tick(k, now):
+                to.receive(d, now, k)
+            op.sent(k, now)
+            for d in to.tick(k, now):
+                op.receive(d, now, k)
+            to.sent(k, now)
+        out.append((time.perf_counter_ns() - t0) / ticks / 1e3)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="bench/results/tick.json")
@@ -108,6 +147,7 @@ def main() -> None:
         for spec in CODECS:
             mc = statistics.median(bench_codec(spec, dof, a.ticks, a.repeats))
             mn = statistics.median(bench_nodes(spec, dof, a.ticks, a.repeats))
+            mp = statistics.median(bench_ports(spec, dof, a.ticks, a.repeats))
             res["results"].append({"dof": dof, "part": "encode + decode", "codec": spec, "us": mc})
             res["results"].append(
                 {
@@ -118,9 +158,18 @@ def main() -> None:
                     "fraction_of_period": mn / 1000.0,
                 }
             )
+            res["results"].append(
+                {
+                    "dof": dof,
+                    "part": "operator port tick + teleoperator port tick (counters, observer, recorder)",
+                    "codec": spec,
+                    "us": mp,
+                    "fraction_of_period": mp / 1000.0,
+                }
+            )
             print(
                 f"dof {dof}  {spec:<7} codec {mc:7.2f} us   both nodes + wire {mn:7.2f} us "
-                f"({mn / 10:.1f}% of 1 ms)"
+                f"({mn / 10:.1f}% of 1 ms)   both ports {mp:7.2f} us ({mp / 10:.1f}%)"
             )
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)

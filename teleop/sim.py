@@ -26,7 +26,6 @@ one-way delay is the link's delay rounded *up* to the tick (e.g. netem's uniform
 
 from __future__ import annotations
 
-import heapq
 import math
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -34,51 +33,19 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from transport.linkstats import LinkObserver
-from transport.netem import Link, NetemStats, make_link
+from transport.netem import Link, make_link
 
 from . import metrics, scenarios, wire
-from .codecs import make_codec
-from .node import OperatorNode, PortOptions, TeleoperatorNode
-from .wave import WaveImpedance
+from .codecs import Codec
+from .node import PortOptions
+from .port import ConstantDelayLink, Port, make_node, make_shim, wire_block
 
 Array = npt.NDArray[np.float64]
 
 #: The paper's Section V set.
 SECTION_V_CODECS = ("none", "ids:2", "ids:50", "eds:2", "eds:50", "cq:8")
+__all__ = ["ConstantDelayLink", "SimConfig", "run_case", "run_set"]
 ENERGY_TOLERANCE = 1e-9  # J: float rounding in cumulative sums, far below any real violation
-
-
-class ConstantDelayLink:
-    """A lossless link with constant delay: ``send(now, data)``, ``due(now) -> [data]``.
-
-    Same interface as the netem shim's link model (``transport.netem.Link``), so the runner does not
-    care which it has.
-    """
-
-    def __init__(self, delay: float) -> None:
-        if delay < 0:
-            raise ValueError(f"delay must be >= 0 s, got {delay}")
-        self.delay = delay
-        self.stats = NetemStats()
-        self._heap: list[tuple[float, int, bytes]] = []
-        self._n = 0
-
-    def send(self, now: float, data: bytes) -> None:
-        heapq.heappush(self._heap, (now + self.delay, self._n, data))
-        self._n += 1
-        self.stats.sent += 1
-
-    def due(self, now: float) -> list[bytes]:
-        out = []
-        limit = now + 1e-9
-        while self._heap and self._heap[0][0] <= limit:
-            out.append(heapq.heappop(self._heap)[2])
-        self.stats.delivered += len(out)
-        return out
-
-    def next_due(self) -> float | None:
-        return self._heap[0][0] if self._heap else None
 
 
 @dataclass
@@ -128,16 +95,12 @@ class SimConfig:
                 make_link(spec, c.seed)  # NetemError (a ValueError) says which token is wrong
         return c
 
-    def links(self) -> dict[str, Link]:
-        """One link per direction: the netem spec if given, else ``delay_ms`` of constant delay."""
-        out: dict[str, Link] = {}
-        for i, (d, spec) in enumerate(
-            zip(wire.DIRECTIONS, (self.netem_forward, self.netem_backward), strict=True)
-        ):
-            out[d] = (
-                make_link(spec, 2 * self.seed + i) if spec.strip() else ConstantDelayLink(self.delay_ms / 1e3)
-            )
-        return out
+    def shims(self) -> dict[str, Link | None]:
+        """One shim per direction: the netem spec if given, else ``delay_ms`` of constant delay."""
+        specs = (self.netem_forward, self.netem_backward)
+        return {
+            d: make_shim(specs[i], self.seed, i, self.delay_ms / 1e3) for i, d in enumerate(wire.DIRECTIONS)
+        }
 
 
 @dataclass
@@ -162,81 +125,104 @@ class CaseResult:
     trace: Trace
 
 
-def run_case(cfg: SimConfig) -> CaseResult:
-    """One deterministic run; same config, same bits out."""
-    cfg = cfg.resolved()
-    assert (
-        cfg.dof is not None and cfg.duration is not None and cfg.b is not None and cfg.full_scale is not None
-    )
-    dof, dt = cfg.dof, cfg.dt
-    n_ticks = round(cfg.duration / dt)
-    wave = WaveImpedance.of(cfg.b, dof)
-    codec = make_codec(cfg.codec, dof, cfg.full_scale)
-    human, env = scenarios.get(cfg.scenario).make(dof, dt)
+def _ports(cfg: SimConfig) -> tuple[Port, Port, Codec]:
+    assert cfg.dof is not None and cfg.duration is not None and cfg.b is not None
+    assert cfg.full_scale is not None
+    n_ticks = round(cfg.duration / cfg.dt)
     opts = PortOptions(on_loss=cfg.on_loss, controller=cfg.controller, link_timeout=cfg.link_timeout)
-    op = OperatorNode(human=human, wave=wave, tx=codec, rx=codec, session=cfg.session, dt=dt, options=opts)
-    to = TeleoperatorNode(
-        environment=env, wave=wave, tx=codec, rx=codec, session=cfg.session, dt=dt, options=opts
-    )
-    links = cfg.links()
-    fwd, bwd = links["forward"], links["backward"]
-    specs = {"forward": cfg.netem_forward, "backward": cfg.netem_backward}
-    observers = {d: LinkObserver(specs[d]) for d in wire.DIRECTIONS}
-    obs_fwd, obs_bwd = observers["forward"], observers["backward"]
+    shims = cfg.shims()
+    ports = []
+    for role, d, peer_spec in (
+        ("operator", "forward", cfg.netem_backward),
+        ("teleoperator", "backward", cfg.netem_forward),
+    ):
+        node = make_node(
+            role,
+            scenario=cfg.scenario,
+            dof=cfg.dof,
+            dt=cfg.dt,
+            b=cfg.b,
+            codec=cfg.codec,
+            full_scale=cfg.full_scale,
+            session=cfg.session,
+            options=opts,
+        )
+        ports.append(Port(node, ticks=n_ticks, shim=shims[d], peer_spec=peer_spec))
+    return ports[0], ports[1], ports[0].node.tx_codec
 
-    shape = (n_ticks, dof)
-    tr = Trace(
-        t=np.arange(n_ticks, dtype=np.float64) * dt,
-        v_hsi=np.empty(shape),
-        f_hsi=np.empty(shape),
-        v_to=np.empty(shape),
-        f_to=np.empty(shape),
-        margin_fwd=np.empty(n_ticks),
-        margin_bwd=np.empty(n_ticks),
-    )
-    pay = {d: np.zeros(n_ticks) for d in wire.DIRECTIONS}
-    pkt_bytes = {d: np.zeros(n_ticks) for d in wire.DIRECTIONS}
+
+def run_case(cfg: SimConfig) -> CaseResult:
+    """One deterministic run of two ports joined by virtual links; same config, same bits out.
+
+    Within tick ``n``: the backward datagrams due by now reach the operator, the operator ticks and
+    its forward datagrams due by now reach the teleoperator, which ticks; its own datagrams wait
+    for the next tick (the one-tick loop floor, see the module docstring).
+    """
+    cfg = cfg.resolved()
+    op, to, codec = _ports(cfg)
+    dt, n_ticks = cfg.dt, op.ticks
+    backward: list[bytes] = []
     for n in range(n_ticks):
         now = n * dt
-        for data in bwd.due(now):
-            _deliver(op, obs_bwd, now, data)
-        p = op.tick(now)
-        if p is not None:
-            data = wire.encode(p)
-            pay["forward"][n] = len(p.payload)
-            pkt_bytes["forward"][n] = len(data)
-            fwd.send(now, data)
-        for data in fwd.due(now):
-            _deliver(to, obs_fwd, now, data)
-        p = to.tick(now)
-        if p is not None:
-            data = wire.encode(p)
-            pay["backward"][n] = len(p.payload)
-            pkt_bytes["backward"][n] = len(data)
-            bwd.send(now, data)
-        tr.v_hsi[n], tr.f_hsi[n], tr.v_to[n], tr.f_to[n] = op.v, op.f, to.v, to.f
-        tr.margin_fwd[n] = op.energy_sent - to.energy_played
-        tr.margin_bwd[n] = to.energy_sent - op.energy_played
-    tr.payload_bytes, tr.packet_bytes = pay, pkt_bytes
-    for d in wire.DIRECTIONS:
-        _drain(links[d], observers[d], n_ticks, dt)
+        for data in backward + to.flush(now, n):
+            op.receive(data, now, n)
+        for data in op.tick(n, now):
+            to.receive(data, now, n)
+        op.sent(n, now)
+        backward = to.tick(n, now)
+        to.sent(n, now)
+    for data in backward:  # sent at the last tick: observed, not played
+        op.receive(data, n_ticks * dt, n_ticks - 1, play=False)
+    _drain(to, op, n_ticks, dt)
+    _drain(op, to, n_ticks, dt)
+    return CaseResult(codec.spec, _summary(cfg, op, to, codec), _trace(op, to, dt))
 
+
+def _trace(op: Port, to: Port, dt: float) -> Trace:
+    so, st, eo, et = op.rec.signals, to.rec.signals, op.rec.energy, to.rec.energy
+    tr = Trace(
+        t=np.arange(op.ticks, dtype=np.float64) * dt,
+        v_hsi=so["v"],
+        f_hsi=so["f"],
+        v_to=st["v"],
+        f_to=st["f"],
+        margin_fwd=eo["energy_sent"] - et["energy_played"],
+        margin_bwd=et["energy_sent"] - eo["energy_played"],
+    )
+    tr.payload_bytes = {"forward": op.rec.produced_payload, "backward": to.rec.produced_payload}
+    tr.packet_bytes = {"forward": op.rec.produced_packet, "backward": to.rec.produced_packet}
+    return tr
+
+
+def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]:
+    n_ticks, dt = op.ticks, cfg.dt
+    tr = _trace(op, to, dt)
     window = max(1, round(cfg.window_ms / 1e3 / dt))
     raw_per_tick = np.full(n_ticks, float(codec.raw_bytes_per_tick))
     baseline_total = 2.0 * n_ticks * codec.raw_bytes_per_tick
-    sent_total = float(sum(a.sum() for a in pay.values()))
+    pay = tr.payload_bytes
     per_dir: dict[str, Any] = {}
     for d in wire.DIRECTIONS:
         per_dir[d] = {
             "packets": int(np.count_nonzero(pay[d])),
             "payload_bytes": int(pay[d].sum()),
-            "packet_bytes": int(pkt_bytes[d].sum()),
+            "packet_bytes": int(tr.packet_bytes[d].sum()),
             "compression": metrics.compression(n_ticks * codec.raw_bytes_per_tick, float(pay[d].sum())),
             "min_instant_compression": metrics.min_instant_compression(raw_per_tick, pay[d], window),
         }
+    sent_total = float(sum(a.sum() for a in pay.values()))
+    side = {
+        "forward": op.summary(
+            window, peer_produced=_sent_into(to.shim, to), peer_dropped_by_limit=_dropped(to)
+        ),
+        "backward": to.summary(
+            window, peer_produced=_sent_into(op.shim, op), peer_dropped_by_limit=_dropped(op)
+        ),
+    }
+    # side["forward"] is the operator's own view: it sent forward and received (observed) backward.
+    o, t = side["forward"], side["backward"]
     margins = np.concatenate([tr.margin_fwd, tr.margin_bwd])
     min_margin = float(margins.min())
-    counters = {"operator": op.counters.as_dict(), "teleoperator": to.counters.as_dict()}
     summary: dict[str, Any] = {
         "codec": codec.spec,
         "class": codec.klass,
@@ -250,59 +236,53 @@ def run_case(cfg: SimConfig) -> CaseResult:
         "two_port_min_energy": float((tr.margin_fwd + tr.margin_bwd).min()),
         "energy": {
             "forward": {
-                "sent": op.energy_sent,
-                "played": to.energy_played,
+                "sent": o["energy"]["sent"],
+                "played": t["energy"]["played"],
                 "min_margin": float(tr.margin_fwd.min()),
             },
             "backward": {
-                "sent": to.energy_sent,
-                "played": op.energy_played,
+                "sent": t["energy"]["sent"],
+                "played": o["energy"]["played"],
                 "min_margin": float(tr.margin_bwd.min()),
             },
         },
         # The watchdog of each direction, at its receiver (margins from in-band reports).
-        "passivity": {"forward": to.passivity.as_dict(), "backward": op.passivity.as_dict()},
+        "passivity": {"forward": _no_dir(t["passivity"]), "backward": _no_dir(o["passivity"])},
         "directions": per_dir,
-        "counters": counters,
-        "link": {
-            d: observers[d].summary(
-                sent=links[d].stats.sent, dropped_by_limit=links[d].stats.dropped_by_limit
-            )
-            for d in wire.DIRECTIONS
+        # The same per-direction block as report.json's: counted where the datagrams leave and arrive.
+        "wire": {
+            "forward": wire_block(o["sent"], t["received"]),
+            "backward": wire_block(t["sent"], o["received"]),
         },
+        "counters": {"operator": op.node.counters.as_dict(), "teleoperator": to.node.counters.as_dict()},
+        "link": {"forward": t["link_received"], "backward": o["link_received"]},
     }
-    return CaseResult(codec.spec, summary, tr)
+    return summary
 
 
-def _deliver(node: OperatorNode | TeleoperatorNode, obs: LinkObserver, now: float, data: bytes) -> None:
-    """``node.receive(data)``, parsing once and showing every parseable datagram to the observer.
-
-    A datagram that does not parse (only a ``corrupt`` spec makes those) is counted by the node as
-    malformed and not observed: the receiver cannot tell its seq.
-    """
-    try:
-        p = wire.decode(data)
-    except wire.WireError as e:
-        node.malformed(str(e))
-        return
-    obs.observe(now, p.seq, p.t_us / 1e6, len(data))
-    node.receive_packet(p)
+def _no_dir(p: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in p.items() if k != "direction"}
 
 
-def _drain(link: Link, obs: LinkObserver, n: int, dt: float) -> None:
-    """Show the observer what was still in flight at the end, at the ticks it would have arrived.
+def _sent_into(shim: Link | None, sender: Port) -> int:
+    """Packets the sender put on its link (the shim's count, or every packet without a shim)."""
+    return shim.stats.sent if shim is not None else sender.produced()
 
-    The nodes have stopped and do not see these; without them the observer would count the last
+
+def _dropped(sender: Port) -> int:
+    return sender.shim.stats.dropped_by_limit if sender.shim is not None else 0
+
+
+def _drain(sender: Port, receiver: Port, n: int, dt: float) -> None:
+    """Show the receiver what was still in flight at the end, at the ticks it would have arrived.
+
+    The nodes have stopped and do not play these; without them the observer would count the last
     ``delay / dt`` packets as lost and miss the longest delays (a rate-limited queue's backlog).
     """
-    while (t := link.next_due()) is not None:
+    while (t := sender.next_due()) is not None:
         n = max(n, math.ceil(t / dt - 1e-6))
-        for data in link.due(n * dt):
-            try:
-                p = wire.decode(data)
-            except wire.WireError:
-                continue
-            obs.observe(n * dt, p.seq, p.t_us / 1e6, len(data))
+        for data in sender.flush(n * dt, sender.ticks - 1):
+            receiver.receive(data, n * dt, receiver.ticks - 1, play=False)
         n += 1
 
 

@@ -130,6 +130,14 @@ def test_report_contract_and_logs(tmp_path: Path) -> None:
         pkt = wire.Packet(rep["session"], wire.FORWARD, seq, tick, tick * 1000, 2, bytes(4), 1.0)
         assert counted == len(wire.encode(pkt)) + 28
     assert rep["wire"]["forward"]["wire_bytes"] == int(per_tick.sum())
+    # The simulation counts with the same port code: same keys, and on a lossless loopback the
+    # same packets and bytes in both directions (issue 9).
+    from teleop.port import WIRE_KEYS
+
+    for d in ("forward", "backward"):
+        assert tuple(rep["wire"][d]) == tuple(rep["sim_wire"][d]) == WIRE_KEYS
+        for k in ("packets", "payload_bytes", "wire_bytes", "baseline_wire_bytes", "received_packets"):
+            assert rep["wire"][d][k] == rep["sim_wire"][d][k], (d, k)
 
 
 def test_ctrl_c_stops_both_cleanly(tmp_path: Path) -> None:

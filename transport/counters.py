@@ -3,8 +3,8 @@
 Every figure comes from datagrams that really crossed the socket: ``wire_bytes`` is the datagram
 length plus the UDP/IPv4 headers (28 bytes), ``payload_bytes`` the codec payload inside it.  The
 baseline is the uncompressed stream, every tick's raw 16-bit sample in a packet of the same format
-(what the ``none`` codec sends); the sender builds that packet each tick to count its length, and
-never sends it.
+(what the ``none`` codec sends); its size is computed in closed form (``teleop.wire.packet_size``)
+for the ticks that ran, never encoded or sent.
 
 Per-tick arrays keep the time structure, so the report can give the minimum instantaneous
 compression over a sliding window (Section III) and bandwidth over time.
@@ -69,6 +69,18 @@ class DirectionCounters:
         self.baseline_payload_bytes += payload_len
         self.baseline_wire_per_tick.add(k, wire)
         self.baseline_payload_per_tick.add(k, payload_len)
+
+    def baseline_bulk(
+        self, ks: npt.NDArray[np.intp], datagram_lens: npt.NDArray[np.int64], payload_len: int
+    ) -> None:
+        """The uncompressed stream at ticks ``ks`` at once (datagram sizes computed, not encoded)."""
+        wire = datagram_lens.astype(np.float64) + self.header
+        ks = np.clip(ks, 0, self.baseline_wire_per_tick.a.size - 1)
+        self.baseline_packets += int(ks.size)
+        self.baseline_wire_bytes += int(wire.sum())
+        self.baseline_payload_bytes += payload_len * int(ks.size)
+        np.add.at(self.baseline_wire_per_tick.a, ks, wire)
+        np.add.at(self.baseline_payload_per_tick.a, ks, float(payload_len))
 
     def summary(self, window_ticks: int = 100) -> dict[str, Any]:
         out: dict[str, Any] = {

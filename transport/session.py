@@ -1,31 +1,28 @@
-"""The operator and teleoperator processes: handshake, the 1 kHz loop, logs.
+"""The real-time runner: one :class:`teleop.port.Port` between the ``Ticker`` and the transport.
 
-**Handshake** (msgpack maps; data packets are msgpack arrays, so the two never mix up):
+Everything a side does with datagrams, the node, the shim, counters, link figures, recording and the
+summary, lives in the sans-I/O port (``teleop.port``), and the handshake in the sans-I/O state
+machines of ``teleop.protocol``; this module only owns the clock and the socket:
 
-1. operator -> TO ``hello``: session id, codec, DoF, b, range, scenario, duration, and the operator's
-   monotonic clock ``t_ns``; resent every 100 ms until answered or ``--connect-timeout``.
-2. TO -> operator ``welcome`` (echoes ``t_ns``, adds its own clock ``peer_ns``) or ``reject`` with
-   the reason.  From the quickest of a few exchanges the operator estimates the clock offset
-   (NTP style: ``offset = peer_ns - (t_ns + rtt/2)``).
-3. operator -> TO ``start`` with the common start time in the TO's clock; TO -> operator
-   ``started``.  Tick ``k`` of both processes is then due at ``start + k * dt`` in its own clock,
-   so both logs align by tick.  The TO runs ``phase`` of a period (default 0.5) behind the
-   operator: a forward packet reaches the TO within the same tick and a backward packet reaches
-   the operator at the next tick, exactly the order ``teleop sim`` uses.
+**Handshake.** ``OperatorHandshake``/``TeleoperatorHandshake`` are fed what the socket receives
+(with its receive time) and say what to send and when to call again.  The operator estimates the
+clock offset from NTP's four timestamps and sends the common start in the teleoperator's clock.
+Tick ``k`` of both processes is then due at ``start + k dt`` in its own clock; the TO runs
+``phase`` of a period (default 0.5) behind the operator, so a forward packet reaches the TO within
+the same tick and a backward packet reaches the operator at the next tick, the order ``teleop sim``
+uses.
 
-**Loop.** Each tick: wait for the deadline (``transport.realtime``), let the event loop deliver
-datagrams (one ``await asyncio.sleep(0)``), hand them to the node, tick the node at session time
-``now = k dt``, send its packet.  Bytes are counted at the socket (``transport.counters``).
+**Loop.** Each tick: wait for the deadline (``transport.realtime``), drain the transport into the
+port, poll a little for a payload that is due (grace), tick the port, send what it returns.
 
-**End.** Both run the agreed number of ticks, linger briefly to count packets still in flight,
-say ``bye``, and write ``<role>.json`` (summary) and ``<role>.npz`` (per-tick signals) to the log
+**End.** Both run the agreed number of ticks, linger briefly to count packets still in flight, say
+``bye``, and write ``<role>.json`` (summary) and ``<role>.npz`` (per-tick signals) to the log
 folder.  SIGINT/SIGTERM stop the loop at the next tick; the logs are still written.
 """
 
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import json
 import os
 import random
@@ -36,116 +33,34 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import msgpack
 import numpy as np
 
-from teleop import scenarios, wire
-from teleop.codecs import CodecError, make_codec
-from teleop.node import OperatorNode, PortOptions, TeleoperatorNode
-from teleop.wave import WaveImpedance
+from teleop import protocol
+from teleop.port import Port, make_node, make_shim
+from teleop.protocol import PROTOCOL_VERSION, SessionParams
 
 from .base import Addr, Transport
-from .counters import DirectionCounters
-from .linkstats import LinkObserver
-from .netem import Link, make_link
-from .realtime import Ticker, setup_realtime
+from .realtime import LoopStats, Ticker, setup_realtime
 from .udp import UdpTransport, new_event_loop
 from .zenoh import ZENOH_PEER, ZenohTransport, make_config
 
-PROTOCOL_VERSION = 1
+__all__ = [
+    "PROTOCOL_VERSION",
+    "EndpointOptions",
+    "SessionError",
+    "SessionParams",
+    "ZenohOptions",
+    "new_session_id",
+    "run_endpoint",
+]
+
 ROLES = ("operator", "teleoperator")
+REJOIN_OFFER_INTERVAL_NS = 250_000_000  # operator: how often to offer a rejoin while the link is lost
+REJOIN_ANSWER_WAIT_NS = 600_000  # and how long to poll for the answer (the link is down anyway)
 
 
 class SessionError(Exception):
     """The session could not start or run: printed as one clear line, non-zero exit."""
-
-
-@dataclass(frozen=True)
-class SessionParams:
-    """What the handshake agrees on."""
-
-    session: int
-    codec: str
-    scenario: str
-    dof: int
-    b: float
-    full_scale: float
-    duration: float
-    dt: float = 0.001
-    phase: float = 0.5
-    netem_forward: str = ""  # impairment of operator -> TO, applied by the operator's shim
-    netem_backward: str = ""  # impairment of TO -> operator, applied by the TO's shim
-    seed: int = 0
-    on_loss: str = "zero"  # reconstruction when nothing is queued (teleop.node.PortOptions)
-    controller: bool = True  # passivity controller
-    link_timeout: float = 0.05  # s of silence before a side goes to its safe state
-
-    def validate(self) -> SessionParams:
-        """Raise ValueError/CodecError saying what is wrong; returns self with the codec canonical."""
-        scenarios.get(self.scenario)
-        if not 1 <= self.dof <= 64:
-            raise ValueError(f"dof must be 1..64, got {self.dof}")
-        if not self.duration > 0 or not self.dt > 0:
-            raise ValueError(f"duration and dt must be > 0, got {self.duration}, {self.dt}")
-        if not 0.0 <= self.phase < 1.0:
-            raise ValueError(f"phase must be in [0, 1) periods, got {self.phase}")
-        WaveImpedance.of(self.b, self.dof)
-        for text in (self.netem_forward, self.netem_backward):
-            if text:
-                make_link(text, self.seed)  # NetemError (a ValueError) names the bad token
-        self.port_options()  # ValueError for a bad on_loss or timeout
-        spec = make_codec(self.codec, self.dof, self.full_scale).spec
-        return SessionParams(**{**asdict(self), "codec": spec})
-
-    def port_options(self) -> PortOptions:
-        return PortOptions(on_loss=self.on_loss, controller=self.controller, link_timeout=self.link_timeout)
-
-    @property
-    def ticks(self) -> int:
-        return round(self.duration / self.dt)
-
-    @classmethod
-    def from_msg(cls, m: dict[str, Any]) -> SessionParams:
-        try:
-            p = cls(
-                session=int(m["session"]),
-                codec=str(m["codec"]),
-                scenario=str(m["scenario"]),
-                dof=int(m["dof"]),
-                b=float(m["b"]),
-                full_scale=float(m["range"]),
-                duration=float(m["duration"]),
-                dt=float(m["dt"]),
-                phase=float(m["phase"]),
-                netem_forward=str(m.get("netem_forward", "")),
-                netem_backward=str(m.get("netem_backward", "")),
-                seed=int(m.get("seed", 0)),
-                on_loss=str(m.get("on_loss", "zero")),
-                controller=bool(m.get("controller", True)),
-                link_timeout=float(m.get("link_timeout", 0.05)),
-            )
-        except (KeyError, TypeError, ValueError) as e:
-            raise ValueError(f"bad hello: {type(e).__name__}: {e}") from None
-        return p.validate()
-
-    def to_msg(self) -> dict[str, Any]:
-        return {
-            "session": self.session,
-            "codec": self.codec,
-            "scenario": self.scenario,
-            "dof": self.dof,
-            "b": self.b,
-            "range": self.full_scale,
-            "duration": self.duration,
-            "dt": self.dt,
-            "phase": self.phase,
-            "netem_forward": self.netem_forward,
-            "netem_backward": self.netem_backward,
-            "seed": self.seed,
-            "on_loss": self.on_loss,
-            "controller": self.controller,
-            "link_timeout": self.link_timeout,
-        }
 
 
 @dataclass
@@ -177,22 +92,6 @@ class ZenohOptions:
     config_file: str | None = None
 
 
-def _control(kind: str, **fields: Any) -> bytes:
-    out: bytes = msgpack.packb({"t": kind, "v": PROTOCOL_VERSION, **fields}, use_bin_type=True)
-    return out
-
-
-def _parse_control(data: bytes) -> dict[str, Any] | None:
-    """A control map, or None if ``data`` is not one (data packets are arrays)."""
-    if not data or (data[0] & 0xF0 != 0x80 and data[0] not in (0xDE, 0xDF)):
-        return None
-    try:
-        m = msgpack.unpackb(data, raw=False)
-    except Exception:
-        return None
-    return m if isinstance(m, dict) and isinstance(m.get("t"), str) else None
-
-
 class _Stop:
     def __init__(self) -> None:
         self.requested = False
@@ -203,66 +102,35 @@ class _Stop:
         self.signal = signum
 
 
+def _addr(a: Addr) -> str:
+    return f"{a[0]}:{a[1]}"
+
+
 # --------------------------------------------------------------------------------------------
-# handshake
+# handshake: the state machines of teleop.protocol, fed by the socket
 # --------------------------------------------------------------------------------------------
 async def _operator_handshake(
     tr: Transport, peer: Addr, params: SessionParams, timeout: float, stop: _Stop
 ) -> tuple[int, int, int]:
-    """Returns (offset_ns, rtt_ns, start_ns in the operator's clock).
-
-    Clock offset from NTP's four timestamps of the quickest of several exchanges: hello sent at t1,
-    received by the TO at t2, welcome sent at t3, received here at t4;
-    ``offset = ((t2 - t1) + (t3 - t4)) / 2``, ``rtt = (t4 - t1) - (t3 - t2)``.
-    """
+    """Returns (offset_ns, rtt_ns, start_ns in the operator's clock)."""
     clock = time.monotonic_ns
-    give_up = clock() + int(timeout * 1e9)
-    best: tuple[int, int] | None = None  # (rtt, offset)
-    answers = 0
-    hello = params.to_msg()
-    while answers < 8:
+    hs = protocol.OperatorHandshake(params, now_ns=clock(), timeout_s=timeout)
+    while True:
         if stop.requested:
             raise SessionError("interrupted during the handshake")
-        if clock() > give_up:
-            if best is not None:
-                break
-            raise SessionError(
-                f"peer {peer[0]}:{peer[1]} never answered within {timeout:g} s "
-                f"(is `teleop teleoperator --listen {peer[0]}:{peer[1]}` running?)"
+        for data in hs.poll(clock()):
+            tr.send(data, peer)
+        if hs.error is not None:
+            hint = (
+                f" (is `teleop teleoperator --listen {_addr(peer)}` running?)" if "answer" in hs.error else ""
             )
-        t1 = clock()
-        tr.send(_control("hello", t_ns=t1, **hello), peer)
-        wait_until = t1 + 100_000_000
-        answered = False
-        while not answered and clock() < wait_until:
-            await tr.wait((wait_until - clock()) / 1e9)
-            for data, addr, t4 in tr.drain():
-                m = _parse_control(data)
-                if m is None or addr != peer or m.get("session") != params.session:
-                    continue
-                if m["t"] == "reject":
-                    raise SessionError(f"peer {peer[0]}:{peer[1]} rejected the session: {m.get('why')}")
-                if m["t"] == "welcome" and m.get("t_ns") == t1:
-                    t2, t3 = int(m["t2"]), int(m["t3"])
-                    rtt = (t4 - t1) - (t3 - t2)
-                    offset = ((t2 - t1) + (t3 - t4)) // 2
-                    if best is None or rtt < best[0]:
-                        best = (rtt, offset)
-                    answers += 1
-                    answered = True
-    assert best is not None
-    rtt, offset = best
-    start = clock() + 300_000_000
-    while clock() < start - 50_000_000:
-        tr.send(_control("start", session=params.session, start_ns=start + offset), peer)
-        t_wait = clock() + 20_000_000
-        while clock() < t_wait:
-            await tr.wait((t_wait - clock()) / 1e9)
-            for data, addr, _ in tr.drain():
-                m = _parse_control(data)
-                if m and addr == peer and m["t"] == "started" and m.get("session") == params.session:
-                    return offset, rtt, start
-    raise SessionError(f"peer {peer[0]}:{peer[1]} did not confirm the start")
+            raise SessionError(f"peer {_addr(peer)} {hs.error}{hint}")
+        if hs.done:
+            return hs.offset_ns, hs.rtt_ns, hs.start_ns
+        await tr.wait(max(0.0, (hs.next_timer() - clock()) / 1e9))
+        for data, addr, t_rx in tr.drain():
+            if addr == peer:
+                hs.receive(data, t_rx)
 
 
 async def _teleoperator_handshake(
@@ -270,141 +138,258 @@ async def _teleoperator_handshake(
 ) -> tuple[SessionParams, Addr, int, bool]:
     """Wait for an operator; returns (params, operator address, start_ns in this clock, rejoin).
 
-    ``rejoin`` is set when the operator's session was already running (this process replaces a
-    teleoperator that went away): ``start_ns`` is then in the past and the loop joins late."""
+    A hello that is malformed or does not match this teleoperator's settings is answered with a
+    reject and counted; the teleoperator keeps waiting for a good one.  ``rejoin`` is set when the
+    operator's session was already running (this process replaces a teleoperator that went away):
+    ``start_ns`` is then in the past and the loop joins late."""
     clock = time.monotonic_ns
-    give_up = clock() + int(timeout * 1e9)
-    params: SessionParams | None = None
-    peer: Addr | None = None
+    hs = protocol.TeleoperatorHandshake(expect, now_ns=clock(), timeout_s=timeout)
+    shown = 0
     while True:
         if stop.requested:
             raise SessionError("interrupted during the handshake")
-        if clock() > give_up:
-            what = "no operator said hello" if params is None else "the operator never sent start"
-            raise SessionError(f"{what} within {timeout:g} s on {tr.local_address[0]}:{tr.local_address[1]}")
-        await tr.wait(min(0.1, (give_up - clock()) / 1e9))
-        for data, addr, t2 in tr.drain():
-            m = _parse_control(data)
-            if m is None:
-                continue
-            if m["t"] == "hello":
-                if params is not None and (addr != peer or m.get("session") != params.session):
-                    # Over Zenoh every operator has the same pseudo-address: the session id tells them apart.
-                    tr.send(
-                        _control("reject", session=m.get("session"), why="busy with another operator"), addr
-                    )
-                    continue
-                try:
-                    p = SessionParams.from_msg(m)
-                    for k, v in expect.items():
-                        if v is not None and getattr(p, k) != v:
-                            raise ValueError(f"{k} {getattr(p, k)!r} differs from this teleoperator's {v!r}")
-                except (ValueError, CodecError) as e:
-                    tr.send(_control("reject", session=m.get("session"), why=str(e)), addr)
-                    raise SessionError(f"rejected the operator at {addr[0]}:{addr[1]}: {e}") from None
-                params, peer = p, addr
-                tr.send(
-                    _control("welcome", session=p.session, t_ns=m.get("t_ns", 0), t2=t2, t3=clock()), addr
-                )
-            elif (
-                m["t"] == "start"
-                and params is not None
-                and addr == peer
-                and m.get("session") == params.session
-            ):
-                tr.send(_control("started", session=params.session), addr)
-                assert peer is not None
-                return params, peer, int(m["start_ns"]), bool(m.get("rejoin", False))
+        hs.poll(clock())
+        if hs.error is not None:
+            raise SessionError(f"{hs.error} on {_addr(tr.local_address)}")
+        await tr.wait(0.1)
+        for data, addr, t_rx in tr.drain():
+            for reply, dest in hs.receive(data, addr, t_rx):
+                tr.send(reply, dest)
+        new = hs.rejected - shown
+        if new:  # say why, but never let a flood of bad hellos flood the terminal
+            reasons = list(hs.rejections)[-min(new, 3) :]
+            for why in reasons:
+                print(f"teleop teleoperator: rejected the operator: {why}", file=sys.stderr, flush=True)
+            if new > len(reasons):
+                print(f"teleop teleoperator: ... and {new - len(reasons)} more", file=sys.stderr, flush=True)
+        shown = hs.rejected
+        if hs.done:
+            assert hs.params is not None and hs.peer is not None
+            return hs.params, hs.peer, hs.start_ns, hs.rejoin
 
 
 # --------------------------------------------------------------------------------------------
 # the loop
 # --------------------------------------------------------------------------------------------
-def _flush(link: Link, now: float, send: Any, peer: Addr, tx: DirectionCounters, k: int) -> None:
-    """Send what the shim says is due, counting it at the socket."""
-    for data in link.due(now):
-        send(data, peer)
-        try:
-            payload_len: int | None = len(wire.decode(data).payload)
-        except wire.WireError:  # corrupted by the shim on purpose
-            payload_len = None
-        tx.packet(k, len(data), payload_len)
-
-
-class _Inbound:
-    """Sorts what the socket received: data packets to the node, control messages, strangers.
-
-    Every data packet from the peer is also shown to a :class:`LinkObserver` (arrival time on the
-    common session clock), which measures the link from the receiver's side.
-    """
+class _Runner:
+    """One session of one process: the clock, the socket and the session control around a port."""
 
     def __init__(
         self,
+        opts: EndpointOptions,
         tr: Transport,
         peer: Addr,
-        node: OperatorNode | TeleoperatorNode,
-        rx: DirectionCounters,
-        session: int,
+        params: SessionParams,
+        port: Port,
         t_common_ns: int,
-        observer: LinkObserver,
+        stop: _Stop,
     ) -> None:
-        self.tr = tr
-        self.peer = peer
-        self.node = node
-        self.rx = rx
-        self.session = session
+        self.opts, self.tr, self.peer, self.params, self.port = opts, tr, peer, params, port
+        self.node = port.node
         self.t_common = t_common_ns
-        self.observer = observer
+        self.stop = stop
         self.foreign = 0
-        self.peer_bye: dict[str, Any] | None = None
-        self.welcome: tuple[dict[str, Any], int] | None = None
-        self.new_session_hello = False
+        self.peer_bye: protocol.Bye | None = None
+        self.welcome: tuple[protocol.Welcome, int] | None = None
+        self.replaced = False  # teleoperator: a new operator session replaces the silent one
+        self.rejoin_offers = self.rejoins = 0
+        self._last_offer = 0
+        self.grace = {"limit_us": opts.grace_us, "waits": 0, "missed": 0, "waited_us_total": 0.0}
+        self._grace_streak = self._grace_resume = 0
 
-    def _other_hello(self, m: dict[str, Any], addr: Addr) -> None:
-        """Another operator.  If ours has gone silent it was probably restarted: end this session
-        and serve the new one (teleoperator only); otherwise we are busy."""
-        if m.get("session") == self.session:
-            return  # our own operator's rejoin offer: only a restarted teleoperator answers it
-        if self.node.link_lost and self.node.tx_direction == wire.BACKWARD:
-            self.new_session_hello = True
-        else:
-            self.tr.send(_control("reject", session=m.get("session"), why="busy with another operator"), addr)
+    def now(self) -> float:
+        """Seconds on the common session clock (tick 0 of the session is 0)."""
+        return (time.monotonic_ns() - self.t_common) / 1e9
 
-    def handle(self, k: int, play: bool = True) -> None:
-        """Drain the inbox during tick ``k``; with ``play`` False only count (after the loop)."""
-        rx, node = self.rx, self.node
+    def send(self, msg: protocol.Message) -> None:
+        self.tr.send(protocol.encode(msg), self.peer)
+
+    # --- inbound ---------------------------------------------------------------------------
+    def drain(self, k: int, play: bool = True) -> None:
+        """Everything the transport received, into the port; control messages to the session logic."""
         for data, addr, t_rx in self.tr.drain():
             if addr != self.peer:
-                m = _parse_control(data)
-                if m is not None and m["t"] == "hello":
-                    self._other_hello(m, addr)  # a restarted operator comes from a new port
+                msg = _parse_quietly(data)
+                if isinstance(msg, protocol.Hello):
+                    self._other_hello(msg, addr)  # a restarted operator comes from a new port
                 else:
                     self.foreign += 1
                 continue
-            if data[:1] == b"\x9a":  # a 10-element msgpack array: a data packet
-                try:
-                    pkt = wire.decode(data)
-                except wire.WireError as e:
-                    rx.packet(k, len(data), None)
-                    node.malformed(str(e))
-                    continue
-                rx.packet(k, len(data), len(pkt.payload))
-                self.observer.observe((t_rx - self.t_common) / 1e9, pkt.seq, pkt.t_us / 1e6, len(data))
-                if play:
-                    node.receive_packet(pkt)
-                continue
-            m = _parse_control(data)
-            if m is None:
-                rx.packet(k, len(data), None)
-                node.malformed("neither a data packet nor a control message")
-            elif m["t"] == "start":
-                self.tr.send(_control("started", session=self.session), self.peer)
-            elif m["t"] == "bye":
-                self.peer_bye = m
-            elif m["t"] == "hello" and m.get("session") != self.session:
-                self._other_hello(m, addr)
-            elif m["t"] == "welcome" and m.get("session") == self.session:
-                self.welcome = (m, t_rx)  # a restarted teleoperator answering our rejoin hello
+            msg = self.port.receive(data, (t_rx - self.t_common) / 1e9, k, play)
+            if msg is not None:
+                self._control(msg, addr, t_rx)
+
+    def _control(self, msg: protocol.Message, addr: Addr, t_rx: int) -> None:
+        ours = getattr(msg, "session", None) == self.params.session
+        if isinstance(msg, protocol.Start) and ours:
+            self.send(protocol.Started(self.params.session))
+        elif isinstance(msg, protocol.Bye) and ours:
+            self.peer_bye = msg
+        elif isinstance(msg, protocol.Hello):
+            self._other_hello(msg, addr)
+        elif isinstance(msg, protocol.Welcome) and ours:
+            self.welcome = (msg, t_rx)  # a restarted teleoperator answering our rejoin hello
+
+    def _other_hello(self, msg: protocol.Hello, addr: Addr) -> None:
+        """Another operator.  If ours has gone silent it was probably restarted: end this session
+        and serve the new one (teleoperator only); otherwise we are busy."""
+        if msg.params.session == self.params.session:
+            return  # our own operator's rejoin offer: only a restarted teleoperator answers it
+        if self.node.link_lost and self.opts.role == "teleoperator":
+            self.replaced = True
+        else:
+            reject = protocol.Reject(msg.params.session, "busy with another operator")
+            self.tr.send(protocol.encode(reject), addr)
+
+    # --- per tick --------------------------------------------------------------------------
+    async def wait_for_payload(self, ticker: Ticker, k: int) -> None:
+        """Grace: a payload is due and not here yet; poll for it a little rather than play a gap."""
+        node, g = self.node, self.grace
+        if not (g["limit_us"] and node.decoder.queued == 0 and node.counters.accepted):
+            return
+        if k < self._grace_resume:
+            return
+        clock = time.monotonic_ns
+        limit = ticker.deadline(k) + round(g["limit_us"] * 1000)
+        g["waits"] += 1
+        t_wait = clock()
+        while node.decoder.queued == 0 and clock() < limit:
+            await asyncio.sleep(0)
+            self.drain(k)
+            if node.decoder.queued == 0:
+                # Sleep a little rather than spin: under SCHED_FIFO a spinning loop would starve
+                # the threads that deliver the packet (Zenoh's runtime runs at normal priority).
+                time.sleep(20e-6)
+        g["waited_us_total"] += (clock() - t_wait) / 1e3
+        if node.decoder.queued:
+            self._grace_streak = 0
+            return
+        g["missed"] += 1
+        self._grace_streak += 1
+        if self._grace_streak >= 3:  # a delayed or jittery link: packets are ms late, not us; rest
+            self._grace_resume = k + 200
+            self._grace_streak = 0
+
+    async def offer_rejoin(self, k: int) -> None:
+        """Operator, link lost: offer a rejoin to whoever restarts at the teleoperator's address.
+
+        Poll for the answer right away (the link is down anyway) so that its receive time, and
+        with it the clock offset (NTP's four timestamps), is exact to a few microseconds."""
+        clock = time.monotonic_ns
+        if clock() - self._last_offer < REJOIN_OFFER_INTERVAL_NS:
+            return
+        t1 = self._last_offer = clock()
+        self.send(protocol.Hello(self.params, t_ns=t1, rejoin=True))
+        self.rejoin_offers += 1
+        self.welcome = None
+        while self.welcome is None and clock() - t1 < REJOIN_ANSWER_WAIT_NS:
+            await asyncio.sleep(0)
+            self.drain(k)
+            time.sleep(10e-6)  # let the transport's threads run (see the grace wait)
+        if self.welcome is not None and self.welcome[0].t_ns == t1:
+            m, t4 = self.welcome
+            offset, _ = protocol.ntp_offset(t1, m.t2, m.t3, t4)
+            self.port.peer_restarted()
+            self.send(protocol.Start(self.params.session, start_ns=self.t_common + offset, rejoin=True))
+            self.rejoins += 1
+        self.welcome = None
+
+    def status(self, k: int, ticker: Ticker) -> None:
+        pv, port = self.node.passivity, self.port
+        print(
+            f"  [{self.opts.role} {(k + 1) * self.params.dt:5.1f} s] sent {port.tx.packets} "
+            f"recv {port.rx.packets}  {'LINK LOST' if self.node.link_lost else 'link ok'}  watchdog: "
+            f"violations {pv.violations}, controller {pv.controller_active_ticks} ticks, "
+            f"margin {self.node.guard.margin:.3e} J, overruns {ticker.overruns}",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    async def run(self, ticker: Ticker) -> None:
+        """Tick until the session's end, a signal, or (teleoperator) a new operator's session."""
+        n, port, opts = self.params.ticks, self.port, self.opts
+        while not self.stop.requested and ticker.k < n:
+            k = ticker.wait()
+            if k >= n:  # a stall skipped past the end
+                break
+            await asyncio.sleep(0)  # one event-loop pass: datagrams received since the last tick
+            self.drain(k)
+            await self.wait_for_payload(ticker, k)
+            if self.replaced:
+                break
+            if opts.role == "operator" and self.node.link_lost:
+                await self.offer_rejoin(k)
+            datagrams = port.tick(k, self.now())
+            # Stamped once the sample exists and before it leaves: the peer cannot play it earlier,
+            # so the true margin (teleop.report) never counts a sample as played before it was sent.
+            port.sent(k, self.now())
+            for data in datagrams:
+                self.tr.send(data, self.peer)
+            if opts.live and k % 1000 == 999:
+                self.status(k, ticker)
+
+    async def linger(self) -> None:
+        """Deliver what the shim still holds, say bye, and count what is still in flight, so that
+        sender and receiver counts can be compared; the bye tells the receiver how many packets
+        there were."""
+        port, last = self.port, self.params.ticks - 1
+        clock = time.monotonic_ns
+        t_end = clock() + int(self.opts.linger * 1e9)
+        while (due := port.next_due()) is not None and clock() < t_end + 2_000_000_000:
+            await asyncio.sleep(max(0.0, min(0.005, due - self.now())))
+            for data in port.flush(self.now(), last):
+                self.tr.send(data, self.peer)
+            self.drain(last, play=False)
+        shim = port.shim_stats()
+        bye = protocol.Bye(self.params.session, port.produced(), shim["dropped_by_limit"] if shim else 0)
+        for _ in range(3):
+            self.send(bye)
+        while clock() < t_end:
+            await asyncio.sleep(0.005)
+            self.drain(last, play=False)
+
+    def summary(self, stats: LoopStats, completed: bool, k0: int) -> dict[str, Any]:
+        bye = self.peer_bye
+        window = max(1, round(0.1 / self.params.dt))
+        s = self.port.summary(
+            window,
+            peer_produced=bye.produced if bye else None,
+            peer_dropped_by_limit=bye.dropped_by_limit if bye else 0,
+        )
+        s["received"].update(
+            foreign=self.foreign, inbox_overflow=self.tr.inbox_overflow, socket_errors=self.tr.socket_errors
+        )
+        shim = self.port.shim_stats()
+        spec_tx = self.params.netem_forward if self.opts.role == "operator" else self.params.netem_backward
+        return {
+            "role": self.opts.role,
+            "pid": os.getpid(),
+            "local": _addr(self.tr.local_address),
+            "peer": _addr(self.peer),
+            "transport": self.opts.transport,
+            "completed": completed,
+            "stopped_by_signal": self.stop.signal,
+            "peer_said_bye": bye is not None,
+            "first_tick": k0,
+            "replaced_by_new_session": self.replaced,
+            "rejoin": {"offers": self.rejoin_offers, "rejoins": self.rejoins},
+            "shim": {"spec": spec_tx, **shim} if shim else None,
+            "grace": self.grace,
+            "params": asdict(self.params),
+            "loop": stats.summary(),
+            **s,
+        }
+
+
+def _parse_quietly(data: bytes) -> protocol.Message | None:
+    """A control message from a stranger, or None (counted by the caller as foreign).  A hello
+    that names a trace file fails to parse and is dropped rather than answered "busy"."""
+    if not protocol.is_control(data):
+        return None
+    try:
+        return protocol.parse(data)
+    except protocol.ProtocolError:
+        return None
 
 
 async def _run_loop(
@@ -412,7 +397,7 @@ async def _run_loop(
     tr: Transport,
     peer: Addr,
     params: SessionParams,
-    node: OperatorNode | TeleoperatorNode,
+    port: Port,
     t0_ns: int,
     t_common_ns: int,
     stop: _Stop,
@@ -420,214 +405,18 @@ async def _run_loop(
 ) -> dict[str, Any]:
     """Tick from ``k0`` to the session's end; tick ``k`` is due at ``t0_ns + k dt``, and
     ``t_common_ns`` is the session's tick 0 on this clock."""
-    n = params.ticks
-    dt = params.dt
-    dof = params.dof
-    tx_dir = node.tx_direction
-    tx = DirectionCounters(n, tr.header_bytes)
-    rx = DirectionCounters(n, tr.header_bytes)
-    raw_payload = bytes(make_codec("none", dof, params.full_scale).raw_bytes_per_tick)
-    rec = {name: np.full((n, dof), np.nan) for name in ("v", "f", "wave_out", "wave_in")}
-    e_sent = np.full(n, np.nan)
-    e_played = np.full(n, np.nan)
-    e_margin = np.full(n, np.nan)  # the watchdog's view: reported in-band minus played
-    e_epoch = np.full(n, np.nan)  # played since the last energy epoch (a peer restart)
-    # s on the common session clock: when each tick played its received sample, and when it sent
-    t_play = np.full(n, np.nan)
-    t_sent = np.full(n, np.nan)
-    spec_tx = params.netem_forward if tx_dir == wire.FORWARD else params.netem_backward
-    spec_rx = params.netem_backward if tx_dir == wire.FORWARD else params.netem_forward
-    # The impairment shim sits between the node and the socket: what it drops never reaches the
-    # socket (and is not counted as sent); what it duplicates is sent and counted twice.
-    link: Link | None = make_link(spec_tx, 2 * params.seed + tx_dir) if spec_tx else None  # as teleop sim
-    inbound = _Inbound(
-        tr, peer, node, rx, params.session, t_common_ns, LinkObserver(spec_rx, joined_late=k0 > 0)
-    )
-    grace_ns = round(opts.grace_us * 1000)
-    grace_waits = grace_missed = grace_ns_total = grace_streak = grace_resume = 0
-    clock = time.monotonic_ns
-    period_ns = round(dt * 1e9)
-    ticker = Ticker(period_ns=period_ns, spin_ns=opts.spin_us * 1000, capacity=n + 16)
+    runner = _Runner(opts, tr, peer, params, port, t_common_ns, stop)
+    ticker = Ticker(period_ns=round(params.dt * 1e9), spin_ns=opts.spin_us * 1000, capacity=params.ticks + 16)
     ticker.start(t0_ns, k0)
-    rejoin_offers = rejoins = 0
-    last_offer = 0
-    send = tr.send
-    encode = wire.encode
-    k = 0
-    while not stop.requested and ticker.k < n:
-        k = ticker.wait()
-        if k >= n:  # a stall skipped past the end
-            break
-        await asyncio.sleep(0)  # one event-loop pass: datagrams received since the last tick
-        inbound.handle(k)
-        if grace_ns and node.decoder.queued == 0 and node.counters.accepted and k >= grace_resume:
-            # A payload is due and not here yet: poll for it a little rather than play a gap.
-            limit = ticker.deadline(k) + grace_ns
-            grace_waits += 1
-            t_wait = clock()
-            while node.decoder.queued == 0 and clock() < limit:
-                await asyncio.sleep(0)
-                inbound.handle(k)
-                if node.decoder.queued == 0:
-                    # Sleep a little rather than spin: under SCHED_FIFO a spinning loop would starve
-                    # the threads that deliver the packet (Zenoh's runtime runs at normal priority).
-                    time.sleep(20e-6)
-            grace_ns_total += clock() - t_wait
-            if node.decoder.queued == 0:
-                grace_missed += 1
-                grace_streak += 1
-                if grace_streak >= 3:  # a delayed or jittery link: packets are ms late, not us; rest
-                    grace_resume = k + 200
-                    grace_streak = 0
-            else:
-                grace_streak = 0
-        if inbound.new_session_hello:
-            break  # teleoperator: a new operator session replaces the silent one
-        if opts.role == "operator" and node.link_lost and clock() - last_offer > 250_000_000:
-            # The teleoperator went away: offer a rejoin to whoever restarts there.  Poll for the
-            # answer right away (the link is down anyway) so that its receive time, and with it the
-            # clock offset (NTP's four timestamps), is exact to a few microseconds.
-            t1 = last_offer = clock()
-            send(_control("hello", t_ns=t1, rejoin=True, **params.to_msg()), peer)
-            rejoin_offers += 1
-            inbound.welcome = None
-            while inbound.welcome is None and clock() - t1 < 600_000:
-                await asyncio.sleep(0)
-                inbound.handle(k)
-                time.sleep(10e-6)  # let the transport's threads run (see the grace wait)
-            if inbound.welcome is not None and int(inbound.welcome[0].get("t_ns", -1)) == t1:
-                m, t4 = inbound.welcome
-                offset = ((int(m["t2"]) - t1) + (int(m["t3"]) - t4)) // 2
-                node.peer_restarted()
-                inbound.observer = LinkObserver(spec_rx)  # the link figures cover the current peer
-                send(
-                    _control("start", session=params.session, start_ns=t_common_ns + offset, rejoin=True),
-                    peer,
-                )
-                rejoins += 1
-            inbound.welcome = None
-        now = k * dt
-        t_play[k] = (clock() - t_common_ns) / 1e9
-        pkt = node.tick(now)
-        t_us = int(now * 1e6)
-        if pkt is not None:
-            data = encode(pkt)
-            if link is None:
-                send(data, peer)
-                tx.packet(k, len(data), len(pkt.payload))
-            else:
-                link.send((clock() - t_common_ns) / 1e9, data)
-        if link is not None:
-            _flush(link, (clock() - t_common_ns) / 1e9, send, peer, tx, k)
-        t_sent[k] = (clock() - t_common_ns) / 1e9
-        base = encode(wire.Packet(params.session, tx_dir, k, k, t_us, 0, raw_payload, node.energy_sent))
-        tx.baseline(k, len(base), len(raw_payload))
-        rec["v"][k] = node.v
-        rec["f"][k] = node.f
-        rec["wave_out"][k] = node.wave_out
-        rec["wave_in"][k] = node.wave_in
-        e_sent[k] = node.energy_sent
-        e_played[k] = node.energy_played
-        e_margin[k] = node.guard.margin
-        e_epoch[k] = node.guard.played_in_epoch
-        if opts.live and k % 1000 == 999:
-            pv = node.passivity
-            print(
-                f"  [{opts.role} {(k + 1) * dt:5.1f} s] sent {tx.packets} recv {rx.packets}  "
-                f"{'LINK LOST' if node.link_lost else 'link ok'}  watchdog: violations {pv.violations}, "
-                f"controller {pv.controller_active_ticks} ticks, margin {node.guard.margin:.3e} J, "
-                f"overruns {ticker.overruns}",
-                file=sys.stderr,
-                flush=True,
-            )
-    stats = ticker.stats()
-    completed = not stop.requested and ticker.k >= n and not inbound.new_session_hello
-    # Linger: deliver what the shim still holds and count what is in flight, so that sender and
-    # receiver counts can be compared; the bye tells the receiver how many packets there were.
-    t_end = clock() + int(opts.linger * 1e9)
-    while link is not None and (due := link.next_due()) is not None and clock() < t_end + 2_000_000_000:
-        await asyncio.sleep(max(0.0, min(0.005, due - (clock() - t_common_ns) / 1e9)))
-        _flush(link, (clock() - t_common_ns) / 1e9, send, peer, tx, n - 1)
-        inbound.handle(n - 1, play=False)
-    shim = dataclasses.asdict(link.stats) if link is not None else None
-    for _ in range(3):
-        send(
-            _control(
-                "bye",
-                session=params.session,
-                produced=node.seq,
-                dropped_by_limit=shim["dropped_by_limit"] if shim else 0,
-            ),
-            peer,
-        )
-    while clock() < t_end:
-        await asyncio.sleep(0.005)
-        inbound.handle(n - 1, play=False)
-    bye = inbound.peer_bye or {}
-    link_rx = inbound.observer.summary(
-        sent=bye.get("produced"), dropped_by_limit=bye.get("dropped_by_limit", 0)
-    )
-    direction = wire.DIRECTIONS[tx_dir]
-    other = wire.DIRECTIONS[1 - tx_dir]
-    window = max(1, round(0.1 / dt))
-    summary: dict[str, Any] = {
-        "role": opts.role,
-        "pid": os.getpid(),
-        "local": f"{tr.local_address[0]}:{tr.local_address[1]}",
-        "peer": f"{peer[0]}:{peer[1]}",
-        "transport": opts.transport,
-        "completed": completed,
-        "stopped_by_signal": stop.signal,
-        "peer_said_bye": inbound.peer_bye is not None,
-        "first_tick": k0,
-        "replaced_by_new_session": inbound.new_session_hello,
-        "rejoin": {"offers": rejoin_offers, "rejoins": rejoins},
-        "link_received": link_rx,
-        "shim": {"spec": spec_tx, **shim} if shim else None,
-        "grace": {
-            "limit_us": opts.grace_us,
-            "waits": grace_waits,
-            "missed": grace_missed,
-            "waited_us_total": grace_ns_total / 1e3,
-        },
-        "params": asdict(params),
-        "loop": stats.summary(),
-        "sent": {"direction": direction, **tx.summary(window)},
-        "received": {
-            "direction": other,
-            **rx.summary(window),
-            "foreign": inbound.foreign,
-            "inbox_overflow": tr.inbox_overflow,
-            "socket_errors": tr.socket_errors,
-        },
-        "node": {
-            **node.counters.as_dict(),
-            "last_error": node.last_error,
-            "decoder_underruns": node.decoder.underruns,
-            "decoder_dropped_samples": node.decoder.dropped_samples,
-        },
-        "passivity": {"direction": other, **node.passivity.as_dict()},
-        "energy": {
-            "sent": node.energy_sent,
-            "played": node.energy_played,
-            "peer_reported_sent": node.peer_energy_sent,
-        },
-    }
-    arrays: dict[str, Any] = {
-        **rec,
-        "energy_sent": e_sent,
-        "energy_played": e_played,
-        "energy_margin_observed": e_margin,
-        "energy_played_epoch": e_epoch,
-        "play_time_s": t_play,
-        "send_time_s": t_sent,
-        "lateness_ns": stats.lateness_ns,
-        **tx.arrays("tx"),
-        **rx.arrays("rx"),
-    }
+    await runner.run(ticker)
+    stats = ticker.stats()  # the ticking only, not the linger
+    completed = not stop.requested and ticker.k >= params.ticks and not runner.replaced
+    await runner.linger()
+    summary = runner.summary(stats, completed, k0)
     if opts.log_dir is not None:
         opts.log_dir.mkdir(parents=True, exist_ok=True)
         (opts.log_dir / f"{opts.role}.json").write_text(json.dumps(summary, indent=2) + "\n")
+        arrays: dict[str, Any] = {**port.arrays(), "lateness_ns": stats.lateness_ns}
         np.savez_compressed(opts.log_dir / f"{opts.role}.npz", **arrays)
     return summary
 
@@ -701,35 +490,32 @@ async def _session(
     warnings = setup_realtime(opts.rt_priority)
     for w in warnings:
         print(f"teleop {opts.role}: warning: {w}", file=sys.stderr)
-    human, env = scenarios.get(params.scenario).make(params.dof, params.dt)
-    wave = WaveImpedance.of(params.b, params.dof)
-    codec = make_codec(params.codec, params.dof, params.full_scale)
-    node: OperatorNode | TeleoperatorNode
-    if opts.role == "operator":
-        node = OperatorNode(
-            human=human,
-            wave=wave,
-            tx=codec,
-            rx=codec,
-            session=params.session,
-            dt=params.dt,
-            options=params.port_options(),
-        )
-    else:
-        node = TeleoperatorNode(
-            environment=env,
-            wave=wave,
-            tx=codec,
-            rx=codec,
-            session=params.session,
-            dt=params.dt,
-            options=params.port_options(),
-        )
-    if k0:
-        node.joined_late()
-    summary = await _run_loop(opts, tr, peer, params, node, t0, start, stop, k0)
+    summary = await _run_loop(opts, tr, peer, params, _make_port(opts, tr, params, k0), t0, start, stop, k0)
     summary.update(extra, warnings=warnings)
     return summary
+
+
+def _make_port(opts: EndpointOptions, tr: Transport, params: SessionParams, k0: int) -> Port:
+    """This side's port: its node, its outgoing shim (seeded as in ``teleop sim``), counters."""
+    node = make_node(
+        opts.role,
+        scenario=params.scenario,
+        dof=params.dof,
+        dt=params.dt,
+        b=params.b,
+        codec=params.codec,
+        full_scale=params.full_scale,
+        session=params.session,
+        options=params.port_options(),
+    )
+    if k0:
+        node.joined_late()
+    fwd, bwd = params.netem_forward, params.netem_backward
+    spec_tx, spec_rx = (fwd, bwd) if opts.role == "operator" else (bwd, fwd)
+    shim = make_shim(spec_tx, params.seed, node.tx_direction)
+    return Port(
+        node, ticks=params.ticks, shim=shim, peer_spec=spec_rx, header_bytes=tr.header_bytes, first_tick=k0
+    )
 
 
 def run_endpoint(

@@ -1,0 +1,349 @@
+"""The per-side sans-I/O port: everything one side does between its socket and its device.
+
+A :class:`Port` owns the node, the outgoing impairment shim, the wire counters of both directions
+as this side sees them, the link observer of the incoming direction, the per-tick recorder and the
+summary.  Its surface is ``receive(datagram, t, k)``, ``tick(k, t) -> datagrams``, ``next_due()``,
+``flush(t, k)`` and ``summary()``; it never reads a clock or a socket.  ``teleop sim`` joins two
+ports with virtual links (``teleop.sim``); the real-time runner (``transport.session``) puts one
+between the ``Ticker`` and the transport.  So the counters, the link figures and the summary of a
+simulated and a real run come from the same code, and their ``wire`` blocks compare key by key.
+
+Time: ``k`` is the tick index (the node runs at ``k dt``, the session clock of eq. 7); ``t`` is when
+this happens on the common session clock in seconds (``k dt`` in the simulation, the measured
+monotonic clock minus the session's tick 0 in a real process).  The shim and the link observer
+use ``t``; the node and the counters use ``k``.
+
+Baseline: the uncompressed stream (every tick's raw 16-bit sample in a packet of the same
+format) is not encoded per tick: its size is a closed-form function of the tick
+(``teleop.wire.packet_size``), computed for the ticks that ran when the summary is asked for.
+"""
+
+from __future__ import annotations
+
+import heapq
+from dataclasses import asdict
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from transport.counters import UDP_IPV4_HEADER, DirectionCounters
+from transport.linkstats import LinkObserver
+from transport.netem import Link, NetemStats, make_link
+
+from . import protocol, scenarios, wire
+from .codecs import make_codec
+from .codecs.base import RAW_BITS, packed_size
+from .node import OperatorNode, PortOptions, TeleoperatorNode
+from .wave import WaveImpedance
+
+Array = npt.NDArray[np.float64]
+Node = OperatorNode | TeleoperatorNode
+
+#: The ``wire.{forward,backward}`` keys of ``report.json`` and of ``results.json`` cases.
+WIRE_KEYS = (
+    "packets",
+    "payload_bytes",
+    "wire_bytes",
+    "baseline_packets",
+    "baseline_payload_bytes",
+    "baseline_wire_bytes",
+    "compression_payload",
+    "compression_wire",
+    "min_instant_compression_payload",
+    "min_instant_compression_wire",
+    "received_packets",
+    "received_wire_bytes",
+    "received_payload_bytes",
+    "received_malformed",
+    "lost",
+)
+
+
+class ConstantDelayLink:
+    """A lossless link with constant delay: ``send(now, data)``, ``due(now) -> [data]``.
+
+    Same interface as the netem shim's link model (``transport.netem.Link``), so a port does not
+    care which it has.
+    """
+
+    def __init__(self, delay: float) -> None:
+        if delay < 0:
+            raise ValueError(f"delay must be >= 0 s, got {delay}")
+        self.delay = delay
+        self.stats = NetemStats()
+        self._heap: list[tuple[float, int, bytes]] = []
+        self._n = 0
+
+    def send(self, now: float, data: bytes) -> None:
+        heapq.heappush(self._heap, (now + self.delay, self._n, data))
+        self._n += 1
+        self.stats.sent += 1
+
+    def due(self, now: float) -> list[bytes]:
+        out = []
+        limit = now + 1e-9
+        while self._heap and self._heap[0][0] <= limit:
+            out.append(heapq.heappop(self._heap)[2])
+        self.stats.delivered += len(out)
+        return out
+
+    def next_due(self) -> float | None:
+        return self._heap[0][0] if self._heap else None
+
+
+def make_shim(spec: str, seed: int, direction: int, delay: float = 0.0) -> Link | None:
+    """The outgoing shim of one direction: the netem spec if given (seeded ``2 seed + direction``,
+    so both directions and neighbouring seeds draw independent streams), else a constant delay,
+    else none (packets go straight to the socket)."""
+    if spec.strip():
+        return make_link(spec, 2 * seed + direction)
+    return ConstantDelayLink(delay) if delay > 0 else None
+
+
+def make_node(
+    role: str,
+    *,
+    scenario: str,
+    dof: int,
+    dt: float,
+    b: float,
+    codec: str,
+    full_scale: float,
+    session: int,
+    options: PortOptions,
+) -> Node:
+    """The operator's or the teleoperator's node for a scenario: one construction for both runners."""
+    human, env = scenarios.get(scenario).make(dof, dt)
+    wave = WaveImpedance.of(b, dof)
+    c = make_codec(codec, dof, full_scale)
+    if role == "operator":
+        return OperatorNode(human=human, wave=wave, tx=c, rx=c, session=session, dt=dt, options=options)
+    if role == "teleoperator":
+        return TeleoperatorNode(
+            environment=env, wave=wave, tx=c, rx=c, session=session, dt=dt, options=options
+        )
+    raise ValueError(f"role must be operator or teleoperator, got {role!r}")
+
+
+class Recorder:
+    """Per-tick arrays of one side, preallocated for the session (``teleop.limits`` bounds it)."""
+
+    def __init__(self, ticks: int, dof: int) -> None:
+        self.ticks = ticks
+        self.signals = {name: np.full((ticks, dof), np.nan) for name in ("v", "f", "wave_out", "wave_in")}
+        names = ("energy_sent", "energy_played", "energy_margin_observed", "energy_played_epoch")
+        self.energy = {name: np.full(ticks, np.nan) for name in names}
+        self.play_time = np.full(ticks, np.nan)  # s, session clock: when tick k played its sample
+        self.send_time = np.full(ticks, np.nan)  # s, session clock: when tick k's packet left
+        self.produced_payload = np.zeros(ticks)  # bytes of the payload the node produced at tick k
+        self.produced_packet = np.zeros(ticks)  # bytes of that packet, before the shim
+
+    def record(self, k: int, t: float, node: Node) -> None:
+        s, e = self.signals, self.energy
+        s["v"][k] = node.v
+        s["f"][k] = node.f
+        s["wave_out"][k] = node.wave_out
+        s["wave_in"][k] = node.wave_in
+        e["energy_sent"][k] = node.energy_sent
+        e["energy_played"][k] = node.energy_played
+        e["energy_margin_observed"][k] = node.guard.margin
+        e["energy_played_epoch"][k] = node.guard.played_in_epoch
+        self.play_time[k] = t
+
+    def ran(self) -> npt.NDArray[np.intp]:
+        """The ticks this side ran (a late joiner starts late; a stalled loop skips some)."""
+        return np.flatnonzero(~np.isnan(self.play_time))
+
+    def arrays(self) -> dict[str, Array]:
+        return {
+            **self.signals,
+            **self.energy,
+            "play_time_s": self.play_time,
+            "send_time_s": self.send_time,
+        }
+
+
+class Port:
+    """One side of a session, sans-I/O: node, shim, counters, link observer, recorder, summary.
+
+    ``shim`` sits between the node and the socket: what it drops never reaches the socket (and is
+    not counted as sent); what it duplicates is sent and counted twice.  ``peer_spec`` is the
+    impairment configured for the incoming direction, echoed in the link figures.
+    """
+
+    def __init__(
+        self,
+        node: Node,
+        *,
+        ticks: int,
+        shim: Link | None = None,
+        peer_spec: str = "",
+        header_bytes: int = UDP_IPV4_HEADER,
+        first_tick: int = 0,
+    ) -> None:
+        self.node = node
+        self.ticks = ticks
+        self.dt = node.dt
+        self.shim = shim
+        self.tx = DirectionCounters(ticks, header_bytes)
+        self.rx = DirectionCounters(ticks, header_bytes)
+        self.observer = LinkObserver(peer_spec, joined_late=first_tick > 0)
+        self.rec = Recorder(ticks, node.wave.dof)
+        self.raw_payload_len = packed_size(node.wave.dof, RAW_BITS)
+        self.control_rejected = 0  # control messages that did not parse (counted, dropped)
+        self.last_control_error = ""
+        self._last_k = 0
+
+    # --- inbound -------------------------------------------------------------------------
+    def receive(self, data: bytes, t: float, k: int, play: bool = True) -> protocol.Message | None:
+        """Take one datagram that arrived at session time ``t`` during tick ``k``.
+
+        Data packets are counted, shown to the link observer and (with ``play``) handed to the
+        node; a control message is parsed and returned for the session logic; anything else is
+        counted as malformed and dropped.  Never raises.
+        """
+        node, rx = self.node, self.rx
+        k = min(max(k, 0), self.ticks - 1)
+        if data[:1] == b"\x9a":  # a 10-element msgpack array: a data packet
+            try:
+                pkt = wire.decode(data)
+            except wire.WireError as e:
+                rx.packet(k, len(data), None)
+                node.malformed(str(e))
+                return None
+            rx.packet(k, len(data), len(pkt.payload))
+            if pkt.session == node.session and pkt.direction == node.rx_direction:
+                self.observer.observe(t, pkt.seq, pkt.t_us / 1e6, len(data))
+            if play:
+                node.receive_packet(pkt)
+            return None
+        if protocol.is_control(data):
+            try:
+                return protocol.parse(data)
+            except protocol.ProtocolError as e:
+                self.control_rejected += 1
+                self.last_control_error = str(e)
+                return None
+        rx.packet(k, len(data), None)
+        node.malformed("neither a data packet nor a control message")
+        return None
+
+    def peer_restarted(self) -> None:
+        """The peer process was replaced mid-session: a new energy epoch and fresh link figures
+        (they cover the current peer; its sequence numbers start again from 0)."""
+        self.node.peer_restarted()
+        self.observer = LinkObserver(self.observer.spec)
+
+    # --- per tick ------------------------------------------------------------------------
+    def tick(self, k: int, t: float) -> list[bytes]:
+        """Run tick ``k`` (node time ``k dt``) at session time ``t``; the datagrams to send now."""
+        pkt = self.node.tick(k * self.dt)
+        out: list[bytes] = []
+        rec = self.rec
+        if pkt is not None:
+            data = wire.encode(pkt)
+            rec.produced_payload[k] = len(pkt.payload)
+            rec.produced_packet[k] = len(data)
+            if self.shim is None:
+                self.tx.packet(k, len(data), len(pkt.payload))
+                out.append(data)
+            else:
+                self.shim.send(t, data)
+        if self.shim is not None:
+            out += self.flush(t, k)
+        rec.record(k, t, self.node)
+        self._last_k = k
+        return out
+
+    def sent(self, k: int, t: float) -> None:
+        """Tick ``k``'s sample was produced by session time ``t``, before its datagrams left (for the
+        true energy margin of ``teleop.report``)."""
+        self.rec.send_time[k] = t
+
+    def next_due(self) -> float | None:
+        """Session time at which the shim next has a datagram due (None: nothing held)."""
+        return self.shim.next_due() if self.shim is not None else None
+
+    def flush(self, t: float, k: int) -> list[bytes]:
+        """What the shim says is due at ``t``, counted as sent during tick ``k``."""
+        if self.shim is None:
+            return []
+        out = self.shim.due(t)
+        k = min(max(k, 0), self.ticks - 1)
+        for data in out:
+            try:
+                payload_len: int | None = len(wire.decode(data).payload)
+            except wire.WireError:  # corrupted by the shim on purpose
+                payload_len = None
+            self.tx.packet(k, len(data), payload_len)
+        return out
+
+    # --- results -------------------------------------------------------------------------
+    def _count_baseline(self) -> None:
+        """Fill the sender's baseline counters for the ticks that ran (once)."""
+        if self.tx.baseline_packets:
+            return
+        ks = self.rec.ran()
+        if ks.size == 0:
+            return
+        us = round(self.dt * 1e6)
+        sizes = wire.packet_size(self.node.session, ks, ks, ks * us, self.raw_payload_len)
+        self.tx.baseline_bulk(ks, sizes, self.raw_payload_len)
+
+    def produced(self) -> int:
+        """Packets the node produced (before the shim): what the peer's loss is counted against."""
+        return self.node.seq
+
+    def shim_stats(self) -> dict[str, Any] | None:
+        return asdict(self.shim.stats) if self.shim is not None else None
+
+    def summary(
+        self, window_ticks: int = 100, peer_produced: int | None = None, peer_dropped_by_limit: int = 0
+    ) -> dict[str, Any]:
+        """This side's figures: what it sent and received, the link it observed, its watchdog.
+
+        ``peer_produced``: the peer's packet count, when known (its bye, or the sim's other port),
+        so the loss covers packets lost after the last one that arrived.
+        """
+        self._count_baseline()
+        node = self.node
+        tx_dir = node.tx_direction
+        return {
+            "sent": {"direction": wire.DIRECTIONS[tx_dir], **self.tx.summary(window_ticks)},
+            "received": {"direction": wire.DIRECTIONS[1 - tx_dir], **self.rx.summary(window_ticks)},
+            "link_received": self.observer.summary(
+                sent=peer_produced, dropped_by_limit=peer_dropped_by_limit
+            ),
+            "control_rejected": self.control_rejected,
+            "node": {
+                **node.counters.as_dict(),
+                "last_error": node.last_error,
+                "decoder_underruns": node.decoder.underruns,
+                "decoder_dropped_samples": node.decoder.dropped_samples,
+            },
+            "passivity": {"direction": wire.DIRECTIONS[1 - tx_dir], **node.passivity.as_dict()},
+            "energy": {
+                "sent": node.energy_sent,
+                "played": node.energy_played,
+                "peer_reported_sent": node.peer_energy_sent,
+            },
+        }
+
+    def arrays(self) -> dict[str, Array]:
+        """Per-tick arrays for the log (``ROLE.npz``)."""
+        self._count_baseline()
+        return {**self.rec.arrays(), **self.tx.arrays("tx"), **self.rx.arrays("rx")}
+
+
+def wire_block(sent: dict[str, Any], received: dict[str, Any]) -> dict[str, Any]:
+    """One direction's wire figures: the sender's ``sent`` summary and the receiver's ``received``."""
+    out = {k: sent[k] for k in WIRE_KEYS[:10]}
+    out.update(
+        received_packets=received["packets"],
+        received_wire_bytes=received["wire_bytes"],
+        received_payload_bytes=received["payload_bytes"],
+        received_malformed=received["malformed"],
+        lost=sent["packets"] - received["packets"],
+    )
+    return out

@@ -1,0 +1,109 @@
+"""The sans-I/O port shared by `teleop sim` and the real-time runner."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from teleop import wire
+from teleop.node import PortOptions
+from teleop.port import WIRE_KEYS, Port, make_node, make_shim
+from teleop.sim import SimConfig, run_case
+
+U32 = 2**32 - 1
+
+
+@given(
+    session=st.integers(1, U32),
+    k=st.integers(0, 2**40),
+    t_us=st.integers(0, 2**63),
+    payload_len=st.sampled_from([0, 1, 4, 12, 255, 256, 70_000]),
+)
+def test_packet_size_is_the_encoded_length(session: int, k: int, t_us: int, payload_len: int) -> None:
+    seq = min(k, U32)
+    p = wire.Packet(session, 1, seq, k, t_us, 0, bytes(payload_len), 3.25)
+    assert int(wire.packet_size(session, seq, k, t_us, payload_len)) == len(wire.encode(p))
+
+
+def _pair(codec: str = "none", ticks: int = 300, netem: str = "") -> tuple[Port, Port]:
+    opts = PortOptions()
+    ports = []
+    for role, d in (("operator", 0), ("teleoperator", 1)):
+        node = make_node(
+            role,
+            scenario="protocol",
+            dof=2,
+            dt=1e-3,
+            b=20.0,
+            codec=codec,
+            full_scale=2.0,
+            session=7,
+            options=opts,
+        )
+        ports.append(Port(node, ticks=ticks, shim=make_shim(netem, 0, d)))
+    return ports[0], ports[1]
+
+
+def test_baseline_is_counted_as_if_encoded_every_tick() -> None:
+    """The closed-form baseline gives the figure the old loop got by encoding a packet per tick."""
+    op, to = _pair(ticks=300)
+    for k in range(300):
+        for d in op.tick(k, k * 1e-3):
+            to.receive(d, k * 1e-3, k)
+        to.tick(k, k * 1e-3)
+    s = op.summary()["sent"]
+    raw = bytes(op.raw_payload_len)
+    energy = op.node.energy_sent
+    expected = [len(wire.encode(wire.Packet(7, 0, k, k, k * 1000, 0, raw, energy))) + 28 for k in range(300)]
+    assert s["baseline_packets"] == 300
+    assert s["baseline_wire_bytes"] == sum(expected)
+    assert s["baseline_payload_bytes"] == 300 * len(raw)
+    # codec none sends every tick a packet the size of the baseline's, up to seq/tick/t_us encodings
+    assert s["packets"] == 300 and abs(s["compression_payload"] - 1.0) < 1e-12
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=200))
+def test_receive_never_raises_and_counts(data: bytes) -> None:
+    _, to = _pair(ticks=10)
+    before = to.rx.packets + to.control_rejected
+    msg = to.receive(data, 0.0, 3)
+    counted = to.rx.packets + to.control_rejected - before
+    assert msg is not None or counted == 1 or data[:1] == b"\x9a"
+
+
+def test_receive_clamps_the_tick_index() -> None:
+    op, to = _pair(ticks=10)
+    data = op.tick(0, 0.0)[0]
+    to.receive(data, 0.0, 10**9)  # a tick outside the session: counted at the last one
+    to.receive(b"junk", 0.0, -5)
+    assert to.rx.packets == 2 and to.rx.malformed == 1
+
+
+def test_sim_wire_block_has_the_report_keys_and_counts_agree() -> None:
+    s = run_case(SimConfig(codec="eds:50", scenario="protocol", duration=2.0)).summary
+    for d in ("forward", "backward"):
+        w = s["wire"][d]
+        assert tuple(w) == WIRE_KEYS
+        assert w["packets"] == s["directions"][d]["packets"] == 40
+        assert w["received_packets"] == w["packets"] and w["lost"] == 0
+        assert w["payload_bytes"] == s["directions"][d]["payload_bytes"]
+        assert abs(w["compression_payload"] - 50.0) < 1e-9
+
+
+def test_sim_wire_block_under_loss_counts_what_left_the_shim() -> None:
+    s = run_case(SimConfig(codec="none", duration=2.0, netem_forward="loss 10%", seed=1)).summary
+    w, produced = s["wire"]["forward"], s["directions"]["forward"]["packets"]
+    assert w["packets"] < produced  # the shim dropped some before the socket
+    assert w["received_packets"] == w["packets"] and w["lost"] == 0  # nothing lost after the socket
+    assert s["link"]["forward"]["loss"] > 0.05
+
+
+def test_recorder_marks_the_ticks_that_ran() -> None:
+    op, _ = _pair(ticks=50)
+    for k in (0, 1, 2, 10):
+        op.tick(k, k * 1e-3)
+    assert list(op.rec.ran()) == [0, 1, 2, 10]
+    assert np.isnan(op.rec.signals["v"][5]).all()
+    assert op.summary()["sent"]["baseline_packets"] == 4
