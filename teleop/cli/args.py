@@ -1,0 +1,340 @@
+"""Argument types and the option groups shared by several commands.
+
+Every type here turns a bad value into one ``argparse.ArgumentTypeError`` that says what is wrong
+and what is allowed; the ranges come from :mod:`teleop.limits`, the same table the handshake parser
+holds a peer's proposal to.  Checks that need more than one option (a duration against the DoF, a
+folder that must be writable) are in :mod:`teleop.cli.settings`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import socket
+from collections.abc import Callable
+from typing import NoReturn, TypeAlias
+
+from ..codecs import ACCEPTED, CodecError, make_codec
+from ..limits import (
+    MAX_B,
+    MAX_CODEC_SPEC_LEN,
+    MAX_DOF,
+    MAX_LINK_TIMEOUT_S,
+    MAX_NETEM_SPEC_LEN,
+    MAX_RANGE,
+    MAX_SEED,
+    MAX_SESSION,
+    MIN_LINK_TIMEOUT_S,
+)
+from ..scenarios import SCENARIOS
+
+MAX_GRACE_US = 900.0  # the wait for a late payload must end well within the 1 ms tick
+MAX_CONNECT_TIMEOUT_S = 86400.0  # a day: longer waits overflow the loop's nanosecond clock
+MAX_PORT = 65535
+
+
+class CliError(Exception):
+    """A bad argument: printed as ``teleop: error: ...`` with exit status 2."""
+
+
+class Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line naming the command's help, not a usage dump."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"teleop: error: {message} (see '{self.prog} --help')\n")
+
+
+#: What ``add_subparsers`` returns; each command module adds its parser(s) to it.
+Subcommands: TypeAlias = "argparse._SubParsersAction[Parser]"
+
+
+# --- argument types --------------------------------------------------------------------------------
+
+
+def _finite(what: str, text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{what} must be a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"{what} must be a finite number, got {text!r}")
+    return v
+
+
+def positive_float(what: str, hi: float | None = None, unit: str = "") -> Callable[[str], float]:
+    """A finite number > 0 (and <= ``hi`` when given)."""
+    most = "" if hi is None else f" and <= {hi:g}{' ' + unit if unit else ''}"
+
+    def parse(text: str) -> float:
+        v = _finite(what, text)
+        if v <= 0 or (hi is not None and v > hi):
+            raise argparse.ArgumentTypeError(f"{what} must be > 0{most}, got {text!r}")
+        return v
+
+    return parse
+
+
+def nonneg_float(what: str, hi: float | None = None, unit: str = "", why: str = "") -> Callable[[str], float]:
+    """A finite number >= 0 (and <= ``hi`` when given; ``why`` says where the bound comes from)."""
+    most = "" if hi is None else f" and <= {hi:g}{' ' + unit if unit else ''}{why}"
+
+    def parse(text: str) -> float:
+        v = _finite(what, text)
+        if v < 0 or (hi is not None and v > hi):
+            raise argparse.ArgumentTypeError(f"{what} must be >= 0{most}, got {text!r}")
+        return v
+
+    return parse
+
+
+def float_range(what: str, lo: float, hi: float, unit: str) -> Callable[[str], float]:
+    """A finite number in ``lo..hi``, both included."""
+
+    def parse(text: str) -> float:
+        v = _finite(what, text)
+        if not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"{what} must be {lo:g} to {hi:g} {unit}, got {text!r}")
+        return v
+
+    return parse
+
+
+def int_range(what: str, lo: int, hi: int, note: str = "") -> Callable[[str], int]:
+    """An integer in ``lo..hi``, both included (``note`` adds what a special value means)."""
+
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            v = None
+        if v is None or not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"{what} must be an integer {lo}..{hi}{note}, got {text!r}")
+        return v
+
+    return parse
+
+
+def session_id(text: str) -> int:
+    return int_range("session", 0, MAX_SESSION, " (0: a random one)")(text)
+
+
+def dof(text: str) -> int:
+    return int_range("DoF", 1, MAX_DOF)(text)
+
+
+def codec(text: str) -> str:
+    if len(text) > MAX_CODEC_SPEC_LEN:
+        raise argparse.ArgumentTypeError(
+            f"codec spec must be at most {MAX_CODEC_SPEC_LEN} characters, got {len(text)}"
+        )
+    try:
+        return make_codec(text).spec
+    except CodecError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def netem_spec(text: str) -> str:
+    """A netem spec or ``trace FILE``, checked by building its link (so a trace file is read now)."""
+    from transport.netem import make_link
+
+    if len(text) > MAX_NETEM_SPEC_LEN:
+        raise argparse.ArgumentTypeError(
+            f"netem spec must be at most {MAX_NETEM_SPEC_LEN} characters, got {len(text)}"
+        )
+    try:
+        make_link(text, 0)
+    except OSError as e:
+        name = e.filename if e.filename is not None else text.split(maxsplit=1)[-1]
+        raise argparse.ArgumentTypeError(
+            f"netem: cannot read the trace file {name!r}: {e.strerror or e} "
+            "(a trace is a text file of ms timestamps, one a line)"
+        ) from None
+    except UnicodeDecodeError:
+        raise argparse.ArgumentTypeError(
+            f"netem: the trace file {text.split(maxsplit=1)[-1]!r} is not text "
+            "(a trace is a text file of ms timestamps, one a line)"
+        ) from None
+    except ValueError as e:  # NetemError: names the bad token and gives the grammar
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return text
+
+
+def udp_addr(what: str) -> Callable[[str], tuple[str, int]]:
+    """``HOST:PORT`` with HOST resolved to an IPv4 address now, so a bad name fails before a session."""
+
+    def parse(text: str) -> tuple[str, int]:
+        from transport.udp import parse_addr
+
+        try:
+            host, port = parse_addr(text, what)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+        try:
+            infos = socket.getaddrinfo(host, port, socket.AF_INET, socket.SOCK_DGRAM)
+        except (OSError, ValueError) as e:  # gaierror; UnicodeError for a bad IDNA label
+            why = e.strerror if isinstance(e, OSError) and e.strerror else str(e)
+            raise argparse.ArgumentTypeError(
+                f"cannot resolve host {host!r} to an IPv4 address ({why})"
+            ) from None
+        return str(infos[0][4][0]), port
+
+    return parse
+
+
+# --- option groups ---------------------------------------------------------------------------------
+
+
+def add_model_args(p: argparse.ArgumentParser, scenario_default: str | None) -> None:
+    """Scenario and model options shared by every command that runs the nodes."""
+    default_text = scenario_default or "whatever the operator proposes"
+    p.add_argument(
+        "--scenario",
+        choices=list(SCENARIOS),
+        default=scenario_default,
+        help=f"step (Section V) or protocol (Section VI); default {default_text}",
+    )
+    p.add_argument(
+        "--duration",
+        type=positive_float("duration"),
+        default=None,
+        metavar="S",
+        help="seconds to run (default: the scenario's, 5 for step, 15 for protocol)",
+    )
+    p.add_argument("--dof", type=dof, default=None, help="degrees of freedom (default: the scenario's)")
+    p.add_argument(
+        "--b",
+        type=positive_float("wave impedance b", MAX_B, "N s/m"),
+        default=None,
+        help="wave impedance b > 0, N s/m (default: the scenario's, 1 for step, 20 for protocol)",
+    )
+    p.add_argument(
+        "--range",
+        type=positive_float("range", MAX_RANGE, "sqrt(W)"),
+        default=None,
+        metavar="R",
+        help="full scale of the raw 16-bit wave format, sqrt(W) (default: the scenario's)",
+    )
+
+
+def add_session_args(
+    p: argparse.ArgumentParser, codec_default: str | None, scenario_default: str | None
+) -> None:
+    """The session an operator proposes (or a teleoperator insists on): codec, scenario, model."""
+    p.add_argument(
+        "--codec",
+        type=codec,
+        default=codec_default,
+        metavar="SPEC",
+        help=f"codec (default {codec_default or 'whatever the operator proposes'}). Accepted: {ACCEPTED}",
+    )
+    add_model_args(p, scenario_default)
+    p.add_argument("--phase", type=float, default=0.5, help=argparse.SUPPRESS)
+
+
+def add_netem_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--netem",
+        type=netem_spec,
+        metavar="SPEC",
+        help='impair both directions, netem grammar, e.g. "delay 50ms 5ms '
+        'loss 2%%" (see README); "trace FILE" for a Mahimahi-style trace',
+    )
+    p.add_argument(
+        "--netem-forward",
+        type=netem_spec,
+        metavar="SPEC",
+        help="impair operator -> teleoperator only (overrides --netem)",
+    )
+    p.add_argument(
+        "--netem-backward",
+        type=netem_spec,
+        metavar="SPEC",
+        help="impair teleoperator -> operator only (overrides --netem)",
+    )
+    p.add_argument(
+        "--seed",
+        type=int_range("seed", 0, MAX_SEED),
+        default=0,
+        help="seed of the impairment shims (default 0)",
+    )
+
+
+def add_passivity_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--on-loss",
+        choices=["zero", "hold"],
+        default="zero",
+        help="what a receiver plays when nothing is queued (default zero; hold is bounded by the "
+        "passivity controller)",
+    )
+    p.add_argument(
+        "--no-controller",
+        action="store_true",
+        help="turn the passivity controller off (the watchdog still observes and counts violations)",
+    )
+    p.add_argument(
+        "--link-timeout",
+        type=float_range("link timeout", MIN_LINK_TIMEOUT_S * 1e3, MAX_LINK_TIMEOUT_S * 1e3, "ms"),
+        default=50.0,
+        metavar="MS",
+        help="silence before a side goes to its safe state, ms (default 50)",
+    )
+
+
+def add_process_args(p: argparse.ArgumentParser) -> None:
+    """Options of a process's loop, shared by `operator`, `teleoperator` and `run` (which passes them on)."""
+    p.add_argument(
+        "--connect-timeout",
+        type=positive_float("connect timeout", MAX_CONNECT_TIMEOUT_S, "s"),
+        default=10.0,
+        metavar="S",
+        help="give up if the peer does not answer within S seconds (default 10)",
+    )
+    p.add_argument("--no-rt", action="store_true", help="do not ask for SCHED_FIFO priority")
+    p.add_argument("--asyncio", action="store_true", help="use the stdlib asyncio loop instead of uvloop")
+
+
+def add_endpoint_args(p: argparse.ArgumentParser) -> None:
+    """Options of one real process: its logs, its loop, what it prints."""
+    p.add_argument("--log", metavar="DIR", help="write ROLE.json and ROLE.npz logs to DIR")
+    add_process_args(p)
+    p.add_argument("--quiet", action="store_true", help="no summary line at the end")
+    p.add_argument("--live", action="store_true", help="print a status line every second (traffic, watchdog)")
+    p.add_argument(
+        "--grace-us",
+        type=nonneg_float("grace", MAX_GRACE_US, "us", " (within the 1 ms tick)"),
+        default=400.0,
+        metavar="US",
+        help="wait up to US microseconds into a tick for a payload that is due (default 400)",
+    )
+
+
+def add_transport_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--transport", choices=["udp", "zenoh"], default="udp", help="udp (default) or zenoh")
+    z = p.add_argument_group("Zenoh (with --transport zenoh; see README)")
+    z.add_argument(
+        "--zenoh-mode",
+        choices=["peer", "client"],
+        default="peer",
+        help="peer (default: direct, explicit endpoints) or client (through a router)",
+    )
+    z.add_argument(
+        "--zenoh-router",
+        metavar="ENDPOINT",
+        help="router to connect to in client mode, e.g. tcp/10.0.0.5:7447",
+    )
+    z.add_argument(
+        "--zenoh-listen", action="append", metavar="ENDPOINT", help="endpoint to listen on (repeatable)"
+    )
+    z.add_argument(
+        "--zenoh-connect", action="append", metavar="ENDPOINT", help="endpoint to connect to (repeatable)"
+    )
+    z.add_argument(
+        "--zenoh-prefix",
+        default="teleop/default",
+        metavar="KEY",
+        help="key prefix: data on KEY/forward and KEY/backward (default teleop/default)",
+    )
+    z.add_argument(
+        "--zenoh-config", metavar="FILE", help="Zenoh JSON5 config loaded first (deploy/zenoh/*.json5)"
+    )

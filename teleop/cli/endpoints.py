@@ -1,0 +1,142 @@
+"""The real processes: ``teleop operator``, ``teleop teleoperator`` and ``teleop router`` (Zenoh)."""
+
+from __future__ import annotations
+
+import argparse
+
+from ..scenarios import SCENARIOS
+from .args import (
+    CliError,
+    Subcommands,
+    add_endpoint_args,
+    add_netem_args,
+    add_passivity_args,
+    add_session_args,
+    add_transport_args,
+    session_id,
+    udp_addr,
+)
+from .settings import check_duration, endpoint_options, session_params
+
+
+def cmd_operator(args: argparse.Namespace) -> int:
+    from transport.session import new_session_id, run_endpoint
+
+    if args.transport == "udp" and args.peer is None:
+        raise CliError("--peer HOST:PORT is required with --transport udp (the teleoperator's address)")
+    params = session_params(args, args.session or new_session_id())
+    return run_endpoint(endpoint_options(args, "operator", args.listen), params)
+
+
+def cmd_teleoperator(args: argparse.Namespace) -> int:
+    from transport.session import run_endpoint
+
+    if args.transport == "udp" and args.listen is None:
+        raise CliError("--listen HOST:PORT is required with --transport udp, for example 0.0.0.0:7000")
+    if args.duration is not None:
+        # The DoF is the operator's unless given here (or by --scenario): then the widest bound, 1 DoF.
+        dof = args.dof
+        if dof is None:
+            dof = SCENARIOS[args.scenario].dof if args.scenario is not None else 1
+        check_duration(args.duration, dof)
+    expect = {
+        "codec": args.codec,  # canonical already (the --codec type)
+        "scenario": args.scenario,
+        "dof": args.dof,
+        "b": args.b,
+        "full_scale": args.range,
+        "duration": args.duration,
+    }
+    opts = endpoint_options(args, "teleoperator", args.listen or ("127.0.0.1", 0))
+    return run_endpoint(opts, None, expect)
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    """A Zenoh session in router mode until SIGINT/SIGTERM."""
+    import asyncio
+    import signal
+
+    from transport.zenoh import TransportError, run_router
+
+    async def main() -> None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        await run_router(args.listen, args.config, stop)
+
+    try:
+        asyncio.run(main())
+    except (TransportError, ValueError) as e:
+        raise CliError(str(e)) from None
+    return 0
+
+
+def add_operator_parser(sub: Subcommands) -> None:
+    o = sub.add_parser(
+        "operator",
+        help="the HSI side: simulated human and haptic device",
+        description="Run the operator (HSI) process: it says hello to the teleoperator at "
+        "--peer, agrees the session, and runs its 1 kHz loop.",
+    )
+    o.add_argument(
+        "--peer",
+        type=udp_addr("--peer"),
+        default=None,
+        metavar="HOST:PORT",
+        help="the teleoperator's UDP address (required with --transport udp)",
+    )
+    o.add_argument(
+        "--listen",
+        type=udp_addr("--listen"),
+        default=("0.0.0.0", 0),
+        metavar="HOST:PORT",
+        help="local address to bind (default 0.0.0.0:0, any free port)",
+    )
+    o.add_argument("--session", type=session_id, default=0, help="session id (default: random)")
+    add_session_args(o, "eds:50", "protocol")
+    add_netem_args(o)
+    add_passivity_args(o)
+    add_endpoint_args(o)
+    add_transport_args(o)
+    o.set_defaults(func=cmd_operator)
+
+
+def add_teleoperator_parser(sub: Subcommands) -> None:
+    t = sub.add_parser(
+        "teleoperator",
+        help="the TO side: simulated robot and environment",
+        description="Run the teleoperator (TO) process: it waits on --listen for an operator, "
+        "accepts its session (or rejects it if an option given here differs), and runs its "
+        "1 kHz loop.",
+    )
+    t.add_argument(
+        "--listen",
+        type=udp_addr("--listen"),
+        default=None,
+        metavar="HOST:PORT",
+        help="UDP address to wait on, for example 0.0.0.0:7000 (required with --transport udp)",
+    )
+    add_session_args(t, None, None)
+    add_endpoint_args(t)
+    add_transport_args(t)
+    t.set_defaults(func=cmd_teleoperator)
+
+
+def add_router_parser(sub: Subcommands) -> None:
+    ro = sub.add_parser(
+        "router",
+        help="a Zenoh router (a Zenoh session in router mode)",
+        description="Run a Zenoh router until Ctrl-C, for --zenoh-mode client sessions.",
+    )
+    ro.add_argument(
+        "--listen",
+        action="append",
+        required=True,
+        metavar="ENDPOINT",
+        help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
+    )
+    ro.add_argument(
+        "--config", metavar="FILE", help="Zenoh JSON5 config (deploy/zenoh/router.json5, TLS variants)"
+    )
+    ro.set_defaults(func=cmd_router)

@@ -1,0 +1,33 @@
+"""The ``teleop`` parser and ``main``: every error is one line, ``teleop: error: ...``, exit status 2."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+
+from . import endpoints, report, run, sim
+from .args import CliError, Parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = Parser(prog="teleop", description="Networked haptic teleoperation with passive LDR.")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sim.add_parser(sub)
+    run.add_parser(sub)
+    endpoints.add_operator_parser(sub)
+    endpoints.add_teleoperator_parser(sub)
+    endpoints.add_router_parser(sub)
+    report.add_parser(sub)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        rc: int = args.func(args)
+    except CliError as e:
+        parser.exit(2, f"teleop: error: {e}\n")
+    except KeyboardInterrupt:
+        return 130
+    return rc

@@ -1,0 +1,237 @@
+"""``teleop run``: a teleoperator and an operator as two processes on 127.0.0.1, then one report.
+
+The two children are ``python -m teleop.cli teleoperator ...`` and ``... operator ...`` (and, for
+Zenoh clients without a router, ``... router``); every setting of the session is checked here first
+and passed on explicitly, so the children never fall back on a default of their own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .args import (
+    MAX_PORT,
+    CliError,
+    Subcommands,
+    add_netem_args,
+    add_passivity_args,
+    add_process_args,
+    add_session_args,
+    int_range,
+)
+from .report import write_report
+from .settings import session_params, writable_dir
+
+TELEOP = [sys.executable, "-m", "teleop.cli"]
+LOG_FILES = ("operator.json", "teleoperator.json", "operator.npz", "teleoperator.npz")
+
+
+@dataclass
+class Network:
+    """How the two children reach each other, and what to say about it."""
+
+    teleoperator: list[str]  # network options of the teleoperator's command line
+    operator: list[str]  # ... and of the operator's
+    where: str  # for the first printed line
+    router: list[str] | None = None  # command line of a Zenoh router to start first, if any
+    zenoh: dict[str, Any] | None = None  # recorded in report.json
+
+
+def _free_port(kind: int) -> int:
+
+    with socket.socket(socket.AF_INET, kind) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def _network(args: argparse.Namespace, session: int) -> Network:
+
+    if args.transport == "udp":
+        port = args.port or _free_port(socket.SOCK_DGRAM)
+        return Network(
+            teleoperator=["--listen", f"127.0.0.1:{port}"],
+            operator=["--peer", f"127.0.0.1:{port}", "--listen", "127.0.0.1:0"],
+            where=f"teleoperator on udp 127.0.0.1:{port}",
+        )
+    prefix = f"teleop/run-{session}"
+    zport = args.port or _free_port(socket.SOCK_STREAM)
+    zen = ["--transport", "zenoh", "--zenoh-prefix", prefix]
+    router: list[str] | None = None
+    if args.zenoh_mode == "peer":
+        endpoint = f"tcp/127.0.0.1:{zport}"
+        to_net = [*zen, "--zenoh-mode", "peer", "--zenoh-listen", endpoint]
+        op_net = [*zen, "--zenoh-mode", "peer", "--zenoh-connect", endpoint]
+        where = f"zenoh peers, teleoperator listening on {endpoint}"
+    else:
+        endpoint = args.zenoh_router or f"tcp/127.0.0.1:{zport}"
+        if not args.zenoh_router:
+            router = [*TELEOP, "router", "--listen", endpoint]
+        to_net = op_net = [*zen, "--zenoh-mode", "client", "--zenoh-router", endpoint]
+        where = f"zenoh clients through the router at {endpoint}"
+    zenoh = {
+        "mode": args.zenoh_mode,
+        "prefix": prefix,
+        "endpoint": endpoint,
+        "router_launched": router is not None,
+    }
+    return Network(to_net, op_net, where, router, zenoh)
+
+
+def _process_options(args: argparse.Namespace, logs: Path) -> list[str]:
+    """Options both children get: where to log, how long to wait, which loop."""
+    common = ["--log", str(logs), "--connect-timeout", str(args.connect_timeout), "--quiet"]
+    common += ["--no-rt"] if args.no_rt else []
+    common += ["--asyncio"] if args.asyncio else []
+    return common
+
+
+def _session_options(params: Any) -> list[str]:
+    """The operator's options that make it propose exactly ``params`` (floats by repr: no rounding)."""
+    return [
+        *("--session", str(params.session), "--codec", params.codec, "--scenario", params.scenario),
+        *("--dof", str(params.dof), "--b", repr(params.b), "--range", repr(params.full_scale)),
+        *("--duration", repr(params.duration), "--phase", repr(params.phase)),
+        *("--netem-forward", params.netem_forward, "--netem-backward", params.netem_backward),
+        *("--seed", str(params.seed), "--on-loss", params.on_loss),
+        *("--link-timeout", repr(params.link_timeout * 1e3)),
+        *([] if params.controller else ["--no-controller"]),
+    ]
+
+
+def _die_with_parent() -> None:
+    """In a child: get SIGTERM if the launcher dies, so no process is left orphaned."""
+    import ctypes
+
+    with contextlib.suppress(OSError):
+        ctypes.CDLL("libc.so.6").prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+def _spawn(cmd: list[str]) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(cmd, preexec_fn=_die_with_parent)
+
+
+def _stop(procs: list[subprocess.Popen[bytes]]) -> None:
+    """SIGINT to every process still running, then wait for each (killing one that hangs)."""
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    for p in procs:
+        try:
+            p.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+def _start_router(net: Network) -> subprocess.Popen[bytes] | None:
+    if net.router is None:
+        return None
+    router = _spawn(net.router)
+    time.sleep(0.5)
+    if router.poll() is not None:
+        raise CliError(f"the Zenoh router failed to start on {net.zenoh and net.zenoh['endpoint']}")
+    return router
+
+
+def _run_pair(to_cmd: list[str], op_cmd: list[str], timeout: float) -> tuple[dict[str, int | None], bool]:
+    """Run the teleoperator, then the operator, until both exit (or ``timeout`` s, then CliError).
+
+    Returns their exit codes and whether Ctrl-C stopped them.
+    """
+    procs = [_spawn(to_cmd)]
+    interrupted = False
+    try:
+        time.sleep(0.3)  # let the teleoperator bind before the operator says hello
+        procs.append(_spawn(op_cmd))
+        limit = time.monotonic() + timeout
+        while any(p.poll() is None for p in procs):
+            if time.monotonic() > limit:
+                raise CliError("the processes did not finish in time; stopped them")
+            if any(p.returncode not in (None, 0) for p in procs):
+                for p in procs:  # one side failed: do not leave the other waiting
+                    if p.poll() is None:
+                        p.send_signal(signal.SIGTERM)
+            time.sleep(0.05)
+    except KeyboardInterrupt:
+        interrupted = True
+        print("teleop run: interrupted; stopping both processes", file=sys.stderr)
+    finally:
+        _stop(procs)
+    operator = procs[1].returncode if len(procs) > 1 else None
+    return {"teleoperator": procs[0].returncode, "operator": operator}, interrupted
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from transport.session import new_session_id
+
+    params = session_params(args, new_session_id())
+    out = writable_dir(Path(args.out), "--out")
+    logs = writable_dir(out / "logs", "--out")
+    for stale in LOG_FILES:
+        (logs / stale).unlink(missing_ok=True)
+    net = _network(args, params.session)
+    common = _process_options(args, logs)
+    to_cmd = [*TELEOP, "teleoperator", *net.teleoperator, *common]
+    live = [] if args.no_live else ["--live"]
+    op_cmd = [*TELEOP, "operator", *net.operator, *live, *_session_options(params), *common]
+    print(
+        f"teleop run: {net.where}; {params.codec}, {params.scenario}, {params.duration:g} s; logs in {logs}",
+        flush=True,
+    )
+    router = _start_router(net)
+    try:
+        codes, interrupted = _run_pair(to_cmd, op_cmd, params.duration + 2 * args.connect_timeout + 10)
+    finally:
+        if router is not None:
+            _stop([router])
+    if not all((logs / f"{r}.json").exists() for r in codes):
+        raise CliError(f"no report: a process failed before its loop ran (exit codes {codes})")
+    extra: dict[str, Any] = {"exit_codes": codes}
+    if net.zenoh is not None:
+        extra["zenoh"] = net.zenoh
+    write_report(logs, out, args, args.transport, extra)
+    if interrupted:
+        return 130
+    return 0 if all(c == 0 for c in codes.values()) else 1
+
+
+def add_parser(sub: Subcommands) -> None:
+    r = sub.add_parser(
+        "run",
+        help="launch operator and teleoperator as two processes on 127.0.0.1 and report",
+        description="Launch both processes on 127.0.0.1 over UDP, wait for them, gather both logs and "
+        "write OUT/report.json, PNG plots and a printed summary. Ctrl-C stops both cleanly.",
+    )
+    add_session_args(r, "eds:50", "protocol")
+    add_netem_args(r)
+    add_passivity_args(r)
+    r.add_argument("--transport", choices=["udp", "zenoh"], default="udp", help="transport (default udp)")
+    r.add_argument(
+        "--zenoh-mode",
+        choices=["peer", "client"],
+        default="peer",
+        help="with zenoh: peer (direct, default) or client (through a router; one is started "
+        "unless --zenoh-router is given)",
+    )
+    r.add_argument("--zenoh-router", metavar="ENDPOINT", help="with zenoh client mode: an existing router")
+    r.add_argument("--out", default="teleop-run", metavar="DIR", help="report folder (default ./teleop-run)")
+    r.add_argument(
+        "--port",
+        type=int_range("port", 0, MAX_PORT, " (0: a free one)"),
+        default=0,
+        help="teleoperator UDP port (default: a free one)",
+    )
+    add_process_args(r)
+    r.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    r.add_argument("--no-sim", action="store_true", help="skip the teleop sim comparison in the report")
+    r.add_argument("--no-live", action="store_true", help="no status line every second during the run")
+    r.set_defaults(func=cmd_run)

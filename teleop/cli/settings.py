@@ -1,0 +1,127 @@
+"""From parsed arguments to the settings of a session, and the checks that need several options.
+
+Everything here runs before a session starts, so a bad value stops the command with a
+:class:`~teleop.cli.args.CliError` (``teleop: error: ...``, exit status 2) and nothing half-done.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from .. import limits
+from ..codecs import CodecError
+from ..scenarios import SCENARIOS
+from .args import CliError
+
+
+def check_duration(duration: float, dof: int) -> None:
+    """CliError when a session of ``duration`` s at ``dof`` DoF (1 kHz) does not fit the record budget."""
+    try:
+        limits.check_duration(duration, dof, dt=0.001)
+    except ValueError as e:
+        raise CliError(str(e)) from None
+
+
+def _file_in_the_way(path: Path) -> Path | None:
+    """The first existing component of ``path`` that is not a folder, if any."""
+    for p in (*reversed(path.parents), path):
+        with contextlib.suppress(OSError):
+            if p.exists() and not p.is_dir():
+                return p
+    return None
+
+
+def writable_dir(path: Path, option: str) -> Path:
+    """Create ``path`` and check a file can be created in it; CliError naming the path and why not."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(dir=path, prefix=".teleop-write-check-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        blocker = _file_in_the_way(path)
+        why = f"{blocker} is a file, not a folder" if blocker is not None else (e.strerror or str(e))
+        raise CliError(f"{option} {path}: cannot create or write to this folder: {why}") from None
+    return path
+
+
+def netem(args: argparse.Namespace, direction: str) -> str:
+    """The impairment spec of one direction: --netem-DIRECTION, else --netem, else none."""
+    specific = getattr(args, f"netem_{direction}", None)
+    return str(specific if specific is not None else (getattr(args, "netem", None) or ""))
+
+
+def channel_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    """Impairment and passivity settings, the same for `teleop sim` and a real session."""
+    return {
+        "netem_forward": netem(args, "forward"),
+        "netem_backward": netem(args, "backward"),
+        "seed": args.seed,
+        "on_loss": args.on_loss,
+        "controller": not args.no_controller,
+        "link_timeout": args.link_timeout / 1e3,
+    }
+
+
+def session_params(args: argparse.Namespace, session: int) -> Any:
+    """The SessionParams an operator proposes (``run`` and ``operator``), every default filled in."""
+    from transport.session import SessionParams
+
+    sc = SCENARIOS[args.scenario]
+    dof = args.dof if args.dof is not None else sc.dof
+    duration = args.duration if args.duration is not None else sc.duration
+    check_duration(duration, dof)
+    try:
+        return SessionParams(
+            session=session,
+            codec=args.codec,
+            scenario=args.scenario,
+            dof=dof,
+            b=args.b if args.b is not None else sc.b,
+            full_scale=args.range if args.range is not None else sc.full_scale,
+            duration=duration,
+            phase=args.phase,
+            **channel_kwargs(args),
+        ).validate()
+    except (ValueError, CodecError, OSError) as e:
+        raise CliError(str(e)) from None
+
+
+def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int]) -> Any:
+    """The EndpointOptions of one real process (``operator`` or ``teleoperator``)."""
+    from transport.session import EndpointOptions
+
+    return EndpointOptions(
+        role=role,
+        listen=listen,
+        peer=getattr(args, "peer", None),
+        log_dir=writable_dir(Path(args.log), "--log") if args.log else None,
+        connect_timeout=args.connect_timeout,
+        rt_priority=None if args.no_rt else 10,
+        use_uvloop=not args.asyncio,
+        quiet=args.quiet,
+        live=args.live,
+        grace_us=args.grace_us,
+        transport=args.transport,
+        zenoh=zenoh_options(args) if args.transport == "zenoh" else None,
+    )
+
+
+def zenoh_options(args: argparse.Namespace) -> Any:
+    from transport.session import ZenohOptions
+
+    connect = list(args.zenoh_connect or [])
+    if args.zenoh_router:
+        connect.append(args.zenoh_router)
+    return ZenohOptions(
+        mode=args.zenoh_mode,
+        listen=list(args.zenoh_listen or []),
+        connect=connect,
+        prefix=args.zenoh_prefix,
+        config_file=args.zenoh_config,
+    )
