@@ -79,6 +79,8 @@ class EndpointOptions:
     live: bool = False  # a status line every second: traffic, link, watchdog
     transport: str = "udp"  # "udp" or "zenoh"
     zenoh: ZenohOptions | None = None
+    psk: bytes | None = None  # the deployment's pre-shared key (teleop.auth); None: refuse to start
+    insecure: bool = False  # --insecure: run with teleop.auth.INSECURE_KEY (integrity only), say so
 
 
 @dataclass
