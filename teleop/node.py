@@ -96,7 +96,10 @@ class _Port:
         self.rx_codec = rx
         self.encoder = tx.encoder()
         self.decoder = rx.decoder(opts.max_queue, opts.on_loss)
-        self.guard = EnergyGuard(dt, controller=opts.controller)
+        # Saturated waves carry at most 1/2 dof RANGE^2 W: the most any genuine report can grow by.
+        max_power = 0.5 * wave.dof * rx.raw.full_scale**2
+        self.guard = EnergyGuard(dt, controller=opts.controller, max_power=max_power)
+        self._now = 0.0  # the last tick's session time: when a packet arrives, as far as this node knows
         self.session = session
         self.dt = dt
         self.half_dt = 0.5 * dt
@@ -174,7 +177,7 @@ class _Port:
         if self.last_rx_seq >= 0:  # a late joiner's first packet leaves no gap behind it
             c.gaps += pkt.seq - self.last_rx_seq - 1
         self.last_rx_seq = pkt.seq
-        self.guard.sent(pkt.energy)
+        self.guard.sent(pkt.energy, self._now)
         c.accepted += 1
         return True
 
@@ -195,6 +198,7 @@ class _Port:
 
         Armed by the first accepted packet: before it, silence is the channel's delay, not a loss.
         """
+        self._now = now
         if self.counters.accepted == 0:
             return self.coupling
         if self._last_rx_at is None or self.counters.accepted != self._accepted_seen:

@@ -31,6 +31,7 @@ Array = npt.NDArray[np.float64]
 
 ON_LOSS = ("zero", "hold")
 DEFAULT_LINK_TIMEOUT = 0.050
+REPORT_BURST_S = 0.2  # s of saturated power a burst of in-band energy reports may claim at once
 
 
 @dataclass
@@ -41,6 +42,7 @@ class PassivityReport:
     energy_dissipated: float = 0.0  # J removed by the controller
     link_lost_events: int = 0
     link_lost_ticks: int = 0
+    energy_reports_clamped: int = 0  # in-band reports that claimed more than the wire can carry
 
     def as_dict(self) -> dict[str, float | int]:
         d = dict(self.__dict__)
@@ -52,11 +54,25 @@ class PassivityReport:
 class EnergyGuard:
     """Observer + controller for the wave one node receives.  Pure: no clock, no I/O."""
 
-    def __init__(self, dt: float, controller: bool = True, tolerance: float = 1e-12) -> None:
+    def __init__(
+        self,
+        dt: float,
+        controller: bool = True,
+        tolerance: float = 1e-12,
+        max_power: float = math.inf,
+        burst_s: float = REPORT_BURST_S,
+    ) -> None:
         self.half_dt = 0.5 * dt
         self.controller = controller
         self.tolerance = tolerance
         self.reported_in = 0.0  # J, newest cumulative E_in reported by the sender
+        # Defence in depth: the budget is the peer's word, so bound it by physics.  A token bucket
+        # fills at ``max_power`` (saturated waves: 1/2 dof RANGE^2 W, all the wire format can carry)
+        # up to ``burst_s`` of it (reports bunched by jitter); a report beyond it is clamped.
+        self.max_power = max_power
+        self._depth = max_power * burst_s
+        self._allowance = self._depth
+        self._t_allowance: float | None = None
         self.played = 0.0  # J, E_out so far
         self.report = PassivityReport()
         # Energy epochs: after a peer restarts, or when joining a session late, the account restarts
@@ -65,14 +81,26 @@ class EnergyGuard:
         self.played_origin = 0.0
         self._origin_from_next_report = False
 
-    def sent(self, energy: float) -> None:
-        """A packet reported the sender's cumulative energy (reordered reports never lower it)."""
+    def sent(self, energy: float, now: float = 0.0) -> None:
+        """A packet reported the sender's cumulative energy (reordered reports never lower it);
+        ``now`` is the receiver's session time, which refills the physical allowance."""
+        if not math.isfinite(energy):
+            self.report.energy_reports_clamped += 1
+            return
+        if self._t_allowance is not None and now > self._t_allowance:
+            self._allowance = min(self._depth, self._allowance + self.max_power * (now - self._t_allowance))
+        self._t_allowance = now if self._t_allowance is None else max(now, self._t_allowance)
         if self._origin_from_next_report:
             # Joined late: what the sender sent before this first report was played by someone else.
             self.reported_origin = self.reported_in = energy
             self._origin_from_next_report = False
         elif energy > self.reported_in:
-            self.reported_in = energy
+            growth = energy - self.reported_in
+            if growth > self._allowance + self.tolerance:
+                self.report.energy_reports_clamped += 1
+                growth = self._allowance
+            self._allowance -= growth
+            self.reported_in += growth
 
     def new_epoch(self, joined_late: bool) -> None:
         """Restart the account: the peer restarted (its reports start again from 0), or this side

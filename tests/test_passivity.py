@@ -139,3 +139,28 @@ def test_energy_epochs_never_carry_budget_across_incarnations() -> None:
     assert h.margin == 0.0
     h.sent(123.0 + 0.5e-3)
     assert h.admit(np.array([1.0]))[0] == pytest.approx(1.0)
+
+
+def test_a_report_beyond_what_the_wire_can_carry_is_clamped_and_counted() -> None:
+    """Defence in depth: even an authenticated forgery cannot grant a budget out of nothing."""
+    g = EnergyGuard(1e-3, max_power=4.0, burst_s=0.2)  # 2 DoF, range 2: 1/2 * 2 * 2**2 W
+    g.sent(1e-3, now=0.0)
+    assert g.reported_in == 1e-3 and g.report.energy_reports_clamped == 0
+    g.sent(1e300, now=0.001)  # the attack of issue 11: one packet claiming 1e300 J
+    assert g.report.energy_reports_clamped == 1
+    assert g.reported_in <= 1e-3 + 4.0 * 0.2 + 1e-12  # at most the bucket's depth
+    g.sent(1e300, now=0.002)
+    assert g.reported_in <= 1e-3 + 4.0 * 0.201 + 1e-12  # then only what 1 ms can carry
+    assert g.report.energy_reports_clamped == 2
+
+
+def test_genuine_reports_are_never_clamped() -> None:
+    """A sender at full power, its reports delayed and bunched by jitter, stays within the bound."""
+    g = EnergyGuard(1e-3, max_power=4.0, burst_s=0.2)
+    rng = np.random.default_rng(1)
+    sent = np.cumsum(np.full(5000, 4.0 * 1e-3))  # saturated waves every tick
+    arrival = np.arange(5000) * 1e-3 + rng.uniform(0, 0.15, 5000)  # up to 150 ms of jitter
+    order = np.argsort(arrival)
+    for i in order:
+        g.sent(float(sent[i]), now=float(arrival[i]))
+    assert g.report.energy_reports_clamped == 0 and g.reported_in == sent[-1]
