@@ -240,7 +240,12 @@ def test_as_a_process(args: list[str], msg: str | None) -> None:
 
 @pytest.mark.parametrize(
     "argv",
-    [["sim", "--duration", "1"], ["run", "--duration", "1"], ["operator", *PEER], ["teleoperator", *LISTEN]],
+    [
+        ["sim", "--duration", "1"],
+        ["run", "--duration", "1"],
+        ["operator", *PEER, "--insecure"],  # a key is required (tests/test_cli_auth.py)
+        ["teleoperator", *LISTEN, "--insecure"],
+    ],
 )
 @pytest.mark.usefixtures("no_session")
 def test_the_tripwire_sees_a_session(argv: list[str], tmp_path: Path) -> None:

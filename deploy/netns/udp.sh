@@ -3,7 +3,7 @@
 # by a veth pair, talking UDP over it, as on two hosts. Needs root (ip netns) and iproute2.
 #
 #   sudo deploy/netns/udp.sh            # env: TELEOP (command, default: teleop), OUT (default ./netns-udp),
-#                                       #      CODEC (eds:50), SCENARIO (protocol), DURATION (15), NETEM ("")
+#                                       #      KEY (OUT/teleop.key), CODEC (eds:50), SCENARIO (protocol), DURATION (15), NETEM ("")
 #
 # Addresses live only inside the two namespaces this script creates (10.77.0.1 and 10.77.0.2) and
 # are removed with them on exit, whatever happens.
@@ -14,6 +14,7 @@ CODEC=${CODEC:-eds:50}
 SCENARIO=${SCENARIO:-protocol}
 DURATION=${DURATION:-15}
 NETEM=${NETEM:-}
+KEY=${KEY:-$OUT/teleop.key}  # the pre-shared key both sides prove (made here if missing)
 [ "$(id -u)" = 0 ] || { echo "udp.sh: needs root (ip netns add)" >&2; exit 2; }
 command -v ip >/dev/null || { echo "udp.sh: needs iproute2 (apt-get install iproute2)" >&2; exit 2; }
 
@@ -41,11 +42,12 @@ ip -n "$NS_OP" link set "vop$tag" up
 ip -n "$NS_TO" link set "vto$tag" up
 
 mkdir -p "$OUT/logs"
+[ -f "$KEY" ] || "$TELEOP" keygen "$KEY" >/dev/null
 rm -f "$OUT"/logs/{operator,teleoperator}.{json,npz}
-ip netns exec "$NS_TO" "$TELEOP" teleoperator --listen 10.77.0.2:7000 --log "$OUT/logs" --quiet &
+ip netns exec "$NS_TO" "$TELEOP" teleoperator --key-file "$KEY" --listen 10.77.0.2:7000 --log "$OUT/logs" --quiet &
 pids+=($!)
 sleep 0.5
-ip netns exec "$NS_OP" "$TELEOP" operator --peer 10.77.0.2:7000 --listen 10.77.0.1:0 --log "$OUT/logs" \
+ip netns exec "$NS_OP" "$TELEOP" operator --key-file "$KEY" --peer 10.77.0.2:7000 --listen 10.77.0.1:0 --log "$OUT/logs" \
   --codec "$CODEC" --scenario "$SCENARIO" --duration "$DURATION" ${NETEM:+--netem "$NETEM"} --quiet
 wait "${pids[0]}"
 pids=()

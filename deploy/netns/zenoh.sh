@@ -4,7 +4,7 @@
 # talk through it as Zenoh clients. Needs root (ip netns) and iproute2.
 #
 #   sudo deploy/netns/zenoh.sh          # env: TELEOP (command, default: teleop), OUT (default ./netns-zenoh),
-#                                       #      CODEC (eds:50), SCENARIO (protocol), DURATION (15), NETEM ("")
+#                                       #      KEY (OUT/teleop.key), CODEC (eds:50), SCENARIO (protocol), DURATION (15), NETEM ("")
 #
 # Addresses live only inside the namespaces this script creates (10.77.1.0/30 operator-router,
 # 10.77.2.0/30 teleoperator-router) and are removed with them on exit, whatever happens.
@@ -15,6 +15,7 @@ CODEC=${CODEC:-eds:50}
 SCENARIO=${SCENARIO:-protocol}
 DURATION=${DURATION:-15}
 NETEM=${NETEM:-}
+KEY=${KEY:-$OUT/teleop.key}  # the pre-shared key both sides prove (made here if missing)
 [ "$(id -u)" = 0 ] || { echo "zenoh.sh: needs root (ip netns add)" >&2; exit 2; }
 command -v ip >/dev/null || { echo "zenoh.sh: needs iproute2 (apt-get install iproute2)" >&2; exit 2; }
 
@@ -43,16 +44,17 @@ ip -n "$NS_TO" addr add 10.77.2.1/30 dev "zto$tag"; ip -n "$NS_RT" addr add 10.7
 ip -n "$NS_TO" link set "zto$tag" up; ip -n "$NS_RT" link set "zrt$tag" up
 
 mkdir -p "$OUT/logs"
+[ -f "$KEY" ] || "$TELEOP" keygen "$KEY" >/dev/null
 rm -f "$OUT"/logs/{operator,teleoperator}.{json,npz}
 ip netns exec "$NS_RT" "$TELEOP" router --listen tcp/10.77.1.2:7447 --listen tcp/10.77.2.2:7447 &
 pids+=($!)
 sleep 1
 Z=(--transport zenoh --zenoh-mode client --zenoh-prefix teleop/netns)
-ip netns exec "$NS_TO" "$TELEOP" teleoperator "${Z[@]}" --zenoh-router tcp/10.77.2.2:7447 --log "$OUT/logs" --quiet &
+ip netns exec "$NS_TO" "$TELEOP" teleoperator --key-file "$KEY" "${Z[@]}" --zenoh-router tcp/10.77.2.2:7447 --log "$OUT/logs" --quiet &
 to_pid=$!
 pids+=("$to_pid")
 sleep 0.5
-ip netns exec "$NS_OP" "$TELEOP" operator "${Z[@]}" --zenoh-router tcp/10.77.1.2:7447 --log "$OUT/logs" \
+ip netns exec "$NS_OP" "$TELEOP" operator --key-file "$KEY" "${Z[@]}" --zenoh-router tcp/10.77.1.2:7447 --log "$OUT/logs" \
   --codec "$CODEC" --scenario "$SCENARIO" --duration "$DURATION" ${NETEM:+--netem "$NETEM"} --quiet
 wait "$to_pid"
 "$TELEOP" report "$OUT/logs" --out "$OUT" --transport zenoh

@@ -9,6 +9,7 @@ One module per part, in the order a reader needs them:
   than one option (duration against DoF, a writable output folder), all before a session starts.
 - :mod:`.sim`: ``teleop sim``.  :mod:`.run`: ``teleop run``.  :mod:`.endpoints`: ``teleop operator``,
   ``teleop teleoperator`` and ``teleop router``.  :mod:`.report`: ``teleop report``.
+  :mod:`.keygen`: ``teleop keygen``, the pre-shared key the endpoints authenticate with (:mod:`teleop.auth`).
 
 A bad argument is one line, ``teleop: error: <what is wrong and what is allowed>``, exit status 2.
 """

@@ -309,6 +309,23 @@ def add_endpoint_args(p: argparse.ArgumentParser) -> None:
     )
 
 
+def add_key_args(p: argparse.ArgumentParser, default: str) -> None:
+    """--key-file FILE or --insecure (not both): the pre-shared key that authenticates every datagram."""
+    g = p.add_argument_group("authentication (every datagram carries a counter and a MAC tag; see README)")
+    k = g.add_mutually_exclusive_group()
+    k.add_argument(
+        "--key-file",
+        metavar="FILE",
+        help=f"the pre-shared key, the same on both hosts (make one with 'teleop keygen FILE'); {default}",
+    )
+    k.add_argument(
+        "--insecure",
+        action="store_true",
+        help="run unauthenticated: a key everyone knows, so the tag checks integrity only and anyone "
+        "who can send a datagram can drive the robot (a lab on a closed network only)",
+    )
+
+
 def add_transport_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--transport", choices=["udp", "zenoh"], default="udp", help="udp (default) or zenoh")
     z = p.add_argument_group("Zenoh (with --transport zenoh; see README)")

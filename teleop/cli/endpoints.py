@@ -1,4 +1,9 @@
-"""The real processes: ``teleop operator``, ``teleop teleoperator`` and ``teleop router`` (Zenoh)."""
+"""The real processes: ``teleop operator``, ``teleop teleoperator`` and ``teleop router`` (Zenoh).
+
+The operator and the teleoperator authenticate each other's datagrams with a pre-shared key
+(:mod:`teleop.auth`): ``--key-file FILE``, or ``--insecure`` to say out loud that there is none.
+The router takes no key: it forwards opaque bytes, and the endpoints authenticate end to end.
+"""
 
 from __future__ import annotations
 
@@ -9,6 +14,7 @@ from .args import (
     CliError,
     Subcommands,
     add_endpoint_args,
+    add_key_args,
     add_netem_args,
     add_passivity_args,
     add_session_args,
@@ -98,6 +104,7 @@ def add_operator_parser(sub: Subcommands) -> None:
     add_netem_args(o)
     add_passivity_args(o)
     add_endpoint_args(o)
+    add_key_args(o, "required unless --insecure")
     add_transport_args(o)
     o.set_defaults(func=cmd_operator)
 
@@ -119,6 +126,7 @@ def add_teleoperator_parser(sub: Subcommands) -> None:
     )
     add_session_args(t, None, None)
     add_endpoint_args(t)
+    add_key_args(t, "required unless --insecure")
     add_transport_args(t)
     t.set_defaults(func=cmd_teleoperator)
 
@@ -127,7 +135,9 @@ def add_router_parser(sub: Subcommands) -> None:
     ro = sub.add_parser(
         "router",
         help="a Zenoh router (a Zenoh session in router mode)",
-        description="Run a Zenoh router until Ctrl-C, for --zenoh-mode client sessions.",
+        description="Run a Zenoh router until Ctrl-C, for --zenoh-mode client sessions. It takes no "
+        "key: it forwards opaque bytes, and the operator and teleoperator authenticate every datagram "
+        "end to end with theirs (--key-file), so a router never holds a key it could leak.",
     )
     ro.add_argument(
         "--listen",

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 
-from . import endpoints, report, run, sim
+from . import endpoints, keygen, report, run, sim
 from .args import CliError, Parser
 
 
@@ -18,6 +18,7 @@ def build_parser() -> argparse.ArgumentParser:
     endpoints.add_teleoperator_parser(sub)
     endpoints.add_router_parser(sub)
     report.add_parser(sub)
+    keygen.add_parser(sub)
     return p
 
 

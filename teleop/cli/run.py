@@ -3,25 +3,36 @@
 The two children are ``python -m teleop.cli teleoperator ...`` and ``... operator ...`` (and, for
 Zenoh clients without a router, ``... router``); every setting of the session is checked here first
 and passed on explicitly, so the children never fall back on a default of their own.
+
+Authenticated with no setup: unless given ``--key-file`` or ``--insecure``, a run makes a new key in
+a private temporary folder, passes ``--key-file`` to both children and removes the folder when they
+have exited, whatever ended the run.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import os
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
+import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 from .args import (
     MAX_PORT,
     CliError,
     Subcommands,
+    add_key_args,
     add_netem_args,
     add_passivity_args,
     add_process_args,
@@ -29,7 +40,7 @@ from .args import (
     int_range,
 )
 from .report import write_report
-from .settings import session_params, writable_dir
+from .settings import read_key, session_params, writable_dir
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
 LOG_FILES = ("operator.json", "teleoperator.json", "operator.npz", "teleoperator.npz")
@@ -84,6 +95,84 @@ def _network(args: argparse.Namespace, session: int) -> Network:
         "router_launched": router is not None,
     }
     return Network(to_net, op_net, where, router, zenoh)
+
+
+@dataclass
+class RunKey:
+    """The key both children use: their options, and what report.json says about it."""
+
+    options: list[str]  # ["--key-file", PATH] or ["--insecure"]
+    source: str  # "ephemeral" (made for this run), "key-file" (--key-file) or "insecure"
+    key_id: str  # teleop.auth.key_id: names the key without revealing it
+
+
+def _exit_on_signal(signum: int, frame: FrameType | None) -> None:
+    raise SystemExit(128 + signum)
+
+
+@contextlib.contextmanager
+def _exit_cleanly_on_termination() -> Iterator[None]:
+    """SIGTERM or SIGHUP (a closed terminal) unwind like an error: children stopped, key removed."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {}
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        if signal.getsignal(sig) is signal.SIG_DFL:
+            previous[sig] = signal.signal(sig, _exit_on_signal)
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+@contextlib.contextmanager
+def run_key(args: argparse.Namespace) -> Iterator[RunKey]:
+    """The key of one run: --insecure, --key-file (checked now), or a new one removed on the way out."""
+    from .. import auth
+
+    if args.insecure:
+        yield RunKey(["--insecure"], "insecure", auth.key_id(auth.INSECURE_KEY))
+        return
+    if args.key_file is not None:
+        key = read_key(args.key_file)
+        yield RunKey(["--key-file", os.path.abspath(args.key_file)], "key-file", auth.key_id(key))
+        return
+    try:
+        folder = tempfile.mkdtemp(prefix="teleop-run-key-")  # mode 0700: this user's only
+    except OSError as e:
+        raise CliError(f"cannot create a temporary folder for the run's key: {e.strerror or e}") from None
+    try:
+        with _exit_cleanly_on_termination():
+            key = auth.generate_key()
+            path = os.path.join(folder, "run.key")
+            try:
+                auth.write_key_file(path, key)  # mode 0600
+            except ValueError as e:
+                raise CliError(str(e)) from None
+            yield RunKey(["--key-file", path], "ephemeral", auth.key_id(key))
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+@dataclass
+class Commands:
+    """The command lines of one run."""
+
+    net: Network
+    teleoperator: list[str]
+    operator: list[str]
+
+
+def build_commands(args: argparse.Namespace, params: Any, logs: Path, key: RunKey) -> Commands:
+    """Both children's command lines: network, process and key options, and the operator's session."""
+    net = _network(args, params.session)
+    common = [*_process_options(args, logs), *key.options]
+    to_cmd = [*TELEOP, "teleoperator", *net.teleoperator, *common]
+    live = [] if args.no_live else ["--live"]
+    op_cmd = [*TELEOP, "operator", *net.operator, *live, *_session_options(params), *common]
+    return Commands(net, to_cmd, op_cmd)
 
 
 def _process_options(args: argparse.Namespace, logs: Path) -> list[str]:
@@ -178,24 +267,24 @@ def cmd_run(args: argparse.Namespace) -> int:
     logs = writable_dir(out / "logs", "--out")
     for stale in LOG_FILES:
         (logs / stale).unlink(missing_ok=True)
-    net = _network(args, params.session)
-    common = _process_options(args, logs)
-    to_cmd = [*TELEOP, "teleoperator", *net.teleoperator, *common]
-    live = [] if args.no_live else ["--live"]
-    op_cmd = [*TELEOP, "operator", *net.operator, *live, *_session_options(params), *common]
-    print(
-        f"teleop run: {net.where}; {params.codec}, {params.scenario}, {params.duration:g} s; logs in {logs}",
-        flush=True,
-    )
-    router = _start_router(net)
-    try:
-        codes, interrupted = _run_pair(to_cmd, op_cmd, params.duration + 2 * args.connect_timeout + 10)
-    finally:
-        if router is not None:
-            _stop([router])
+    with run_key(args) as key:
+        cmds = build_commands(args, params, logs, key)
+        net = cmds.net
+        print(
+            f"teleop run: {net.where}; {params.codec}, {params.scenario}, {params.duration:g} s; "
+            f"logs in {logs}",
+            flush=True,
+        )
+        router = _start_router(net)
+        try:
+            timeout = params.duration + 2 * args.connect_timeout + 10
+            codes, interrupted = _run_pair(cmds.teleoperator, cmds.operator, timeout)
+        finally:
+            if router is not None:
+                _stop([router])
     if not all((logs / f"{r}.json").exists() for r in codes):
         raise CliError(f"no report: a process failed before its loop ran (exit codes {codes})")
-    extra: dict[str, Any] = {"exit_codes": codes}
+    extra: dict[str, Any] = {"exit_codes": codes, "auth": {"key": key.source, "key_id": key.key_id}}
     if net.zenoh is not None:
         extra["zenoh"] = net.zenoh
     write_report(logs, out, args, args.transport, extra)
@@ -209,7 +298,9 @@ def add_parser(sub: Subcommands) -> None:
         "run",
         help="launch operator and teleoperator as two processes on 127.0.0.1 and report",
         description="Launch both processes on 127.0.0.1 over UDP, wait for them, gather both logs and "
-        "write OUT/report.json, PNG plots and a printed summary. Ctrl-C stops both cleanly.",
+        "write OUT/report.json, PNG plots and a printed summary. Ctrl-C stops both cleanly. Their "
+        "datagrams are authenticated with a key made for this run unless --key-file or --insecure "
+        "is given.",
     )
     add_session_args(r, "eds:50", "protocol")
     add_netem_args(r)
@@ -231,6 +322,7 @@ def add_parser(sub: Subcommands) -> None:
         help="teleoperator UDP port (default: a free one)",
     )
     add_process_args(r)
+    add_key_args(r, "default: a new key for this run, in a private temporary folder removed afterwards")
     r.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     r.add_argument("--no-sim", action="store_true", help="skip the teleop sim comparison in the report")
     r.add_argument("--no-live", action="store_true", help="no status line every second during the run")

@@ -92,15 +92,46 @@ def session_params(args: argparse.Namespace, session: int) -> Any:
         raise CliError(str(e)) from None
 
 
+NO_KEY = (
+    "no key: pass --key-file FILE (make one with 'teleop keygen FILE') or --insecure to run unauthenticated"
+)
+
+
+def read_key(path: str) -> bytes:
+    """The pre-shared key in ``path``; CliError (one line: which file, what is wrong, the fix) if bad."""
+    from .. import auth
+
+    try:
+        key = auth.read_key_file(path)
+    except ValueError as e:
+        raise CliError(str(e)) from None
+    if key == auth.INSECURE_KEY:  # everyone knows it: do not let it pass for a secret
+        raise CliError(f"key file {path} holds the all-zero key everyone knows; use --insecure to say so")
+    return key
+
+
+def endpoint_key(args: argparse.Namespace) -> tuple[bytes, bool]:
+    """(psk, insecure) of one process: --key-file's key, or with --insecure the key everyone knows."""
+    from .. import auth
+
+    if args.insecure:
+        return auth.INSECURE_KEY, True
+    if args.key_file is None:
+        raise CliError(NO_KEY)
+    return read_key(args.key_file), False
+
+
 def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int]) -> Any:
     """The EndpointOptions of one real process (``operator`` or ``teleoperator``)."""
     from transport.session import EndpointOptions
 
+    log_dir = writable_dir(Path(args.log), "--log") if args.log else None
+    psk, insecure = endpoint_key(args)
     return EndpointOptions(
         role=role,
         listen=listen,
         peer=getattr(args, "peer", None),
-        log_dir=writable_dir(Path(args.log), "--log") if args.log else None,
+        log_dir=log_dir,
         connect_timeout=args.connect_timeout,
         rt_priority=None if args.no_rt else 10,
         use_uvloop=not args.asyncio,
@@ -109,6 +140,8 @@ def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int
         grace_us=args.grace_us,
         transport=args.transport,
         zenoh=zenoh_options(args) if args.transport == "zenoh" else None,
+        psk=psk,
+        insecure=insecure,
     )
 
 
