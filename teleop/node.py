@@ -106,6 +106,7 @@ class _Port:
         self.rx_direction = 1 - self.tx_direction
         self.seq = 0
         self.last_rx_seq = -1
+        self.peer_restarts = 0  # energy epochs: the peer process was replaced this many times
         self.counters = PortCounters()
         self.energy_sent = 0.0  # J carried into the channel by the transmitted wave
         self.last_error = ""
@@ -187,6 +188,7 @@ class _Port:
         self.last_rx_seq = -1
         self.decoder.clear()
         self.guard.new_epoch(joined_late=False)
+        self.peer_restarts += 1
 
     def joined_late(self) -> None:
         """This process joined a running session: its budget starts at the first packet it sees."""

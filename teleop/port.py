@@ -13,6 +13,13 @@ this happens on the common session clock in seconds (``k dt`` in the simulation,
 monotonic clock minus the session's tick 0 in a real process).  The shim and the link observer
 use ``t``; the node and the counters use ``k``.
 
+Authentication (``teleop.auth``): every datagram the port sends is sealed and every datagram it
+takes is verified first; nothing unauthenticated reaches the node, the sequence tracking, the link
+observer or the energy budget.  Data and in-session control use the session keys the handshake
+derived; the replay window is updated only after the tag verifies (and after the link observer
+saw the packet, so a duplicate the network made is measured as one, then dropped).  Hellos of other
+operators and welcomes on a rejoin come under the handshake key.
+
 Baseline: the uncompressed stream (every tick's raw 16-bit sample in a packet of the same
 format) is not encoded per tick: its size is a closed-form function of the tick
 (``teleop.wire.packet_size``), computed for the ticks that ran when the summary is asked for.
@@ -21,7 +28,7 @@ format) is not encoded per tick: its size is a closed-form function of the tick
 from __future__ import annotations
 
 import heapq
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -31,7 +38,7 @@ from transport.counters import UDP_IPV4_HEADER, DirectionCounters
 from transport.linkstats import LinkObserver
 from transport.netem import Link, NetemStats, make_link
 
-from . import protocol, scenarios, wire
+from . import auth, protocol, scenarios, wire
 from .codecs import make_codec
 from .codecs.base import RAW_BITS, packed_size
 from .node import OperatorNode, PortOptions, TeleoperatorNode
@@ -126,6 +133,47 @@ def make_node(
     raise ValueError(f"role must be operator or teleoperator, got {role!r}")
 
 
+@dataclass
+class PortKeys:
+    """This side's end of the authenticated channel: sealers for what it sends, openers (with
+    their replay windows) for what it takes, and what it needs to re-key after a peer restart."""
+
+    tx: auth.Sealer  # session key, this side's direction: data, bye, started, a rejoin's start
+    rx: auth.Opener  # session key, the peer's direction
+    hs_tx: auth.Sealer  # handshake key, this side's direction: a rejoin hello, a busy reject
+    hs_rx: auth.Opener  # handshake key, the peer's direction: other operators' hellos, welcomes
+    psk: bytes
+    nonce: bytes  # this side's handshake nonce
+
+
+def port_keys(
+    psk: bytes, tx_direction: int, session: int, nonce_op: bytes, nonce_to: bytes, counter: int = 1
+) -> PortKeys:
+    """Fresh keys for one side (the simulation, or tests): what a handshake would have left."""
+    fwd, bwd = auth.session_keys(psk, session, nonce_op, nonce_to)
+    k_hs = auth.handshake_key(psk)
+    rx_dir = 1 - tx_direction
+    tx_key, rx_key = (fwd, bwd) if tx_direction == wire.FORWARD else (bwd, fwd)
+    return PortKeys(
+        tx=auth.Sealer(tx_key, auth.SESSION, tx_direction, counter),
+        rx=auth.Opener(rx_key, auth.SESSION, rx_dir),
+        hs_tx=auth.Sealer(k_hs, auth.HANDSHAKE, tx_direction, counter),
+        hs_rx=auth.Opener(k_hs, auth.HANDSHAKE, rx_dir),
+        psk=psk,
+        nonce=nonce_op if tx_direction == wire.FORWARD else nonce_to,
+    )
+
+
+@dataclass
+class SecurityCounters:
+    """What this side refused, per reason, counted at its receiver (``report.json``'s ``security``)."""
+
+    rejected: int = 0  # not an envelope, wrong key, kind or direction, bad tag: forged or corrupted
+    replayed: int = 0  # authentic, but a counter already seen or older than the window
+    counter_jumps: int = 0  # authentic, but a counter further ahead than the elapsed time allows
+    last_rejection: str = ""
+
+
 class Recorder:
     """Per-tick arrays of one side, preallocated for the session (``teleop.limits`` bounds it)."""
 
@@ -138,6 +186,11 @@ class Recorder:
         self.send_time = np.full(ticks, np.nan)  # s, session clock: when tick k's packet left
         self.produced_payload = np.zeros(ticks)  # bytes of the payload the node produced at tick k
         self.produced_packet = np.zeros(ticks)  # bytes of that packet, before the shim
+        # Sequence numbers, so the report can check the energy played against the sender's own log
+        # without trusting either clock: the seq sent at tick k, and the newest seq accepted by then.
+        self.tx_seq = np.full(ticks, -1, dtype=np.int64)
+        self.rx_seq = np.full(ticks, -1, dtype=np.int64)
+        self.peer_epoch = np.zeros(ticks, dtype=np.int64)
 
     def record(self, k: int, t: float, node: Node) -> None:
         s, e = self.signals, self.energy
@@ -150,17 +203,22 @@ class Recorder:
         e["energy_margin_observed"][k] = node.guard.margin
         e["energy_played_epoch"][k] = node.guard.played_in_epoch
         self.play_time[k] = t
+        self.rx_seq[k] = node.last_rx_seq
+        self.peer_epoch[k] = node.peer_restarts
 
     def ran(self) -> npt.NDArray[np.intp]:
         """The ticks this side ran (a late joiner starts late; a stalled loop skips some)."""
         return np.flatnonzero(~np.isnan(self.play_time))
 
-    def arrays(self) -> dict[str, Array]:
+    def arrays(self) -> dict[str, npt.NDArray[Any]]:
         return {
             **self.signals,
             **self.energy,
             "play_time_s": self.play_time,
             "send_time_s": self.send_time,
+            "tx_seq": self.tx_seq,
+            "rx_seq": self.rx_seq,
+            "peer_epoch": self.peer_epoch,
         }
 
 
@@ -181,8 +239,14 @@ class Port:
         peer_spec: str = "",
         header_bytes: int = UDP_IPV4_HEADER,
         first_tick: int = 0,
+        keys: PortKeys | None = None,
     ) -> None:
         self.node = node
+        if keys is None:  # the simulation: the insecure key, fixed nonces (same bytes as a real run)
+            nonce = bytes(auth.NONCE_BYTES)
+            keys = port_keys(auth.INSECURE_KEY, node.tx_direction, node.session, nonce, nonce)
+        self.keys = keys
+        self.security = SecurityCounters()
         self.ticks = ticks
         self.dt = node.dt
         self.shim = shim
@@ -196,43 +260,91 @@ class Port:
         self._last_k = 0
 
     # --- inbound -------------------------------------------------------------------------
-    def receive(self, data: bytes, t: float, k: int, play: bool = True) -> protocol.Message | None:
+    def receive(
+        self, data: bytes, t: float, k: int, play: bool = True, from_peer: bool = True
+    ) -> protocol.Message | None:
         """Take one datagram that arrived at session time ``t`` during tick ``k``.
 
-        Data packets are counted, shown to the link observer and (with ``play``) handed to the
-        node; a control message is parsed and returned for the session logic; anything else is
-        counted as malformed and dropped.  Never raises.
+        Authenticate it first; then data packets are counted, shown to the link observer, checked
+        against the replay window and (with ``play``) handed to the node; a control message is
+        parsed and returned for the session logic.  Anything else is counted and dropped.  A
+        datagram from another address (``from_peer`` False) may only be a handshake message.
+        Never raises.
         """
-        node, rx = self.node, self.rx
-        k = min(max(k, 0), self.ticks - 1)
-        if data[:1] == b"\x9a":  # a 10-element msgpack array: a data packet
-            try:
-                pkt = wire.decode(data)
-            except wire.WireError as e:
-                rx.packet(k, len(data), None)
-                node.malformed(str(e))
-                return None
-            rx.packet(k, len(data), len(pkt.payload))
-            if pkt.session == node.session and pkt.direction == node.rx_direction:
-                self.observer.observe(t, pkt.seq, pkt.t_us / 1e6, len(data))
-            if play:
-                node.receive_packet(pkt)
+        sec = self.security
+        hdr = auth.peek(data)
+        try:
+            if hdr is None:
+                raise auth.AuthError("header", "not a teleop envelope")
+            if hdr[0] == auth.HANDSHAKE:
+                return self._control(self.keys.hs_rx.verify(data)[1], auth.HANDSHAKE)
+            if not from_peer:
+                raise auth.AuthError("kind", "a session datagram from another address")
+            counter, body = self.keys.rx.verify(data)
+        except auth.AuthError as e:
+            sec.rejected += 1
+            sec.last_rejection = str(e)
             return None
-        if protocol.is_control(data):
-            try:
-                return protocol.parse(data)
-            except protocol.ProtocolError as e:
-                self.control_rejected += 1
-                self.last_control_error = str(e)
-                return None
-        rx.packet(k, len(data), None)
-        node.malformed("neither a data packet nor a control message")
+        k = min(max(k, 0), self.ticks - 1)
+        if body[:1] != b"\x9a":  # not a 10-element msgpack array: a control message
+            return self._control(body, auth.SESSION) if self._accept(counter, t) else None
+        node = self.node
+        try:
+            pkt = wire.decode(body)
+        except wire.WireError as e:  # authentic but malformed: a bug at the peer, counted
+            self.rx.packet(k, len(data), None)
+            node.malformed(str(e))
+            return None
+        self.rx.packet(k, len(data), len(pkt.payload))
+        if pkt.session == node.session and pkt.direction == node.rx_direction:
+            self.observer.observe(t, pkt.seq, pkt.t_us / 1e6, len(data))
+        if self._accept(counter, t) and play:
+            node.receive_packet(pkt)
         return None
 
-    def peer_restarted(self) -> None:
-        """The peer process was replaced mid-session: a new energy epoch and fresh link figures
-        (they cover the current peer; its sequence numbers start again from 0)."""
-        self.node.peer_restarted()
+    def _accept(self, counter: int, t: float) -> bool:
+        """The replay window's verdict on an authentic datagram (RFC 3711 3.3.2), counted."""
+        try:
+            self.keys.rx.accept(counter, t)
+        except auth.AuthError as e:
+            if e.reason == "jump":
+                self.security.counter_jumps += 1
+            else:
+                self.security.replayed += 1
+            return False
+        return True
+
+    def _control(self, body: bytes, key_kind: int) -> protocol.Message | None:
+        """Parse an authentic control message; one under the wrong key is refused."""
+        try:
+            msg = protocol.parse(body)
+        except protocol.ProtocolError as e:
+            self.control_rejected += 1
+            self.last_control_error = str(e)
+            return None
+        handshake_msg = isinstance(msg, protocol.Hello | protocol.Welcome | protocol.Reject)
+        if handshake_msg != (key_kind == auth.HANDSHAKE):
+            self.control_rejected += 1
+            self.last_control_error = f"a {msg.kind} under the wrong key"
+            return None
+        return msg
+
+    def seal(self, msg: protocol.Message) -> bytes:
+        """A control message as a datagram, under the key its kind travels with."""
+        handshake_msg = isinstance(msg, protocol.Hello | protocol.Welcome | protocol.Reject)
+        return (self.keys.hs_tx if handshake_msg else self.keys.tx).seal(protocol.encode(msg))
+
+    def peer_restarted(self, peer_nonce: bytes) -> None:
+        """The peer process was replaced mid-session: session keys from its new nonce (a fresh
+        replay window; our counter goes on), a new energy epoch and fresh link figures (they cover
+        the current peer; its sequence numbers start again from 0)."""
+        keys, node = self.keys, self.node
+        nonces = (keys.nonce, peer_nonce) if node.tx_direction == wire.FORWARD else (peer_nonce, keys.nonce)
+        fwd, bwd = auth.session_keys(keys.psk, node.session, *nonces)
+        tx_key, rx_key = (fwd, bwd) if node.tx_direction == wire.FORWARD else (bwd, fwd)
+        keys.tx = auth.Sealer(tx_key, auth.SESSION, node.tx_direction, keys.tx.counter)
+        keys.rx.rekey(rx_key)
+        node.peer_restarted()
         self.observer = LinkObserver(self.observer.spec)
 
     # --- per tick ------------------------------------------------------------------------
@@ -242,9 +354,10 @@ class Port:
         out: list[bytes] = []
         rec = self.rec
         if pkt is not None:
-            data = wire.encode(pkt)
+            data = self.keys.tx.seal(wire.encode(pkt))
             rec.produced_payload[k] = len(pkt.payload)
             rec.produced_packet[k] = len(data)
+            rec.tx_seq[k] = pkt.seq
             if self.shim is None:
                 self.tx.packet(k, len(data), len(pkt.payload))
                 out.append(data)
@@ -273,7 +386,7 @@ class Port:
         k = min(max(k, 0), self.ticks - 1)
         for data in out:
             try:
-                payload_len: int | None = len(wire.decode(data).payload)
+                payload_len: int | None = len(wire.decode(data[auth.HEADER_BYTES : -auth.TAG_BYTES]).payload)
             except wire.WireError:  # corrupted by the shim on purpose
                 payload_len = None
             self.tx.packet(k, len(data), payload_len)
@@ -288,7 +401,7 @@ class Port:
         if ks.size == 0:
             return
         us = round(self.dt * 1e6)
-        sizes = wire.packet_size(self.node.session, ks, ks, ks * us, self.raw_payload_len)
+        sizes = wire.packet_size(self.node.session, ks, ks, ks * us, self.raw_payload_len) + auth.OVERHEAD
         self.tx.baseline_bulk(ks, sizes, self.raw_payload_len)
 
     def produced(self) -> int:
@@ -316,6 +429,10 @@ class Port:
                 sent=peer_produced, dropped_by_limit=peer_dropped_by_limit
             ),
             "control_rejected": self.control_rejected,
+            "security": {
+                **asdict(self.security),
+                "energy_reports_clamped": node.passivity.energy_reports_clamped,
+            },
             "node": {
                 **node.counters.as_dict(),
                 "last_error": node.last_error,
@@ -330,7 +447,7 @@ class Port:
             },
         }
 
-    def arrays(self) -> dict[str, Array]:
+    def arrays(self) -> dict[str, npt.NDArray[Any]]:
         """Per-tick arrays for the log (``ROLE.npz``)."""
         self._count_baseline()
         return {**self.rec.arrays(), **self.tx.arrays("tx"), **self.rx.arrays("rx")}

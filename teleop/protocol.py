@@ -16,6 +16,15 @@ that.  A netem spec from the network may not name a local file (``trace FILE``) 
 configured that exact spec itself: a peer must not make us open ``/etc/shadow`` or ``/dev/zero``.
 A teleoperator never ends its handshake because of what a stranger sent: bad hellos are answered
 with a ``reject`` and counted, and it keeps waiting for a good one.
+
+**Authentication** (``teleop.auth``).  The state machines take and return whole datagrams: every
+message is sealed in the envelope (counter and keyed BLAKE2s tag).  Hello, welcome and reject travel
+under the handshake key derived from the pre-shared key; the hello carries the operator's nonce and
+the welcome the teleoperator's, and the start, started and everything after use the per-direction
+session keys derived from the pre-shared key, the session id and both nonces, so a datagram
+captured in one session verifies in no other.  A datagram whose tag does not verify is counted
+(``unauthenticated``) and never answered.  After the handshake its ``tx_sealer`` and ``rx_opener``
+(counters and replay window) pass on to the port.
 """
 
 from __future__ import annotations
@@ -29,7 +38,7 @@ from typing import Any, ClassVar, TypeAlias
 
 import msgpack
 
-from teleop import limits, scenarios
+from teleop import auth, limits, scenarios
 from teleop.codecs import CodecError, make_codec
 from teleop.node import PortOptions
 from teleop.passivity import ON_LOSS
@@ -37,6 +46,8 @@ from teleop.scenarios import SCENARIOS
 from teleop.wave import WaveImpedance
 from transport.base import Addr
 from transport.netem import NetemError, NetemSpec, make_link, parse_netem
+
+FORWARD, BACKWARD = 0, 1  # the directions of teleop.wire: operator -> TO, TO -> operator
 
 __all__ = [
     "MAX_CONTROL_BYTES",
@@ -356,6 +367,7 @@ class Hello:
     params: SessionParams
     t_ns: int
     rejoin: bool = False  # offered mid-session to a teleoperator that restarted
+    nonce: bytes = bytes(auth.NONCE_BYTES)  # the operator's: with the TO's, it keys the session
 
 
 @dataclass(frozen=True)
@@ -367,6 +379,7 @@ class Welcome:
     t_ns: int
     t2: int
     t3: int
+    nonce: bytes = bytes(auth.NONCE_BYTES)  # the teleoperator's: with the operator's, it keys the session
 
 
 @dataclass(frozen=True)
@@ -414,9 +427,14 @@ def encode(msg: Message) -> bytes:
     """The datagram of a control message (the caller builds valid messages; ``why`` is truncated)."""
     fields: dict[str, Any]
     if isinstance(msg, Hello):
-        fields = {"t_ns": msg.t_ns, **({"rejoin": True} if msg.rejoin else {}), **msg.params.to_msg()}
+        fields = {
+            "t_ns": msg.t_ns,
+            "nonce": msg.nonce,
+            **({"rejoin": True} if msg.rejoin else {}),
+            **msg.params.to_msg(),
+        }
     elif isinstance(msg, Welcome):
-        fields = {"session": msg.session, "t_ns": msg.t_ns, "t2": msg.t2, "t3": msg.t3}
+        fields = {"session": msg.session, "t_ns": msg.t_ns, "t2": msg.t2, "t3": msg.t3, "nonce": msg.nonce}
     elif isinstance(msg, Reject):
         fields = {"session": msg.session, "why": msg.why[: limits.MAX_REASON_LEN]}
     elif isinstance(msg, Start):
@@ -444,10 +462,17 @@ def _session_of(m: Mapping[str, object]) -> int | None:
     return s if type(s) is int and 1 <= s <= limits.MAX_SESSION else None
 
 
+def _nonce(m: Mapping[str, object]) -> bytes:
+    v = _field(m, "nonce")
+    if type(v) is not bytes or len(v) != auth.NONCE_BYTES:
+        raise ProtocolError(f"nonce must be {auth.NONCE_BYTES} bytes (msgpack bin), {_got(v)}")
+    return v
+
+
 def _parse_fields(kind: str, m: Mapping[str, object], local_netem: Collection[str]) -> Message:
     if kind == "hello":
         params = SessionParams.from_msg(m, local_netem=local_netem)
-        return Hello(params, _timestamp(m, "t_ns"), _bool(m, "rejoin", False))
+        return Hello(params, _timestamp(m, "t_ns"), _bool(m, "rejoin", False), _nonce(m))
     if kind == "reject":
         session = None if m.get("session") is None else _int(m, "session", 1, limits.MAX_SESSION)
         why = _field(m, "why")
@@ -459,7 +484,7 @@ def _parse_fields(kind: str, m: Mapping[str, object], local_netem: Collection[st
         t_ns, t2, t3 = _timestamp(m, "t_ns"), _timestamp(m, "t2"), _timestamp(m, "t3")
         if t3 < t2:
             raise ProtocolError(f"t3 (reply sent) must not precede t2 (hello received), got {t3} < {t2}")
-        return Welcome(session, t_ns, t2, t3)
+        return Welcome(session, t_ns, t2, t3, _nonce(m))
     if kind == "start":
         return Start(session, _timestamp(m, "start_ns"), _bool(m, "rejoin", False))
     if kind == "started":
@@ -547,6 +572,8 @@ class OperatorHandshake:
         start_lead_ns: int = 300_000_000,
         start_resend_ns: int = 20_000_000,
         start_margin_ns: int = 50_000_000,
+        psk: bytes = auth.INSECURE_KEY,
+        nonce: bytes = bytes(auth.NONCE_BYTES),
     ) -> None:
         if answers < 1 or hello_interval_ns <= 0 or start_resend_ns <= 0:
             raise ValueError("answers, hello_interval_ns and start_resend_ns must be positive")
@@ -575,10 +602,37 @@ class OperatorHandshake:
         self.start_ns = 0  # tick 0 on the operator's clock
         self.rejected = 0
         self.last_rejection = ""
+        # Authentication (teleop.auth): hellos and welcomes under the handshake key; the start and
+        # everything after under the session keys, derived from the psk and both nonces.
+        self.psk, self.nonce = psk, nonce
+        k_hs = auth.handshake_key(psk)
+        self.hs_sealer = auth.Sealer(k_hs, auth.HANDSHAKE, FORWARD)
+        self.hs_opener = auth.Opener(k_hs, auth.HANDSHAKE, BACKWARD)
+        self.peer_nonce: bytes | None = None
+        self.tx_sealer: auth.Sealer | None = None
+        self.rx_opener: auth.Opener | None = None
+        self.unauthenticated = 0  # datagrams whose tag did not verify: dropped, never answered
+        self.last_unauthenticated = ""
 
     @property
     def finished(self) -> bool:
         return self.done or self.error is not None
+
+    def _open(self, data: bytes, now_ns: int) -> bytes | None:
+        """The body of an authenticated datagram, or None (counted)."""
+        try:
+            hdr = auth.peek(data)
+            if hdr is None:
+                raise auth.AuthError("header", "not a teleop envelope")
+            if hdr[0] == auth.HANDSHAKE:
+                return self.hs_opener.verify(data)[1]
+            if self.rx_opener is None:
+                raise auth.AuthError("kind", "a session datagram before the session keys exist")
+            return self.rx_opener.open(data, now_ns / 1e9)[1]
+        except auth.AuthError as e:
+            self.unauthenticated += 1
+            self.last_unauthenticated = str(e)
+            return None
 
     def _refuse(self, why: str) -> None:
         self.rejected += 1
@@ -588,8 +642,11 @@ class OperatorHandshake:
         """A datagram from the peer, received at ``now_ns`` (NTP's t4 for a welcome)."""
         if self.finished:
             return
+        body = self._open(data, now_ns)
+        if body is None:
+            return
         try:
-            msg = parse(data)
+            msg = parse(body)
         except ProtocolError as e:
             self._refuse(str(e))
             return
@@ -606,6 +663,7 @@ class OperatorHandshake:
                 return
             if self._best is None or rtt < self._best[0]:
                 self._best = (rtt, offset)
+            self.peer_nonce = msg.nonce  # the newest: a teleoperator restarted meanwhile has a new one
             self.answers += 1
             self._t1 = None
             self._next_hello = now_ns  # the next hello goes out at once
@@ -621,6 +679,10 @@ class OperatorHandshake:
         if not 0 <= self.start_ns + self.offset_ns <= MAX_TIMESTAMP:
             self.error = f"the peer's clock is out of range (offset {self.offset_ns} ns)"
             return
+        assert self.peer_nonce is not None
+        fwd, bwd = auth.session_keys(self.psk, self.params.session, self.nonce, self.peer_nonce)
+        self.tx_sealer = auth.Sealer(fwd, auth.SESSION, FORWARD)
+        self.rx_opener = auth.Opener(bwd, auth.SESSION, BACKWARD)
         self._starting = True
         self._next_start = now_ns
         self._start_deadline = self.start_ns - self.start_margin_ns
@@ -641,7 +703,7 @@ class OperatorHandshake:
                 self._t1 = now_ns
                 self._next_hello = now_ns + self.hello_interval_ns
                 self.hellos_sent += 1
-                return [encode(Hello(self.params, now_ns))]
+                return [self.hs_sealer.seal(encode(Hello(self.params, now_ns, nonce=self.nonce)))]
             else:
                 return []
         if now_ns >= self._start_deadline:
@@ -649,7 +711,8 @@ class OperatorHandshake:
             return []
         if now_ns >= self._next_start:
             self._next_start = now_ns + self.start_resend_ns
-            return [encode(Start(self.params.session, self.start_ns + self.offset_ns))]
+            assert self.tx_sealer is not None
+            return [self.tx_sealer.seal(encode(Start(self.params.session, self.start_ns + self.offset_ns)))]
         return []
 
     def next_timer(self) -> int:
@@ -685,6 +748,8 @@ class TeleoperatorHandshake:
         now_ns: int,
         timeout_s: float,
         local_netem: Collection[str] = (),
+        psk: bytes = auth.INSECURE_KEY,
+        nonce: bytes = bytes(auth.NONCE_BYTES),
     ) -> None:
         unknown = set(expect) - set(PARAM_FIELDS)
         if unknown:
@@ -707,10 +772,36 @@ class TeleoperatorHandshake:
         self.rejections: deque[str] = deque(maxlen=REJECTIONS_KEPT)
         self.ignored = 0
         self.last_ignored = ""
+        self.psk, self.nonce = psk, nonce
+        k_hs = auth.handshake_key(psk)
+        self.hs_sealer = auth.Sealer(k_hs, auth.HANDSHAKE, BACKWARD)
+        self.hs_opener = auth.Opener(k_hs, auth.HANDSHAKE, FORWARD)
+        self.tx_sealer: auth.Sealer | None = None
+        self.rx_opener: auth.Opener | None = None
+        self._rx_key = b""
+        self.unauthenticated = 0  # datagrams whose tag did not verify: dropped, never answered
+        self.last_unauthenticated = ""
 
     @property
     def finished(self) -> bool:
         return self.done or self.error is not None
+
+    def _open(self, data: bytes, now_ns: int) -> tuple[int, bytes] | None:
+        """(key kind, body) of an authenticated datagram, or None (counted, never answered: an
+        unauthenticated sender learns nothing and cannot use this endpoint as an amplifier)."""
+        try:
+            hdr = auth.peek(data)
+            if hdr is None:
+                raise auth.AuthError("header", "not a teleop envelope")
+            if hdr[0] == auth.HANDSHAKE:
+                return auth.HANDSHAKE, self.hs_opener.verify(data)[1]
+            if self.rx_opener is None:
+                raise auth.AuthError("kind", "a session datagram before any hello was welcomed")
+            return auth.SESSION, self.rx_opener.open(data, now_ns / 1e9)[1]
+        except auth.AuthError as e:
+            self.unauthenticated += 1
+            self.last_unauthenticated = str(e)
+            return None
 
     def _reject(self, addr: Addr, session: int | None, why: str) -> list[tuple[bytes, Addr]]:
         why = why[: limits.MAX_REASON_LEN]
@@ -718,7 +809,7 @@ class TeleoperatorHandshake:
         self.last_rejection = why
         self.last_rejected_addr = addr
         self.rejections.append(why)
-        return [(encode(Reject(session, why)), addr)]
+        return [(self.hs_sealer.seal(encode(Reject(session, why))), addr)]
 
     def _ignore(self, why: str) -> list[tuple[bytes, Addr]]:
         self.ignored += 1
@@ -741,8 +832,14 @@ class TeleoperatorHandshake:
         """A datagram from ``addr`` received at ``now_ns``; returns the replies to send."""
         if self.finished:
             return self._ignore("the handshake is over")
+        opened = self._open(data, now_ns)
+        if opened is None:
+            return []
+        key_kind, body = opened
         try:
-            msg = parse(data, local_netem=self.local_netem)
+            msg = parse(body, local_netem=self.local_netem)
+            if (key_kind == auth.HANDSHAKE) != isinstance(msg, Hello):
+                raise ProtocolError(f"a {msg.kind} under the wrong key")
         except ProtocolError as e:
             if e.kind != "hello":
                 return self._ignore(str(e))
@@ -756,7 +853,13 @@ class TeleoperatorHandshake:
                 return self._reject(addr, p.session, why)
             self.params, self.peer = p, addr
             self.welcomes += 1
-            return [(encode(Welcome(p.session, msg.t_ns, t2=now_ns, t3=now_ns)), addr)]
+            fwd, bwd = auth.session_keys(self.psk, p.session, msg.nonce, self.nonce)
+            if self.rx_opener is None or self._rx_key != fwd:  # a new operator: new keys
+                self._rx_key = fwd
+                self.rx_opener = auth.Opener(fwd, auth.SESSION, FORWARD)
+                self.tx_sealer = auth.Sealer(bwd, auth.SESSION, BACKWARD)
+            welcome = Welcome(p.session, msg.t_ns, t2=now_ns, t3=now_ns, nonce=self.nonce)
+            return [(self.hs_sealer.seal(encode(welcome)), addr)]
         if isinstance(msg, Start):
             if self.params is not None and addr == self.peer and msg.session == self.params.session:
                 # The loop sleeps until start_ns: a start far off would park the endpoint, so it must
@@ -765,7 +868,8 @@ class TeleoperatorHandshake:
                 if not earliest <= msg.start_ns <= now_ns + START_AHEAD_NS:
                     return self._ignore(f"a start {(msg.start_ns - now_ns) / 1e9:+.3g} s from now")
                 self.start_ns, self.rejoin, self.done = msg.start_ns, msg.rejoin, True
-                return [(encode(Started(msg.session)), addr)]
+                assert self.tx_sealer is not None
+                return [(self.tx_sealer.seal(encode(Started(msg.session))), addr)]
             return self._ignore(f"a start for session {msg.session} that no welcome agreed on")
         return self._ignore(f"an unexpected {msg.kind}")
 

@@ -33,6 +33,26 @@ def _wire(sender: dict[str, Any], receiver: dict[str, Any]) -> dict[str, Any]:
 
 
 def _true_margin(sender: dict[str, Array], receiver: dict[str, Array]) -> Array:
+    """Per receiver tick: the energy the sender's own log says it had put into the packets the
+    receiver had accepted by then, minus the energy played since the receiver's last energy epoch
+    (eq. 5).  Aligned by sequence number, so no clock is trusted: the newest seq accepted by each
+    receiver tick is looked up in the sender's log (the survivor's, after a peer restart: only the
+    receiver's last epoch is compared).  Older logs without seqs fall back to time alignment."""
+    if "rx_seq" not in receiver or "tx_seq" not in sender:
+        return _true_margin_by_time(sender, receiver)
+    played = receiver["energy_played_epoch"]
+    sent_ticks = np.flatnonzero(sender["tx_seq"] >= 0)
+    seqs, energy = sender["tx_seq"][sent_ticks], sender["energy_sent"][sent_ticks]
+    rx = receiver["rx_seq"]
+    idx = np.searchsorted(seqs, rx, side="left")
+    found = (rx >= 0) & (idx < seqs.size) & (seqs[np.minimum(idx, max(seqs.size - 1, 0))] == rx)
+    sent = np.where(found, energy[np.minimum(idx, max(energy.size - 1, 0))] if energy.size else 0.0, 0.0)
+    last_epoch = receiver["peer_epoch"] == receiver["peer_epoch"].max()
+    ok = last_epoch & ~np.isnan(played) & ((rx < 0) | found)
+    return np.where(ok, sent - played, np.nan)
+
+
+def _true_margin_by_time(sender: dict[str, Array], receiver: dict[str, Array]) -> Array:
     """Per receiver tick: energy the sender had sent by the instant the receiver played its sample,
     minus energy played so far (eq. 5).  Aligned on the common session clock, not by tick index:
     a receiver tick that waits for a late payload may rightly play a sample the sender produced in
@@ -56,6 +76,15 @@ def _passivity(receiver: dict[str, Any]) -> dict[str, Any]:
     p = dict(receiver["passivity"])
     p.pop("direction", None)
     return p
+
+
+def _security(op: dict[str, Any], to: dict[str, Any]) -> dict[str, Any]:
+    """``security``: how the datagrams were protected and what each receiver refused."""
+    o, t = op.get("security", {}), to.get("security", {})
+    out: dict[str, Any] = {"auth": o.get("auth"), "key_id": o.get("key_id")}
+    for key in ("rejected", "replayed", "counter_jumps", "energy_reports_clamped"):
+        out[key] = {"forward": t.get(key), "backward": o.get(key)}
+    return out
 
 
 def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, Any]:
@@ -94,6 +123,8 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
         "transparency": {"I": i_real, "ticks_compared": int(valid.sum())},
         # Watchdog figures of each direction, measured by its receiver.
         "passivity": {"forward": _passivity(to), "backward": _passivity(op)},
+        # What each receiver refused (teleop.auth, the watchdog's physical bound), per direction.
+        "security": _security(op, to),
         # What each link did, measured at its receiver from sequence numbers and timestamps.
         "link": {"forward": to["link_received"], "backward": op["link_received"]},
         # Eq. (4): energy into the communication two-port, forward plus backward margin, per tick.
@@ -221,6 +252,16 @@ def summary_text(rep: dict[str, Any]) -> str:
             f"link lost {pv['link_lost_events']}x  |  link: loss {100 * lk['loss']:.2f}%  "
             f"delay {'-' if delay is None else f'{delay:.2f}'} ms  reordered {lk['reordered']}  "
             f"duplicates {lk['duplicates']}"
+        )
+    sec = rep.get("security", {})
+    if sec.get("auth"):
+        how = "INSECURE (no key: integrity only)" if sec["auth"] == "insecure" else sec["auth"]
+        lines.append(
+            f"  security   {how}"
+            f"  key {sec['key_id']}  rejected {sec['rejected']['forward']}/{sec['rejected']['backward']}"
+            f"  replayed {sec['replayed']['forward']}/{sec['replayed']['backward']}"
+            f"  energy reports clamped {sec['energy_reports_clamped']['forward']}/"
+            f"{sec['energy_reports_clamped']['backward']}  (forward/backward)"
         )
     e = rep["energy"]
     lines.append(

@@ -256,6 +256,8 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
         },
         "counters": {"operator": op.node.counters.as_dict(), "teleoperator": to.node.counters.as_dict()},
         "link": {"forward": t["link_received"], "backward": o["link_received"]},
+        # What each receiver refused (teleop.auth): forgeries, corruption, replays and duplicates.
+        "security": {"forward": t["security"], "backward": o["security"]},
     }
     return summary
 

@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from teleop import wire
+from teleop import auth, wire
 from teleop.node import PortOptions
 from teleop.port import WIRE_KEYS, Port, make_node, make_shim
 from teleop.sim import SimConfig, run_case
@@ -55,7 +55,9 @@ def test_baseline_is_counted_as_if_encoded_every_tick() -> None:
     s = op.summary()["sent"]
     raw = bytes(op.raw_payload_len)
     energy = op.node.energy_sent
-    expected = [len(wire.encode(wire.Packet(7, 0, k, k, k * 1000, 0, raw, energy))) + 28 for k in range(300)]
+    sealer = auth.Sealer(bytes(32), auth.SESSION, 0)  # the envelope's size does not depend on the key
+    packets = [wire.Packet(7, 0, k, k, k * 1000, 0, raw, energy) for k in range(300)]
+    expected = [len(sealer.seal(wire.encode(p))) + 28 for p in packets]
     assert s["baseline_packets"] == 300
     assert s["baseline_wire_bytes"] == sum(expected)
     assert s["baseline_payload_bytes"] == 300 * len(raw)
@@ -67,18 +69,19 @@ def test_baseline_is_counted_as_if_encoded_every_tick() -> None:
 @given(st.binary(max_size=200))
 def test_receive_never_raises_and_counts(data: bytes) -> None:
     _, to = _pair(ticks=10)
-    before = to.rx.packets + to.control_rejected
     msg = to.receive(data, 0.0, 3)
-    counted = to.rx.packets + to.control_rejected - before
-    assert msg is not None or counted == 1 or data[:1] == b"\x9a"
+    # Random bytes never authenticate: refused and counted, and nothing reaches the node.
+    assert msg is None and to.security.rejected == 1
+    assert to.node.counters.received == 0 and to.rx.packets == 0
 
 
 def test_receive_clamps_the_tick_index() -> None:
     op, to = _pair(ticks=10)
     data = op.tick(0, 0.0)[0]
     to.receive(data, 0.0, 10**9)  # a tick outside the session: counted at the last one
+    assert to.rx.packets == 1 and to.rx.wire_per_tick.a[-1] > 0
     to.receive(b"junk", 0.0, -5)
-    assert to.rx.packets == 2 and to.rx.malformed == 1
+    assert to.rx.packets == 1 and to.security.rejected == 1
 
 
 def test_sim_wire_block_has_the_report_keys_and_counts_agree() -> None:
@@ -107,3 +110,24 @@ def test_recorder_marks_the_ticks_that_ran() -> None:
     assert list(op.rec.ran()) == [0, 1, 2, 10]
     assert np.isnan(op.rec.signals["v"][5]).all()
     assert op.summary()["sent"]["baseline_packets"] == 4
+
+
+def test_forged_tampered_and_replayed_datagrams_change_nothing() -> None:
+    """Issue 11: nothing unauthenticated reaches the node, the link figures or the energy budget."""
+    op, to = _pair(ticks=50)
+    good = op.tick(0, 0.0)[0]
+    to.receive(good, 0.0, 0)
+    state = (to.node.counters.accepted, to.node.peer_energy_sent, to.observer.summary()["received"])
+    # a forgery under another key, claiming far more energy with a far-future seq
+    forged_pkt = wire.Packet(7, 0, 10**6, 10**6, 0, 0, bytes(4), 1e300)
+    forged = auth.Sealer(bytes(range(32)), auth.SESSION, 0).seal(wire.encode(forged_pkt))
+    tampered = bytearray(good)
+    tampered[15] ^= 1
+    for data in (forged, bytes(tampered), good[:-1], b"X" + good[1:]):
+        assert to.receive(data, 0.001, 1) is None
+    assert to.security.rejected == 4
+    to.receive(good, 0.001, 1)  # the genuine datagram again: a replay
+    assert to.security.replayed == 1
+    after = (to.node.counters.accepted, to.node.peer_energy_sent, to.observer.summary()["received"])
+    assert after[:2] == state[:2]
+    assert after[2] == state[2] + 1  # the replay was authentic: the link saw a duplicate, nothing more

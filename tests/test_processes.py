@@ -120,7 +120,7 @@ def test_report_contract_and_logs(tmp_path: Path) -> None:
     # datagrams eds:50 must have sent (ticks 0, 50, ...; 2 DoF, 4-byte payload) and compare.
     import numpy as np
 
-    from teleop import wire
+    from teleop import auth, wire
 
     with np.load(tmp_path / "run" / "logs" / "operator.npz") as z:
         sent_ticks = np.flatnonzero(z["tx_wire"])
@@ -128,7 +128,7 @@ def test_report_contract_and_logs(tmp_path: Path) -> None:
     assert sent_ticks.tolist() == list(range(0, 2000, 50))
     for seq, (tick, counted) in enumerate(zip(sent_ticks.tolist(), per_tick.tolist(), strict=True)):
         pkt = wire.Packet(rep["session"], wire.FORWARD, seq, tick, tick * 1000, 2, bytes(4), 1.0)
-        assert counted == len(wire.encode(pkt)) + 28
+        assert counted == auth.OVERHEAD + len(wire.encode(pkt)) + 28  # envelope, packet, UDP/IPv4
     assert rep["wire"]["forward"]["wire_bytes"] == int(per_tick.sum())
     # The simulation counts with the same port code: same keys, and on a lossless loopback the
     # same packets and bytes in both directions (issue 9).
@@ -168,6 +168,7 @@ def test_peer_never_answers(tmp_path: Path) -> None:
         [
             *TELEOP,
             "operator",
+            "--insecure",
             "--peer",
             f"127.0.0.1:{port}",
             "--listen",
@@ -189,7 +190,15 @@ def test_port_taken(tmp_path: Path) -> None:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
         r = subprocess.run(
-            [*TELEOP, "teleoperator", "--listen", f"127.0.0.1:{port}", "--connect-timeout", "1"],
+            [
+                *TELEOP,
+                "teleoperator",
+                "--insecure",
+                "--listen",
+                f"127.0.0.1:{port}",
+                "--connect-timeout",
+                "1",
+            ],
             capture_output=True,
             text=True,
             timeout=30,
@@ -198,44 +207,33 @@ def test_port_taken(tmp_path: Path) -> None:
     assert f"cannot bind UDP 127.0.0.1:{port}" in r.stderr and "in use" in r.stderr
 
 
-def test_teleoperator_rejects_a_different_codec(tmp_path: Path) -> None:
+def test_teleoperator_rejects_a_different_codec_and_keeps_waiting(tmp_path: Path, key: str) -> None:
+    """A hello it cannot accept is answered with the reason; the robot's endpoint keeps serving.
+    An operator with another key is not answered at all."""
+    from teleop import auth
+
+    other_key = tmp_path / "other.key"
+    auth.write_key_file(other_key, auth.generate_key())
     port = _free_port()
-    to = subprocess.Popen(
-        [
-            *TELEOP,
-            "teleoperator",
-            "--listen",
-            f"127.0.0.1:{port}",
-            "--codec",
-            "cq:8",
-            "--connect-timeout",
-            "10",
-        ],
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    to = _spawn("teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--codec", "cq:8")
     time.sleep(0.5)
-    op = subprocess.run(
-        [
-            *TELEOP,
-            "operator",
-            "--peer",
-            f"127.0.0.1:{port}",
-            "--listen",
-            "127.0.0.1:0",
-            "--codec",
-            "eds:50",
-            "--connect-timeout",
-            "5",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=30,
-    )
-    _, to_err = to.communicate(timeout=20)
-    assert op.returncode == 1 and to.returncode == 1
+
+    def operator(key_file: str, codec: str) -> subprocess.CompletedProcess[str]:
+        cmd = ["operator", "--key-file", key_file, "--peer", f"127.0.0.1:{port}", "--listen", "127.0.0.1:0"]
+        cmd += ["--codec", codec, "--connect-timeout", "2", "--duration", "1"]
+        return subprocess.run([*TELEOP, *cmd], capture_output=True, text=True, timeout=30)
+
+    op = operator(key, "eds:50")
+    assert op.returncode == 1
     assert "rejected the session: codec 'eds:50' differs from this teleoperator's 'cq:8'" in op.stderr
-    assert "rejected the operator" in to_err
+    stranger = operator(str(other_key), "cq:8")  # the right settings, the wrong key
+    assert stranger.returncode == 1 and "never answered within 2 s" in stranger.stderr
+    assert to.poll() is None  # still waiting for a good hello
+    good = operator(key, "cq:8")
+    assert "rejected" not in good.stderr
+    _, to_err = to.communicate(timeout=30)
+    assert good.returncode == 0 and to.returncode == 0, (good.stderr, to_err)
+    assert "rejected the operator: codec 'eds:50' differs" in to_err
 
 
 @pytest.mark.parametrize(
@@ -302,12 +300,26 @@ def _spawn(*args: str) -> subprocess.Popen[str]:
     return subprocess.Popen([*TELEOP, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def test_teleoperator_restarted_mid_session_and_the_operator_recovers(tmp_path: Path) -> None:
+@pytest.fixture
+def key(tmp_path: Path) -> str:
+    """A deployment's pre-shared key, as `teleop keygen` writes it."""
+    from teleop import auth
+
+    path = tmp_path / "teleop.key"
+    auth.write_key_file(path, auth.generate_key())
+    return str(path)
+
+
+def test_teleoperator_restarted_mid_session_and_the_operator_recovers(tmp_path: Path, key: str) -> None:
     port, logs = _free_port(), tmp_path / "logs"
-    to1 = _spawn("teleoperator", "--listen", f"127.0.0.1:{port}", "--log", str(logs), "--quiet")
+    to1 = _spawn(
+        "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--log", str(logs), "--quiet"
+    )
     time.sleep(0.4)
     op = _spawn(
         "operator",
+        "--key-file",
+        key,
         "--peer",
         f"127.0.0.1:{port}",
         "--listen",
@@ -324,7 +336,9 @@ def test_teleoperator_restarted_mid_session_and_the_operator_recovers(tmp_path: 
     to1.kill()  # a crash: no bye, no logs
     to1.wait()
     time.sleep(0.5)
-    to2 = _spawn("teleoperator", "--listen", f"127.0.0.1:{port}", "--log", str(logs), "--quiet")
+    to2 = _spawn(
+        "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--log", str(logs), "--quiet"
+    )
     assert op.wait(timeout=30) == 0 and to2.wait(timeout=30) == 0
     o = json.loads((logs / "operator.json").read_text())
     t = json.loads((logs / "teleoperator.json").read_text())
@@ -340,12 +354,18 @@ def test_teleoperator_restarted_mid_session_and_the_operator_recovers(tmp_path: 
         assert rep["link"][d]["duplicates"] == 0 and rep["link"][d]["loss"] < 0.01  # per incarnation
 
 
-def test_operator_restarted_mid_session_and_the_teleoperator_serves_the_new_one(tmp_path: Path) -> None:
+def test_operator_restarted_mid_session_and_the_teleoperator_serves_the_new_one(
+    tmp_path: Path, key: str
+) -> None:
     port, logs = _free_port(), tmp_path / "logs"
-    to = _spawn("teleoperator", "--listen", f"127.0.0.1:{port}", "--log", str(logs), "--quiet")
+    to = _spawn(
+        "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--log", str(logs), "--quiet"
+    )
     time.sleep(0.4)
     op1 = _spawn(
         "operator",
+        "--key-file",
+        key,
         "--peer",
         f"127.0.0.1:{port}",
         "--listen",
@@ -364,6 +384,8 @@ def test_operator_restarted_mid_session_and_the_teleoperator_serves_the_new_one(
     time.sleep(0.5)
     op2 = _spawn(
         "operator",
+        "--key-file",
+        key,
         "--peer",
         f"127.0.0.1:{port}",
         "--listen",

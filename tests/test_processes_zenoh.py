@@ -110,6 +110,7 @@ def test_unreachable_router_is_a_clear_error() -> None:
         [
             *TELEOP,
             "operator",
+            "--insecure",
             "--transport",
             "zenoh",
             "--zenoh-mode",

@@ -22,7 +22,7 @@ import msgpack
 import pytest
 import zenoh
 
-from teleop import wire
+from teleop import auth, wire
 from transport.zenoh import (
     ZENOH_PEER,
     TransportError,
@@ -299,7 +299,12 @@ def readme_subscriber(
     done = threading.Event()
 
     def on_sample(sample: zenoh.Sample) -> None:
-        raw = sample.payload.to_bytes()
+        envelope = sample.payload.to_bytes()
+        # The envelope: b"T", flags, uint64 counter (10 bytes) ... a 16-byte tag.  Reading needs no
+        # key (there is no confidentiality); only forging would.
+        if envelope[:1] != b"T" or len(envelope) < 26:
+            return
+        raw = envelope[10:-16]
         if raw[:1] and (raw[0] & 0xF0 == 0x80 or raw[0] in (0xDE, 0xDF)):  # msgpack map: control
             counts["control"] += 1
             return
@@ -324,6 +329,7 @@ async def test_plain_zenoh_subscriber_decodes_live_packets() -> None:
     op = await ZenohTransport.open("operator", "t/wire", make_config("peer", listen=[ep]))
     try:
         stop = threading.Event()
+        sealer = auth.Sealer(auth.INSECURE_KEY, auth.SESSION, wire.FORWARD)
 
         async def publish() -> None:
             k = 0
@@ -338,8 +344,8 @@ async def test_plain_zenoh_subscriber_decodes_live_packets() -> None:
                     payload=b"\x01\x02\x03",
                     energy=0.125 * k,
                 )
-                op.send(wire.encode(p), ZENOH_PEER)
-                op.send(msgpack.packb({"t": "hello", "session": 1}), ZENOH_PEER)  # a control map
+                op.send(sealer.seal(wire.encode(p)), ZENOH_PEER)
+                op.send(sealer.seal(msgpack.packb({"t": "hello", "session": 1})), ZENOH_PEER)  # a control map
                 k += 1
                 await asyncio.sleep(0.002)
 

@@ -26,6 +26,7 @@ import asyncio
 import json
 import os
 import random
+import secrets
 import signal
 import sys
 import time
@@ -35,8 +36,8 @@ from typing import Any
 
 import numpy as np
 
-from teleop import protocol
-from teleop.port import Port, make_node, make_shim
+from teleop import auth, protocol
+from teleop.port import Port, PortKeys, make_node, make_shim
 from teleop.protocol import PROTOCOL_VERSION, SessionParams
 
 from .base import Addr, Transport
@@ -57,6 +58,7 @@ __all__ = [
 ROLES = ("operator", "teleoperator")
 REJOIN_OFFER_INTERVAL_NS = 250_000_000  # operator: how often to offer a rejoin while the link is lost
 REJOIN_ANSWER_WAIT_NS = 600_000  # and how long to poll for the answer (the link is down anyway)
+REJOIN_MAX_RTT_NS = 1_000_000  # a later answer still counts if its round trip fixes the offset to 0.5 ms
 
 
 class SessionError(Exception):
@@ -112,11 +114,12 @@ def _addr(a: Addr) -> str:
 # handshake: the state machines of teleop.protocol, fed by the socket
 # --------------------------------------------------------------------------------------------
 async def _operator_handshake(
-    tr: Transport, peer: Addr, params: SessionParams, timeout: float, stop: _Stop
-) -> tuple[int, int, int]:
-    """Returns (offset_ns, rtt_ns, start_ns in the operator's clock)."""
+    tr: Transport, peer: Addr, params: SessionParams, timeout: float, stop: _Stop, psk: bytes
+) -> tuple[int, int, int, PortKeys]:
+    """Returns (offset_ns, rtt_ns, start_ns in the operator's clock, the port's keys)."""
     clock = time.monotonic_ns
-    hs = protocol.OperatorHandshake(params, now_ns=clock(), timeout_s=timeout)
+    nonce = secrets.token_bytes(auth.NONCE_BYTES)
+    hs = protocol.OperatorHandshake(params, now_ns=clock(), timeout_s=timeout, psk=psk, nonce=nonce)
     while True:
         if stop.requested:
             raise SessionError("interrupted during the handshake")
@@ -128,7 +131,9 @@ async def _operator_handshake(
             )
             raise SessionError(f"peer {_addr(peer)} {hs.error}{hint}")
         if hs.done:
-            return hs.offset_ns, hs.rtt_ns, hs.start_ns
+            assert hs.tx_sealer is not None and hs.rx_opener is not None
+            keys = PortKeys(hs.tx_sealer, hs.rx_opener, hs.hs_sealer, hs.hs_opener, psk, nonce)
+            return hs.offset_ns, hs.rtt_ns, hs.start_ns, keys
         await tr.wait(max(0.0, (hs.next_timer() - clock()) / 1e9))
         for data, addr, t_rx in tr.drain():
             if addr == peer:
@@ -136,8 +141,8 @@ async def _operator_handshake(
 
 
 async def _teleoperator_handshake(
-    tr: Transport, timeout: float, expect: dict[str, Any], stop: _Stop
-) -> tuple[SessionParams, Addr, int, bool]:
+    tr: Transport, timeout: float, expect: dict[str, Any], stop: _Stop, psk: bytes
+) -> tuple[SessionParams, Addr, int, bool, PortKeys]:
     """Wait for an operator; returns (params, operator address, start_ns in this clock, rejoin).
 
     A hello that is malformed or does not match this teleoperator's settings is answered with a
@@ -145,7 +150,8 @@ async def _teleoperator_handshake(
     operator's session was already running (this process replaces a teleoperator that went away):
     ``start_ns`` is then in the past and the loop joins late."""
     clock = time.monotonic_ns
-    hs = protocol.TeleoperatorHandshake(expect, now_ns=clock(), timeout_s=timeout)
+    nonce = secrets.token_bytes(auth.NONCE_BYTES)
+    hs = protocol.TeleoperatorHandshake(expect, now_ns=clock(), timeout_s=timeout, psk=psk, nonce=nonce)
     shown = 0
     while True:
         if stop.requested:
@@ -167,7 +173,9 @@ async def _teleoperator_handshake(
         shown = hs.rejected
         if hs.done:
             assert hs.params is not None and hs.peer is not None
-            return hs.params, hs.peer, hs.start_ns, hs.rejoin
+            assert hs.tx_sealer is not None and hs.rx_opener is not None
+            keys = PortKeys(hs.tx_sealer, hs.rx_opener, hs.hs_sealer, hs.hs_opener, psk, nonce)
+            return hs.params, hs.peer, hs.start_ns, hs.rejoin, keys
 
 
 # --------------------------------------------------------------------------------------------
@@ -192,7 +200,7 @@ class _Runner:
         self.stop = stop
         self.foreign = 0
         self.peer_bye: protocol.Bye | None = None
-        self.welcome: tuple[protocol.Welcome, int] | None = None
+        self._offer_t1 = -1  # t_ns of the last rejoin offer not yet answered
         self.replaced = False  # teleoperator: a new operator session replaces the silent one
         self.rejoin_offers = self.rejoins = 0
         self._last_offer = 0
@@ -204,20 +212,21 @@ class _Runner:
         return (time.monotonic_ns() - self.t_common) / 1e9
 
     def send(self, msg: protocol.Message) -> None:
-        self.tr.send(protocol.encode(msg), self.peer)
+        self.tr.send(self.port.seal(msg), self.peer)
 
     # --- inbound ---------------------------------------------------------------------------
     def drain(self, k: int, play: bool = True) -> None:
         """Everything the transport received, into the port; control messages to the session logic."""
         for data, addr, t_rx in self.tr.drain():
+            t = (t_rx - self.t_common) / 1e9
             if addr != self.peer:
-                msg = _parse_quietly(data)
+                msg = self.port.receive(data, t, k, play, from_peer=False)
                 if isinstance(msg, protocol.Hello):
                     self._other_hello(msg, addr)  # a restarted operator comes from a new port
                 else:
                     self.foreign += 1
                 continue
-            msg = self.port.receive(data, (t_rx - self.t_common) / 1e9, k, play)
+            msg = self.port.receive(data, t, k, play)
             if msg is not None:
                 self._control(msg, addr, t_rx)
 
@@ -229,8 +238,8 @@ class _Runner:
             self.peer_bye = msg
         elif isinstance(msg, protocol.Hello):
             self._other_hello(msg, addr)
-        elif isinstance(msg, protocol.Welcome) and ours:
-            self.welcome = (msg, t_rx)  # a restarted teleoperator answering our rejoin hello
+        elif isinstance(msg, protocol.Welcome) and ours and msg.t_ns == self._offer_t1:
+            self._rejoin(msg, t_rx)  # a restarted teleoperator answering our rejoin offer
 
     def _other_hello(self, msg: protocol.Hello, addr: Addr) -> None:
         """Another operator.  If ours has gone silent it was probably restarted: end this session
@@ -240,8 +249,8 @@ class _Runner:
         if self.node.link_lost and self.opts.role == "teleoperator":
             self.replaced = True
         else:
-            reject = protocol.Reject(msg.params.session, "busy with another operator")
-            self.tr.send(protocol.encode(reject), addr)
+            reject = protocol.Reject(msg.params.session, protocol.BUSY)
+            self.tr.send(self.port.seal(reject), addr)
 
     # --- per tick --------------------------------------------------------------------------
     async def wait_for_payload(self, ticker: Ticker, k: int) -> None:
@@ -276,25 +285,31 @@ class _Runner:
         """Operator, link lost: offer a rejoin to whoever restarts at the teleoperator's address.
 
         Poll for the answer right away (the link is down anyway) so that its receive time, and
-        with it the clock offset (NTP's four timestamps), is exact to a few microseconds."""
+        with it the clock offset (NTP's four timestamps), is exact to a few microseconds.  A
+        welcome that comes later is still taken (:meth:`_rejoin`) if its round trip is short
+        enough to place the start within half a tick."""
         clock = time.monotonic_ns
         if clock() - self._last_offer < REJOIN_OFFER_INTERVAL_NS:
             return
-        t1 = self._last_offer = clock()
-        self.send(protocol.Hello(self.params, t_ns=t1, rejoin=True))
+        t1 = self._offer_t1 = self._last_offer = clock()
+        self.send(protocol.Hello(self.params, t_ns=t1, rejoin=True, nonce=self.port.keys.nonce))
         self.rejoin_offers += 1
-        self.welcome = None
-        while self.welcome is None and clock() - t1 < REJOIN_ANSWER_WAIT_NS:
+        rejoins = self.rejoins
+        while self.rejoins == rejoins and clock() - t1 < REJOIN_ANSWER_WAIT_NS:
             await asyncio.sleep(0)
             self.drain(k)
             time.sleep(10e-6)  # let the transport's threads run (see the grace wait)
-        if self.welcome is not None and self.welcome[0].t_ns == t1:
-            m, t4 = self.welcome
-            offset, _ = protocol.ntp_offset(t1, m.t2, m.t3, t4)
-            self.port.peer_restarted()
-            self.send(protocol.Start(self.params.session, start_ns=self.t_common + offset, rejoin=True))
-            self.rejoins += 1
-        self.welcome = None
+
+    def _rejoin(self, m: protocol.Welcome, t4: int) -> None:
+        """A restarted teleoperator welcomed our rejoin offer: re-key with its nonce, send the start."""
+        t1 = self._offer_t1
+        offset, rtt = protocol.ntp_offset(t1, m.t2, m.t3, t4)
+        if rtt > REJOIN_MAX_RTT_NS:  # too slow to place the start precisely: wait for the next offer
+            return
+        self._offer_t1 = -1  # one start per offer
+        self.port.peer_restarted(m.nonce)  # its new nonce keys the rest of the session
+        self.send(protocol.Start(self.params.session, start_ns=self.t_common + offset, rejoin=True))
+        self.rejoins += 1
 
     def status(self, k: int, ticker: Ticker) -> None:
         pv, port = self.node.passivity, self.port
@@ -302,7 +317,8 @@ class _Runner:
             f"  [{self.opts.role} {(k + 1) * self.params.dt:5.1f} s] sent {port.tx.packets} "
             f"recv {port.rx.packets}  {'LINK LOST' if self.node.link_lost else 'link ok'}  watchdog: "
             f"violations {pv.violations}, controller {pv.controller_active_ticks} ticks, "
-            f"margin {self.node.guard.margin:.3e} J, overruns {ticker.overruns}",
+            f"margin {self.node.guard.margin:.3e} J, overruns {ticker.overruns}"
+            f"{'  INSECURE (no key)' if self.opts.insecure else ''}",
             file=sys.stderr,
             flush=True,
         )
@@ -381,17 +397,6 @@ class _Runner:
             "loop": stats.summary(),
             **s,
         }
-
-
-def _parse_quietly(data: bytes) -> protocol.Message | None:
-    """A control message from a stranger, or None (counted by the caller as foreign).  A hello
-    that names a trace file fails to parse and is dropped rather than answered "busy"."""
-    if not protocol.is_control(data):
-        return None
-    try:
-        return protocol.parse(data)
-    except protocol.ProtocolError:
-        return None
 
 
 async def _run_loop(
@@ -474,16 +479,23 @@ async def _session(
     opts: EndpointOptions, tr: Transport, params: SessionParams | None, expect: dict[str, Any], stop: _Stop
 ) -> dict[str, Any]:
     """Handshake, build the node, run the loop: one session of this process."""
+    psk = opts.psk
+    if psk is None:
+        raise SessionError("no key: give the pre-shared key (teleop keygen) or choose insecure")
     if opts.role == "operator":
         assert params is not None
         peer = ZENOH_PEER if opts.transport == "zenoh" else opts.peer
         assert peer is not None
-        offset, rtt, start = await _operator_handshake(tr, peer, params, opts.connect_timeout, stop)
+        offset, rtt, start, keys = await _operator_handshake(
+            tr, peer, params, opts.connect_timeout, stop, psk
+        )
         t0 = start
         k0 = 0
         extra: dict[str, Any] = {"clock_offset_ns": offset, "handshake_rtt_us": rtt / 1e3}
     else:
-        params, peer, start, rejoin = await _teleoperator_handshake(tr, opts.connect_timeout, expect, stop)
+        params, peer, start, rejoin, keys = await _teleoperator_handshake(
+            tr, opts.connect_timeout, expect, stop, psk
+        )
         t0 = start + round(params.phase * params.dt * 1e9)
         period = round(params.dt * 1e9)
         # Joining a running session: start at a tick a little in the future, on the session's clock.
@@ -492,12 +504,19 @@ async def _session(
     warnings = setup_realtime(opts.rt_priority)
     for w in warnings:
         print(f"teleop {opts.role}: warning: {w}", file=sys.stderr)
-    summary = await _run_loop(opts, tr, peer, params, _make_port(opts, tr, params, k0), t0, start, stop, k0)
+    port = _make_port(opts, tr, params, k0, keys)
+    summary = await _run_loop(opts, tr, peer, params, port, t0, start, stop, k0)
     summary.update(extra, warnings=warnings)
+    summary["security"].update(auth=_auth_name(opts), key_id=auth.key_id(psk))
     return summary
 
 
-def _make_port(opts: EndpointOptions, tr: Transport, params: SessionParams, k0: int) -> Port:
+def _auth_name(opts: EndpointOptions) -> str:
+    """What protects the datagrams: a keyed MAC, or the insecure key (integrity against accidents only)."""
+    return "insecure" if opts.insecure else "blake2s-128"
+
+
+def _make_port(opts: EndpointOptions, tr: Transport, params: SessionParams, k0: int, keys: PortKeys) -> Port:
     """This side's port: its node, its outgoing shim (seeded as in ``teleop sim``), counters."""
     node = make_node(
         opts.role,
@@ -516,7 +535,13 @@ def _make_port(opts: EndpointOptions, tr: Transport, params: SessionParams, k0: 
     spec_tx, spec_rx = (fwd, bwd) if opts.role == "operator" else (bwd, fwd)
     shim = make_shim(spec_tx, params.seed, node.tx_direction)
     return Port(
-        node, ticks=params.ticks, shim=shim, peer_spec=spec_rx, header_bytes=tr.header_bytes, first_tick=k0
+        node,
+        ticks=params.ticks,
+        shim=shim,
+        peer_spec=spec_rx,
+        header_bytes=tr.header_bytes,
+        first_tick=k0,
+        keys=keys,
     )
 
 
