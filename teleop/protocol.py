@@ -97,10 +97,13 @@ class ProtocolError(ValueError):
     nothing), so that a teleoperator can answer a bad hello with a ``reject`` for its session.
     """
 
-    def __init__(self, message: str, *, kind: str | None = None, session: int | None = None) -> None:
+    def __init__(
+        self, message: str, *, kind: str | None = None, session: int | None = None, t_ns: int = 0
+    ) -> None:
         super().__init__(message)
         self.kind = kind
         self.session = session
+        self.t_ns = t_ns  # a hello's t_ns, if it could be read: a reject echoes it
 
 
 # --------------------------------------------------------------------------------------------
@@ -389,6 +392,7 @@ class Reject:
     kind: ClassVar[str] = "reject"
     session: int | None
     why: str
+    t_ns: int = 0  # the refused hello's, echoed: a recorded reject cannot end a later handshake
 
 
 @dataclass(frozen=True)
@@ -436,7 +440,7 @@ def encode(msg: Message) -> bytes:
     elif isinstance(msg, Welcome):
         fields = {"session": msg.session, "t_ns": msg.t_ns, "t2": msg.t2, "t3": msg.t3, "nonce": msg.nonce}
     elif isinstance(msg, Reject):
-        fields = {"session": msg.session, "why": msg.why[: limits.MAX_REASON_LEN]}
+        fields = {"session": msg.session, "why": msg.why[: limits.MAX_REASON_LEN], "t_ns": msg.t_ns}
     elif isinstance(msg, Start):
         fields = {
             "session": msg.session,
@@ -455,6 +459,11 @@ def is_control(data: bytes) -> bool:
     """True if ``data`` starts like a msgpack map (fixmap, map16, map32): a control message, not a
     data packet (those are arrays).  Says nothing about validity: :func:`parse` does."""
     return bool(data) and (0x80 <= data[0] <= 0x8F or data[0] in (0xDE, 0xDF))
+
+
+def _t_ns_of(m: Mapping[str, object]) -> int:
+    t = m.get("t_ns")
+    return t if type(t) is int and 0 <= t <= MAX_TIMESTAMP else 0
 
 
 def _session_of(m: Mapping[str, object]) -> int | None:
@@ -478,7 +487,7 @@ def _parse_fields(kind: str, m: Mapping[str, object], local_netem: Collection[st
         why = _field(m, "why")
         if not isinstance(why, str):
             raise ProtocolError(f"why must be a string, {_got(why)}")
-        return Reject(session, why[: limits.MAX_REASON_LEN])
+        return Reject(session, why[: limits.MAX_REASON_LEN], _timestamp(m, "t_ns"))
     session = _int(m, "session", 1, limits.MAX_SESSION)
     if kind == "welcome":
         t_ns, t2, t3 = _timestamp(m, "t_ns"), _timestamp(m, "t2"), _timestamp(m, "t3")
@@ -528,11 +537,12 @@ def parse(data: bytes, *, local_netem: Collection[str] = ()) -> Message:
             f"protocol version {_show(v)} is not supported; this side speaks {PROTOCOL_VERSION}",
             kind=kind,
             session=session,
+            t_ns=_t_ns_of(m),
         )
     try:
         return _parse_fields(kind, m, local_netem)
     except ProtocolError as e:
-        raise ProtocolError(f"bad {kind}: {e}", kind=kind, session=session) from None
+        raise ProtocolError(f"bad {kind}: {e}", kind=kind, session=session, t_ns=_t_ns_of(m)) from None
 
 
 def ntp_offset(t1: int, t2: int, t3: int, t4: int) -> tuple[int, int]:
@@ -613,22 +623,23 @@ class OperatorHandshake:
         self.rx_opener: auth.Opener | None = None
         self.unauthenticated = 0  # datagrams whose tag did not verify: dropped, never answered
         self.last_unauthenticated = ""
+        self._hellos: deque[int] = deque(maxlen=64)  # t_ns of our hellos: what a reject must echo
 
     @property
     def finished(self) -> bool:
         return self.done or self.error is not None
 
-    def _open(self, data: bytes, now_ns: int) -> bytes | None:
-        """The body of an authenticated datagram, or None (counted)."""
+    def _open(self, data: bytes, now_ns: int) -> tuple[int, bytes] | None:
+        """(key kind, body) of an authenticated datagram, or None (counted)."""
         try:
             hdr = auth.peek(data)
             if hdr is None:
                 raise auth.AuthError("header", "not a teleop envelope")
             if hdr[0] == auth.HANDSHAKE:
-                return self.hs_opener.verify(data)[1]
+                return auth.HANDSHAKE, self.hs_opener.verify(data)[1]
             if self.rx_opener is None:
                 raise auth.AuthError("kind", "a session datagram before the session keys exist")
-            return self.rx_opener.open(data, now_ns / 1e9)[1]
+            return auth.SESSION, self.rx_opener.open(data, now_ns / 1e9)[1]
         except auth.AuthError as e:
             self.unauthenticated += 1
             self.last_unauthenticated = str(e)
@@ -642,16 +653,22 @@ class OperatorHandshake:
         """A datagram from the peer, received at ``now_ns`` (NTP's t4 for a welcome)."""
         if self.finished:
             return
-        body = self._open(data, now_ns)
-        if body is None:
+        opened = self._open(data, now_ns)
+        if opened is None:
             return
+        key_kind, body = opened
         try:
             msg = parse(body)
+            if (key_kind == auth.HANDSHAKE) != isinstance(msg, Welcome | Reject):
+                raise ProtocolError(f"a {msg.kind} under the wrong key")
         except ProtocolError as e:
             self._refuse(str(e))
             return
         session = self.params.session
         if isinstance(msg, Reject) and msg.session == session:
+            if msg.t_ns not in self._hellos:  # a recorded reject of an earlier handshake: stale
+                self._refuse("a reject that answers none of our hellos")
+                return
             self.error = f"rejected the session: {msg.why}"
         elif isinstance(msg, Welcome) and msg.session == session and not self._starting:
             if self._t1 is None or msg.t_ns != self._t1:
@@ -701,6 +718,7 @@ class OperatorHandshake:
                 return []
             elif now_ns >= self._next_hello:
                 self._t1 = now_ns
+                self._hellos.append(now_ns)
                 self._next_hello = now_ns + self.hello_interval_ns
                 self.hellos_sent += 1
                 return [self.hs_sealer.seal(encode(Hello(self.params, now_ns, nonce=self.nonce)))]
@@ -727,6 +745,29 @@ class OperatorHandshake:
 # --------------------------------------------------------------------------------------------
 # the teleoperator's side
 # --------------------------------------------------------------------------------------------
+MAX_CANDIDATES = 64  # operators (nonces) welcomed at once before one proves itself with a start
+CANDIDATE_ADDRS = 4  # addresses a start for one nonce may come from: the first seen, and the latest
+
+
+@dataclass
+class _Candidate:
+    """An operator the teleoperator welcomed: its proposal and the session keys it would use."""
+
+    params: SessionParams
+    rx_opener: auth.Opener
+    tx_sealer: auth.Sealer
+    addrs: list[Addr]  # where its hellos came from: the first, then the latest (bounded)
+
+    def seen_from(self, addr: Addr) -> None:
+        """A hello for this nonce from ``addr``.  The first address stays: a recording of the
+        genuine hello replayed from elsewhere cannot take the genuine operator's address away."""
+        if addr in self.addrs:
+            return
+        if len(self.addrs) >= CANDIDATE_ADDRS:
+            del self.addrs[1]
+        self.addrs.append(addr)
+
+
 class TeleoperatorHandshake:
     """The teleoperator's handshake: welcome a good hello, confirm that operator's start.
 
@@ -739,6 +780,12 @@ class TeleoperatorHandshake:
     the handshake goes on waiting: a stranger must not be able to stop the robot's endpoint.  Other
     garbage is counted in ``ignored`` and dropped.  It ends with ``done`` (``params``, ``peer``,
     ``start_ns`` on this clock, ``rejoin``) or, from :meth:`poll` at the timeout, ``error``.
+
+    Several operators may be welcomed at once (up to ``MAX_CANDIDATES`` nonces); the first whose start
+    verifies under the session key derived from its nonce and ours wins.  A hello alone proves only
+    that someone once held the key (it may be a recording), so it commits to nothing; the start
+    proves that its sender saw our fresh nonce.  Once the session runs, the runner answers other
+    operators "busy".
     """
 
     def __init__(
@@ -778,7 +825,10 @@ class TeleoperatorHandshake:
         self.hs_opener = auth.Opener(k_hs, auth.HANDSHAKE, FORWARD)
         self.tx_sealer: auth.Sealer | None = None
         self.rx_opener: auth.Opener | None = None
-        self._rx_key = b""
+        # Operators welcomed but not yet committed to: (address, session, nonce) -> their params
+        # and session keys.  Only a start under one of these keys (proof that the sender knows our
+        # fresh nonce) commits; so a replayed hello, which cannot produce one, locks nobody out.
+        self._candidates: dict[tuple[int, bytes], _Candidate] = {}  # (session, operator nonce)
         self.unauthenticated = 0  # datagrams whose tag did not verify: dropped, never answered
         self.last_unauthenticated = ""
 
@@ -786,40 +836,43 @@ class TeleoperatorHandshake:
     def finished(self) -> bool:
         return self.done or self.error is not None
 
-    def _open(self, data: bytes, now_ns: int) -> tuple[int, bytes] | None:
-        """(key kind, body) of an authenticated datagram, or None (counted, never answered: an
-        unauthenticated sender learns nothing and cannot use this endpoint as an amplifier)."""
+    def _open(self, data: bytes, addr: Addr, now_ns: int) -> tuple[_Candidate | None, bytes] | None:
+        """(the candidate whose session key it verifies under, or None for the handshake key; the
+        body) of an authenticated datagram, or None (counted, never answered: an unauthenticated
+        sender learns nothing and cannot use this endpoint as an amplifier)."""
         try:
             hdr = auth.peek(data)
             if hdr is None:
                 raise auth.AuthError("header", "not a teleop envelope")
             if hdr[0] == auth.HANDSHAKE:
-                return auth.HANDSHAKE, self.hs_opener.verify(data)[1]
-            if self.rx_opener is None:
-                raise auth.AuthError("kind", "a session datagram before any hello was welcomed")
-            return auth.SESSION, self.rx_opener.open(data, now_ns / 1e9)[1]
+                return None, self.hs_opener.verify(data)[1]
+            for c in reversed(self._candidates.values()):
+                if addr not in c.addrs:
+                    continue
+                try:
+                    counter, body = c.rx_opener.verify(data)
+                except auth.AuthError:
+                    continue
+                c.rx_opener.accept(counter, now_ns / 1e9)
+                return c, body
+            raise auth.AuthError("tag", "a session datagram under no welcomed operator's key")
         except auth.AuthError as e:
             self.unauthenticated += 1
             self.last_unauthenticated = str(e)
             return None
 
-    def _reject(self, addr: Addr, session: int | None, why: str) -> list[tuple[bytes, Addr]]:
+    def _reject(self, addr: Addr, session: int | None, why: str, t_ns: int) -> list[tuple[bytes, Addr]]:
         why = why[: limits.MAX_REASON_LEN]
         self.rejected += 1
         self.last_rejection = why
         self.last_rejected_addr = addr
         self.rejections.append(why)
-        return [(self.hs_sealer.seal(encode(Reject(session, why))), addr)]
+        return [(self.hs_sealer.seal(encode(Reject(session, why, t_ns))), addr)]
 
     def _ignore(self, why: str) -> list[tuple[bytes, Addr]]:
         self.ignored += 1
         self.last_ignored = why
         return []
-
-    def _busy(self, addr: Addr, session: int | None) -> bool:
-        """Another operator while one is agreed.  Over Zenoh every operator has the same
-        pseudo-address: the session id tells them apart."""
-        return self.params is not None and (addr != self.peer or session != self.params.session)
 
     def _mismatch(self, p: SessionParams) -> str | None:
         for k, want in self.expect.items():
@@ -832,46 +885,59 @@ class TeleoperatorHandshake:
         """A datagram from ``addr`` received at ``now_ns``; returns the replies to send."""
         if self.finished:
             return self._ignore("the handshake is over")
-        opened = self._open(data, now_ns)
+        opened = self._open(data, addr, now_ns)
         if opened is None:
             return []
-        key_kind, body = opened
+        cand, body = opened
         try:
             msg = parse(body, local_netem=self.local_netem)
-            if (key_kind == auth.HANDSHAKE) != isinstance(msg, Hello):
+            if (cand is None) != isinstance(msg, Hello):
                 raise ProtocolError(f"a {msg.kind} under the wrong key")
         except ProtocolError as e:
             if e.kind != "hello":
                 return self._ignore(str(e))
-            return self._reject(addr, e.session, BUSY if self._busy(addr, e.session) else str(e))
+            return self._reject(addr, e.session, str(e), e.t_ns)
         if isinstance(msg, Hello):
-            p = msg.params
-            if self._busy(addr, p.session):
-                return self._reject(addr, p.session, BUSY)
-            why = self._mismatch(p)
-            if why is not None:
-                return self._reject(addr, p.session, why)
-            self.params, self.peer = p, addr
-            self.welcomes += 1
-            fwd, bwd = auth.session_keys(self.psk, p.session, msg.nonce, self.nonce)
-            if self.rx_opener is None or self._rx_key != fwd:  # a new operator: new keys
-                self._rx_key = fwd
-                self.rx_opener = auth.Opener(fwd, auth.SESSION, FORWARD)
-                self.tx_sealer = auth.Sealer(bwd, auth.SESSION, BACKWARD)
-            welcome = Welcome(p.session, msg.t_ns, t2=now_ns, t3=now_ns, nonce=self.nonce)
-            return [(self.hs_sealer.seal(encode(welcome)), addr)]
-        if isinstance(msg, Start):
-            if self.params is not None and addr == self.peer and msg.session == self.params.session:
-                # The loop sleeps until start_ns: a start far off would park the endpoint, so it must
-                # lie within the session (a rejoin joins a running one) and a few seconds ahead.
-                earliest = now_ns - (int(self.params.duration * 1e9) if msg.rejoin else START_SLACK_NS)
-                if not earliest <= msg.start_ns <= now_ns + START_AHEAD_NS:
-                    return self._ignore(f"a start {(msg.start_ns - now_ns) / 1e9:+.3g} s from now")
-                self.start_ns, self.rejoin, self.done = msg.start_ns, msg.rejoin, True
-                assert self.tx_sealer is not None
-                return [(self.tx_sealer.seal(encode(Started(msg.session))), addr)]
-            return self._ignore(f"a start for session {msg.session} that no welcome agreed on")
+            return self._hello(msg, addr, now_ns)
+        if isinstance(msg, Start) and cand is not None and msg.session == cand.params.session:
+            return self._start(msg, cand, addr, now_ns)
         return self._ignore(f"an unexpected {msg.kind}")
+
+    def _hello(self, msg: Hello, addr: Addr, now_ns: int) -> list[tuple[bytes, Addr]]:
+        """Welcome an authentic hello that suits this teleoperator, and remember its keys."""
+        p = msg.params
+        why = self._mismatch(p)
+        if why is not None:
+            return self._reject(addr, p.session, why, msg.t_ns)
+        self.params, self.peer = p, addr  # the newest welcomed (what the timeout message names)
+        self.welcomes += 1
+        # One slot per nonce, whatever address it comes from: replaying one recorded hello from
+        # many ports takes one slot, so evicting a genuine operator needs MAX_CANDIDATES recordings.
+        key = (p.session, msg.nonce)
+        cand = self._candidates.pop(key, None)
+        if cand is None:
+            if len(self._candidates) >= MAX_CANDIDATES:
+                del self._candidates[next(iter(self._candidates))]  # the oldest
+            fwd, bwd = auth.session_keys(self.psk, p.session, msg.nonce, self.nonce)
+            rx, tx = auth.Opener(fwd, auth.SESSION, FORWARD), auth.Sealer(bwd, auth.SESSION, BACKWARD)
+            cand = _Candidate(p, rx, tx, [addr])
+        cand.seen_from(addr)
+        self._candidates[key] = cand  # newest last
+        welcome = Welcome(p.session, msg.t_ns, t2=now_ns, t3=now_ns, nonce=self.nonce)
+        return [(self.hs_sealer.seal(encode(welcome)), addr)]
+
+    def _start(self, msg: Start, cand: _Candidate, addr: Addr, now_ns: int) -> list[tuple[bytes, Addr]]:
+        """A start under a candidate's session key: commit to that operator."""
+        # The loop sleeps until start_ns: a start far off would park the endpoint, so it must lie
+        # within the session (a rejoin joins a running one) and a few seconds ahead.
+        earliest = now_ns - (int(cand.params.duration * 1e9) if msg.rejoin else START_SLACK_NS)
+        if not earliest <= msg.start_ns <= now_ns + START_AHEAD_NS:
+            return self._ignore(f"a start {(msg.start_ns - now_ns) / 1e9:+.3g} s from now")
+        self.params, self.peer = cand.params, addr
+        self.rx_opener, self.tx_sealer = cand.rx_opener, cand.tx_sealer
+        self.start_ns, self.rejoin, self.done = msg.start_ns, msg.rejoin, True
+        self._candidates.clear()
+        return [(self.tx_sealer.seal(encode(Started(msg.session))), addr)]
 
     def poll(self, now_ns: int) -> None:
         """Ends the handshake with ``error`` once ``timeout_s`` has passed without a start."""

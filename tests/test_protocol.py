@@ -76,6 +76,7 @@ NONCE_OP = bytes(range(16))  # the operator's nonce
 NONCE_TO = bytes(range(100, 116))  # the teleoperator's
 NONCES = (NONCE_OP, NONCE_TO)
 OTHER_NONCE = bytes(range(200, 216))  # a restarted peer's
+OLD_NONCE = bytes(range(50, 66))  # the operator's of an earlier, recorded handshake
 
 _counters = itertools.count(1)  # every datagram sealed here has a counter never used before
 
@@ -198,13 +199,13 @@ def teleoperator(expect: dict[str, object] | None = None, **kw: Any) -> Teleoper
     return TeleoperatorHandshake(expect or {}, now_ns=kw.pop("now_ns", T0), **kw)
 
 
-def one(replies: list[tuple[bytes, Addr]], to: Addr, *, session_key: bool = False) -> Message:
+def one(replies: list[tuple[bytes, Addr]], to: Addr, *, session_key: bool = False, **kw: Any) -> Message:
     """The single reply of a receive, sent to ``to``, verified (handshake key, or the session
-    key with ``session_key``) and parsed."""
+    key with ``session_key``; ``kw``: another session id or nonces) and parsed."""
     assert len(replies) == 1
     data, dest = replies[0]
     assert dest == to
-    return from_ss(data) if session_key else from_hs(data)
+    return from_ss(data, **kw) if session_key else from_hs(data, **kw)
 
 
 # --------------------------------------------------------------------------------------------
@@ -355,7 +356,7 @@ def welcomes(draw: st.DrawFn) -> Welcome:
 messages = st.one_of(
     st.builds(Hello, session_params(), timestamps, st.booleans(), nonces),
     welcomes(),
-    st.builds(Reject, st.none() | sessions, texts),
+    st.builds(Reject, st.none() | sessions, texts, timestamps),
     st.builds(Start, sessions, timestamps, st.booleans()),
     st.builds(Started, sessions),
     st.builds(Bye, sessions, st.integers(0, protocol.MAX_COUNT), st.integers(0, protocol.MAX_COUNT)),
@@ -381,8 +382,12 @@ def test_wire_format_is_todays() -> None:
     assert encode(Start(7, 9, rejoin=True)) == pack(
         {"t": "start", "v": 1, "session": 7, "start_ns": 9, "rejoin": True}
     )
-    assert encode(Reject(None, "x")) == pack({"t": "reject", "v": 1, "session": None, "why": "x"})
-    assert parse(pack({"t": "reject", "v": 1, "why": "x"})) == Reject(None, "x")  # session absent
+    assert encode(Reject(None, "x")) == pack({"t": "reject", "v": 1, "session": None, "why": "x", "t_ns": 0})
+    assert encode(Reject(7, "x", 5)) == pack({"t": "reject", "v": 1, "session": 7, "why": "x", "t_ns": 5})
+    assert parse(pack({"t": "reject", "v": 1, "why": "x", "t_ns": 5})) == Reject(None, "x", 5)  # no session
+    # The reject of before the echo (no t_ns) is refused: it could not be matched to a hello.
+    with pytest.raises(ProtocolError, match="bad reject: missing field 't_ns'"):
+        parse(pack({"t": "reject", "v": 1, "session": 7, "why": "x"}))
     assert encode(Bye(7, 3, 0)) == pack(
         {"t": "bye", "v": 1, "session": 7, "produced": 3, "dropped_by_limit": 0}
     )
@@ -421,10 +426,10 @@ def test_is_control_tells_maps_from_data_packets() -> None:
 
 def test_a_reason_is_truncated() -> None:
     why = "x" * 1000
-    assert parse(pack({"t": "reject", "v": 1, "session": 7, "why": why})) == Reject(
-        7, "x" * limits.MAX_REASON_LEN
+    assert parse(pack({"t": "reject", "v": 1, "session": 7, "why": why, "t_ns": 3})) == Reject(
+        7, "x" * limits.MAX_REASON_LEN, 3
     )
-    assert parse(encode(Reject(7, why))) == Reject(7, "x" * limits.MAX_REASON_LEN)
+    assert parse(encode(Reject(7, why, 3))) == Reject(7, "x" * limits.MAX_REASON_LEN, 3)
 
 
 WELCOME_MAP: dict[str, object] = {"t": "welcome", "v": 1, "session": 7, "t_ns": 1, "t2": 2, "t3": 3}
@@ -467,8 +472,16 @@ WELCOME_MAP: dict[str, object] = {"t": "welcome", "v": 1, "session": 7, "t_ns": 
             pack({"t": "start", "v": 1, "session": 7, "start_ns": 1, "rejoin": 1}),
             "rejoin must be true or false",
         ),
-        (pack({"t": "reject", "v": 1, "session": 7, "why": b"x"}), "why must be a string"),
-        (pack({"t": "reject", "v": 1, "session": 7}), "missing field 'why'"),
+        (pack({"t": "reject", "v": 1, "session": 7, "why": b"x", "t_ns": 1}), "why must be a string"),
+        (pack({"t": "reject", "v": 1, "session": 7, "t_ns": 1}), "missing field 'why'"),
+        (pack({"t": "reject", "v": 1, "session": 7, "why": "x"}), "bad reject: missing field 't_ns'"),
+        (
+            pack({"t": "reject", "v": 1, "session": 7, "why": "x", "t_ns": -1}),
+            "t_ns must be an integer in 0..",
+        ),
+        (pack({"t": "reject", "v": 1, "session": 7, "why": "x", "t_ns": 2**63}), "t_ns must be"),
+        (pack({"t": "reject", "v": 1, "session": 7, "why": "x", "t_ns": 1.0}), "t_ns .* got float 1.0"),
+        (pack({"t": "reject", "v": 1, "session": 7, "why": "x", "t_ns": True}), "t_ns .* got bool True"),
         (pack({"t": "bye", "v": 1, "session": 7, "produced": 2**32 + 1, "dropped_by_limit": 0}), "produced"),
         (pack(["t", "hello"]), "not a control message"),
         (to_hs(pack(hello_map())), "not a control message"),  # an envelope is not a body
@@ -477,6 +490,32 @@ WELCOME_MAP: dict[str, object] = {"t": "welcome", "v": 1, "session": 7, "t_ns": 
 def test_bad_messages_say_why(data: bytes, match: str) -> None:
     with pytest.raises(ProtocolError, match=match):
         parse(data)
+
+
+@pytest.mark.parametrize(
+    "m,kind,session,t_ns",
+    [
+        (hello_map(dof=-1), "hello", 7, T0),
+        (hello_map(v=2), "hello", 7, T0),  # the version is checked first: the echo is still read
+        (hello_map(session="x", t_ns=5), "hello", None, 5),
+        (hello_map(nonce=b""), "hello", 7, T0),
+        (hello_map(t_ns=-1), "hello", 7, 0),
+        (hello_map(t_ns=2**63), "hello", 7, 0),
+        (hello_map(t_ns=1.5), "hello", 7, 0),
+        (hello_map(t_ns=True), "hello", 7, 0),
+        (hello_map(t_ns=str(T0)), "hello", 7, 0),
+        ({"t": "hello", "v": 1}, "hello", None, 0),
+        ({"t": "welcome", "v": 1, "session": 7, "t_ns": 9}, "welcome", 7, 9),
+        ({"v": 1, "t_ns": 9}, None, None, 0),  # no kind: nothing is read
+    ],
+)
+def test_a_protocol_error_carries_what_could_be_read(
+    m: dict[str, object], kind: str | None, session: int | None, t_ns: int
+) -> None:
+    """kind, session and t_ns of a bad message, so that a bad hello's reject can echo its t_ns."""
+    with pytest.raises(ProtocolError) as e:
+        parse(pack(m))
+    assert (e.value.kind, e.value.session, e.value.t_ns) == (kind, session, t_ns)
 
 
 # --------------------------------------------------------------------------------------------
@@ -559,7 +598,7 @@ VALID = [
     hello_map(),
     hello_map(rejoin=True, netem_forward="delay 10ms", netem_backward="loss 1%"),
     {**WELCOME_MAP, "nonce": NONCE_TO},
-    {"t": "reject", "v": 1, "session": 7, "why": "no"},
+    {"t": "reject", "v": 1, "session": 7, "why": "no", "t_ns": 5},
     {"t": "start", "v": 1, "session": 7, "start_ns": 5, "rejoin": True},
     {"t": "started", "v": 1, "session": 7},
     {"t": "bye", "v": 1, "session": 7, "produced": 10, "dropped_by_limit": 0},
@@ -674,7 +713,7 @@ def test_a_peer_may_not_name_a_file(no_files: list[str], field: str, spec: str) 
     whys = []
     for _ in range(3):
         r = one(to.receive(hello(**{field: spec}), OP, T0), OP)
-        assert isinstance(r, Reject) and r.session == 7
+        assert isinstance(r, Reject) and r.session == 7 and r.t_ns == T0
         assert field in r.why
         if spec.split()[0] == "trace":
             assert "a peer may not name a local file" in r.why
@@ -729,10 +768,12 @@ def test_hostile_numbers_are_rejected_and_the_teleoperator_keeps_waiting(
         assert isinstance(r, Reject), bad
         assert field in r.why and r.why == to.last_rejection
         assert r.session == (None if field == "session" else 7)
+        assert r.t_ns == (0 if field == "t_ns" else T0)  # the echo, if the hello's t_ns could be read
         assert to.rejected == i and not to.finished and to.params is None
     removed = {k: v for k, v in hello_map().items() if k != field}
     r = one(to.receive(to_hs(pack(removed)), OP, T0), OP)
     assert isinstance(r, Reject) and f"missing field {field!r}" in r.why
+    assert r.t_ns == (0 if field == "t_ns" else T0)
     assert len(to.rejections) == 14 and to.error is None
     assert_accepts_a_good_hello(to)
 
@@ -746,7 +787,7 @@ def test_hostile_numbers_are_rejected_and_the_teleoperator_keeps_waiting(
 )
 def test_a_hello_that_differs_from_expect_is_rejected(change: dict[str, object], why: str) -> None:
     to = waiting(expect={"codec": "cq:8", "dof": 1, "scenario": None})
-    assert one(to.receive(hello(**change), OP, T0), OP) == Reject(7, why)
+    assert one(to.receive(hello(**change), OP, T0), OP) == Reject(7, why, T0)
     assert to.last_rejection == why and not to.finished
     assert_accepts_a_good_hello(to)
 
@@ -779,7 +820,7 @@ def test_bad_values_that_parse_but_are_out_of_range() -> None:
     }
     for field, (bad, match) in cases.items():
         r = one(to.receive(hello(**{field: bad}), OP, T0), OP)
-        assert isinstance(r, Reject)
+        assert isinstance(r, Reject) and r.t_ns == T0
         assert re.search(match, r.why), (field, r.why)
         assert "\n" not in r.why and len(r.why) <= limits.MAX_REASON_LEN
     assert to.rejected == len(cases) and not to.finished and to.unauthenticated == 0
@@ -809,7 +850,9 @@ def test_garbage_is_counted_and_dropped() -> None:
         assert to.unauthenticated == i and to.ignored == len(junk)
     # A start under the session key it would have: there is none before a welcome.
     assert to.receive(to_ss(encode(Start(7, T0))), OP, T0) == []
-    assert to.unauthenticated == len(junk) + 1 and "before any hello was welcomed" in to.last_unauthenticated
+    assert (
+        to.unauthenticated == len(junk) + 1 and "under no welcomed operator's key" in to.last_unauthenticated
+    )
     assert to.rejected == 0 and to.ignored == len(junk)
     assert_accepts_a_good_hello(to, unauthenticated=len(junk) + 1)
 
@@ -817,26 +860,127 @@ def test_garbage_is_counted_and_dropped() -> None:
 def test_a_hello_with_an_unknown_version_is_rejected() -> None:
     to = waiting()
     r = one(to.receive(hello(v=2), OP, T0), OP)
-    assert r == Reject(7, "protocol version 2 is not supported; this side speaks 1")
+    assert r == Reject(7, "protocol version 2 is not supported; this side speaks 1", T0)
 
 
-def test_busy_with_another_operator() -> None:
+def start_of(session: int, nonce_op: bytes, start_ns: int = T0 + S, **kw: Any) -> bytes:
+    """The start of the operator with ``nonce_op`` for ``session``, under its session key with
+    the teleoperator's nonce NONCE_TO."""
+    return to_ss(encode(Start(session, start_ns, **kw)), session=session, nonces=(nonce_op, NONCE_TO))
+
+
+@pytest.mark.parametrize("session2", [7, 8], ids=["one session", "two sessions"])
+@pytest.mark.parametrize("zenoh", [False, True], ids=["two addresses", "one pseudo-address"])
+@pytest.mark.parametrize("first", [0, 1], ids=["the first welcomed starts", "the second starts"])
+def test_two_operators_are_welcomed_and_the_first_start_wins(session2: int, zenoh: bool, first: int) -> None:
+    """No "busy" during the handshake: a hello may be a recording, so it commits to nothing and
+    every operator holding the key is welcomed.  The first start that verifies under the session
+    key of one of them (proof it saw this teleoperator's nonce) commits to that one; the other's
+    start then draws nothing (the runner answers it "busy" once the session runs)."""
+    ops = [(OP, 7, NONCE_OP), (OP if zenoh else STRANGER, session2, OTHER_NONCE)]
+    params = [dataclasses.replace(PARAMS, session=session) for _, session, _ in ops]
     to = waiting()
-    assert isinstance(one(to.receive(hello(), OP, T0), OP), Welcome)
-    busy = Reject(8, "busy with another operator")
-    assert one(to.receive(hello(session=8), STRANGER, T0), STRANGER) == busy
-    assert one(to.receive(hello(session=8), OP, T0), OP) == busy  # same address (Zenoh)
-    assert one(to.receive(hello(), STRANGER, T0), STRANGER) == Reject(7, busy.why)  # same session
-    assert one(to.receive(hello(dof="x"), STRANGER, T0), STRANGER) == Reject(7, busy.why)
-    assert to.receive(to_ss(encode(Start(7, T0))), STRANGER, T0) == []  # a stranger cannot start it
-    assert to.receive(to_ss(encode(Start(8, T0))), OP, T0) == []
-    assert to.rejected == 4 and to.ignored == 2 and to.peer == OP and to.unauthenticated == 0
-    # our operator's hellos are still answered (more NTP samples), then its start
-    assert isinstance(one(to.receive(hello(t_ns=9), OP, T0 + 1), OP), Welcome)
-    started = to.receive(to_ss(encode(Start(7, T0 + S, rejoin=True))), OP, T0 + 2)
-    assert one(started, OP, session_key=True) == Started(7)
-    assert to.done and to.rejoin and to.start_ns == T0 + S
-    assert to.receive(hello(), OP, T0 + 3) == []  # over: the runner's loop takes it from here
+    for i, (addr, session, nonce) in enumerate(ops):
+        w = one(to.receive(hello(session=session, nonce=nonce, t_ns=T0 + i), addr, T0 + 10 + i), addr)
+        assert w == welcome(T0 + i, T0 + 10 + i, T0 + 10 + i, session=session)
+        assert to.params == params[i] and to.peer == addr  # the newest welcomed: informational
+    # More NTP samples for the first: still welcomed, and now the newest.
+    assert isinstance(one(to.receive(hello(t_ns=T0 + 5), OP, T0 + 15), OP), Welcome)
+    assert to.params == PARAMS and to.peer == OP
+    assert to.welcomes == 3 and to.rejected == to.ignored == to.unauthenticated == 0
+    assert not to.finished and to.rx_opener is None and to.tx_sealer is None
+    assert list(candidates(to)) == [ops[1], ops[0]]
+
+    (addr_w, session_w, nonce_w), (addr_l, session_l, nonce_l) = ops[first], ops[1 - first]
+    loser_start = start_of(session_l, nonce_l, T0 + 2 * S)
+    if not zenoh:  # a start from the other's address is tried against that address's candidates only
+        assert to.receive(loser_start, addr_w, T0 + 20) == []
+        assert to.unauthenticated == 1 and "under no welcomed operator's key" in to.last_unauthenticated
+    replies = to.receive(start_of(session_w, nonce_w), addr_w, T0 + 30)
+    started = one(replies, addr_w, session_key=True, session=session_w, nonces=(nonce_w, NONCE_TO))
+    assert started == Started(session_w)
+    assert to.done and to.peer == addr_w and to.params == params[first]
+    assert to.start_ns == T0 + S and not to.rejoin and not candidates(to)
+    # The port's keys are the winner's: they open its datagrams and not the other's.
+    assert to.rx_opener is not None and to.tx_sealer is not None
+    fwd_w, bwd_w = auth.session_keys(PSK, session_w, nonce_w, NONCE_TO)
+    fwd_l, _ = auth.session_keys(PSK, session_l, nonce_l, NONCE_TO)
+    assert to.rx_opener.verify(auth.Sealer(fwd_w, SESSION, FORWARD).seal(b"w"))[1] == b"w"
+    assert auth.Opener(bwd_w, SESSION, BACKWARD).verify(to.tx_sealer.seal(b"b"))[1] == b"b"
+    with pytest.raises(AuthError, match="tag"):
+        to.rx_opener.verify(auth.Sealer(fwd_l, SESSION, FORWARD).seal(b"l"))
+
+    # The other's start, hellos, starts again: nothing, and nothing changes.
+    unauthenticated = to.unauthenticated
+    for data in [loser_start, hello(session=session_l, nonce=nonce_l), start_of(session_w, nonce_w)]:
+        assert to.receive(data, addr_l, T0 + 40) == []
+        assert to.last_ignored == "the handshake is over"
+    assert to.ignored == 3 and to.unauthenticated == unauthenticated
+    assert to.done and to.peer == addr_w and to.params == params[first] and to.start_ns == T0 + S
+
+
+def test_a_start_is_tried_against_the_operators_welcomed_from_its_address() -> None:
+    """OP's start sent from another address, or a start keyed for an operator welcomed elsewhere,
+    verifies under none of that address's candidates."""
+    to = waiting()
+    one(to.receive(hello(), OP, T0), OP)
+    one(to.receive(hello(nonce=OTHER_NONCE), STRANGER, T0), STRANGER)
+    assert to.receive(start_of(7, NONCE_OP), STRANGER, T0 + 1) == []
+    assert to.receive(start_of(7, OTHER_NONCE), OP, T0 + 1) == []
+    assert to.receive(start_of(7, NONCE_OP), ("10.0.0.1", 40001), T0 + 1) == []  # another port
+    assert to.receive(start_of(8, NONCE_OP), OP, T0 + 1) == []  # a session no hello proposed
+    assert to.unauthenticated == 4 and not to.finished and to.ignored == 0
+    assert set(candidates(to).values()) == {(0, 0)}  # no window moved
+    # A start for session 8 under OP's session-7 key: authentic, but not what was welcomed.
+    assert to.receive(to_ss(encode(Start(8, T0 + S))), OP, T0 + 1) == []
+    assert to.ignored == 1 and to.last_ignored == "an unexpected start" and not to.finished
+    # A bad hello meanwhile is rejected with its reason, and forgets no candidate.
+    r = one(to.receive(hello(dof="x"), STRANGER, T0 + 1), STRANGER)
+    assert isinstance(r, Reject) and "dof" in r.why and r.t_ns == T0 and len(candidates(to)) == 2
+    assert one(to.receive(start_of(7, NONCE_OP), OP, T0 + 2), OP, session_key=True) == Started(7)
+    assert to.done and to.peer == OP
+
+
+@pytest.mark.parametrize("zenoh", [False, True], ids=["an address each", "one pseudo-address"])
+def test_candidates_beyond_max_candidates_evict_the_oldest(zenoh: bool) -> None:
+    """At most MAX_CANDIDATES operators are remembered; a new one evicts the oldest, whose start no
+    longer verifies.  A hello again makes a candidate the newest (and brings an evicted one back)."""
+    n = protocol.MAX_CANDIDATES
+    ops = [(("10.0.1.1", 40000) if zenoh else ("10.0.1.1", 40000 + i), bytes([i]) * 16) for i in range(n + 1)]
+
+    def welcome_all(to: TeleoperatorHandshake, which: list[int]) -> None:
+        for i in which:
+            addr, nonce = ops[i]
+            assert isinstance(one(to.receive(hello(nonce=nonce, t_ns=T0 + i), addr, T0 + i), addr), Welcome)
+
+    def commits(which: list[int], i: int) -> bool:
+        """Whether operator i's start commits after the hellos of ``which``, in that order."""
+        to = waiting()
+        welcome_all(to, which)
+        addr, nonce = ops[i]
+        replies = to.receive(start_of(7, nonce), addr, T0 + 100)
+        if not replies:
+            assert to.unauthenticated == 1 and not to.finished
+            return False
+        assert one(replies, addr, session_key=True, nonces=(nonce, NONCE_TO)) == Started(7)
+        assert to.done and to.peer == addr
+        return True
+
+    to = waiting()
+    welcome_all(to, list(range(n)))
+    assert len(candidates(to)) == n
+    welcome_all(to, [n])
+    assert [nonce for _, _, nonce in candidates(to)] == [ops[i][1] for i in range(1, n + 1)]
+    assert [commits(list(range(n + 1)), i) for i in range(n + 1)] == [False] + [True] * n
+    # A hello again moves operator 0 to the newest: operator 1 is evicted instead.
+    order = [*range(n), 0, n]
+    assert [commits(order, i) for i in range(n + 1)] == [True, False] + [True] * (n - 1)
+    # An evicted operator that says hello again is a candidate again (with a fresh window).
+    order = [*range(n + 1), 0]
+    assert [commits(order, i) for i in range(n + 1)] == [True, False] + [True] * (n - 1)
+    to = waiting()
+    welcome_all(to, order)
+    assert len(candidates(to)) == n and to.welcomes == n + 2
 
 
 def test_rejections_are_bounded() -> None:
@@ -877,27 +1021,30 @@ def test_a_welcome_without_t2_is_counted_not_raised() -> None:
 def test_the_operator_ignores_what_does_not_answer_its_hello() -> None:
     op = operator()
     h = first_hello(op)
-    for data in [
-        b"",
-        b"\x81" * 3000,
-        encode(welcome(h.t_ns + 1, 5, 6)),  # answers another hello
-        encode(welcome(h.t_ns, 5, 6, session=8)),  # another session
-        encode(Reject(8, "not you")),
-        encode(Reject(None, "nobody")),
-        encode(Started(7)),  # no start sent yet
-        encode(welcome(h.t_ns, 5, 5 + 10 * MS)),  # turnaround longer than the round trip
-        encode(Bye(7, 1, 0)),
+    for data, why in [
+        (b"", "not a control message"),
+        (b"\x81" * 3000, "not valid msgpack"),
+        (encode(welcome(h.t_ns + 1, 5, 6)), "a welcome that answers no hello in flight"),  # another hello
+        (encode(welcome(h.t_ns, 5, 6, session=8)), "an unexpected welcome for session 8"),
+        (encode(Reject(8, "not you", h.t_ns)), "an unexpected reject for session 8"),
+        (encode(Reject(None, "nobody", h.t_ns)), "an unexpected reject for session None"),
+        (encode(Reject(7, "go away")), "a reject that answers none of our hellos"),  # t_ns 0
+        (encode(Reject(7, "go away", h.t_ns + 1)), "a reject that answers none of our hellos"),
+        (encode(Started(7)), "a started under the wrong key"),  # no start sent yet, and the wrong key
+        (encode(welcome(h.t_ns, 5, 5 + 10 * MS)), "turnaround t3 - t2 exceeds the round trip"),
+        (encode(Bye(7, 1, 0)), "a bye under the wrong key"),
     ]:
         op.receive(op_hs(data), T0 + MS)
-    assert op.rejected == 9 and op.error is None and op.answers == 0 and op.unauthenticated == 0
+        assert why in op.last_rejection
+    assert op.rejected == 11 and op.error is None and op.answers == 0 and op.unauthenticated == 0
     op.receive(op_ss(encode(Started(7))), T0 + MS)  # no session keys yet either
     assert op.unauthenticated == 1 and "before the session keys exist" in op.last_unauthenticated
     good = op_hs(encode(welcome(h.t_ns, 5, 6)))
     op.receive(good, T0 + MS)
     op.receive(good, T0 + MS)  # a duplicate counts once
     op.receive(op_hs(encode(welcome(h.t_ns, 5, 6))), T0 + MS)  # and so does a resent one
-    assert op.answers == 1 and op.rejected == 11
-    op.receive(op_hs(encode(Reject(7, "go away"))), T0 + 2 * MS)
+    assert op.answers == 1 and op.rejected == 13
+    op.receive(op_hs(encode(Reject(7, "go away", h.t_ns))), T0 + 2 * MS)  # answers our hello
     assert op.error == "rejected the session: go away" and op.poll(T0 + 3 * MS) == []
 
 
@@ -1093,7 +1240,7 @@ UNAUTHENTIC_HELLOS: dict[str, tuple[Callable[[], bytes], str]] = {
     "counter 0": (lambda: _envelope(0x10, 0, hello_dg()[auth.HEADER_BYTES :]), "not a teleop envelope"),
     "envelope version 2": (lambda: b"T\x20" + hello_dg()[2:], "not a teleop envelope"),
     "the welcome's direction": (lambda: seal(pack(hello_map()), BACKWARD, HANDSHAKE), "direction"),
-    "the session key": (lambda: to_ss(pack(hello_map())), "before any hello was welcomed"),
+    "the session key": (lambda: to_ss(pack(hello_map())), "under no welcomed operator's key"),
 }
 
 
@@ -1122,7 +1269,7 @@ def test_every_bit_flip_of_a_hello_is_unauthenticated() -> None:
     assert isinstance(one(to.receive(good, OP, T0), OP), Welcome)
 
 
-def test_without_the_key_a_hello_draws_no_reject_and_no_busy() -> None:
+def test_without_the_key_a_hello_draws_no_reject_and_no_welcome() -> None:
     """What draws a reject from a holder of the key draws nothing at all from anyone else."""
     to = waiting(expect={"codec": "cq:8"})
     bad = [
@@ -1139,12 +1286,14 @@ def test_without_the_key_a_hello_draws_no_reject_and_no_busy() -> None:
         assert isinstance(one(to.receive(to_hs(pack(m)), STRANGER, T0), STRANGER), Reject)
         assert to.rejected == n
     assert isinstance(one(to.receive(hello(), OP, T0), OP), Welcome)
-    # Busy with OP: another operator holding the key is told so, a stranger is not answered.
-    assert one(to.receive(hello(session=8), STRANGER, T0), STRANGER) == Reject(8, protocol.BUSY)
+    # With OP welcomed, another holder of the key is welcomed too (a hello commits to nothing);
+    # one without the key is not answered, not even from OP's address, and changes nothing.
+    assert one(to.receive(hello(session=8), STRANGER, T0), STRANGER) == welcome(T0, T0, T0, session=8)
     assert to.receive(to_hs(pack(hello_map(session=8)), psk=OTHER_PSK), STRANGER, T0) == []
-    assert to.receive(to_hs(pack(hello_map()), psk=OTHER_PSK), OP, T0) == []  # not even from OP's address
-    assert to.unauthenticated == len(bad) + 2 and to.rejected == len(bad) + 1
-    assert to.params == PARAMS and to.peer == OP
+    assert to.receive(to_hs(pack(hello_map(session=9)), psk=OTHER_PSK), OP, T0) == []
+    assert to.unauthenticated == len(bad) + 2 and to.rejected == len(bad) and to.welcomes == 2
+    assert to.params == dataclasses.replace(PARAMS, session=8) and to.peer == STRANGER  # the newest welcomed
+    assert sorted(candidates(to)) == [(OP, 7, NONCE_OP), (STRANGER, 8, NONCE_OP)]
 
 
 def test_peers_with_different_keys_never_agree() -> None:
@@ -1160,8 +1309,15 @@ def welcomed(nonce_op: bytes = NONCE_OP, **kw: Any) -> TeleoperatorHandshake:
     """A teleoperator that has welcomed OP's hello (carrying ``nonce_op``) for session 7."""
     to = waiting(**kw)
     assert one(to.receive(hello(nonce=nonce_op), OP, T0), OP) == welcome(T0, T0, T0)
-    assert to.rx_opener is not None and to.tx_sealer is not None
+    assert to.rx_opener is None and to.tx_sealer is None  # a candidate's keys, until a start commits
+    assert list(candidates(to)) == [(OP, 7, nonce_op)]
     return to
+
+
+def candidates(to: TeleoperatorHandshake) -> dict[tuple[Addr, int, bytes], tuple[int, int]]:
+    """The operators ``to`` welcomed and has not committed to, oldest first: (address, session,
+    nonce) -> the replay window (highest counter, bitmap) of its session key."""
+    return {(c.addrs[0], *k): (c.rx_opener.highest, c.rx_opener._seen) for k, c in to._candidates.items()}
 
 
 START = encode(Start(7, T0 + S))
@@ -1189,17 +1345,18 @@ def test_a_start_under_any_other_key_is_not_accepted(name: str) -> None:
     assert (to.ignored, to.unauthenticated) == ((1, 0) if counter == "ignored" else (0, 1))
     if counter == "ignored":
         assert to.last_ignored == "a start under the wrong key"
-    assert to.rx_opener is not None and to.rx_opener.highest == 0  # the window did not move
-    assert one(to.receive(to_ss(START), OP, T0 + 2), OP, session_key=True) == Started(7)
-    assert to.done and to.start_ns == T0 + S
+    assert candidates(to) == {(OP, 7, NONCE_OP): (0, 0)}  # the window did not move
+    start = to_ss(START)
+    assert one(to.receive(start, OP, T0 + 2), OP, session_key=True) == Started(7)
+    assert to.done and to.start_ns == T0 + S and to.peer == OP
+    assert to.rx_opener is not None and (SESSION, FORWARD, to.rx_opener.highest) == auth.peek(start)
 
 
 def run_handshake(
-    op: OperatorHandshake, to: TeleoperatorHandshake, capture: list[bytes] | None = None
+    op: OperatorHandshake, to: TeleoperatorHandshake, capture: list[bytes] | None = None, now: int = T0
 ) -> None:
-    """The operator (answers=1) and the teleoperator, lossless, 1 ms each way; what the operator
-    sends is appended to ``capture``."""
-    now = T0
+    """The operator (answers=1) and the teleoperator, lossless, 1 ms each way, from ``now``; what
+    the operator sends is appended to ``capture``."""
     while not op.finished:
         for d in op.poll(now):
             if capture is not None:
@@ -1223,7 +1380,8 @@ def test_a_captured_start_does_not_start_another_handshake() -> None:
     to = teleoperator(nonce=OTHER_NONCE)
     assert isinstance(one(to.receive(old_hello, OP, T0 + S), OP), Welcome)
     assert to.receive(old_start, OP, T0 + S + 1) == []
-    assert to.unauthenticated == 1 and to.last_unauthenticated == "tag" and not to.done
+    assert to.unauthenticated == 1 and not to.done
+    assert to.last_unauthenticated == "a session datagram under no welcomed operator's key"
 
     # The operator restarted (new nonce), the same teleoperator nonce: the same.
     to = teleoperator()
@@ -1236,6 +1394,161 @@ def test_a_captured_start_does_not_start_another_handshake() -> None:
     assert isinstance(one(to.receive(hello(session=8), OP, T0), OP), Welcome)
     assert to.receive(old_start, OP, T0 + 1) == []
     assert to.unauthenticated == 1 and not to.done
+
+
+EARLIER = T0 - 600 * S  # the clock of an earlier run: its hellos' t_ns are none of this run's
+
+
+def recorded(session: int = 7) -> tuple[bytes, bytes]:
+    """(hello, start) recorded from an earlier handshake: another operator nonce (OLD_NONCE),
+    another teleoperator nonce (OTHER_NONCE), ten minutes earlier; the hello's t_ns is EARLIER."""
+    captured: list[bytes] = []
+    p = dataclasses.replace(PARAMS, session=session)
+    old_op = operator(p, answers=1, nonce=OLD_NONCE, now_ns=EARLIER)
+    run_handshake(old_op, teleoperator(nonce=OTHER_NONCE, now_ns=EARLIER), captured, now=EARLIER)
+    old_hello, old_start = captured
+    assert from_op_hs(old_hello) == Hello(p, EARLIER, nonce=OLD_NONCE)
+    return old_hello, old_start
+
+
+def run_with_replays(
+    op: OperatorHandshake, to: TeleoperatorHandshake, replays: list[tuple[bytes, Addr]]
+) -> tuple[int, list[bytes]]:
+    """The operator (at OP) and the teleoperator, lossless, 1 ms each way, with every (datagram,
+    source address) of ``replays`` reaching the teleoperator just before each datagram of the
+    operator.  Replies to OP reach the operator (over Zenoh, what is sent to one reaches all).
+    Returns (the rounds: the operator's datagrams, the replies sent elsewhere: the attacker's)."""
+    rounds, elsewhere, now = 0, [], T0
+    while not op.finished:
+        for d in op.poll(now):
+            rounds += 1
+            for data, src in [*replays, (d, OP)]:
+                for reply, dest in to.receive(data, src, now + MS):
+                    if dest == OP:
+                        op.receive(reply, now + 2 * MS)
+                    else:
+                        elsewhere.append(reply)
+        now = max(now + 2 * MS, op.next_timer())
+    return rounds, elsewhere
+
+
+def assert_keys_agree(op: OperatorHandshake, to: TeleoperatorHandshake) -> None:
+    """The port's keys of both sides open each other's datagrams (no key was switched)."""
+    assert op.tx_sealer and op.rx_opener and to.tx_sealer and to.rx_opener
+    now = (op.start_ns + 1) / 1e9
+    assert to.rx_opener.open(op.tx_sealer.seal(b"forward"), now)[1] == b"forward"
+    assert op.rx_opener.open(to.tx_sealer.seal(b"backward"), now)[1] == b"backward"
+
+
+@pytest.mark.parametrize("old_session", [7, 9])
+def test_a_replayed_hello_from_another_address_locks_nobody_out(old_session: int) -> None:
+    """A hello recorded from an earlier handshake and replayed to a fresh teleoperator from another
+    address is welcomed (a hello proves only that someone once held the key) but commits to
+    nothing: the genuine operator's handshake, with the replay sent again and again, completes."""
+    old_hello, old_start = recorded(old_session)
+    old_params = dataclasses.replace(PARAMS, session=old_session)
+    to = teleoperator()
+    assert one(to.receive(old_hello, STRANGER, T0), STRANGER) == welcome(EARLIER, T0, T0, session=old_session)
+    assert to.params == old_params and to.peer == STRANGER and not to.finished  # the newest welcomed
+    assert to.receive(old_start, STRANGER, T0) == []  # keyed with the old nonces
+    assert to.unauthenticated == 1 and to.rx_opener is None
+
+    op = operator()
+    rounds, to_attacker = run_with_replays(op, to, [(old_hello, STRANGER), (old_start, STRANGER)])
+    assert op.done and to.done and op.error is None and to.error is None
+    assert to.peer == OP and to.params == PARAMS and to.start_ns == op.start_ns and not to.rejoin
+    assert op.answers == 8 and op.rejected == 0 and op.unauthenticated == 0
+    assert rounds == 9  # 8 hellos and a start
+    # The replay was welcomed each time, and never got further.
+    assert len(to_attacker) == rounds and to.unauthenticated == 1 + rounds
+    for data in to_attacker:
+        w = from_hs(data)
+        assert isinstance(w, Welcome) and (w.session, w.t_ns, w.nonce) == (old_session, EARLIER, NONCE_TO)
+    assert to.welcomes == 8 + rounds + 1
+    assert_keys_agree(op, to)
+
+    # Without a genuine operator, the replay alone never commits: the teleoperator times out.
+    to = teleoperator()
+    for i in range(10):
+        assert isinstance(one(to.receive(old_hello, STRANGER, T0 + i * S // 2), STRANGER), Welcome)
+        assert to.receive(old_start, STRANGER, T0 + i * S // 2) == []
+    to.poll(T0 + 5 * S)
+    assert not to.done and to.error == "the operator never sent start within 5 s"
+
+
+def test_a_replayed_hello_on_the_same_address_and_session_switches_no_keys() -> None:
+    """Over Zenoh every operator has one pseudo-address: an old hello (old nonce, same session)
+    interleaved with the genuine handshake makes a second candidate, not a key switch, and the
+    genuine start still commits.  The welcomes of the replay reach the operator, which refuses them."""
+    old_hello, old_start = recorded(7)
+    to = teleoperator()
+    op = operator()
+    rounds, elsewhere = run_with_replays(op, to, [(old_hello, OP), (old_start, OP)])
+    assert elsewhere == []
+    assert op.done and to.done and op.error is None and to.error is None
+    assert to.peer == OP and to.params == PARAMS and to.start_ns == op.start_ns
+    assert rounds == 9 and op.answers == 8 and to.welcomes == 8 + rounds
+    assert op.rejected == rounds  # each replay's welcome: it answers none of the operator's hellos
+    assert to.unauthenticated == rounds and op.unauthenticated == 0
+    assert_keys_agree(op, to)
+    assert to.receive(old_hello, OP, T0 + 2 * S) == [] and to.last_ignored == "the handshake is over"
+
+
+def test_a_recorded_reject_does_not_end_a_later_handshake() -> None:
+    """A reject echoes the t_ns of the hello it refuses: one recorded from an earlier handshake
+    answers none of a later operator's hellos, and is refused however often it comes."""
+    old_op = operator(dataclasses.replace(PARAMS, codec="eds:50"), nonce=OLD_NONCE, now_ns=EARLIER)
+    old_to = teleoperator({"codec": "cq:8"}, nonce=OTHER_NONCE, now_ns=EARLIER)
+    (old_hello,) = old_op.poll(EARLIER)
+    ((old_reject, _),) = old_to.receive(old_hello, OP, EARLIER + MS)
+    why = "codec 'eds:50' differs from this teleoperator's 'cq:8'"
+    assert from_hs(old_reject) == Reject(7, why, EARLIER)
+    old_op.receive(old_reject, EARLIER + 2 * MS)
+    assert old_op.error == f"rejected the session: {why}"  # it did end the handshake it answered
+
+    op = operator()
+    to = teleoperator()
+    now, replayed = T0, 0
+    while not op.finished:
+        for d in op.poll(now):
+            for reply, _ in to.receive(d, OP, now + MS):
+                op.receive(old_reject, now + 2 * MS)  # just before each reply of the teleoperator
+                replayed += 1
+                assert op.error is None and op.last_rejection == "a reject that answers none of our hellos"
+                op.receive(reply, now + 2 * MS)
+        now = max(now + 2 * MS, op.next_timer())
+    assert op.done and to.done and op.error is None
+    assert replayed == 9 and op.rejected == replayed and op.answers == 8  # 8 welcomes and the started
+    assert_keys_agree(op, to)
+
+
+@pytest.mark.parametrize(
+    "echo,ends",
+    [
+        (lambda ts: ts[-1], True),
+        (lambda ts: ts[-64], True),
+        (lambda ts: ts[-65], False),  # older than the last 64 hellos
+        (lambda ts: ts[-1] + 1, False),
+        (lambda ts: 0, False),  # what a reject of a hello with an unreadable t_ns echoes
+    ],
+    ids=["the last hello", "the 64th last", "the 65th last", "no hello", "zero"],
+)
+def test_a_reject_ends_the_handshake_if_it_echoes_one_of_our_hellos(
+    echo: Callable[[list[int]], int], ends: bool
+) -> None:
+    op = operator(timeout_s=10)
+    ts: list[int] = []
+    now = T0
+    while len(ts) < 65:
+        ts.append(first_hello(op, now).t_ns)
+        now = op.next_timer()
+    assert ts == [T0 + i * 100 * MS for i in range(65)]
+    op.receive(op_hs(encode(Reject(7, "no", echo(ts)))), now)
+    if ends:
+        assert op.error == "rejected the session: no" and op.rejected == 0
+    else:
+        assert op.error is None and op.rejected == 1
+        assert op.last_rejection == "a reject that answers none of our hellos"
 
 
 def test_a_replayed_start_draws_no_second_started() -> None:
@@ -1277,8 +1590,8 @@ def test_the_operator_does_not_count_a_welcome_it_cannot_authenticate() -> None:
     ]:
         op.receive(data, T0 + MS)
     assert op.unauthenticated == 8 and op.answers == 0 and op.rejected == 0 and op.peer_nonce is None
-    # A reject nobody with the key sent does not end it either.
-    op.receive(op_hs(encode(Reject(7, "go away")), psk=OTHER_PSK), T0 + MS)
+    # A reject nobody with the key sent does not end it either, even one that echoes the hello.
+    op.receive(op_hs(encode(Reject(7, "go away", h.t_ns)), psk=OTHER_PSK), T0 + MS)
     assert op.error is None and op.unauthenticated == 9
     op.receive(good, T0 + MS)
     assert op.answers == 1 and op.peer_nonce == NONCE_TO and op.unauthenticated == 9
@@ -1314,16 +1627,36 @@ def test_the_operator_takes_a_started_only_under_its_session_key() -> None:
     assert op.done and op.error is None and op.unauthenticated == 7
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="protocol.py: OperatorHandshake.receive does not check which key a message came under "
-    "(the teleoperator does: 'a start under the wrong key'); a started under the handshake key, "
-    "which no teleoperator sends, finishes the handshake",
-)
 def test_a_started_under_the_handshake_key_does_not_finish_the_operator() -> None:
     op, _ = starting()
     op.receive(op_hs(encode(Started(7))), T0 + 3 * MS)
-    assert not op.done
+    assert not op.done and op.error is None
+    assert op.rejected == 1 and op.last_rejection == "a started under the wrong key"
+    op.receive(op_ss(encode(Started(7))), T0 + 3 * MS)
+    assert op.done and op.rejected == 1 and op.unauthenticated == 0
+
+
+def test_the_operator_takes_welcome_and_reject_only_under_the_handshake_key() -> None:
+    """Under the session key (which a teleoperator uses only for started), a welcome or a reject,
+    even one that answers our hello, is refused."""
+    op = operator(answers=2)
+    h = first_hello(op)
+    op.receive(op_hs(encode(welcome(h.t_ns, 10, 10))), T0 + 2 * MS)
+    h2 = first_hello(op, T0 + 2 * MS)
+    op.receive(op_ss(encode(welcome(h2.t_ns, 10, 10))), T0 + 3 * MS)  # no session keys yet
+    assert op.unauthenticated == 1 and op.answers == 1
+    op.receive(op_hs(encode(welcome(h2.t_ns, 10, 10))), T0 + 3 * MS)
+    (start,) = op.poll(T0 + 3 * MS)  # now the session keys exist
+    assert op.rx_opener is not None and isinstance(from_op_ss(start), Start)
+    for body, kind in [
+        (encode(Reject(7, "go away", h2.t_ns)), "reject"),
+        (encode(welcome(h2.t_ns, 10, 10)), "welcome"),
+    ]:
+        op.receive(op_ss(body), T0 + 4 * MS)
+        assert op.last_rejection == f"a {kind} under the wrong key"
+    assert op.rejected == 2 and op.error is None and not op.done and op.unauthenticated == 1
+    op.receive(op_hs(encode(Reject(7, "go away", h2.t_ns))), T0 + 4 * MS)
+    assert op.error == "rejected the session: go away"
 
 
 def agreed(nonce_op: bytes, nonce_to: bytes) -> tuple[OperatorHandshake, TeleoperatorHandshake]:
@@ -1389,7 +1722,10 @@ unauthentic = st.one_of(
 def _to_state(to: TeleoperatorHandshake) -> tuple[object, ...]:
     opener = to.rx_opener
     window = None if opener is None else (opener.highest, opener._seen)
-    return (to.done, to.error, to.params, to.peer, to.start_ns, to.welcomes, to.rejected, to.ignored, window)
+    return (
+        *(to.done, to.error, to.params, to.peer, to.start_ns, to.welcomes, to.rejected, to.ignored),
+        *(window, candidates(to)),
+    )
 
 
 def _op_state(op: OperatorHandshake) -> tuple[object, ...]:
@@ -1403,7 +1739,8 @@ def _op_state(op: OperatorHandshake) -> tuple[object, ...]:
 def test_fuzz_unauthenticated_datagrams_change_nothing(datagrams: list[bytes]) -> None:
     """Arbitrary bytes to both state machines, waiting or mid-handshake: no exception, no reply,
     no change to done / params / anything else but the ``unauthenticated`` count."""
-    tos = [waiting(), welcomed()]
+    tos = [waiting(), welcomed(), welcomed()]
+    one(tos[2].receive(hello(nonce=OTHER_NONCE), OP, T0), OP)  # two candidates at OP's address
     ops = [operator(), starting()[0]]
     first_hello(ops[0])
     before = [_to_state(to) for to in tos], [_op_state(op) for op in ops]
@@ -1413,7 +1750,8 @@ def test_fuzz_unauthenticated_datagrams_change_nothing(datagrams: list[bytes]) -
         for op in ops:
             op.receive(data, T0 + 3 * MS)
     assert ([_to_state(to) for to in tos], [_op_state(op) for op in ops]) == before
-    assert [to.unauthenticated for to in tos] == [op.unauthenticated for op in ops] == [len(datagrams)] * 2
+    assert [to.unauthenticated for to in tos] == [len(datagrams)] * 3
+    assert [op.unauthenticated for op in ops] == [len(datagrams)] * 2
 
 
 authentic_bodies = st.one_of(
@@ -1442,3 +1780,20 @@ def test_fuzz_authentic_garbage_never_raises(items: list[tuple[bool, bytes]]) ->
             assert addr == OP
             assert isinstance(from_ss(reply) if to.done else from_hs(reply), Welcome | Reject | Started)
         op.receive(op_ss(body) if session_key else op_hs(body), T0 + 3 * MS)
+
+
+def test_one_recording_replayed_from_many_ports_evicts_nobody() -> None:
+    """A recorded hello replayed from more ports than there are candidate slots takes one slot (a
+    slot per nonce), and a recording of the genuine hello replayed from elsewhere cannot take the
+    genuine operator's address away: its start still commits."""
+    to = waiting()
+    genuine = hello(nonce=NONCE_OP)
+    assert isinstance(one(to.receive(genuine, OP, T0), OP), Welcome)
+    old = hello(nonce=bytes([0xAA]) * 16)  # an earlier run's hello
+    for port in range(3 * protocol.MAX_CANDIDATES):
+        stranger = ("10.0.0.66", 50000 + port)
+        one(to.receive(old, stranger, T0 + 1), stranger)
+        one(to.receive(genuine, stranger, T0 + 1), stranger)  # the genuine hello, recorded and replayed
+    assert len(candidates(to)) == 2
+    assert one(to.receive(start_of(7, NONCE_OP), OP, T0 + 2), OP, session_key=True) == Started(7)
+    assert to.done and to.peer == OP

@@ -249,7 +249,7 @@ class _Runner:
         if self.node.link_lost and self.opts.role == "teleoperator":
             self.replaced = True
         else:
-            reject = protocol.Reject(msg.params.session, protocol.BUSY)
+            reject = protocol.Reject(msg.params.session, protocol.BUSY, msg.t_ns)
             self.tr.send(self.port.seal(reject), addr)
 
     # --- per tick --------------------------------------------------------------------------
