@@ -7,8 +7,9 @@ be driven in memory with fake clocks and fuzzed with arbitrary bytes.  The runne
 
 **Wire format.** A control message is a msgpack map ``{"t": kind, "v": 1, ...fields}`` packed with
 ``use_bin_type=True``; data packets are msgpack arrays (``teleop.wire``), so the first byte tells the
-two apart (:func:`is_control`).  Timestamps are integer nanoseconds of the sender's monotonic clock,
-except ``start_ns``, which is on the teleoperator's clock.
+two apart (:func:`is_control`).  Timestamps are integer nanoseconds of a monotonic clock: the
+operator's for ``t_ns`` (also where a welcome or a reject echoes it), the teleoperator's for ``t2``,
+``t3`` and ``start_ns``.
 
 **Trust.** Every field that comes from the network is checked for presence, exact type and the range
 this process can afford (``teleop.limits``); anything else raises :class:`ProtocolError`, and only
@@ -32,7 +33,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections import deque
-from collections.abc import Collection, Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar, TypeAlias
 
@@ -825,7 +826,7 @@ class TeleoperatorHandshake:
         self.hs_opener = auth.Opener(k_hs, auth.HANDSHAKE, FORWARD)
         self.tx_sealer: auth.Sealer | None = None
         self.rx_opener: auth.Opener | None = None
-        # Operators welcomed but not yet committed to: (address, session, nonce) -> their params
+        # Operators welcomed but not yet committed to: (session, nonce) -> their params, addresses
         # and session keys.  Only a start under one of these keys (proof that the sender knows our
         # fresh nonce) commits; so a replayed hello, which cannot produce one, locks nobody out.
         self._candidates: dict[tuple[int, bytes], _Candidate] = {}  # (session, operator nonce)
@@ -881,8 +882,14 @@ class TeleoperatorHandshake:
                 return f"{k} {got!r} differs from this teleoperator's {want!r}"
         return None
 
-    def receive(self, data: bytes, addr: Addr, now_ns: int) -> list[tuple[bytes, Addr]]:
-        """A datagram from ``addr`` received at ``now_ns``; returns the replies to send."""
+    def receive(
+        self, data: bytes, addr: Addr, now_ns: int, reply_clock: Callable[[], int] | None = None
+    ) -> list[tuple[bytes, Addr]]:
+        """A datagram from ``addr`` received at ``now_ns``; returns the replies to send.
+
+        ``reply_clock``: read once, as late as possible, for a welcome's ``t3`` (NTP's reply time;
+        stamping it at receive would bias the clock offset by half this side's processing time).
+        None: ``t3 = now_ns`` (tests, fake clocks)."""
         if self.finished:
             return self._ignore("the handshake is over")
         opened = self._open(data, addr, now_ns)
@@ -898,12 +905,14 @@ class TeleoperatorHandshake:
                 return self._ignore(str(e))
             return self._reject(addr, e.session, str(e), e.t_ns)
         if isinstance(msg, Hello):
-            return self._hello(msg, addr, now_ns)
+            return self._hello(msg, addr, now_ns, reply_clock)
         if isinstance(msg, Start) and cand is not None and msg.session == cand.params.session:
             return self._start(msg, cand, addr, now_ns)
         return self._ignore(f"an unexpected {msg.kind}")
 
-    def _hello(self, msg: Hello, addr: Addr, now_ns: int) -> list[tuple[bytes, Addr]]:
+    def _hello(
+        self, msg: Hello, addr: Addr, now_ns: int, reply_clock: Callable[[], int] | None
+    ) -> list[tuple[bytes, Addr]]:
         """Welcome an authentic hello that suits this teleoperator, and remember its keys."""
         p = msg.params
         why = self._mismatch(p)
@@ -923,7 +932,8 @@ class TeleoperatorHandshake:
             cand = _Candidate(p, rx, tx, [addr])
         cand.seen_from(addr)
         self._candidates[key] = cand  # newest last
-        welcome = Welcome(p.session, msg.t_ns, t2=now_ns, t3=now_ns, nonce=self.nonce)
+        t3 = now_ns if reply_clock is None else max(now_ns, reply_clock())
+        welcome = Welcome(p.session, msg.t_ns, t2=now_ns, t3=t3, nonce=self.nonce)
         return [(self.hs_sealer.seal(encode(welcome)), addr)]
 
     def _start(self, msg: Start, cand: _Candidate, addr: Addr, now_ns: int) -> list[tuple[bytes, Addr]]:

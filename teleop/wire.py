@@ -5,10 +5,10 @@ followed by a CRC-32 of the array's bytes (zlib/IEEE, 4 bytes little-endian)::
 
     msgpack([magic, version, session, direction, seq, tick, t_us, codec_id, payload, energy]) + crc32
 
-Why a CRC when UDP has a checksum: the impairment shim corrupts bits *before* the socket (the
-kernel then checksums the corrupted bytes), Zenoh carries packets over links of its own, and a
-flipped bit in ``seq`` or ``energy`` would otherwise freeze a receiver or inflate the energy budget
-the passivity controller trusts.  A corrupted packet is malformed: counted and dropped.
+On the wire this body travels inside the authenticated envelope of ``teleop.auth``, whose tag
+catches any corruption (the impairment shim's ``corrupt`` included: such datagrams are counted as
+``security.rejected``).  The CRC predates the envelope; it still guards a body that is handled
+outside one (a log, a test) and costs 4 bytes.
 
 =========  =========  ==============================================================
 field      msgpack    meaning
@@ -19,7 +19,7 @@ session    uint32     session id agreed in the handshake; others are dropped
 direction  uint       0 forward (operator -> TO, wave g), 1 backward (TO -> operator, wave h)
 seq        uint32     per-direction sequence number of transmitted packets, from 0
 tick       uint64     sender's loop tick at which the payload was produced
-t_us       uint64     sender's monotonic clock, microseconds
+t_us       uint64     the tick's session time, ``round(tick * dt * 1e6)`` microseconds (not a clock)
 codec_id   uint       0 none, 1 ids, 2 eds, 3 cq
 payload    bin        the codec's bytes (see ``teleop.codecs``)
 energy     float64    sender's cumulative transmitted wave energy, J (eq. 4-5), for the watchdog

@@ -161,7 +161,7 @@ async def _teleoperator_handshake(
             raise SessionError(f"{hs.error} on {_addr(tr.local_address)}")
         await tr.wait(0.1)
         for data, addr, t_rx in tr.drain():
-            for reply, dest in hs.receive(data, addr, t_rx):
+            for reply, dest in hs.receive(data, addr, t_rx, reply_clock=clock):
                 tr.send(reply, dest)
         new = hs.rejected - shown
         if new:  # say why, but never let a flood of bad hellos flood the terminal
@@ -323,6 +323,13 @@ class _Runner:
             flush=True,
         )
 
+    async def until(self, t_ns: int, k0: int) -> None:
+        """Before tick 0: keep serving the socket, so a start resent because our started was lost
+        is answered (the operator gives up 50 ms before tick 0), and nothing piles up unread."""
+        while not self.stop.requested and (left := t_ns - time.monotonic_ns()) > 0:
+            await self.tr.wait(min(left / 1e9, 0.01))
+            self.drain(k0, play=False)
+
     async def run(self, ticker: Ticker) -> None:
         """Tick until the session's end, a signal, or (teleoperator) a new operator's session."""
         n, port, opts = self.params.ticks, self.port, self.opts
@@ -413,6 +420,7 @@ async def _run_loop(
     """Tick from ``k0`` to the session's end; tick ``k`` is due at ``t0_ns + k dt``, and
     ``t_common_ns`` is the session's tick 0 on this clock."""
     runner = _Runner(opts, tr, peer, params, port, t_common_ns, stop)
+    await runner.until(t0_ns + k0 * round(params.dt * 1e9) - 2_000_000, k0)
     ticker = Ticker(period_ns=round(params.dt * 1e9), spin_ns=opts.spin_us * 1000, capacity=params.ticks + 16)
     ticker.start(t0_ns, k0)
     await runner.run(ticker)

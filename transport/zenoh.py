@@ -6,8 +6,9 @@ processes knowing each other's address, while the 1 kHz loop keeps the same duck
 
 **Keys.** With a ``prefix`` agreed by both sides, the operator publishes on ``<prefix>/forward`` and
 subscribes to ``<prefix>/backward``; the teleoperator does the opposite.  Control messages (msgpack
-maps) and data packets (msgpack arrays, ``teleop.wire``) travel on the same two keys, as raw payload
-bytes: no Zenoh encoding or attachment is used, so any Zenoh subscriber can decode them.
+maps) and data packets (msgpack arrays, ``teleop.wire``) travel on the same two keys, each in the
+authenticated envelope of ``teleop.auth``, as the sample's payload bytes: no Zenoh encoding or
+attachment is used, so any Zenoh subscriber can read them (PROTOCOL.md) and none can forge them.
 
 **QoS.** One publisher per process: ``express=True`` (no batching: each packet leaves at once),
 ``CongestionControl.DROP`` (a stale haptic sample is worth less than a stalled loop; the handshake
