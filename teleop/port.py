@@ -302,6 +302,14 @@ class Port:
             node.receive_packet(pkt)
         return None
 
+    def verifies(self, data: bytes) -> bool:
+        """Whether ``data`` is an authentic session datagram of this session's peer (no state change)."""
+        try:
+            self.keys.rx.verify(data)
+        except auth.AuthError:
+            return False
+        return True
+
     def _accept(self, counter: int, t: float) -> bool:
         """The replay window's verdict on an authentic datagram (RFC 3711 3.3.2), counted."""
         try:

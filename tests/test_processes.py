@@ -407,3 +407,41 @@ def test_operator_restarted_mid_session_and_the_teleoperator_serves_the_new_one(
     new = json.loads((logs / "teleoperator.json").read_text())
     assert new["completed"] and new["params"]["session"] != first["params"]["session"]
     assert new["received"]["packets"] == 2000
+
+
+def test_a_recorded_hello_during_an_outage_does_not_replace_the_session(tmp_path: Path, key: str) -> None:
+    """Issue 11: while the link is down, an authentic hello of another session (a recording: it
+    holds the key, but nobody behind it knows our fresh nonce) must not take the session over."""
+    from teleop import auth, protocol
+
+    psk = auth.read_key_file(key)
+    old = protocol.SessionParams(
+        session=12345, codec="none", scenario="protocol", dof=2, b=20.0, full_scale=2.0, duration=15.0
+    )
+    recorded = protocol.OperatorHandshake(old, now_ns=1, timeout_s=1, psk=psk, nonce=bytes(16)).poll(1)[0]
+    port, logs = _free_port(), tmp_path / "logs"
+    to = _spawn("teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--log", str(logs))
+    time.sleep(0.4)
+    op = _spawn(
+        "operator", "--key-file", key, "--peer", f"127.0.0.1:{port}", "--listen", "127.0.0.1:0",
+        "--codec", "none", "--duration", "5", "--log", str(logs / "op"), "--quiet",
+    )  # fmt: skip
+    time.sleep(2.5)
+    os.kill(op.pid, signal.SIGSTOP)  # a 0.4 s outage: the teleoperator's link is lost
+    time.sleep(0.2)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as stranger:
+        stranger.bind(("127.0.0.1", 0))
+        stranger.settimeout(0.1)
+        for _ in range(3):
+            stranger.sendto(recorded, ("127.0.0.1", port))
+            time.sleep(0.05)
+        welcomed = stranger.recv(2048)  # the takeover welcomes it as a candidate ...
+    os.kill(op.pid, signal.SIGCONT)
+    assert op.wait(timeout=30) == 0
+    _, to_err = to.communicate(timeout=30)
+    assert to.returncode == 0, to_err
+    assert auth.peek(welcomed) is not None
+    t = json.loads((logs / "teleoperator.json").read_text())
+    assert t["completed"] and not t["replaced_by_new_session"]  # ... but it never commits
+    assert not list(logs.glob("teleoperator-*.json")) and "replaced" not in to_err
+    assert t["passivity"]["link_lost_events"] >= 1  # the outage really happened

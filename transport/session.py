@@ -140,9 +140,27 @@ async def _operator_handshake(
                 hs.receive(data, t_rx)
 
 
+@dataclass
+class _Handover:
+    """A teleoperator handshake that completed: what the session runs with."""
+
+    params: SessionParams
+    peer: Addr
+    start_ns: int  # on this clock
+    rejoin: bool
+    keys: PortKeys
+
+    @classmethod
+    def of(cls, hs: protocol.TeleoperatorHandshake) -> _Handover:
+        assert hs.done and hs.params is not None and hs.peer is not None
+        assert hs.tx_sealer is not None and hs.rx_opener is not None
+        keys = PortKeys(hs.tx_sealer, hs.rx_opener, hs.hs_sealer, hs.hs_opener, hs.psk, hs.nonce)
+        return cls(hs.params, hs.peer, hs.start_ns, hs.rejoin, keys)
+
+
 async def _teleoperator_handshake(
     tr: Transport, timeout: float, expect: dict[str, Any], stop: _Stop, psk: bytes
-) -> tuple[SessionParams, Addr, int, bool, PortKeys]:
+) -> _Handover:
     """Wait for an operator; returns (params, operator address, start_ns in this clock, rejoin).
 
     A hello that is malformed or does not match this teleoperator's settings is answered with a
@@ -172,10 +190,7 @@ async def _teleoperator_handshake(
                 print(f"teleop teleoperator: ... and {new - len(reasons)} more", file=sys.stderr, flush=True)
         shown = hs.rejected
         if hs.done:
-            assert hs.params is not None and hs.peer is not None
-            assert hs.tx_sealer is not None and hs.rx_opener is not None
-            keys = PortKeys(hs.tx_sealer, hs.rx_opener, hs.hs_sealer, hs.hs_opener, psk, nonce)
-            return hs.params, hs.peer, hs.start_ns, hs.rejoin, keys
+            return _Handover.of(hs)
 
 
 # --------------------------------------------------------------------------------------------
@@ -193,8 +208,14 @@ class _Runner:
         port: Port,
         t_common_ns: int,
         stop: _Stop,
+        expect: dict[str, Any] | None = None,
     ) -> None:
         self.opts, self.tr, self.peer, self.params, self.port = opts, tr, peer, params, port
+        self.expect = expect or {}
+        # Teleoperator, link lost: the handshake of whoever may replace the silent operator, and
+        # its result once a start proved it (a hello alone may be a recording: teleop.protocol).
+        self.takeover: protocol.TeleoperatorHandshake | None = None
+        self.handover: _Handover | None = None
         self.node = port.node
         self.t_common = t_common_ns
         self.stop = stop
@@ -218,6 +239,8 @@ class _Runner:
     def drain(self, k: int, play: bool = True) -> None:
         """Everything the transport received, into the port; control messages to the session logic."""
         for data, addr, t_rx in self.tr.drain():
+            if self._to_takeover(data, addr, t_rx):
+                continue
             t = (t_rx - self.t_common) / 1e9
             if addr != self.peer:
                 msg = self.port.receive(data, t, k, play, from_peer=False)
@@ -242,15 +265,39 @@ class _Runner:
             self._rejoin(msg, t_rx)  # a restarted teleoperator answering our rejoin offer
 
     def _other_hello(self, msg: protocol.Hello, addr: Addr) -> None:
-        """Another operator.  If ours has gone silent it was probably restarted: end this session
-        and serve the new one (teleoperator only); otherwise we are busy."""
-        if msg.params.session == self.params.session:
-            return  # our own operator's rejoin offer: only a restarted teleoperator answers it
-        if self.node.link_lost and self.opts.role == "teleoperator":
-            self.replaced = True
-        else:
+        """Another operator while ours is alive: we are busy.  (Our own operator's rejoin offer is
+        only for a restarted teleoperator; with the link lost, hellos go to the takeover.)"""
+        if msg.params.session != self.params.session:
             reject = protocol.Reject(msg.params.session, protocol.BUSY, msg.t_ns)
             self.tr.send(self.port.seal(reject), addr)
+
+    def _to_takeover(self, data: bytes, addr: Addr, t_rx: int) -> bool:
+        """Teleoperator whose operator went silent (probably restarted): handshake datagrams, and
+        session datagrams that are not our peer's, go to a handshake of their own; the session is
+        replaced only when that handshake completes, i.e. when a start proved the key and our fresh
+        nonce.  Returns whether the datagram was taken."""
+        if self.opts.role != "teleoperator" or not self.node.link_lost or self.handover is not None:
+            self.takeover = None
+            return False
+        hdr = auth.peek(data)
+        if hdr is None or (hdr[0] == auth.SESSION and self.port.verifies(data)):
+            return False
+        hs = self.takeover
+        if hs is not None:
+            hs.poll(t_rx)
+        if hs is None or hs.error is not None:
+            if hdr[0] != auth.HANDSHAKE:
+                return False
+            nonce = secrets.token_bytes(auth.NONCE_BYTES)
+            timeout = self.opts.connect_timeout
+            hs = self.takeover = protocol.TeleoperatorHandshake(
+                self.expect, now_ns=t_rx, timeout_s=timeout, psk=self.port.keys.psk, nonce=nonce
+            )
+        for reply, dest in hs.receive(data, addr, t_rx, reply_clock=time.monotonic_ns):
+            self.tr.send(reply, dest)
+        if hs.done:
+            self.handover, self.replaced = _Handover.of(hs), True
+        return True
 
     # --- per tick --------------------------------------------------------------------------
     async def wait_for_payload(self, ticker: Ticker, k: int) -> None:
@@ -416,24 +463,27 @@ async def _run_loop(
     t_common_ns: int,
     stop: _Stop,
     k0: int = 0,
-) -> dict[str, Any]:
+    expect: dict[str, Any] | None = None,
+) -> tuple[dict[str, Any], _Handover | None]:
     """Tick from ``k0`` to the session's end; tick ``k`` is due at ``t0_ns + k dt``, and
-    ``t_common_ns`` is the session's tick 0 on this clock."""
-    runner = _Runner(opts, tr, peer, params, port, t_common_ns, stop)
+    ``t_common_ns`` is the session's tick 0 on this clock.  Returns the summary and, when a new
+    operator replaced a silent one, its completed handshake."""
+    runner = _Runner(opts, tr, peer, params, port, t_common_ns, stop, expect)
     await runner.until(t0_ns + k0 * round(params.dt * 1e9) - 2_000_000, k0)
     ticker = Ticker(period_ns=round(params.dt * 1e9), spin_ns=opts.spin_us * 1000, capacity=params.ticks + 16)
     ticker.start(t0_ns, k0)
     await runner.run(ticker)
     stats = ticker.stats()  # the ticking only, not the linger
     completed = not stop.requested and ticker.k >= params.ticks and not runner.replaced
-    await runner.linger()
+    if not runner.replaced:  # a replaced session's operator is gone: nothing is in flight to count
+        await runner.linger()
     summary = runner.summary(stats, completed, k0)
     if opts.log_dir is not None:
         opts.log_dir.mkdir(parents=True, exist_ok=True)
         (opts.log_dir / f"{opts.role}.json").write_text(json.dumps(summary, indent=2) + "\n")
         arrays: dict[str, Any] = {**port.arrays(), "lateness_ns": stats.lateness_ns}
         np.savez_compressed(opts.log_dir / f"{opts.role}.npz", **arrays)
-    return summary
+    return summary, runner.handover
 
 
 # --------------------------------------------------------------------------------------------
@@ -460,9 +510,10 @@ async def _endpoint(
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop, sig)
     tr = await _open_transport(opts)
+    handover: _Handover | None = None
     try:
         while True:
-            summary = await _session(opts, tr, params, expect, stop)
+            summary, handover = await _session(opts, tr, params, expect, stop, handover)
             summary.update(event_loop=type(loop).__module__.split(".")[0])
             if opts.log_dir is not None:
                 (opts.log_dir / f"{opts.role}.json").write_text(json.dumps(summary, indent=2) + "\n")
@@ -484,9 +535,15 @@ async def _endpoint(
 
 
 async def _session(
-    opts: EndpointOptions, tr: Transport, params: SessionParams | None, expect: dict[str, Any], stop: _Stop
-) -> dict[str, Any]:
-    """Handshake, build the node, run the loop: one session of this process."""
+    opts: EndpointOptions,
+    tr: Transport,
+    params: SessionParams | None,
+    expect: dict[str, Any],
+    stop: _Stop,
+    handover: _Handover | None = None,
+) -> tuple[dict[str, Any], _Handover | None]:
+    """Handshake (unless a running session's takeover already completed one), build the port, run
+    the loop: one session of this process."""
     psk = opts.psk
     if psk is None:
         raise SessionError("no key: give the pre-shared key (teleop keygen) or choose insecure")
@@ -501,10 +558,11 @@ async def _session(
         k0 = 0
         extra: dict[str, Any] = {"clock_offset_ns": offset, "handshake_rtt_us": rtt / 1e3}
     else:
-        params, peer, start, rejoin, keys = await _teleoperator_handshake(
-            tr, opts.connect_timeout, expect, stop, psk
-        )
+        h = handover or await _teleoperator_handshake(tr, opts.connect_timeout, expect, stop, psk)
+        params, peer, start, rejoin, keys = h.params, h.peer, h.start_ns, h.rejoin, h.keys
         t0 = start + round(params.phase * params.dt * 1e9)
+        # A takeover's start may have passed while the replaced session wrote its logs: join late.
+        rejoin = rejoin or time.monotonic_ns() > t0 - 2_000_000
         period = round(params.dt * 1e9)
         # Joining a running session: start at a tick a little in the future, on the session's clock.
         k0 = max(0, -(-(time.monotonic_ns() - t0) // period) + 20) if rejoin else 0
@@ -513,10 +571,10 @@ async def _session(
     for w in warnings:
         print(f"teleop {opts.role}: warning: {w}", file=sys.stderr)
     port = _make_port(opts, tr, params, k0, keys)
-    summary = await _run_loop(opts, tr, peer, params, port, t0, start, stop, k0)
+    summary, replaced_by = await _run_loop(opts, tr, peer, params, port, t0, start, stop, k0, expect)
     summary.update(extra, warnings=warnings)
     summary["security"].update(auth=_auth_name(opts), key_id=auth.key_id(psk))
-    return summary
+    return summary, replaced_by
 
 
 def _auth_name(opts: EndpointOptions) -> str:
