@@ -247,6 +247,7 @@ class Port:
             keys = port_keys(auth.INSECURE_KEY, node.tx_direction, node.session, nonce, nonce)
         self.keys = keys
         self.security = SecurityCounters()
+        self._seen_tags: dict[bytes, None] = {}  # recent handshake datagrams (see receive)
         self.ticks = ticks
         self.dt = node.dt
         self.shim = shim
@@ -277,13 +278,23 @@ class Port:
             if hdr is None:
                 raise auth.AuthError("header", "not a teleop envelope")
             if hdr[0] == auth.HANDSHAKE:
-                return self._control(self.keys.hs_rx.verify(data)[1], auth.HANDSHAKE)
+                body = self.keys.hs_rx.verify(data)[1]
+                tag = bytes(data[-auth.TAG_BYTES :])  # handshake datagrams have no replay window:
+                if tag in self._seen_tags:  # drop byte-identical copies before parsing them
+                    raise auth.AuthError("replay", "a handshake datagram seen before")
+                self._seen_tags[tag] = None
+                if len(self._seen_tags) > protocol.SEEN_TAGS:
+                    del self._seen_tags[next(iter(self._seen_tags))]
+                return self._control(body, auth.HANDSHAKE)
             if not from_peer:
                 raise auth.AuthError("kind", "a session datagram from another address")
             counter, body = self.keys.rx.verify(data)
         except auth.AuthError as e:
-            sec.rejected += 1
-            sec.last_rejection = str(e)
+            if e.reason == "replay":
+                sec.replayed += 1
+            else:
+                sec.rejected += 1
+                sec.last_rejection = str(e)
             return None
         k = min(max(k, 0), self.ticks - 1)
         if body[:1] != b"\x9a":  # not a 10-element msgpack array: a control message

@@ -131,3 +131,18 @@ def test_forged_tampered_and_replayed_datagrams_change_nothing() -> None:
     after = (to.node.counters.accepted, to.node.peer_energy_sent, to.observer.summary()["received"])
     assert after[:2] == state[:2]
     assert after[2] == state[2] + 1  # the replay was authentic: the link saw a duplicate, nothing more
+
+
+def test_copies_of_an_authentic_hello_are_dropped_before_they_are_parsed() -> None:
+    """A flood of one recorded hello costs a tag check per copy: only the first is handled."""
+    from teleop import protocol
+
+    op, to = _pair(ticks=10)
+    params = protocol.SessionParams(
+        session=99, codec="none", scenario="protocol", dof=2, b=20.0, full_scale=2.0, duration=1.0
+    )
+    hello = op.seal(protocol.Hello(params, t_ns=5, nonce=bytes(16)))
+    assert isinstance(to.receive(hello, 0.0, 0, from_peer=False), protocol.Hello)
+    for _ in range(1000):
+        assert to.receive(hello, 0.0, 0, from_peer=False) is None
+    assert to.security.replayed == 1000 and to.security.rejected == 0
