@@ -37,6 +37,8 @@ from .models import Environment, Human
 from .passivity import DEFAULT_LINK_TIMEOUT, ON_LOSS, EnergyGuard, PassivityReport
 from .wave import WaveImpedance
 
+SPARSE_MARGIN_S = 0.010  # s: how late the payload after a lost one may be before the link is lost
+
 
 @dataclass
 class PortCounters:
@@ -111,7 +113,14 @@ class _Port:
         self.energy_sent = 0.0  # J carried into the channel by the transmitted wave
         self.last_error = ""
         # link supervision
-        self.link_timeout = opts.link_timeout + rx.k * dt
+        # The timeout runs from when the next payload was due (one payload interval after the
+        # last); a sparse codec's interval may be as long as the timeout itself, so for one the
+        # timeout also covers one lost payload: eds:50 with 50 ms goes lost after 110 ms of
+        # silence, not 100 (exactly what one lost packet leaves).
+        interval = rx.k * dt
+        self.link_timeout = interval + (
+            max(opts.link_timeout, interval + SPARSE_MARGIN_S) if rx.k > 1 else opts.link_timeout
+        )
         self._fade_step = dt / opts.fade_time
         self.coupling = 1.0
         self.link_lost = False
