@@ -62,7 +62,7 @@ class PortOptions:
     """How a node reconstructs what it receives and guards the channel's passivity."""
 
     max_queue: int | None = None  # playout queue bound in ticks (default: one payload, newest wins)
-    on_loss: str = "zero"  # what to play when nothing is queued: "zero" or "hold"
+    on_loss: str = "conceal"  # what to play when nothing is queued: "conceal", "hold" or "zero"
     controller: bool = True  # passivity controller on (never play more energy than was sent)
     link_timeout: float = DEFAULT_LINK_TIMEOUT  # s of silence before the safe state
     fade_time: float = 0.1  # s to fade the coupling out (and back in)

@@ -29,7 +29,7 @@ import numpy.typing as npt
 
 Array = npt.NDArray[np.float64]
 
-ON_LOSS = ("zero", "hold")
+ON_LOSS = ("zero", "hold", "conceal")
 DEFAULT_LINK_TIMEOUT = 0.050
 REPORT_BURST_S = 0.2  # s of saturated power a burst of in-band energy reports may claim at once
 

@@ -222,7 +222,7 @@ class SessionParams:
     netem_forward: str = ""  # impairment of operator -> TO, applied by the operator's shim
     netem_backward: str = ""  # impairment of TO -> operator, applied by the TO's shim
     seed: int = 0
-    on_loss: str = "zero"  # reconstruction when nothing is queued (teleop.node.PortOptions)
+    on_loss: str = "conceal"  # reconstruction when nothing is queued (teleop.node.PortOptions)
     controller: bool = True  # passivity controller
     link_timeout: float = 0.05  # s of silence before a side goes to its safe state
 

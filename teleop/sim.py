@@ -65,7 +65,7 @@ class SimConfig:
     netem_forward: str = ""  # netem spec for operator -> TO; non-empty replaces delay_ms there
     netem_backward: str = ""  # netem spec for TO -> operator
     seed: int = 0  # link seeds: 2 seed forward, 2 seed + 1 backward (a spec's own ``seed N`` wins)
-    on_loss: str = "zero"  # receivers' reconstruction when nothing is queued (teleop.node.PortOptions)
+    on_loss: str = "conceal"  # receivers' reconstruction when nothing is queued (teleop.node.PortOptions)
     controller: bool = True  # passivity controller on both receivers
     link_timeout: float = 0.05  # s of silence before a side goes to its safe state
 

@@ -55,10 +55,13 @@ def run(codec: str, imp: dict[str, Any], **kw: Any) -> dict[str, Any]:
     return s
 
 
+@pytest.mark.parametrize("on_loss", ["hold", "conceal"])  # the worst, and the default
 @pytest.mark.parametrize("name,imp", IMPAIRMENTS, ids=[n for n, _ in IMPAIRMENTS])
 @pytest.mark.parametrize("codec", CODECS)
-def test_controller_keeps_every_case_passive(codec: str, name: str, imp: dict[str, Any]) -> None:
-    s = run(codec, imp, on_loss="hold", controller=True)
+def test_controller_keeps_every_case_passive(
+    codec: str, name: str, imp: dict[str, Any], on_loss: str
+) -> None:
+    s = run(codec, imp, on_loss=on_loss, controller=True)
     assert s["min_energy_margin"] >= -1e-9, (s["energy"], s["passivity"])
     assert s["two_port_min_energy"] >= -1e-9  # eq. (4): the whole two-port never gives energy back
     assert s["passive"]
@@ -98,3 +101,13 @@ def test_outage_goes_to_safe_state_and_recovers(tmp_path: Path) -> None:
         assert pv["link_lost_events"] == 1, d
         assert 150 <= pv["link_lost_ticks"] <= 300, d  # 300 ms of silence minus the 50 ms timeout
     assert s["min_energy_margin"] >= -1e-9
+
+
+@pytest.mark.parametrize("spec", ["loss 10%", "loss gemodel 5% 20%", "delay 20ms 5ms"])
+@pytest.mark.parametrize("codec", ["none", "eds:5"])
+def test_concealment_beats_zero_fill(codec: str, spec: str) -> None:
+    """Issue 13: playing a budgeted, fading hold instead of zero on a missing sample is far more
+    transparent under loss and jitter, and stays passive."""
+    zero = run(codec, {"netem": spec}, on_loss="zero")
+    conceal = run(codec, {"netem": spec}, on_loss="conceal")
+    assert conceal["passive"] and conceal["I"] < 0.5 * zero["I"], (conceal["I"], zero["I"])

@@ -262,10 +262,12 @@ def add_netem_args(p: argparse.ArgumentParser) -> None:
 def add_passivity_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--on-loss",
-        choices=["zero", "hold"],
-        default="zero",
-        help="what a receiver plays when nothing is queued (default zero; hold is bounded by the "
-        "passivity controller)",
+        choices=["conceal", "hold", "zero"],
+        default=None,
+        help="what a receiver plays when nothing is queued: conceal (default) holds the last sample "
+        "for one payload interval, then fades it; hold keeps it; zero plays nothing.  conceal and hold "
+        "are played only within the energy budget (the passivity controller); with --no-controller "
+        "the default is zero",
     )
     p.add_argument(
         "--no-controller",

@@ -62,7 +62,8 @@ def channel_kwargs(args: argparse.Namespace) -> dict[str, Any]:
         "netem_forward": netem(args, "forward"),
         "netem_backward": netem(args, "backward"),
         "seed": args.seed,
-        "on_loss": args.on_loss,
+        # conceal is passive only behind the controller: without it, zero unless asked otherwise
+        "on_loss": args.on_loss or ("zero" if args.no_controller else "conceal"),
         "controller": not args.no_controller,
         "link_timeout": args.link_timeout / 1e3,
     }

@@ -104,7 +104,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
             f"seed {base.seed}"
         )
     print(format_table(doc["cases"]))
-    if impaired or base.on_loss != "zero" or not base.controller:
+    if impaired or base.on_loss != "conceal" or not base.controller:
         print(format_watchdog(doc["cases"]))
     if out is not None:
         _write_results(out, doc, cases)

@@ -99,6 +99,9 @@ def packed_size(n: int, bits: int) -> int:
     return (n * bits + 7) // 8
 
 
+CONCEAL_FADE = 0.95  # per tick of a gap beyond one payload: down to 5% after about 60 ticks
+
+
 class Encoder:
     """Turns one wave sample per tick into a payload, or ``None`` when it does not transmit."""
 
@@ -126,11 +129,12 @@ class PlayoutDecoder:
     """
 
     def __init__(self, dof: int, max_queue: int, on_loss: str = "zero") -> None:
-        if on_loss not in ("zero", "hold"):
-            raise CodecError(f"on_loss must be 'zero' or 'hold', got {on_loss!r}")
+        if on_loss not in ("zero", "hold", "conceal"):
+            raise CodecError(f"on_loss must be 'zero', 'hold' or 'conceal', got {on_loss!r}")
         self.dof = dof
         self.max_queue = max_queue
-        self.hold = on_loss == "hold"
+        self.on_loss = on_loss
+        self._gap = 0  # ticks since the queue ran dry
         self._queue: deque[_Run] = deque()
         self._queued = 0
         self._zero = np.zeros(dof)
@@ -171,9 +175,18 @@ class PlayoutDecoder:
         """The sample to play this tick (zero on underrun)."""
         if not self._queue:
             self.underruns += 1
-            # "hold" repeats the last value: it generates energy unless a passivity controller
-            # bounds it (teleop.passivity); "zero" is passive by itself.
-            return self._last if self.hold else self._zero
+            # "hold" repeats the last value and "conceal" fades it out (CONCEAL_FADE per tick): both
+            # generate energy unless a passivity controller bounds them (teleop.passivity), which
+            # plays them only within the budget; "zero" is passive by itself.
+            if self.on_loss == "zero":
+                return self._zero
+            self._gap += 1
+            if self.on_loss == "hold":
+                return self._last
+            # One payload interval of the gap is a lost payload: held in full; beyond, it fades.
+            over = self._gap - getattr(self, "k", 1)
+            return self._last if over <= 0 else self._last * (CONCEAL_FADE**over)
+        self._gap = 0
         head = self._queue[0]
         head.remaining -= 1
         self._queued -= 1
