@@ -22,7 +22,8 @@ operators and welcomes on a rejoin come under the handshake key.
 
 Baseline: the uncompressed stream (every tick's raw 16-bit sample in a packet of the same
 format) is not encoded per tick: its size is a closed-form function of the tick
-(``teleop.wire.packet_size``), computed for the ticks that ran when the summary is asked for.
+(``teleop.wire.packet_size``), computed for every tick of the session from this side's first to
+its last (a stalled loop's skipped ticks included) when the summary is asked for.
 """
 
 from __future__ import annotations
@@ -413,12 +414,15 @@ class Port:
 
     # --- results -------------------------------------------------------------------------
     def _count_baseline(self) -> None:
-        """Fill the sender's baseline counters for the ticks that ran (once)."""
+        """Fill the sender's baseline counters for the session's ticks (once)."""
         if self.tx.baseline_packets:
             return
-        ks = self.rec.ran()
-        if ks.size == 0:
+        ran = self.rec.ran()
+        if ran.size == 0:
             return
+        # Every tick of the session from this side's first to its last, skipped ones included: the
+        # uncompressed stream runs at 1 kHz whether or not a stalled loop ran each tick.
+        ks = np.arange(ran[0], ran[-1] + 1)
         us = round(self.dt * 1e6)
         sizes = wire.packet_size(self.node.session, ks, ks, ks * us, self.raw_payload_len) + auth.OVERHEAD
         self.tx.baseline_bulk(ks, sizes, self.raw_payload_len)

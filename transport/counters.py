@@ -4,7 +4,7 @@ Every figure comes from datagrams that really crossed the socket: ``wire_bytes``
 length plus the UDP/IPv4 headers (28 bytes), ``payload_bytes`` the codec payload inside it.  The
 baseline is the uncompressed stream, every tick's raw 16-bit sample in a packet of the same format
 (what the ``none`` codec sends); its size is computed in closed form (``teleop.wire.packet_size``)
-for the ticks that ran, never encoded or sent.
+for every tick of the session, never encoded or sent.
 
 Per-tick arrays keep the time structure, so the report can give the minimum instantaneous
 compression over a sliding window (Section III) and bandwidth over time.
