@@ -126,9 +126,9 @@ async def _operator_handshake(
         for data in hs.poll(clock()):
             tr.send(data, peer)
         if hs.error is not None:
-            hint = (
-                f" (is `teleop teleoperator --listen {_addr(peer)}` running?)" if "answer" in hs.error else ""
-            )
+            hint = ""
+            if "answer" in hs.error:  # a teleoperator with another key stays silent, by design
+                hint = f" (is `teleop teleoperator --listen {_addr(peer)}` running, with the same key?)"
             raise SessionError(f"peer {_addr(peer)} {hs.error}{hint}")
         if hs.done:
             assert hs.tx_sealer is not None and hs.rx_opener is not None
