@@ -303,3 +303,25 @@ class Opener:
         counter, body = self.verify(datagram)
         self.accept(counter, now)
         return counter, body
+
+
+class SeenTags:
+    """Drops byte-identical copies of handshake datagrams, which have no replay window.
+
+    A genuine sender never repeats a datagram (its counter moves on), so a copy is a replay; the
+    tag identifies it.  Call :meth:`check` after the tag verified and before the costly parse, so a
+    flood of one recording costs a tag check per copy.  Remembers the last ``size`` tags.
+    """
+
+    def __init__(self, size: int = 1024) -> None:
+        self.size = size
+        self._tags: dict[bytes, None] = {}  # insertion order: oldest first
+
+    def check(self, datagram: bytes) -> None:
+        """Remember ``datagram``'s tag, or AuthError("replay") if it was seen before."""
+        tag = bytes(datagram[-TAG_BYTES:])
+        if tag in self._tags:
+            raise AuthError("replay", "a handshake datagram seen before")
+        self._tags[tag] = None
+        if len(self._tags) > self.size:
+            del self._tags[next(iter(self._tags))]

@@ -248,7 +248,7 @@ class Port:
             keys = port_keys(auth.INSECURE_KEY, node.tx_direction, node.session, nonce, nonce)
         self.keys = keys
         self.security = SecurityCounters()
-        self._seen_tags: dict[bytes, None] = {}  # recent handshake datagrams (see receive)
+        self._seen = auth.SeenTags(protocol.SEEN_TAGS)  # handshake datagrams have no replay window
         self.ticks = ticks
         self.dt = node.dt
         self.shim = shim
@@ -280,12 +280,7 @@ class Port:
                 raise auth.AuthError("header", "not a teleop envelope")
             if hdr[0] == auth.HANDSHAKE:
                 body = self.keys.hs_rx.verify(data)[1]
-                tag = bytes(data[-auth.TAG_BYTES :])  # handshake datagrams have no replay window:
-                if tag in self._seen_tags:  # drop byte-identical copies before parsing them
-                    raise auth.AuthError("replay", "a handshake datagram seen before")
-                self._seen_tags[tag] = None
-                if len(self._seen_tags) > protocol.SEEN_TAGS:
-                    del self._seen_tags[next(iter(self._seen_tags))]
+                self._seen.check(data)  # a byte-identical copy is a replay: dropped before parsing
                 return self._control(body, auth.HANDSHAKE)
             if not from_peer:
                 raise auth.AuthError("kind", "a session datagram from another address")
@@ -360,10 +355,8 @@ class Port:
         the current peer; its sequence numbers start again from 0)."""
         keys, node = self.keys, self.node
         nonces = (keys.nonce, peer_nonce) if node.tx_direction == wire.FORWARD else (peer_nonce, keys.nonce)
-        fwd, bwd = auth.session_keys(keys.psk, node.session, *nonces)
-        tx_key, rx_key = (fwd, bwd) if node.tx_direction == wire.FORWARD else (bwd, fwd)
-        keys.tx = auth.Sealer(tx_key, auth.SESSION, node.tx_direction, keys.tx.counter)
-        keys.rx.rekey(rx_key)
+        new = port_keys(keys.psk, node.tx_direction, node.session, *nonces, counter=keys.tx.counter)
+        keys.tx, keys.rx = new.tx, new.rx
         node.peer_restarted()
         self.observer = LinkObserver(self.observer.spec)
 

@@ -831,7 +831,7 @@ class TeleoperatorHandshake:
         # and session keys.  Only a start under one of these keys (proof that the sender knows our
         # fresh nonce) commits; so a replayed hello, which cannot produce one, locks nobody out.
         self._candidates: dict[tuple[int, bytes], _Candidate] = {}  # (session, operator nonce)
-        self._seen_tags: dict[bytes, None] = {}  # tags of recent handshake datagrams, oldest first
+        self._seen = auth.SeenTags(SEEN_TAGS)
         self.unauthenticated = 0  # datagrams whose tag did not verify: dropped, never answered
         self.last_unauthenticated = ""
 
@@ -849,15 +849,7 @@ class TeleoperatorHandshake:
                 raise auth.AuthError("header", "not a teleop envelope")
             if hdr[0] == auth.HANDSHAKE:
                 body = self.hs_opener.verify(data)[1]
-                # Handshake datagrams have no replay window (teleop.auth); a byte-identical copy
-                # is a replay (a genuine operator's hellos differ in counter and t_ns): drop it
-                # before the costly part, so a flood of one recording costs a tag check each.
-                tag = bytes(data[-auth.TAG_BYTES :])
-                if tag in self._seen_tags:
-                    raise auth.AuthError("replay", "a handshake datagram seen before")
-                self._seen_tags[tag] = None
-                if len(self._seen_tags) > SEEN_TAGS:
-                    del self._seen_tags[next(iter(self._seen_tags))]
+                self._seen.check(data)  # a byte-identical copy is a replay: dropped before parsing
                 return None, body
             for c in reversed(self._candidates.values()):
                 if addr not in c.addrs:

@@ -55,7 +55,6 @@ __all__ = [
     "run_endpoint",
 ]
 
-ROLES = ("operator", "teleoperator")
 REJOIN_OFFER_INTERVAL_NS = 250_000_000  # operator: how often to offer a rejoin while the link is lost
 REJOIN_ANSWER_WAIT_NS = 600_000  # and how long to poll for the answer (the link is down anyway)
 REJOIN_MAX_RTT_NS = 1_000_000  # a later answer still counts if its round trip fixes the offset to 0.5 ms
