@@ -684,7 +684,10 @@ def load_trace(path_or_text: str | os.PathLike[str]) -> list[float]:
         try:
             ms = float(line)
         except ValueError:
-            raise NetemError(f"trace {name}: line {lineno}: {line!r} is not a number of ms", line) from None
+            # Quote a short bad line only: a file that is not a trace (say /etc/shadow) must not
+            # have its contents printed back.
+            shown = repr(line) if len(line) <= 16 else f"a line of {len(line)} characters"
+            raise NetemError(f"trace {name}: line {lineno}: {shown} is not a number of ms", line) from None
         if not (math.isfinite(ms) and ms >= 0):
             raise NetemError(f"trace {name}: line {lineno}: {line!r} must be a finite ms >= 0", line)
         if out and ms < out[-1]:
