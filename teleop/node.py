@@ -31,10 +31,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import wire
+from . import auth, wire
 from .codecs import Array, Codec, CodecError
 from .models import Environment, Human
 from .passivity import DEFAULT_LINK_TIMEOUT, ON_LOSS, EnergyGuard, PassivityReport
+from .ratecap import RateCap
 from .wave import WaveImpedance
 
 SPARSE_MARGIN_S = 0.010  # s: how late the payload after a lost one may be before the link is lost
@@ -66,12 +67,15 @@ class PortOptions:
     controller: bool = True  # passivity controller on (never play more energy than was sent)
     link_timeout: float = DEFAULT_LINK_TIMEOUT  # s of silence before the safe state
     fade_time: float = 0.1  # s to fade the coupling out (and back in)
+    rate_cap: float = 0.0  # bit/s on the wire in any 100 ms window (teleop.ratecap); 0: no cap
 
     def __post_init__(self) -> None:
         if self.on_loss not in ON_LOSS:
             raise ValueError(f"on_loss must be one of {', '.join(ON_LOSS)}, got {self.on_loss!r}")
         if not self.link_timeout > 0 or not self.fade_time > 0:
             raise ValueError("link_timeout and fade_time must be > 0 s")
+        if self.rate_cap:
+            RateCap(self.rate_cap, 1e-3)  # ValueError saying the allowed range
 
 
 class _Port:
@@ -98,6 +102,10 @@ class _Port:
         self.rx_codec = rx
         self.encoder = tx.encoder()
         self.decoder = rx.decoder(opts.max_queue, opts.on_loss)
+        self.rate_cap = RateCap(opts.rate_cap, dt) if opts.rate_cap else None
+        # Bytes a datagram carries beyond the packet: the envelope and the transport's header, as
+        # the wire counters count them (the port sets it from its transport).
+        self.datagram_overhead = auth.OVERHEAD + 28
         # Saturated waves carry at most 1/2 dof RANGE^2 W: the most any genuine report can grow by.
         max_power = 0.5 * wave.dof * rx.raw.full_scale**2
         self.guard = EnergyGuard(dt, controller=opts.controller, max_power=max_power)
@@ -249,6 +257,13 @@ class _Port:
             payload,
             self.energy_sent,
         )
+        cap = self.rate_cap
+        if cap is not None:
+            size = len(wire.encode(pkt)) + self.datagram_overhead
+            if not cap.allows(tick, size):
+                self.encoder.cancel()
+                return None
+            cap.sent(tick, size)
         self.seq += 1
         return pkt
 

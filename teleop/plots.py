@@ -111,3 +111,40 @@ def energy(path: Path, dt: float, series: dict[str, tuple[Array, Array, Array]])
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def pareto(path: Path, cases: list[dict[str, Any]], title: str) -> None:
+    """Transparency I against total wire rate, log scales, every case labelled, the front drawn."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(9, 6))
+    families: dict[str, list[dict[str, Any]]] = {}
+    for c in cases:
+        families.setdefault(c["codec"].split(":")[0], []).append(c)
+    for fam, cs in families.items():
+        x = [sum(c["wire_bps"].values()) / 1e3 for c in cs]
+        y = [max(c["I"], 1e-12) for c in cs]
+        ax.scatter(x, y, s=28, label=fam, zorder=3)
+        for c, xi, yi in zip(cs, x, y, strict=True):
+            ax.annotate(c["codec"], (xi, yi), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    front = sorted((c for c in cases if c.get("pareto")), key=lambda c: sum(c["wire_bps"].values()))
+    if front:
+        ax.step(
+            [sum(c["wire_bps"].values()) / 1e3 for c in front],
+            [max(c["I"], 1e-12) for c in front],
+            where="post",
+            color="k",
+            lw=1.0,
+            ls="--",
+            label="Pareto front",
+            zorder=2,
+        )
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("wire rate, both directions [kbit/s]")
+    ax.set_ylabel("transparency I (eq. 7), lower is better")
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -243,6 +243,7 @@ class Port:
         keys: PortKeys | None = None,
     ) -> None:
         self.node = node
+        node.datagram_overhead = auth.OVERHEAD + header_bytes
         if keys is None:  # the simulation: the insecure key, fixed nonces (same bytes as a real run)
             nonce = bytes(auth.NONCE_BYTES)
             keys = port_keys(auth.INSECURE_KEY, node.tx_direction, node.session, nonce, nonce)
@@ -444,6 +445,7 @@ class Port:
             "link_received": self.observer.summary(
                 sent=peer_produced, dropped_by_limit=peer_dropped_by_limit
             ),
+            "rate_cap": self._rate_cap_summary(),
             "control_rejected": self.control_rejected,
             "security": {
                 **asdict(self.security),
@@ -461,6 +463,23 @@ class Port:
                 "played": node.energy_played,
                 "peer_reported_sent": node.peer_energy_sent,
             },
+        }
+
+    def _rate_cap_summary(self) -> dict[str, Any] | None:
+        """The cap on what this side sends, and whether it held on the wire (``teleop.ratecap``)."""
+        cap = self.node.rate_cap
+        if cap is None:
+            return None
+        a = self.tx.wire_per_tick.a
+        w = min(cap.window, a.size)
+        peak = float(np.convolve(a, np.ones(w), mode="valid").max()) if a.size else 0.0
+        return {
+            "bps": cap.rate_bps,
+            "window_ms": cap.window * self.dt * 1e3,
+            "limit_bytes_per_window": cap.limit_bytes,
+            "peak_bytes_per_window": peak,
+            "held_back": cap.held_back,
+            "held": bool(peak <= cap.limit_bytes + 1e-9),
         }
 
     def arrays(self) -> dict[str, npt.NDArray[Any]]:

@@ -43,6 +43,7 @@ from teleop import auth, limits, scenarios
 from teleop.codecs import CodecError, make_codec
 from teleop.node import PortOptions
 from teleop.passivity import ON_LOSS
+from teleop.ratecap import MAX_RATE_BPS, MIN_RATE_BPS
 from teleop.scenarios import SCENARIOS
 from teleop.wave import WaveImpedance
 from transport.base import Addr
@@ -225,6 +226,7 @@ class SessionParams:
     on_loss: str = "conceal"  # reconstruction when nothing is queued (teleop.node.PortOptions)
     controller: bool = True  # passivity controller
     link_timeout: float = 0.05  # s of silence before a side goes to its safe state
+    rate_cap: float = 0.0  # bit/s per direction in any 100 ms window (teleop.ratecap); 0: none
 
     def _check_ranges(self) -> None:
         """ValueError naming the first field outside what this process can afford (teleop.limits).
@@ -244,6 +246,8 @@ class SessionParams:
         if self.on_loss not in ON_LOSS:
             raise ValueError(f"on_loss must be one of {', '.join(ON_LOSS)}, got {_show(self.on_loss)}")
         _between("link_timeout", self.link_timeout, limits.MIN_LINK_TIMEOUT_S, limits.MAX_LINK_TIMEOUT_S)
+        if self.rate_cap != 0.0:
+            _between("rate_cap", self.rate_cap, MIN_RATE_BPS, MAX_RATE_BPS)
         if len(self.codec) > limits.MAX_CODEC_SPEC_LEN:
             raise ValueError(f"codec must be at most {limits.MAX_CODEC_SPEC_LEN} characters")
         for name in _NETEM_FIELDS:
@@ -273,7 +277,12 @@ class SessionParams:
         return dataclasses.replace(self, codec=spec)
 
     def port_options(self) -> PortOptions:
-        return PortOptions(on_loss=self.on_loss, controller=self.controller, link_timeout=self.link_timeout)
+        return PortOptions(
+            on_loss=self.on_loss,
+            controller=self.controller,
+            link_timeout=self.link_timeout,
+            rate_cap=self.rate_cap,
+        )
 
     @property
     def ticks(self) -> int:
@@ -304,6 +313,7 @@ class SessionParams:
             on_loss=_str(m, "on_loss", _MAX_NAME_LEN),
             controller=_bool(m, "controller"),
             link_timeout=_float(m, "link_timeout"),
+            rate_cap=_float(m, "rate_cap") if "rate_cap" in m else 0.0,
         )
         try:
             p._check_ranges()
@@ -335,6 +345,9 @@ class SessionParams:
             "on_loss": self.on_loss,
             "controller": self.controller,
             "link_timeout": self.link_timeout,
+            # Optional on the wire: sent only when set, so a session without a cap is byte-for-byte
+            # what it was before the cap existed.
+            **({"rate_cap": self.rate_cap} if self.rate_cap else {}),
         }
 
 

@@ -127,6 +127,8 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
         "security": _security(op, to),
         # What each link did, measured at its receiver from sequence numbers and timestamps.
         "link": {"forward": to["link_received"], "backward": op["link_received"]},
+        # The data-rate cap of each direction, at its sender, and whether it held on the wire.
+        "rate_cap": {"forward": op.get("rate_cap"), "backward": to.get("rate_cap")},
         # Eq. (4): energy into the communication two-port, forward plus backward margin, per tick.
         "two_port_min_energy": float(np.nanmin(m_fwd + m_bwd)) if np.isfinite(m_fwd + m_bwd).any() else None,
         "energy": {
@@ -158,6 +160,7 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
                 on_loss=p["on_loss"],
                 controller=p["controller"],
                 link_timeout=p["link_timeout"],
+                rate_cap=p.get("rate_cap", 0.0),
                 session=p["session"],  # its size on the wire counts in the byte figures
             )
         )
@@ -253,6 +256,14 @@ def summary_text(rep: dict[str, Any]) -> str:
             f"delay {'-' if delay is None else f'{delay:.2f}'} ms  reordered {lk['reordered']}  "
             f"duplicates {lk['duplicates']}"
         )
+    for d, cap in rep.get("rate_cap", {}).items():
+        if cap:
+            lines.append(
+                f"  rate cap {d:<9} {cap['bps'] / 1e3:g} kbit/s: "
+                f"at most {cap['limit_bytes_per_window']:.0f} B "
+                f"per {cap['window_ms']:g} ms, peak {cap['peak_bytes_per_window']:.0f} B, "
+                f"{'held' if cap['held'] else 'NOT held'}; {cap['held_back']} payloads held back"
+            )
     sec = rep.get("security", {})
     if sec.get("auth"):
         how = "INSECURE (no key: integrity only)" if sec["auth"] == "insecure" else sec["auth"]

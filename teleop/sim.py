@@ -68,6 +68,7 @@ class SimConfig:
     on_loss: str = "conceal"  # receivers' reconstruction when nothing is queued (teleop.node.PortOptions)
     controller: bool = True  # passivity controller on both receivers
     link_timeout: float = 0.05  # s of silence before a side goes to its safe state
+    rate_cap: float = 0.0  # bit/s per direction in any 100 ms window (teleop.ratecap); 0: none
 
     def resolved(self) -> SimConfig:
         """A copy with every default filled in and every value checked (ValueError says what is wrong)."""
@@ -87,13 +88,21 @@ class SimConfig:
             raise ValueError(f"delay must be >= 0 ms, got {c.delay_ms}")
         if not c.dof or c.dof < 1:
             raise ValueError(f"dof must be >= 1, got {c.dof}")
-        PortOptions(on_loss=c.on_loss, controller=c.controller, link_timeout=c.link_timeout)  # checks them
+        c.port_options()  # checks them
         if not c.window_ms >= c.dt * 1e3:
             raise ValueError(f"window must be at least one tick ({c.dt * 1e3} ms), got {c.window_ms}")
         for spec in (c.netem_forward, c.netem_backward):
             if spec.strip():
                 make_link(spec, c.seed)  # NetemError (a ValueError) says which token is wrong
         return c
+
+    def port_options(self) -> PortOptions:
+        return PortOptions(
+            on_loss=self.on_loss,
+            controller=self.controller,
+            link_timeout=self.link_timeout,
+            rate_cap=self.rate_cap,
+        )
 
     def shims(self) -> dict[str, Link | None]:
         """One shim per direction: the netem spec if given, else ``delay_ms`` of constant delay."""
@@ -129,7 +138,7 @@ def _ports(cfg: SimConfig) -> tuple[Port, Port, Codec]:
     assert cfg.dof is not None and cfg.duration is not None and cfg.b is not None
     assert cfg.full_scale is not None
     n_ticks = round(cfg.duration / cfg.dt)
-    opts = PortOptions(on_loss=cfg.on_loss, controller=cfg.controller, link_timeout=cfg.link_timeout)
+    opts = cfg.port_options()
     shims = cfg.shims()
     ports = []
     for role, d, peer_spec in (
@@ -256,6 +265,8 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
         },
         "counters": {"operator": op.node.counters.as_dict(), "teleoperator": to.node.counters.as_dict()},
         "link": {"forward": t["link_received"], "backward": o["link_received"]},
+        # The data-rate cap of each direction, at its sender, and whether it held (teleop.ratecap).
+        "rate_cap": {"forward": o["rate_cap"], "backward": t["rate_cap"]},
         # What each receiver refused (teleop.auth): forgeries, corruption, replays and duplicates.
         "security": {"forward": t["security"], "backward": o["security"]},
     }

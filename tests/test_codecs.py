@@ -169,7 +169,7 @@ def test_padding_bits_rejected() -> None:
         ("zip", "unknown codec 'zip'"),
         ("ids", "takes one parameter K"),
         ("ids:x", "K must be an integer, got 'x'"),
-        ("eds:0", "K must be >= 1, got 0"),
+        ("eds:0", "K must be in 1..100000, got 0"),
         ("cq:1", "BITS must be in 2..16, got 1"),
         ("cq:17", "BITS must be in 2..16, got 17"),
         ("cq:8:-1", "full scale"),

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from teleop import auth, protocol, wire
-from teleop.codecs import make_codec
+from teleop.codecs import CODECS, make_codec
 from teleop.codecs.base import RawFormat, pack
 from teleop.node import PortOptions
 from teleop.port import Port, make_node
@@ -250,10 +250,25 @@ def test_every_data_packet_field_is_documented() -> None:
 
 def test_codec_table_matches_the_code() -> None:
     rows = re.findall(r"^\| `(\w+)[^`]*`[^|]* \| (\d) \|", DOC, re.M)
-    assert {name for name, _ in rows} == {"none", "cq", "ids", "eds"}
-    specs = {"none": "none", "cq": "cq:8", "ids": "ids:5", "eds": "eds:5"}
+    specs = {
+        "none": "none",
+        "cq": "cq:8",
+        "ids": "ids:5",
+        "eds": "eds:5",
+        "pd": "pd:5",
+        "pdp": "pdp:5",
+        "dct": "dct:20:2",
+    }
+    assert {name for name, _ in rows} == set(specs) == set(CODECS)
     for name, codec_id in rows:
         assert make_codec(specs[name]).codec_id == int(codec_id), name
+    for name, spec in specs.items():  # the table's payload sizes, at 3 DoF
+        c = make_codec(spec, dof=3)
+        want = {"pdp": 4 * 3, "dct": 2 * 2 * 3}.get(name, 2 * 3 if name != "cq" else 3)
+        assert c.payload_bytes == want, name
+        payload = c.encoder().encode(np.full(3, 0.3))
+        if c.k == 1 or name in ("pd", "pdp"):  # sent on the first tick
+            assert payload is not None and len(payload) == want, name
 
 
 def test_flags_table_matches_the_code() -> None:

@@ -466,6 +466,18 @@ class _Parser:
         return spec
 
 
+def parse_rate(text: str) -> float:
+    """One RATE in tc's units (``64kbit``; ``kbps`` is kilobytes/s), in bit/s; NetemError if bad."""
+    m = _NUM_UNIT.fullmatch(text.strip())
+    unit = m.group(2).lower() if m else None
+    if m is None or unit not in _RATE_UNITS:
+        raise NetemError("expected a number with bit|kbit|mbit|... (bits/s) or bps|kbps|... (bytes/s)", text)
+    v = float(m.group(1)) * _RATE_UNITS[unit]
+    if not (v > 0 and math.isfinite(v)):
+        raise NetemError("a rate must be finite and > 0", text)
+    return v
+
+
 def parse_netem(text: str) -> NetemSpec:
     """Parse a netem option string (what follows ``tc qdisc ... netem``); "" is a clean link."""
     return _Parser(text).parse()

@@ -114,6 +114,24 @@ def int_range(what: str, lo: int, hi: int, note: str = "") -> Callable[[str], in
     return parse
 
 
+def rate_cap(text: str) -> float:
+    """A rate in netem's units (``64kbit``; ``kbps`` are bytes/s), within teleop.ratecap's range."""
+    from transport.netem import NetemError, parse_rate
+
+    from ..ratecap import MAX_RATE_BPS, MIN_RATE_BPS
+
+    try:
+        bps = parse_rate(text)
+    except NetemError as e:
+        raise argparse.ArgumentTypeError(f"rate cap {text!r}: {e}") from None
+    if not MIN_RATE_BPS <= bps <= MAX_RATE_BPS:
+        raise argparse.ArgumentTypeError(
+            f"rate cap must be {MIN_RATE_BPS / 1e3:g}kbit to {MAX_RATE_BPS / 1e9:g}gbit (per second), "
+            f"got {text!r}"
+        )
+    return bps
+
+
 def session_id(text: str) -> int:
     return int_range("session", 0, MAX_SESSION, " (0: a random one)")(text)
 
@@ -280,6 +298,14 @@ def add_passivity_args(p: argparse.ArgumentParser) -> None:
         default=50.0,
         metavar="MS",
         help="silence before a side goes to its safe state, ms (default 50)",
+    )
+    p.add_argument(
+        "--rate-cap",
+        type=rate_cap,
+        default=0.0,
+        metavar="RATE",
+        help="hard cap on each direction's data rate, whole datagrams in any 100 ms window, in netem's "
+        "rate units (e.g. 64kbit, 8kbps); the encoder holds payloads back to keep it (default: none)",
     )
 
 

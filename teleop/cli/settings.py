@@ -66,6 +66,7 @@ def channel_kwargs(args: argparse.Namespace) -> dict[str, Any]:
         "on_loss": args.on_loss or ("zero" if args.no_controller else "conceal"),
         "controller": not args.no_controller,
         "link_timeout": args.link_timeout / 1e3,
+        "rate_cap": args.rate_cap,
     }
 
 

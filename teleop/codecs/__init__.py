@@ -1,4 +1,5 @@
-"""LDR codecs on wave variables, chosen by a spec string (``none``, ``ids:K``, ``eds:K``, ``cq:BITS``).
+"""LDR codecs on wave variables, chosen by a spec string (``none``, ``ids:K``, ``eds:K``, ``cq:BITS``,
+``pd:K``, ``pdp:K``, ``dct:N:M``).
 
 Each codec is an encoder/decoder pair that enforces its class's passivity condition:
 
@@ -9,7 +10,13 @@ none        direct          raw 16-bit, rounded toward zero (eq. 11)     none
 cq:BITS     direct          eq. (11), rounding toward zero               none
 ids:K       interpolative   eq. (8), frame mean (Cauchy-Schwarz)         one frame
 eds:K       extrapolative   eq. (10), budgeted hold                      none
+pd:K        deadband        Weber band; budgeted hold (sender + guard)   none
+pdp:K       deadband        predictive band; budgeted extrapolation      none
+dct:N:M     frequency       eq. (8) by Parseval, M of N DCT-II coeffs    one frame
 ==========  ==============  ===========================================  ==================
+
+``rate_limited`` wraps none of them: a rate cap (``teleop.ratecap``) sits in the node, in front of
+any encoder, and tells it with :meth:`Encoder.cancel` when a payload was held back.
 
 Neither side reads a clock: an encoder is called once per tick, a decoder yields once per tick.
 """
@@ -20,8 +27,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from .base import RAW_BITS, Array, CodecError, Encoder, PlayoutDecoder, RawFormat, packed_size
+from .deadband import DEFAULT_HEARTBEAT_MS, DeadbandDecoder, DeadbandEncoder
 from .direct import DirectDecoder, DirectEncoder
 from .extrapolative import EdsDecoder, EdsEncoder
+from .frequency import MAX_FRAME, DctDecoder, DctEncoder
 from .interpolative import IdsDecoder, IdsEncoder
 
 __all__ = [
@@ -40,9 +49,14 @@ __all__ = [
 #: about +-2 (b = 1, unit velocity step); the headroom keeps the protocol scenario unsaturated.
 DEFAULT_FULL_SCALE = 16.0
 
+MAX_K = 100_000  # ticks (100 s at 1 kHz): any longer frame, horizon or heartbeat is meaningless
+MAX_BAND_PCT = 100.0
+
 ACCEPTED = (
-    "none | ids:K | eds:K | cq:BITS[:RANGE]  "
-    f"(K integer >= 1 ticks; BITS integer 2..{RAW_BITS}; RANGE full scale > 0, default session range)"
+    "none | ids:K | eds:K | cq:BITS[:RANGE] | pd:PCT[:MAXMS] | pdp:PCT[:MAXMS] | dct:N:M  "
+    f"(K integer 1..{MAX_K} ticks; BITS integer 2..{RAW_BITS}; RANGE full scale > 0, default session "
+    f"range; PCT deadband in percent, 0 < PCT <= {MAX_BAND_PCT:g}; MAXMS heartbeat in ms, integer "
+    f"1..{MAX_K}, default {DEFAULT_HEARTBEAT_MS}; N frame 2..{MAX_FRAME} ticks, M coefficients 1..N)"
 )
 
 
@@ -60,10 +74,12 @@ class Codec:
     bits: int  # bits per value on the wire
     make_encoder: Callable[[], Encoder]
     make_decoder: Callable[[int, str], PlayoutDecoder]
+    values: int = 1  # values per DoF in one payload (pdp: value and slope; dct: M coefficients)
+    event_based: bool = False  # sends when the signal asks (deadband): k is its longest interval
 
     @property
     def payload_bytes(self) -> int:
-        return packed_size(self.dof, self.bits)
+        return packed_size(self.dof * self.values, self.bits)
 
     @property
     def raw_bytes_per_tick(self) -> int:
@@ -72,13 +88,14 @@ class Codec:
 
     @property
     def nominal_compression(self) -> float:
-        """c of eq. (9) in bytes: baseline bytes over K ticks / one payload."""
+        """c of eq. (9) in bytes: baseline bytes over K ticks / one payload (for a deadband codec,
+        the least it compresses: one payload per heartbeat)."""
         return self.k * self.raw_bytes_per_tick / self.payload_bytes
 
     @property
     def added_delay_ticks(self) -> int:
         """Delay the codec adds by construction (frame-based only)."""
-        return self.k - 1 if self.klass == "interpolative" else 0
+        return self.k - 1 if self.klass in ("interpolative", "frequency") else 0
 
     def encoder(self) -> Encoder:
         return self.make_encoder()
@@ -129,7 +146,7 @@ def _frame(name: str) -> Callable[[str, list[str], int, float], Codec]:
     def make(spec: str, params: list[str], dof: int, fs: float) -> Codec:
         if len(params) != 1:
             raise CodecError(f"codec {spec!r}: '{name}' takes one parameter K; accepted: {ACCEPTED}")
-        k = _int_param(spec, params[0], "K", 1)
+        k = _int_param(spec, params[0], "K", 1, MAX_K)
         raw = RawFormat(fs)
         if name == "ids":
             return Codec(
@@ -188,12 +205,73 @@ def _cq(spec: str, params: list[str], dof: int, fs: float) -> Codec:
     )
 
 
+def _deadband(name: str) -> Callable[[str, list[str], int, float], Codec]:
+    predictive = name == "pdp"
+
+    def make(spec: str, params: list[str], dof: int, fs: float) -> Codec:
+        if len(params) not in (1, 2):
+            raise CodecError(
+                f"codec {spec!r}: '{name}' takes PCT and an optional MAXMS; accepted: {ACCEPTED}"
+            )
+        try:
+            pct = float(params[0])
+        except ValueError:
+            raise CodecError(f"codec {spec!r}: PCT must be a number, got {params[0]!r}") from None
+        if not 0 < pct <= MAX_BAND_PCT:
+            raise CodecError(f"codec {spec!r}: PCT must be in (0, {MAX_BAND_PCT:g}], got {pct:g}")
+        hb = _int_param(spec, params[1], "MAXMS", 1, MAX_K) if len(params) == 2 else DEFAULT_HEARTBEAT_MS
+        raw = RawFormat(fs)
+        # MAXMS is counted in ticks, which are ms at the default 1 kHz (a codec does not know dt);
+        # the node's link supervision reads k, so it stays consistent at any rate.
+        canon = f"{name}:{pct:g}" + (f":{hb}" if hb != DEFAULT_HEARTBEAT_MS else "")
+        return Codec(
+            canon,
+            name,
+            5 if predictive else 4,
+            "deadband",
+            dof,
+            raw,
+            hb,
+            RAW_BITS,
+            lambda: DeadbandEncoder(raw, dof, pct, hb, predictive),
+            lambda q, o: DeadbandDecoder(raw, dof, predictive, q, o),
+            values=2 if predictive else 1,
+            event_based=True,
+        )
+
+    return make
+
+
+def _dct(spec: str, params: list[str], dof: int, fs: float) -> Codec:
+    if len(params) != 2:
+        raise CodecError(f"codec {spec!r}: 'dct' takes N and M; accepted: {ACCEPTED}")
+    n = _int_param(spec, params[0], "N", 2, MAX_FRAME)
+    m = _int_param(spec, params[1], "M", 1, n)
+    raw = RawFormat(fs)
+    return Codec(
+        f"dct:{n}:{m}",
+        "dct",
+        6,
+        "frequency",
+        dof,
+        raw,
+        n,
+        RAW_BITS,
+        lambda: DctEncoder(raw, n, m, dof),
+        lambda q, o: DctDecoder(raw, n, m, dof, q, o),
+        values=m,
+    )
+
+
 #: name -> factory(spec, params, dof, full_scale)
 CODECS: dict[str, Callable[[str, list[str], int, float], Codec]] = {
     "none": _none,
     "ids": _frame("ids"),
     "eds": _frame("eds"),
     "cq": _cq,
+    "pd": _deadband("pd"),
+    "pdp": _deadband("pdp"),
+    "dct": _dct,
 }
 
 

@@ -108,6 +108,13 @@ class Encoder:
     def encode(self, x: Array) -> bytes | None:  # pragma: no cover - interface
         raise NotImplementedError
 
+    def cancel(self) -> None:
+        """The payload the last ``encode`` returned was not sent (a rate cap held it back).
+
+        Codecs whose sender models the receiver (eDS, the deadbands) undo what they assumed it
+        plays; for the others the receiver just misses that payload, as on a loss.
+        """
+
 
 class _Run:
     """``value`` still to be played for ``remaining`` ticks."""
@@ -145,11 +152,15 @@ class PlayoutDecoder:
     def parse(self, payload: bytes) -> tuple[Array, int]:  # pragma: no cover - interface
         raise NotImplementedError
 
+    def runs(self, payload: bytes) -> list[tuple[Array, int]]:
+        """The ``(value, count)`` runs a payload plays: one for a held value, N for a frame."""
+        return [self.parse(payload)]
+
     def push(self, payload: bytes) -> None:
         """Queue a payload; a malformed one raises :class:`CodecError` and changes nothing."""
-        value, count = self.parse(payload)
-        self._queue.append(_Run(value, count))
-        self._queued += count
+        for value, count in self.runs(payload):
+            self._queue.append(_Run(value, count))
+            self._queued += count
         while self._queued > self.max_queue:
             head = self._queue[0]
             excess = min(self._queued - self.max_queue, head.remaining)

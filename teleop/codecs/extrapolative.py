@@ -24,6 +24,7 @@ class EdsEncoder(Encoder):
         self._energy_in = np.zeros(dof)  # sum of x**2 (energy / dt), per DoF
         self._energy_out = np.zeros(dof)  # sum of played p**2 over all horizons sent
         self._n = 0
+        self._last_out = np.zeros(dof)  # energy the last horizon added to _energy_out (for cancel)
         self.limited = 0  # horizons whose value the budget cut down
 
     def encode(self, x: Array) -> bytes | None:
@@ -40,8 +41,14 @@ class EdsEncoder(Encoder):
             p = np.where(over, np.sign(x) * np.sqrt(budget / self.k), x)
         q = self.raw.quantize(p)
         played = self.raw.dequantize(q)
-        self._energy_out += self.k * played * played
+        self._last_out = self.k * played * played
+        self._energy_out += self._last_out
         return pack(q, 16)
+
+    def cancel(self) -> None:
+        """The horizon was not sent: nothing of it will be played (the receiver conceals)."""
+        self._energy_out -= self._last_out
+        self._last_out = np.zeros_like(self._last_out)
 
 
 class EdsDecoder(PlayoutDecoder):

@@ -1,0 +1,95 @@
+"""``teleop sweep``: a grid of codecs in simulation; sweep.json, a table and pareto.png."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+from ..codecs import ACCEPTED, CodecError
+from ..scenarios import SCENARIOS
+from .args import CliError, Subcommands, add_model_args, add_netem_args, add_passivity_args, codec, int_range
+from .settings import channel_kwargs, check_duration, writable_dir
+
+
+def _progress(done: int, total: int, spec: str) -> None:
+    """A one-line bar on a terminal; one line per case otherwise (logs stay readable)."""
+    width = 30
+    bar = "#" * (width * done // total) + "-" * (width - width * done // total)
+    if sys.stderr.isatty():
+        end = "\n" if done == total else ""
+        sys.stderr.write(f"\r  [{bar}] {done}/{total} {spec:<12}{end}")
+    else:
+        sys.stderr.write(f"  [{done}/{total}] {spec}\n")
+    sys.stderr.flush()
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from .. import plots
+    from ..sim import SimConfig
+    from ..sweep import DEFAULT_GRID, format_table, run_sweep
+
+    sc = SCENARIOS[args.scenario]
+    duration = args.duration if args.duration is not None else sc.duration
+    check_duration(duration, args.dof if args.dof is not None else sc.dof)
+    out = writable_dir(Path(args.out), "--out")
+    codecs = args.codec or list(DEFAULT_GRID)
+    workers = args.jobs or min(len(codecs), os.cpu_count() or 1)
+    try:
+        base = SimConfig(
+            duration=args.duration,
+            dof=args.dof,
+            b=args.b,
+            full_scale=args.range,
+            scenario=args.scenario,
+            **channel_kwargs(args),
+        ).resolved()
+        print(
+            f"teleop sweep: {len(codecs)} codecs, scenario {base.scenario}, {base.duration:g} s, "
+            f"netem {base.netem_forward or '-'} / {base.netem_backward or '-'}, {workers} workers",
+            file=sys.stderr,
+        )
+        doc = run_sweep(codecs, base, workers=workers, progress=_progress)
+    except (ValueError, CodecError, OSError) as e:
+        raise CliError(str(e)) from None
+    print(format_table(doc))
+    (out / "sweep.json").write_text(json.dumps(doc, indent=2) + "\n")
+    net = doc["netem"]["forward"] or "no impairment"
+    plots.pareto(out / "pareto.png", doc["cases"], f"teleop sweep: {doc['scenario']}, {net}")
+    print(f"wrote {out / 'sweep.json'} and {out / 'pareto.png'}")
+    bad = [c["codec"] for c in doc["cases"] if not c["passive"]]
+    if bad:
+        print(f"NOT passive: {', '.join(bad)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def add_parser(sub: Subcommands) -> None:
+    s = sub.add_parser(
+        "sweep",
+        help="packet rate against transparency over a grid of codecs (simulation, Pareto front)",
+        description="Run a grid of codecs in teleop sim with the same settings, in parallel; print a "
+        "table sorted by wire rate, write DIR/sweep.json and DIR/pareto.png (I against wire kbit/s, "
+        "Pareto front drawn). Exit status 1 if a case lost passivity.",
+    )
+    s.add_argument(
+        "--codec",
+        action="append",
+        type=codec,
+        metavar="SPEC",
+        help=f"codec, repeatable (default: a grid over every family). Accepted: {ACCEPTED}",
+    )
+    add_model_args(s, "protocol")
+    add_netem_args(s)
+    add_passivity_args(s)
+    s.add_argument(
+        "--jobs",
+        type=int_range("jobs", 1, 256),
+        default=None,
+        metavar="N",
+        help="parallel processes (default: one per core)",
+    )
+    s.add_argument("--out", metavar="DIR", required=True, help="write DIR/sweep.json and DIR/pareto.png")
+    s.set_defaults(func=cmd_sweep)
