@@ -15,6 +15,7 @@ Do not run it next to another heavy process: the real runs are what it measures.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import platform
 import statistics
@@ -29,8 +30,11 @@ CODECS = ("none", "ids:2", "ids:50", "eds:2", "eds:50", "cq:8")  # the paper's S
 IMPAIRMENTS = ("", "loss 2%", "delay 20ms 5ms")
 
 
-def one_run(codec: str, transport: str, netem: str, duration: float, out: Path) -> dict[str, Any]:
+def one_run(
+    codec: str, transport: str, netem: str, duration: float, out: Path, playout: str = "auto"
+) -> dict[str, Any]:
     cmd = [sys.executable, "-m", "teleop.cli", "run", "--codec", codec, "--transport", transport]
+    cmd += ["--playout", playout]
     cmd += ["--duration", repr(duration), "--out", str(out), "--no-plots", "--no-live"]
     cmd += ["--netem", netem] if netem else []
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=duration * 4 + 60)
@@ -45,6 +49,8 @@ def one_run(codec: str, transport: str, netem: str, duration: float, out: Path) 
         "missed": sum(p["grace"]["missed"] for p in rep["processes"].values()),
         "link_lost": sum(rep["passivity"][d]["link_lost_events"] for d in ("forward", "backward")),
         "min_margin": min(rep["energy"][d]["min_margin"] for d in ("forward", "backward")),
+        "playout": {d: rep["playout"][d] for d in ("forward", "backward")},
+        "stale": sum(p["inbound"]["stale"] for p in rep["processes"].values()),
     }
 
 
@@ -55,16 +61,17 @@ def main() -> None:
     ap.add_argument("--transport", nargs="+", default=["udp", "zenoh"], choices=["udp", "zenoh"])
     ap.add_argument("--codec", nargs="+", default=list(CODECS))
     ap.add_argument("--netem", nargs="+", default=list(IMPAIRMENTS), help='impairments ("" for none)')
+    ap.add_argument("--playout", nargs="+", default=["auto"], help="playout settings to compare")
     ap.add_argument("--out", default="bench/results/rt_transparency.json")
     a = ap.parse_args()
     cases: list[dict[str, Any]] = []
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory() as tmp:
         for transport in a.transport:
-            for netem in a.netem:
-                for codec in a.codec:
+            for netem, playout, codec in itertools.product(a.netem, a.playout, a.codec):
+                if True:
                     runs = [
-                        one_run(codec, transport, netem, a.duration, Path(tmp) / f"r{i}")
+                        one_run(codec, transport, netem, a.duration, Path(tmp) / f"r{i}", playout)
                         for i in range(a.runs)
                     ]
                     ratios = [r["ratio"] for r in runs if r.get("ratio") is not None]
@@ -72,6 +79,7 @@ def main() -> None:
                         "transport": transport,
                         "netem": netem,
                         "codec": codec,
+                        "playout": playout,
                         "median_ratio": statistics.median(ratios) if ratios else None,
                         "I_sim": next((r["I_sim"] for r in runs if "I_sim" in r), None),
                         "runs": runs,
@@ -80,9 +88,10 @@ def main() -> None:
                     med = "-" if case["median_ratio"] is None else f"{case['median_ratio']:.2f}"
                     missed = [r.get("missed") for r in runs]
                     print(
-                        f"{transport:<6} {netem or 'none':<16} {codec:<7} I_run/I_sim median {med:>7}  "
+                        f"{transport:<6} {netem or 'none':<16} {playout:<5} {codec:<8} "
+                        f"I_run/I_sim median {med:>7}  "
                         f"I_sim {case['I_sim'] if case['I_sim'] is None else format(case['I_sim'], '.3e')}  "
-                        f"missed {missed}",
+                        f"missed {missed} stale {[r.get('stale') for r in runs]}",
                         flush=True,
                     )
     doc = {

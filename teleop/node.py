@@ -35,6 +35,7 @@ from . import auth, wire
 from .codecs import Array, Codec, CodecError
 from .models import Environment, Human
 from .passivity import DEFAULT_LINK_TIMEOUT, ON_LOSS, EnergyGuard, PassivityReport
+from .playout import parse_playout
 from .ratecap import RateCap
 from .wave import WaveImpedance
 
@@ -68,6 +69,7 @@ class PortOptions:
     link_timeout: float = DEFAULT_LINK_TIMEOUT  # s of silence before the safe state
     fade_time: float = 0.1  # s to fade the coupling out (and back in)
     rate_cap: float = 0.0  # bit/s on the wire in any 100 ms window (teleop.ratecap); 0: no cap
+    playout: str = "off"  # the receiver's playout buffer: "off", "auto" or extra ms (teleop.playout)
 
     def __post_init__(self) -> None:
         if self.on_loss not in ON_LOSS:
@@ -76,6 +78,7 @@ class PortOptions:
             raise ValueError("link_timeout and fade_time must be > 0 s")
         if self.rate_cap:
             RateCap(self.rate_cap, 1e-3)  # ValueError saying the allowed range
+        object.__setattr__(self, "playout", parse_playout(self.playout))  # canonical, or ValueError
 
 
 class _Port:
@@ -169,6 +172,15 @@ class _Port:
         self.counters.received += 1
         self.counters.malformed += 1
         self.last_error = error
+
+    def takes(self, pkt: wire.Packet) -> bool:
+        """Whether ``pkt`` is this session's, from the peer, in its codec (what a playout buffer
+        may hold; anything else goes to :meth:`receive_packet` at once, to be counted)."""
+        return (
+            pkt.session == self.session
+            and pkt.direction == self.rx_direction
+            and pkt.codec_id == self.rx_codec.codec_id
+        )
 
     def receive_packet(self, pkt: wire.Packet) -> bool:
         """Take one parsed packet.  Returns whether it was accepted; anything else is counted."""

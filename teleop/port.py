@@ -43,6 +43,7 @@ from . import auth, protocol, scenarios, wire
 from .codecs import make_codec
 from .codecs.base import RAW_BITS, packed_size
 from .node import OperatorNode, PortOptions, TeleoperatorNode
+from .playout import PlayoutBuffer
 from .wave import WaveImpedance
 
 Array = npt.NDArray[np.float64]
@@ -241,6 +242,7 @@ class Port:
         header_bytes: int = UDP_IPV4_HEADER,
         first_tick: int = 0,
         keys: PortKeys | None = None,
+        playout_floor: int = 0,
     ) -> None:
         self.node = node
         node.datagram_overhead = auth.OVERHEAD + header_bytes
@@ -258,6 +260,9 @@ class Port:
         self.observer = LinkObserver(peer_spec, joined_late=first_tick > 0)
         self.rec = Recorder(ticks, node.wave.dof)
         self.raw_payload_len = packed_size(node.wave.dof, RAW_BITS)
+        # ``auto`` keeps at least ``playout_floor`` ticks of allowance: the real-time runner asks for
+        # one (its loops and transport jitter by a fraction of a tick; the simulation by none).
+        self.playout = PlayoutBuffer(node.options.playout, node.dt, auto_floor=playout_floor)
         self.control_rejected = 0  # control messages that did not parse (counted, dropped)
         self.last_control_error = ""
         self._last_k = 0
@@ -307,7 +312,8 @@ class Port:
         if pkt.session == node.session and pkt.direction == node.rx_direction:
             self.observer.observe(t, pkt.seq, pkt.t_us / 1e6, len(data))
         if self._accept(counter, t) and play:
-            node.receive_packet(pkt)
+            for p in self.playout.add(pkt, k) if node.takes(pkt) else [pkt]:
+                node.receive_packet(p)
         return None
 
     def verifies(self, data: bytes) -> bool:
@@ -358,13 +364,19 @@ class Port:
         nonces = (keys.nonce, peer_nonce) if node.tx_direction == wire.FORWARD else (peer_nonce, keys.nonce)
         new = port_keys(keys.psk, node.tx_direction, node.session, *nonces, counter=keys.tx.counter)
         keys.tx, keys.rx = new.tx, new.rx
+        self.playout.clear()
         node.peer_restarted()
         self.observer = LinkObserver(self.observer.spec)
 
     # --- per tick ------------------------------------------------------------------------
     def tick(self, k: int, t: float) -> list[bytes]:
         """Run tick ``k`` (node time ``k dt``) at session time ``t``; the datagrams to send now."""
-        pkt = self.node.tick(k * self.dt)
+        node = self.node
+        for p in self.playout.due(k):  # the payloads whose playout time has come
+            node.receive_packet(p)
+        if node.tx_direction == wire.BACKWARD and (d := self.playout.target()) is not None:
+            node.encoder.phase = d  # send phase: sample right after the operator's payload plays
+        pkt = node.tick(k * self.dt)
         out: list[bytes] = []
         rec = self.rec
         if pkt is not None:
@@ -387,6 +399,10 @@ class Port:
         """Tick ``k``'s sample was produced by session time ``t``, before its datagrams left (for the
         true energy margin of ``teleop.report``)."""
         self.rec.send_time[k] = t
+
+    def payload_ready(self, k: int) -> bool:
+        """Whether tick ``k`` has something to play: queued in the decoder or due from the buffer."""
+        return self.node.decoder.queued > 0 or self.playout.pending(k)
 
     def next_due(self) -> float | None:
         """Session time at which the shim next has a datagram due (None: nothing held)."""
@@ -446,6 +462,7 @@ class Port:
                 sent=peer_produced, dropped_by_limit=peer_dropped_by_limit
             ),
             "rate_cap": self._rate_cap_summary(),
+            "playout": self.playout.summary(),
             "control_rejected": self.control_rejected,
             "security": {
                 **asdict(self.security),

@@ -227,6 +227,7 @@ class SessionParams:
     controller: bool = True  # passivity controller
     link_timeout: float = 0.05  # s of silence before a side goes to its safe state
     rate_cap: float = 0.0  # bit/s per direction in any 100 ms window (teleop.ratecap); 0: none
+    playout: str = "off"  # both receivers' playout buffer: off, auto or extra ms (teleop.playout)
 
     def _check_ranges(self) -> None:
         """ValueError naming the first field outside what this process can afford (teleop.limits).
@@ -272,9 +273,9 @@ class SessionParams:
                 toks = text.split()
                 if toks and toks[0] != "trace":
                     _check_netem_numbers(name, parse_netem(text))
-        self.port_options()  # ValueError for a bad on_loss or timeout
+        opts = self.port_options()  # ValueError for a bad on_loss, timeout or playout
         spec = make_codec(self.codec, self.dof, self.full_scale).spec
-        return dataclasses.replace(self, codec=spec)
+        return dataclasses.replace(self, codec=spec, playout=opts.playout)
 
     def port_options(self) -> PortOptions:
         return PortOptions(
@@ -282,6 +283,7 @@ class SessionParams:
             controller=self.controller,
             link_timeout=self.link_timeout,
             rate_cap=self.rate_cap,
+            playout=self.playout,
         )
 
     @property
@@ -314,19 +316,20 @@ class SessionParams:
             controller=_bool(m, "controller"),
             link_timeout=_float(m, "link_timeout"),
             rate_cap=_float(m, "rate_cap") if "rate_cap" in m else 0.0,
+            playout=_str(m, "playout", _MAX_NAME_LEN) if "playout" in m else "off",
         )
         try:
             p._check_ranges()
             for name in _NETEM_FIELDS:
                 _check_peer_netem(name, getattr(p, name), local_netem)
             WaveImpedance.of(p.b, p.dof)
-            p.port_options()
+            playout = p.port_options().playout
             spec = make_codec(p.codec, p.dof, p.full_scale).spec
         except ProtocolError:
             raise
         except (CodecError, ValueError, ArithmeticError) as e:  # the validators of other modules
             raise ProtocolError(str(e)) from None
-        return dataclasses.replace(p, codec=spec)
+        return dataclasses.replace(p, codec=spec, playout=playout)
 
     def to_msg(self) -> dict[str, Any]:
         return {
@@ -348,6 +351,7 @@ class SessionParams:
             # Optional on the wire: sent only when set, so a session without a cap is byte-for-byte
             # what it was before the cap existed.
             **({"rate_cap": self.rate_cap} if self.rate_cap else {}),
+            **({"playout": self.playout} if self.playout != "off" else {}),
         }
 
 

@@ -127,6 +127,8 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
         "security": _security(op, to),
         # What each link did, measured at its receiver from sequence numbers and timestamps.
         "link": {"forward": to["link_received"], "backward": op["link_received"]},
+        # Each direction's playout buffer, at its receiver: the delay it played at, late payloads.
+        "playout": {"forward": to.get("playout"), "backward": op.get("playout")},
         # The data-rate cap of each direction, at its sender, and whether it held on the wire.
         "rate_cap": {"forward": op.get("rate_cap"), "backward": to.get("rate_cap")},
         # Eq. (4): energy into the communication two-port, forward plus backward margin, per tick.
@@ -161,6 +163,9 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
                 controller=p["controller"],
                 link_timeout=p["link_timeout"],
                 rate_cap=p.get("rate_cap", 0.0),
+                playout=p.get("playout", "off"),
+                # The allowance the real runner's auto mode keeps, so the comparison is like for like.
+                playout_floor=(to.get("playout") or {}).get("auto_floor_ticks", 0),
                 session=p["session"],  # its size on the wire counts in the byte figures
             )
         )
@@ -256,6 +261,14 @@ def summary_text(rep: dict[str, Any]) -> str:
             f"delay {'-' if delay is None else f'{delay:.2f}'} ms  reordered {lk['reordered']}  "
             f"duplicates {lk['duplicates']}"
         )
+    for d, pl in rep.get("playout", {}).items():
+        if pl and pl["mode"] != "off" and pl["delay_ms"]["p50"] is not None:
+            dl = pl["delay_ms"]
+            lines.append(
+                f"  playout  {d:<9} {pl['mode']}: played at send + {dl['p50']:.0f} ms (p50), "
+                f"{dl['p99']:.0f} ms (p99), max {dl['max']:.0f} ms; late {pl['late']}, "
+                f"reordered and put back in order {pl['reordered_fixed']}"
+            )
     for d, cap in rep.get("rate_cap", {}).items():
         if cap:
             lines.append(

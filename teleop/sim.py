@@ -69,6 +69,8 @@ class SimConfig:
     controller: bool = True  # passivity controller on both receivers
     link_timeout: float = 0.05  # s of silence before a side goes to its safe state
     rate_cap: float = 0.0  # bit/s per direction in any 100 ms window (teleop.ratecap); 0: none
+    playout: str = "auto"  # receivers' playout buffer: off, auto or extra ms (teleop.playout)
+    playout_floor: int = 0  # ticks auto keeps at least (a real runner's; to compare with one)
 
     def resolved(self) -> SimConfig:
         """A copy with every default filled in and every value checked (ValueError says what is wrong)."""
@@ -102,6 +104,7 @@ class SimConfig:
             controller=self.controller,
             link_timeout=self.link_timeout,
             rate_cap=self.rate_cap,
+            playout=self.playout,
         )
 
     def shims(self) -> dict[str, Link | None]:
@@ -156,7 +159,9 @@ def _ports(cfg: SimConfig) -> tuple[Port, Port, Codec]:
             session=cfg.session,
             options=opts,
         )
-        ports.append(Port(node, ticks=n_ticks, shim=shims[d], peer_spec=peer_spec))
+        ports.append(
+            Port(node, ticks=n_ticks, shim=shims[d], peer_spec=peer_spec, playout_floor=cfg.playout_floor)
+        )
     return ports[0], ports[1], ports[0].node.tx_codec
 
 
@@ -267,6 +272,8 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
         "link": {"forward": t["link_received"], "backward": o["link_received"]},
         # The data-rate cap of each direction, at its sender, and whether it held (teleop.ratecap).
         "rate_cap": {"forward": o["rate_cap"], "backward": t["rate_cap"]},
+        # Each direction's playout buffer, at its receiver (teleop.playout).
+        "playout": {"forward": t["playout"], "backward": o["playout"]},
         # What each receiver refused (teleop.auth): forgeries, corruption, replays and duplicates.
         "security": {"forward": t["security"], "backward": o["security"]},
     }

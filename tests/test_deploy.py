@@ -12,6 +12,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -37,7 +38,7 @@ def test_udp_between_two_namespaces(tmp_path: Path) -> None:
     assert r.returncode == 0, r.stderr
     rep = json.loads((tmp_path / "report.json").read_text())
     for d in ("forward", "backward"):
-        assert rep["wire"][d]["packets"] == 40 and rep["wire"][d]["received_packets"] == 40
+        _assert_eds50_count(rep, d)
         assert rep["link"][d]["loss"] == 0.0
     # The operator reached the teleoperator at its namespace address, not over loopback.
     op = json.loads((tmp_path / "logs" / "operator.json").read_text())
@@ -59,8 +60,20 @@ def test_zenoh_through_a_router_in_a_third_namespace(tmp_path: Path) -> None:
     rep = json.loads((tmp_path / "report.json").read_text())
     assert rep["transport"] == "zenoh"
     for d in ("forward", "backward"):
-        assert rep["wire"][d]["packets"] == 40 and rep["wire"][d]["received_packets"] == 40
+        _assert_eds50_count(rep, d)
     op = json.loads((tmp_path / "logs" / "operator.json").read_text())
     assert op["completed"] and op["transport"] == "zenoh"
     left = _netns()
     assert "teleop-op-" not in left and "teleop-to-" not in left and "teleop-rt-" not in left
+
+
+def _assert_eds50_count(rep: dict[str, Any], d: str) -> None:
+    """eds:50 for 2 s sends 40 payloads a direction, all received; a host stall that skipped ticks
+    shifts the encoder's send ticks (it counts its calls), so then up to one fewer per 50 skipped."""
+    w = rep["wire"][d]
+    skipped = rep["processes"]["operator" if d == "forward" else "teleoperator"]["loop"]["skipped"]
+    assert w["received_packets"] == w["packets"], (d, w)
+    if skipped == 0:
+        assert w["packets"] == 40, (d, w["packets"])
+    else:
+        assert 40 - skipped // 50 - 1 <= w["packets"] <= 40, (d, w["packets"], skipped)

@@ -80,8 +80,9 @@ def test_counts_and_compression(tmp_path: Path, codec: str, per_dir: int, c_payl
             assert w["packets"] == per_dir and w["compression_payload"] == c_payload
         else:
             assert w["compression_payload"] == pytest.approx(c_payload * per_dir / w["packets"])
-        # On the wire the header weighs in: c_wire < c_payload unless every tick is sent.
-        assert 0.5 * c_payload < w["compression_wire"] <= 1.05 * c_payload
+        # On the wire the header weighs in: c_wire < c_payload unless every tick is sent (then a
+        # stall's skipped ticks, which send nothing, raise both alike).
+        assert 0.5 * c_payload < w["compression_wire"] <= 1.05 * c_payload * per_dir / w["packets"]
         assert w["min_instant_compression_wire"] <= w["compression_wire"] * 1.05
     for role, p in rep["processes"].items():
         loop = p["loop"]
@@ -129,7 +130,11 @@ def test_report_contract_and_logs(tmp_path: Path) -> None:
     with np.load(tmp_path / "run" / "logs" / "operator.npz") as z:
         sent_ticks = np.flatnonzero(z["tx_wire"])
         per_tick = z["tx_wire"][sent_ticks]
-    assert sent_ticks.tolist() == list(range(0, 2000, 50))
+        ran = np.flatnonzero(~np.isnan(z["play_time_s"]))
+    # eDS counts its calls: every 50th tick the loop ran (ticks 0, 50, ... unless a stall skipped some).
+    assert sent_ticks.tolist() == ran[::50].tolist()
+    if rep["processes"]["operator"]["loop"]["skipped"] == 0:
+        assert sent_ticks.tolist() == list(range(0, 2000, 50))
     for seq, (tick, counted) in enumerate(zip(sent_ticks.tolist(), per_tick.tolist(), strict=True)):
         pkt = wire.Packet(rep["session"], wire.FORWARD, seq, tick, tick * 1000, 2, bytes(4), 1.0)
         assert counted == auth.OVERHEAD + len(wire.encode(pkt)) + 28  # envelope, packet, UDP/IPv4
@@ -410,7 +415,8 @@ def test_operator_restarted_mid_session_and_the_teleoperator_serves_the_new_one(
     assert first["passivity"]["link_lost_events"] == 1  # it went to its safe state first
     new = json.loads((logs / "teleoperator.json").read_text())
     assert new["completed"] and new["params"]["session"] != first["params"]["session"]
-    assert new["received"]["packets"] == 2000
+    op2_loop = json.loads((logs / "operator.json").read_text())["loop"]
+    assert new["received"]["packets"] == 2000 - op2_loop["skipped"]  # every tick it ran sent one
 
 
 def test_a_recorded_hello_during_an_outage_does_not_replace_the_session(tmp_path: Path, key: str) -> None:
@@ -462,7 +468,10 @@ def test_issue10_codecs_and_rate_cap_in_real_processes(tmp_path: Path, codec: st
     assert r.returncode == 0, r.stderr
     for d, sender in (("forward", "operator"), ("backward", "teleoperator")):
         w = rep["wire"][d]
-        assert w["received_packets"] == w["packets"] > 0
+        if "zenoh" in extra:  # CongestionControl.DROP gives up on a packet when Zenoh's threads starve
+            assert 0.8 * w["packets"] <= w["received_packets"] <= w["packets"]
+        else:
+            assert w["received_packets"] == w["packets"] > 0
         skipped = rep["processes"][sender]["loop"]["skipped"]
         if codec == "dct:20:2":  # a frame of 20 ticks per payload, 2 coefficients x 2 DoF
             assert 150 - skipped // 20 - 1 <= w["packets"] <= 150

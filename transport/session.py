@@ -55,6 +55,9 @@ __all__ = [
     "run_endpoint",
 ]
 
+# A real loop and transport deliver a payload a fraction of a tick late now and then (a stalled
+# sender, the scheduler, Zenoh's threads): ``--playout auto`` keeps one tick of allowance for that.
+REAL_PLAYOUT_FLOOR_TICKS = 1
 REJOIN_OFFER_INTERVAL_NS = 250_000_000  # operator: how often to offer a rejoin while the link is lost
 REJOIN_ANSWER_WAIT_NS = 600_000  # and how long to poll for the answer (the link is down anyway)
 REJOIN_MAX_RTT_NS = 1_000_000  # a later answer still counts if its round trip fixes the offset to 0.5 ms
@@ -301,8 +304,8 @@ class _Runner:
     # --- per tick --------------------------------------------------------------------------
     async def wait_for_payload(self, ticker: Ticker, k: int) -> None:
         """Grace: a payload is due and not here yet; poll for it a little rather than play a gap."""
-        node, g = self.node, self.grace
-        if not (g["limit_us"] and node.decoder.queued == 0 and node.counters.accepted):
+        node, g, port = self.node, self.grace, self.port
+        if not (g["limit_us"] and not port.payload_ready(k) and node.counters.accepted):
             return
         if k < self._grace_resume:
             return
@@ -310,15 +313,15 @@ class _Runner:
         limit = ticker.deadline(k) + round(g["limit_us"] * 1000)
         g["waits"] += 1
         t_wait = clock()
-        while node.decoder.queued == 0 and clock() < limit:
+        while not port.payload_ready(k) and clock() < limit:
             await asyncio.sleep(0)
             self.drain(k)
-            if node.decoder.queued == 0:
+            if not port.payload_ready(k):
                 # Sleep a little rather than spin: under SCHED_FIFO a spinning loop would starve
                 # the threads that deliver the packet (Zenoh's runtime runs at normal priority).
                 time.sleep(20e-6)
         g["waited_us_total"] += (clock() - t_wait) / 1e3
-        if node.decoder.queued:
+        if port.payload_ready(k):
             self._grace_streak = 0
             return
         g["missed"] += 1
@@ -607,6 +610,7 @@ def _make_port(opts: EndpointOptions, tr: Transport, params: SessionParams, k0: 
         header_bytes=tr.header_bytes,
         first_tick=k0,
         keys=keys,
+        playout_floor=REAL_PLAYOUT_FLOOR_TICKS,
     )
 
 

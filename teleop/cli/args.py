@@ -114,6 +114,18 @@ def int_range(what: str, lo: int, hi: int, note: str = "") -> Callable[[str], in
     return parse
 
 
+DEFAULT_PLAYOUT = "auto"
+
+
+def playout(text: str) -> str:
+    from ..playout import parse_playout
+
+    try:
+        return parse_playout(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def rate_cap(text: str) -> float:
     """A rate in netem's units (``64kbit``; ``kbps`` are bytes/s), within teleop.ratecap's range."""
     from transport.netem import NetemError, parse_rate
@@ -298,6 +310,15 @@ def add_passivity_args(p: argparse.ArgumentParser) -> None:
         default=50.0,
         metavar="MS",
         help="silence before a side goes to its safe state, ms (default 50)",
+    )
+    p.add_argument(
+        "--playout",
+        type=playout,
+        default=DEFAULT_PLAYOUT,
+        metavar="auto|MS|off",
+        help="receivers' playout (jitter) buffer: play each payload at its send tick plus the lowest "
+        "delay seen plus an allowance: auto follows the observed lateness, MS fixes it, off plays "
+        f"payloads as they arrive (default {DEFAULT_PLAYOUT})",
     )
     p.add_argument(
         "--rate-cap",

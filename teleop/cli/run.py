@@ -193,6 +193,7 @@ def _session_options(params: Any) -> list[str]:
         *("--seed", str(params.seed), "--on-loss", params.on_loss),
         *("--link-timeout", repr(params.link_timeout * 1e3)),
         *(("--rate-cap", f"{params.rate_cap!r}bit") if params.rate_cap else ()),
+        *("--playout", params.playout),
         *([] if params.controller else ["--no-controller"]),
     ]
 

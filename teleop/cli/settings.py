@@ -67,6 +67,7 @@ def channel_kwargs(args: argparse.Namespace) -> dict[str, Any]:
         "controller": not args.no_controller,
         "link_timeout": args.link_timeout / 1e3,
         "rate_cap": args.rate_cap,
+        "playout": args.playout,
     }
 
 

@@ -103,7 +103,15 @@ CONCEAL_FADE = 0.95  # per tick of a gap beyond one payload: down to 5% after ab
 
 
 class Encoder:
-    """Turns one wave sample per tick into a payload, or ``None`` when it does not transmit."""
+    """Turns one wave sample per tick into a payload, or ``None`` when it does not transmit.
+
+    ``phase`` (ticks) shifts the send ticks of a periodic sparse encoder (eDS, iDS) within its
+    period: it sends on calls ``n`` with ``(n - phase) % K == 0``.  The teleoperator sets it to the
+    forward direction's playout offset (issue 13, send phase), so that it samples right after the
+    operator's payload took effect, in the real run exactly as in ``teleop sim``.
+    """
+
+    phase = 0
 
     def encode(self, x: Array) -> bytes | None:  # pragma: no cover - interface
         raise NotImplementedError
@@ -114,6 +122,36 @@ class Encoder:
         Codecs whose sender models the receiver (eDS, the deadbands) undo what they assumed it
         plays; for the others the receiver just misses that payload, as on a loss.
         """
+
+
+class PhasedSchedule:
+    """When a periodic sparse encoder sends: every ``k`` calls, shifted by ``phase``.
+
+    A change of ``phase`` moves the *next* send by the change (wrapped to within half a period), so
+    a phase that moves never makes two sends closer than one call, nor one interval longer than
+    ``2k - 1``: one payload interval is shortened or stretched, the rest keep the period.
+    """
+
+    __slots__ = ("_next", "_phase", "k", "n")
+
+    def __init__(self, k: int) -> None:
+        self.k = k
+        self.n = 0  # calls so far
+        self._next = 1  # the call that sends next (the first call, as before any phase is known)
+        self._phase = 0
+
+    def due(self, phase: int) -> bool:
+        """Count one call; whether it sends."""
+        self.n += 1
+        if phase != self._phase:
+            half = self.k // 2
+            shift = (phase - self._phase + half) % self.k - half
+            self._next = max(self._next + shift, self.n)
+            self._phase = phase
+        if self.n < self._next:
+            return False
+        self._next = self.n + self.k
+        return True
 
 
 class _Run:

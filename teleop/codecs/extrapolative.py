@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Array, Encoder, PlayoutDecoder, RawFormat, pack, unpack
+from .base import Array, Encoder, PhasedSchedule, PlayoutDecoder, RawFormat, pack, unpack
 
 
 class EdsEncoder(Encoder):
@@ -23,14 +23,13 @@ class EdsEncoder(Encoder):
         self.k = k
         self._energy_in = np.zeros(dof)  # sum of x**2 (energy / dt), per DoF
         self._energy_out = np.zeros(dof)  # sum of played p**2 over all horizons sent
-        self._n = 0
+        self._schedule = PhasedSchedule(k)
         self._last_out = np.zeros(dof)  # energy the last horizon added to _energy_out (for cancel)
         self.limited = 0  # horizons whose value the budget cut down
 
     def encode(self, x: Array) -> bytes | None:
         self._energy_in += x * x
-        self._n += 1
-        if (self._n - 1) % self.k:
+        if not self._schedule.due(self.phase):
             return None
         budget = np.maximum(self._energy_in - self._energy_out, 0.0)
         want = self.k * x * x

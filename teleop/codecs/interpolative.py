@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Array, Encoder, PlayoutDecoder, RawFormat, pack, unpack
+from .base import Array, Encoder, PhasedSchedule, PlayoutDecoder, RawFormat, pack, unpack
 
 
 class IdsEncoder(Encoder):
@@ -19,14 +19,21 @@ class IdsEncoder(Encoder):
         self.raw = raw
         self.k = k
         self._sum = np.zeros(dof)
-        self._n = 0
+        self._n = 0  # samples in the current frame
+        # The frame ends on the call the schedule says; the first one after K calls, as before.
+        self._schedule = PhasedSchedule(k)
+        self._schedule.due(0)  # call 0 is "before" the first sample: the first frame ends on call K
 
     def encode(self, x: Array) -> bytes | None:
         self._sum += x
         self._n += 1
-        if self._n < self.k:
+        if not self._schedule.due(self.phase):
             return None
-        mean = self._sum / self.k
+        # A frame is K samples, except the one in which the send phase moved (its first or last):
+        # then it is m samples and the value sent is sum / sqrt(K m) when m < K, so that the K ticks
+        # it is played for still carry at most the frame's energy (Cauchy-Schwarz, eq. 8).
+        m = self._n
+        mean = self._sum / (m if m >= self.k else np.sqrt(self.k * m))
         self._sum[:] = 0.0
         self._n = 0
         return pack(self.raw.quantize(mean), 16)

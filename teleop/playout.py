@@ -1,0 +1,223 @@
+"""Adaptive playout (jitter) buffer: play each payload at its sender's tick plus a target delay.
+
+Without it a receiver plays a payload on the tick it happens to arrive: one that is a tick late
+(a sender's loop stalled, the transport jittered) misses its slot and the receiver conceals a gap,
+and one that overtakes another is dropped as stale.  As RTP jitter buffers and WebRTC's NetEQ do,
+the buffer instead releases a payload to the decoder at tick ``pkt.tick + d`` of the session clock
+(both sides count ticks from the common tick 0 the handshake agreed), and sorts what arrives out of
+order within ``d``.
+
+The target ``d`` (ticks) is the lowest transit seen lately (``a_min``, over two windows of
+``MIN_WINDOW`` ticks, so a lasting route change is followed) plus an *extra* allowance:
+
+* ``off``: no buffer; a payload goes to the decoder when it arrives (the behaviour before).
+* ``MS``: a fixed extra of ``MS`` milliseconds, rounded up to ticks.
+* ``auto``: the extra follows the observed lateness ``a - a_min``: the smallest allowance that
+  ``AUTO_QUANTILE`` of the last ``AUTO_WINDOW`` payloads met, never below ``auto_floor`` ticks.  It
+  rises at once when lateness grows and falls by one tick per ``DECREASE_EVERY`` ticks.
+
+On a constant-delay channel ``a`` never varies, so ``auto`` with no floor adds nothing and
+``teleop sim`` gives the same bits as without a buffer.  A payload that arrives after its release
+tick is *late*: it is released at once (the decoder's newest-wins queue decides what is left of
+it), or, if a newer one was already released, dropped as stale by the node, and both are counted.
+
+Delay is passive (eq. 5 holds for any delay): the buffer moves *when* energy is played, never how
+much; the energy guard sees each report when its payload is released.  Its cost is transparency
+through the wave loop, which the report shows next to the playout delay it used.
+
+Sans-I/O: ``add(pkt, k)`` and ``due(k)`` take the receiver's tick; nothing reads a clock.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from . import wire
+
+MAX_EXTRA_MS = 500.0  # the largest allowance a user may ask for (and auto may reach)
+MAX_HELD = 4096  # packets the buffer holds at most; beyond it the oldest is released at once
+MIN_WINDOW = 5000  # ticks per window of the running minimum transit
+AUTO_WINDOW = 5000  # ticks: the auto target looks at the lateness of the payloads of the last 5 s
+AUTO_QUANTILE = 0.995
+AUTO_OUTLIERS = 2  # late payloads per window ignored whatever the quantile: one stall is no jitter
+DECREASE_EVERY = 1000  # ticks between one-tick decreases of the auto target
+FUTURE_LIMIT = 10_000  # ticks: a payload stamped further ahead than this is released at once
+HIST_TICKS = 4096  # bins of the delay histograms
+
+
+def parse_playout(text: str) -> str:
+    """Canonical ``off``, ``auto`` or a number of ms (``"2"``); ValueError says what is allowed."""
+    t = text.strip().lower()
+    if t in ("off", "auto"):
+        return t
+    what = f"playout must be auto, off or a number of ms 0..{MAX_EXTRA_MS:g}, got {text!r}"
+    try:
+        ms = float(t.removesuffix("ms"))
+    except ValueError:
+        raise ValueError(what) from None
+    if not 0.0 <= ms <= MAX_EXTRA_MS or not math.isfinite(ms):
+        raise ValueError(what)
+    return f"{ms:g}"
+
+
+@dataclass
+class PlayoutStats:
+    released: int = 0
+    late: int = 0  # arrived after their release tick (released at once, or stale)
+    reordered_fixed: int = 0  # arrived after a later payload and still released in order
+    overflow: int = 0  # released early because the buffer was full
+    future: int = 0  # stamped implausibly far ahead: released at once
+
+
+class PlayoutBuffer:
+    """Holds payloads until ``pkt.tick + target``; see the module docstring."""
+
+    def __init__(self, mode: str, dt: float, auto_floor: int = 0) -> None:
+        self.mode = parse_playout(mode)
+        self.dt = dt
+        self.fixed = 0 if self.mode in ("off", "auto") else math.ceil(float(self.mode) * 1e-3 / dt - 1e-9)
+        self.auto_floor = auto_floor
+        self.max_extra = math.ceil(MAX_EXTRA_MS * 1e-3 / dt)
+        self.extra = self.fixed if self.mode != "auto" else auto_floor
+        # (send tick, seq, n, packet): all held payloads share the current target, so they are
+        # released in send order, and a change of target moves them all alike.
+        self._heap: list[tuple[int, int, int, wire.Packet]] = []
+        self._n = 0
+        self._min_cur: int | None = None
+        self._min_prev: int | None = None
+        self._min_window_start: int | None = None
+        self._late_hist = np.zeros(self.max_extra + 2, dtype=np.int64)
+        self._recent: deque[tuple[int, int]] = deque()  # (tick taken, lateness) in the window
+        self._last_decrease = 0
+        self._max_seen_tick = -1
+        self.stats = PlayoutStats()
+        # Histograms (flat memory, whatever the session's length): ticks from each payload's send
+        # tick to its release, and the target d at each release; the last bin takes the rest.
+        self.delay_hist = np.zeros(HIST_TICKS + 1, dtype=np.int64)
+        self.target_hist = np.zeros(HIST_TICKS + 1, dtype=np.int64)
+
+    @property
+    def enabled(self) -> bool:
+        return self.mode != "off"
+
+    @property
+    def held(self) -> int:
+        return len(self._heap)
+
+    def a_min(self) -> int | None:
+        mins = [m for m in (self._min_cur, self._min_prev) if m is not None]
+        return min(mins) if mins else None
+
+    def target(self) -> int | None:
+        """Release tick offset ``d`` from a payload's send tick (None before the first payload)."""
+        a = self.a_min()
+        return None if a is None else a + self.extra
+
+    def _observe(self, a: int, k: int) -> None:
+        if self._min_window_start is None or k - self._min_window_start >= MIN_WINDOW:
+            self._min_prev, self._min_cur, self._min_window_start = self._min_cur, a, k
+        elif self._min_cur is None or a < self._min_cur:
+            self._min_cur = a
+        if self.mode != "auto":
+            return
+        late = min(max(a - (self.a_min() or 0), 0), self.max_extra + 1)
+        self._late_hist[late] += 1
+        self._recent.append((k, late))
+        while self._recent[0][0] <= k - AUTO_WINDOW:
+            self._late_hist[self._recent.popleft()[1]] -= 1
+        need = self._quantile()
+        if need > self.extra:
+            self.extra = need
+            self._last_decrease = k
+        elif need < self.extra and k - self._last_decrease >= DECREASE_EVERY:
+            self.extra -= 1
+            self._last_decrease = k
+
+    def _quantile(self) -> int:
+        """The smallest allowance that AUTO_QUANTILE of the recent payloads met (>= the floor)."""
+        allowed = max(int((1.0 - AUTO_QUANTILE) * len(self._recent)), AUTO_OUTLIERS)
+        above = 0
+        for e in range(self.max_extra + 1, -1, -1):
+            above += int(self._late_hist[e])
+            if above > allowed:
+                return max(min(e, self.max_extra), self.auto_floor)
+        return self.auto_floor
+
+    def add(self, pkt: wire.Packet, k: int) -> list[wire.Packet]:
+        """A payload taken during tick ``k``; returns what to hand to the node now."""
+        if not self.enabled:
+            return [pkt]
+        st = self.stats
+        if pkt.tick > k + FUTURE_LIMIT:
+            st.future += 1
+            return [pkt]
+        a = k - pkt.tick
+        before = self.target()  # lateness is judged against the target this payload was due under
+        self._observe(a, k)
+        if pkt.tick < self._max_seen_tick:
+            st.reordered_fixed += 1
+        self._max_seen_tick = max(self._max_seen_tick, pkt.tick)
+        d = self.target() if before is None else before
+        assert d is not None
+        if pkt.tick + d < k:
+            st.late += 1
+        heapq.heappush(self._heap, (pkt.tick, pkt.seq, self._n, pkt))
+        self._n += 1
+        if len(self._heap) > MAX_HELD:
+            st.overflow += 1
+            return [self._pop(k)]
+        return []
+
+    def _pop(self, k: int) -> wire.Packet:
+        _, _, _, pkt = heapq.heappop(self._heap)
+        self.stats.released += 1
+        self.delay_hist[min(max(k - pkt.tick, 0), HIST_TICKS)] += 1
+        self.target_hist[min(max(self.target() or 0, 0), HIST_TICKS)] += 1
+        return pkt
+
+    def due(self, k: int) -> list[wire.Packet]:
+        """Payloads whose release tick has come, in send order."""
+        out = []
+        d = self.target()
+        while self._heap and self._heap[0][0] + (d or 0) <= k:
+            out.append(self._pop(k))
+        return out
+
+    def pending(self, k: int) -> bool:
+        """Whether a payload is held for release by tick ``k``."""
+        return bool(self._heap) and self._heap[0][0] + (self.target() or 0) <= k
+
+    def clear(self) -> None:
+        """The sender was replaced: forget what it sent (its ticks and transit start anew)."""
+        self._heap.clear()
+        self._min_cur = self._min_prev = self._min_window_start = None
+        self._max_seen_tick = -1
+
+    def summary(self) -> dict[str, Any]:
+        ms = self.dt * 1e3
+
+        def pct(h: np.ndarray) -> dict[str, float | None]:
+            n = int(h.sum())
+            if n == 0:
+                return {"p50": None, "p99": None, "max": None}
+            c = np.cumsum(h)
+            return {
+                "p50": float(np.searchsorted(c, 0.5 * n)) * ms,
+                "p99": float(np.searchsorted(c, 0.99 * n)) * ms,
+                "max": float(np.flatnonzero(h)[-1]) * ms,
+            }
+
+        return {
+            "mode": self.mode,
+            "auto_floor_ticks": self.auto_floor,
+            "extra_ms_final": self.extra * ms,
+            "delay_ms": pct(self.delay_hist),
+            "target_ms": pct(self.target_hist),
+            **self.stats.__dict__,
+        }
