@@ -35,7 +35,7 @@ import numpy.typing as npt
 
 from transport.netem import Link, make_link
 
-from . import metrics, scenarios, wire
+from . import devices, metrics, scenarios, wire
 from .codecs import Codec
 from .node import PortOptions
 from .port import ConstantDelayLink, Port, make_node, make_shim, wire_block
@@ -68,6 +68,8 @@ class SimConfig:
     on_loss: str = "conceal"  # receivers' reconstruction when nothing is queued (teleop.node.PortOptions)
     controller: bool = True  # passivity controller on both receivers
     link_timeout: float = 0.05  # s of silence before a side goes to its safe state
+    hsi: str | None = None  # --hsi spec (teleop.devices); None: the scenario's human
+    robot: str | None = None  # --robot spec; None: the scenario's environment
 
     def resolved(self) -> SimConfig:
         """A copy with every default filled in and every value checked (ValueError says what is wrong)."""
@@ -93,6 +95,9 @@ class SimConfig:
         for spec in (c.netem_forward, c.netem_backward):
             if spec.strip():
                 make_link(spec, c.seed)  # NetemError (a ValueError) says which token is wrong
+        for role, dev in (("hsi", c.hsi), ("robot", c.robot)):
+            if dev is not None:
+                devices.resolve(dev, role)  # DeviceError (a ValueError) lists what is available
         return c
 
     def shims(self) -> dict[str, Link | None]:
@@ -146,6 +151,7 @@ def _ports(cfg: SimConfig) -> tuple[Port, Port, Codec]:
             full_scale=cfg.full_scale,
             session=cfg.session,
             options=opts,
+            device=cfg.hsi if role == "operator" else cfg.robot,
         )
         ports.append(Port(node, ticks=n_ticks, shim=shims[d], peer_spec=peer_spec))
     return ports[0], ports[1], ports[0].node.tx_codec
@@ -258,6 +264,8 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
         "link": {"forward": t["link_received"], "backward": o["link_received"]},
         # What each receiver refused (teleop.auth): forgeries, corruption, replays and duplicates.
         "security": {"forward": t["security"], "backward": o["security"]},
+        # Each side's device (teleop.devices): its spec and, if it keeps one, its own port observer.
+        "devices": {"hsi": o["device"], "robot": t["device"]},
     }
     return summary
 
@@ -306,6 +314,8 @@ def run_set(codecs: list[str], base: SimConfig) -> tuple[dict[str, Any], list[Ca
         "window_ms": base.window_ms,
         "netem": {"forward": base.netem_forward, "backward": base.netem_backward},
         "seed": base.seed,
+        "hsi": base.hsi or base.scenario,
+        "robot": base.robot or base.scenario,
         "cases": [c.summary for c in cases],
     }
     return doc, cases

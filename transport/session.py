@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from teleop import auth, protocol
+from teleop.devices import DeviceError
 from teleop.port import Port, PortKeys, make_node, make_shim
 from teleop.protocol import PROTOCOL_VERSION, SessionParams
 
@@ -82,6 +83,7 @@ class EndpointOptions:
     zenoh: ZenohOptions | None = None
     psk: bytes | None = None  # the deployment's pre-shared key (teleop.auth); None: refuse to start
     insecure: bool = False  # --insecure: run with teleop.auth.INSECURE_KEY (integrity only), say so
+    device: str | None = None  # --hsi/--robot spec (teleop.devices), local only; None: the scenario's
 
 
 @dataclass
@@ -583,17 +585,21 @@ def _auth_name(opts: EndpointOptions) -> str:
 
 def _make_port(opts: EndpointOptions, tr: Transport, params: SessionParams, k0: int, keys: PortKeys) -> Port:
     """This side's port: its node, its outgoing shim (seeded as in ``teleop sim``), counters."""
-    node = make_node(
-        opts.role,
-        scenario=params.scenario,
-        dof=params.dof,
-        dt=params.dt,
-        b=params.b,
-        codec=params.codec,
-        full_scale=params.full_scale,
-        session=params.session,
-        options=params.port_options(),
-    )
+    try:
+        node = make_node(
+            opts.role,
+            scenario=params.scenario,
+            dof=params.dof,
+            dt=params.dt,
+            b=params.b,
+            codec=params.codec,
+            full_scale=params.full_scale,
+            session=params.session,
+            options=params.port_options(),
+            device=opts.device,
+        )
+    except DeviceError as e:  # e.g. the operator's DoF is more than this side's robot drives
+        raise SessionError(str(e)) from None
     if k0:
         node.joined_late()
     fwd, bwd = params.netem_forward, params.netem_backward

@@ -13,6 +13,7 @@ from ..scenarios import SCENARIOS
 from .args import (
     CliError,
     Subcommands,
+    add_device_args,
     add_endpoint_args,
     add_key_args,
     add_netem_args,
@@ -101,6 +102,7 @@ def add_operator_parser(sub: Subcommands) -> None:
     )
     o.add_argument("--session", type=session_id, default=0, help="session id (default: random)")
     add_session_args(o, "eds:50", "protocol")
+    add_device_args(o, ("hsi",))
     add_netem_args(o)
     add_passivity_args(o)
     add_endpoint_args(o)
@@ -125,6 +127,7 @@ def add_teleoperator_parser(sub: Subcommands) -> None:
         help="UDP address to wait on, for example 0.0.0.0:7000 (required with --transport udp)",
     )
     add_session_args(t, None, None)
+    add_device_args(t, ("robot",))
     add_endpoint_args(t)
     add_key_args(t, "required unless --insecure")
     add_transport_args(t)

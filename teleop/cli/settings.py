@@ -143,6 +143,7 @@ def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int
         zenoh=zenoh_options(args) if args.transport == "zenoh" else None,
         psk=psk,
         insecure=insecure,
+        device=getattr(args, "hsi" if role == "operator" else "robot", None),
     )
 
 
