@@ -9,9 +9,11 @@ outboard of the sensor.
 **Affine form.** The node needs ``F = f0 + Z v`` before it picks ``v``.  Within one step the engine
 is linear in the command as long as the set of active contacts does not change (soft constraints,
 frictionless contacts), so each tick the robot runs the engine's forward dynamics at the present
-state with a zero command (``f0``) and once per DoF with a small probe command (``Z``, the diagonal
-of ``dF/dv``; the off-diagonal part is measured and reported as ``max_coupling``), then steps with
-the command the port settled on.  Only the acceleration stage is recomputed for a probe, so a tick
+state with the last tick's command and once per DoF with that command plus a small probe (``Z``,
+the diagonal of ``dF/dv``; the off-diagonal part is measured and reported as ``max_coupling``),
+then steps with the command the port settled on.  Linearising at the last command rather than at
+zero keeps the contact set of the linearisation that of the step (a foam that a zero command
+would leave is still pushed).  Only the acceleration stage is recomputed for a probe, so a tick
 costs one collision pass and ``1 + dof`` cheap solves (``bench/mujoco_step.py``).
 
 **Passivity.** The port is the pair (commanded velocity, sensed force).  With all moving mass
@@ -124,6 +126,7 @@ class MujocoRobot:
                 (int(np.abs(row).argmax()), float(np.sign(row[np.abs(row).argmax()]))) for row in self._proj
             ]
         self._ctrl = self.d.ctrl  # a view of the engine's buffer
+        self._last = [0.0] * dof  # the last command: where the next tick is linearised
         self._skip = mujoco.mjtStage.mjSTAGE_VEL
 
     def _check(self, m: Any, dof: int, dt: float) -> None:
@@ -221,34 +224,37 @@ class MujocoRobot:
                 if name in self._timeline and name not in self.placed and now >= at:
                     self._place(name, gap, now)
         ctrl = self._ctrl
-        ctrl[:] = 0.0
+        base = self._last  # linearise at the last command: the contact set most likely holds there
+        ctrl[: self.dof] = base
         mj.mj_forward(m, d)
-        f0 = self._force()
+        fb = self._force()
         z = self._z
+        f0 = self._f0
         for i in range(self.dof):  # plain floats: numpy calls on 1-3 numbers cost more than the math
-            ctrl[i] = PROBE
+            ctrl[i] = base[i] + PROBE
             mj.mj_forwardSkip(m, d, self._skip, 0)
             col = self._force()
-            ctrl[i] = 0.0
-            zi = (col[i] - f0[i]) / PROBE
+            ctrl[i] = base[i]
+            zi = (col[i] - fb[i]) / PROBE
             if zi < 0.0:  # an active response: never let the port divide by b + Z <= 0
                 self.negative_z_ticks += 1
                 zi = 0.0
             z[i] = zi
+            f0[i] = fb[i] - zi * base[i]
             if self.dof > 1:  # the part of dF/dv the diagonal form leaves out, relative to it
                 off = 0.0
                 for j in range(self.dof):
                     if j != i:
-                        off += abs(col[j] - f0[j])
+                        off += abs(col[j] - fb[j])
                 off /= PROBE
                 if off > self.max_coupling * zi:
                     self.max_coupling = off / max(zi, 1e-12)
-        self._f0[:] = f0
-        return self._f0, z
+        return f0, z
 
     def advance(self, now: float, v: Array, f: Array) -> None:
         mj, m, d = self._mj, self.m, self.d
         self._ctrl[: self.dof] = v
+        self._last = v.tolist()
         mj.mj_forwardSkip(m, d, self._skip, 0)
         sensed = self._force()
         self._integrate(m, d)
