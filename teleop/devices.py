@@ -370,7 +370,7 @@ class DriverRobot:
     """A real robot as the teleoperator's device: velocity command out, measured force in.
 
     * force: the driver's newest sample (``Z = 0``: measured after the motion, so one tick late;
-      against a stiff contact keep ``b`` above half the contact's ``k dt`` or the loop rings);
+      against a contact of stiffness ``k`` keep ``b`` above ``k dt`` or the loop rings);
     * **stale or implausible force data**: the robot is commanded **zero velocity** (it holds still)
       and the port reports **zero force**, so nothing stale is fed back to the operator;
     * **saturation**: the commanded velocity to ``max_velocity`` m/s (norm, direction kept).
