@@ -69,7 +69,7 @@ class Builtin:
     factory: Factory
     usage: str  # how it is named on the command line, e.g. "mujoco[:SCENE.xml]"
     description: str
-    check: Callable[[str | None], None] | None = None  # validates ARG early, without building
+    check: Callable[[str | None, int], None] | None = None  # checks ARG (and a DoF) before a session
 
 
 def _no_arg(name: str, arg: str | None) -> None:
@@ -103,10 +103,10 @@ def _mujoco(dof: int, dt: float, arg: str | None) -> Device:
     return MujocoRobot(dof=dof, dt=dt, arg=arg)
 
 
-def _mujoco_check(arg: str | None) -> None:
+def _mujoco_check(arg: str | None, dof: int) -> None:
     from .mujoco_robot import check_scene
 
-    check_scene(arg)
+    check_scene(arg, dof)
 
 
 #: The built-in devices by role and name; the scenarios' models are named like the scenarios.
@@ -210,14 +210,15 @@ def resolve(spec: str, role: str) -> DeviceSpec:
     return DeviceSpec(role, spec, _checked(obj, role, f"{name}:{attr}"), arg2 if arg2 else None)
 
 
-def check(spec: str, role: str) -> DeviceSpec:
-    """Resolve ``spec`` and check a built-in's argument now (a scene file, say), so a bad value stops
-    the command before a session; a third-party device is only imported, never built, here."""
+def check(spec: str, role: str, dof: int = 1) -> DeviceSpec:
+    """Resolve ``spec`` and check a built-in's argument (a scene file, say) and, when known, the DoF
+    now, so a bad value stops the command before a session; a third-party device is only imported,
+    never built, here (building one may open hardware)."""
     ds = resolve(spec, role)
     name, _, _ = spec.partition(":")
     builtin = BUILTIN[role].get(name)
     if builtin is not None and builtin.check is not None:
-        builtin.check(ds.arg)
+        builtin.check(ds.arg, dof)
     elif builtin is not None and ds.arg is not None:
         raise DeviceError(f"{role} {name!r} takes no argument, got {spec!r}")
     return ds

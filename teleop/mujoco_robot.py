@@ -61,10 +61,11 @@ def default_scene() -> Path:
     return Path(str(resources.files("teleop") / "scenes" / "default.xml"))
 
 
-def check_scene(arg: str | None) -> None:
-    """DeviceError unless MuJoCo imports and the scene (default or ``arg``) loads as a robot scene:
-    run before a session starts, so a bad ``--robot mujoco:FILE`` stops the command at once."""
-    MujocoRobot(dof=1, dt=0.001, arg=arg)
+def check_scene(arg: str | None, dof: int = 1) -> None:
+    """DeviceError unless MuJoCo imports and the scene (default or ``arg``) loads as a robot scene
+    of ``dof`` DoF: run before a session starts, so a bad ``--robot mujoco:FILE`` stops the command
+    at once."""
+    MujocoRobot(dof=dof, dt=0.001, arg=arg)
 
 
 class MujocoRobot:

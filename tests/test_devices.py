@@ -139,6 +139,11 @@ def no_session(monkeypatch: pytest.MonkeyPatch) -> None:
         (["teleoperator", "--insecure", "--listen", "127.0.0.1:0", "--robot", "x.y:Z"], "cannot import"),
         (["operator", "--insecure", "--peer", "127.0.0.1:9", "--hsi", "mujoco"], "unknown hsi 'mujoco'"),
         (["run", "--robot", "nope"], "unknown robot 'nope'"),
+        (["run", "--robot", "mujoco", "--dof", "4"], "robot 'mujoco' drives 1 to 3 DoF"),
+        (
+            ["teleoperator", "--insecure", "--listen", "127.0.0.1:0", "--robot", "mujoco", "--dof", "5"],
+            "1 to 3 DoF",
+        ),
     ],
 )
 def test_cli_rejects_a_bad_device(

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -164,3 +167,29 @@ def test_port_observer_counts_energy_the_robot_gives_back() -> None:
         v = np.array([0.05])
         robot.advance(now, v, -(f0 + z * v))  # as if the robot pushed the operator along
     assert robot.min_port_energy < -1e-9 and robot.active_ticks > 0
+
+
+@pytest.mark.integration
+def test_teleop_run_with_the_mujoco_robot(tmp_path: Path) -> None:
+    """Two real processes, 2 s: the teleoperator runs the engine, the operator its own human; the
+    report carries both devices, and the robot's port and the channel stayed passive."""
+    out = tmp_path / "run"
+    r = subprocess.run(
+        [
+            *(sys.executable, "-m", "teleop.cli", "run", "--robot", "mujoco", "--duration", "2"),
+            *("--out", str(out), "--no-plots", "--no-live"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 0, r.stderr
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["devices"]["hsi"] == {"spec": "protocol"}  # the operator built no robot
+    robot = rep["devices"]["robot"]
+    assert robot["spec"] == "mujoco" and robot["engine"].startswith("mujoco ")
+    assert robot["min_port_energy_J"] >= -1e-9 and robot["active_ticks"] == 0
+    assert rep["energy"]["forward"]["min_margin"] >= -1e-9
+    assert rep["energy"]["backward"]["min_margin"] >= -1e-9
+    assert "I_sim" in rep["transparency"]  # the sim rebuilt the built-in robot for the comparison
+    assert "robot mujoco: port energy min" in r.stdout

@@ -23,7 +23,7 @@ from .args import (
     session_id,
     udp_addr,
 )
-from .settings import check_duration, endpoint_options, session_params
+from .settings import check_duration, check_robot, endpoint_options, session_params
 
 
 def cmd_operator(args: argparse.Namespace) -> int:
@@ -46,6 +46,8 @@ def cmd_teleoperator(args: argparse.Namespace) -> int:
         if dof is None:
             dof = SCENARIOS[args.scenario].dof if args.scenario is not None else 1
         check_duration(args.duration, dof)
+    if args.dof is not None:
+        check_robot(args.robot, args.dof)
     expect = {
         "codec": args.codec,  # canonical already (the --codec type)
         "scenario": args.scenario,

@@ -41,7 +41,7 @@ from .args import (
     int_range,
 )
 from .report import write_report
-from .settings import read_key, session_params, writable_dir
+from .settings import check_robot, read_key, session_params, writable_dir
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
 LOG_FILES = ("operator.json", "teleoperator.json", "operator.npz", "teleoperator.npz")
@@ -267,6 +267,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from transport.session import new_session_id
 
     params = session_params(args, new_session_id())
+    check_robot(args.robot, params.dof)
     out = writable_dir(Path(args.out), "--out")
     logs = writable_dir(out / "logs", "--out")
     for stale in LOG_FILES:

@@ -19,6 +19,18 @@ from ..scenarios import SCENARIOS
 from .args import CliError
 
 
+def check_robot(spec: str | None, dof: int) -> None:
+    """CliError when ``--robot`` cannot drive ``dof`` DoF (a built-in's check; e.g. mujoco: 1 to 3)."""
+    from ..devices import DeviceError, check
+
+    if spec is None:
+        return
+    try:
+        check(spec, "robot", dof)
+    except DeviceError as e:
+        raise CliError(f"--robot {spec}: {e}") from None
+
+
 def check_duration(duration: float, dof: int) -> None:
     """CliError when a session of ``duration`` s at ``dof`` DoF (1 kHz) does not fit the record budget."""
     try:
