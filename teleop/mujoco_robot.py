@@ -41,6 +41,7 @@ adds no energy).
 
 from __future__ import annotations
 
+import math
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -112,6 +113,7 @@ class MujocoRobot:
         self.max_prediction_error = 0.0
         self.max_coupling = 0.0
         self.negative_z_ticks = 0
+        self.engine_resets = 0
         self.placed: dict[str, float] = {}
         self.max_penetration: dict[str, float] = {}  # m, deepest tip front past each timeline face
         mujoco.mj_forward(m, self.d)
@@ -231,6 +233,7 @@ class MujocoRobot:
         fb = self._force()
         z = self._z
         f0 = self._f0
+        z_sum = 0.0
         for i in range(self.dof):  # plain floats: numpy calls on 1-3 numbers cost more than the math
             ctrl[i] = base[i] + PROBE
             mj.mj_forwardSkip(m, d, self._skip, 0)
@@ -241,6 +244,7 @@ class MujocoRobot:
                 self.negative_z_ticks += 1
                 zi = 0.0
             z[i] = zi
+            z_sum += zi
             f0[i] = fb[i] - zi * base[i]
             if self.dof > 1:  # the part of dF/dv the diagonal form leaves out, relative to it
                 off = 0.0
@@ -250,7 +254,22 @@ class MujocoRobot:
                 off /= PROBE
                 if off > self.max_coupling * zi:
                     self.max_coupling = off / max(zi, 1e-12)
+        if not math.isfinite(sum(fb) + z_sum):  # the engine diverged (a scene of one's own, say)
+            self._reset()
+            f0[:] = 0.0
+            z[:] = 0.0
         return f0, z
+
+    def _reset(self) -> None:
+        """Back to rest, the placed bodies kept: what MuJoCo's own mj_step does on divergence,
+        counted (``engine_resets``) and reported as no force this tick."""
+        mj, m, d = self._mj, self.m, self.d
+        placed = d.mocap_pos.copy()
+        mj.mj_resetData(m, d)
+        d.mocap_pos[:] = placed
+        self._last = [0.0] * self.dof
+        self.engine_resets += 1
+        mj.mj_forward(m, d)
 
     def advance(self, now: float, v: Array, f: Array) -> None:
         mj, m, d = self._mj, self.m, self.d
@@ -295,6 +314,7 @@ class MujocoRobot:
             "max_prediction_error_N": self.max_prediction_error,
             "max_coupling": self.max_coupling,
             "negative_z_ticks": self.negative_z_ticks,
+            "engine_resets": self.engine_resets,
             "placed_at_s": dict(self.placed),
             "max_penetration_m": dict(self.max_penetration),
         }

@@ -193,3 +193,14 @@ def test_teleop_run_with_the_mujoco_robot(tmp_path: Path) -> None:
     assert rep["energy"]["backward"]["min_margin"] >= -1e-9
     assert "I_sim" in rep["transparency"]  # the sim rebuilt the built-in robot for the comparison
     assert "robot mujoco: port energy min" in r.stdout
+
+
+def test_a_diverging_engine_is_reset_and_reports_no_force() -> None:
+    """Non-finite state (an exploding scene of one's own): back to rest, zero force, counted."""
+    robot = MujocoRobot(dof=2, dt=DT)
+    robot.d.qvel[0] = float("nan")
+    f0, z = robot.affine(0.0)
+    assert f0.tolist() == [0.0, 0.0] and z.tolist() == [0.0, 0.0]
+    assert robot.engine_resets == 1
+    f0, z = robot.affine(DT)  # at rest again: the robot is usable
+    assert np.all(np.isfinite(f0)) and z[0] > 0
