@@ -204,3 +204,22 @@ def test_a_diverging_engine_is_reset_and_reports_no_force() -> None:
     assert robot.engine_resets == 1
     f0, z = robot.affine(DT)  # at rest again: the robot is usable
     assert np.all(np.isfinite(f0)) and z[0] > 0
+
+
+def test_a_gain_beyond_the_integrators_reach_shows_as_an_active_port(tmp_path: Path) -> None:
+    """Where the robot cannot be passive: explicit Euler with kv dt / m = 10 (the stability limit
+    is 2; the default scene integrates the controller implicitly).  The observer sees the engine
+    giving energy back under the same kind of held commands the passivity property uses."""
+    scene = tmp_path / "euler.xml"
+    text = default_scene().read_text().replace('integrator="implicitfast"', 'integrator="Euler"')
+    scene.write_text(text.replace('kv="200"', 'kv="1000"'))
+    robot = MujocoRobot(dof=1, dt=DT, arg=str(scene))
+    rng = np.random.default_rng(0)
+    n = 0
+    for _ in range(20):
+        v = np.array([rng.uniform(-0.3, 0.4)])
+        for _ in range(int(rng.integers(1, 30))):
+            f0, z = robot.affine(n * DT)
+            robot.advance(n * DT, v, f0 + z * v)
+            n += 1
+    assert robot.active_ticks > 0 and robot.min_port_energy < -1e-9
