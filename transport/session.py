@@ -585,21 +585,18 @@ def _auth_name(opts: EndpointOptions) -> str:
 
 def _make_port(opts: EndpointOptions, tr: Transport, params: SessionParams, k0: int, keys: PortKeys) -> Port:
     """This side's port: its node, its outgoing shim (seeded as in ``teleop sim``), counters."""
-    try:
-        node = make_node(
-            opts.role,
-            scenario=params.scenario,
-            dof=params.dof,
-            dt=params.dt,
-            b=params.b,
-            codec=params.codec,
-            full_scale=params.full_scale,
-            session=params.session,
-            options=params.port_options(),
-            device=opts.device,
-        )
-    except DeviceError as e:  # e.g. the operator's DoF is more than this side's robot drives
-        raise SessionError(str(e)) from None
+    node = make_node(
+        opts.role,
+        scenario=params.scenario,
+        dof=params.dof,
+        dt=params.dt,
+        b=params.b,
+        codec=params.codec,
+        full_scale=params.full_scale,
+        session=params.session,
+        options=params.port_options(),
+        device=opts.device,
+    )
     if k0:
         node.joined_late()
     fwd, bwd = params.netem_forward, params.netem_backward
@@ -624,6 +621,9 @@ def run_endpoint(
     try:
         summary = loop.run_until_complete(_endpoint(opts, params, expect or {}))
     except SessionError as e:
+        print(f"teleop {opts.role}: error: {e}", file=sys.stderr)
+        return 1
+    except DeviceError as e:  # this side's device cannot run the agreed session (more DoF than it drives)
         print(f"teleop {opts.role}: error: {e}", file=sys.stderr)
         return 1
     except OSError as e:
