@@ -85,6 +85,7 @@ class _Port:
     """What both nodes share: sequence numbers, codec ends, energy guard, inbound checks."""
 
     tx_direction: int
+    device_spec = ""  # the --hsi/--robot spec of this side's device (teleop.devices), for the logs
 
     def __init__(
         self,
@@ -299,6 +300,11 @@ class OperatorNode(_Port):
         super().__init__(wave=wave, tx=tx, rx=rx, session=session, dt=dt, options=options)
         self.human = human
 
+    @property
+    def device(self) -> Human:
+        """The HSI with its human (``teleop.devices``)."""
+        return self.human
+
     def tick(self, now: float) -> wire.Packet | None:
         w = self.wave
         c = self._supervise(now)
@@ -330,6 +336,11 @@ class TeleoperatorNode(_Port):
     ) -> None:
         super().__init__(wave=wave, tx=tx, rx=rx, session=session, dt=dt, options=options)
         self.environment = environment
+
+    @property
+    def device(self) -> Environment:
+        """The robot in its environment (``teleop.devices``)."""
+        return self.environment
 
     def tick(self, now: float) -> wire.Packet | None:
         w = self.wave

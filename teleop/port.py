@@ -39,7 +39,7 @@ from transport.counters import UDP_IPV4_HEADER, DirectionCounters
 from transport.linkstats import LinkObserver
 from transport.netem import Link, NetemStats, make_link
 
-from . import auth, protocol, scenarios, wire
+from . import auth, devices, protocol, scenarios, wire
 from .codecs import make_codec
 from .codecs.base import RAW_BITS, packed_size
 from .node import OperatorNode, PortOptions, TeleoperatorNode
@@ -121,18 +121,28 @@ def make_node(
     full_scale: float,
     session: int,
     options: PortOptions,
+    device: str | None = None,
 ) -> Node:
-    """The operator's or the teleoperator's node for a scenario: one construction for both runners."""
-    human, env = scenarios.get(scenario).make(dof, dt)
+    """The operator's or the teleoperator's node for a scenario: one construction for both runners.
+
+    ``device``: this side's ``--hsi``/``--robot`` spec (``teleop.devices``; a local choice, never
+    from the network); default the scenario's own model.  Only this side's device is built.
+    """
+    if role not in ("operator", "teleoperator"):
+        raise ValueError(f"role must be operator or teleoperator, got {role!r}")
+    spec = device or scenarios.get(scenario).name
+    dev = devices.make("hsi" if role == "operator" else "robot", spec, dof, dt)
     wave = WaveImpedance.of(b, dof)
     c = make_codec(codec, dof, full_scale)
+    node: Node
     if role == "operator":
-        return OperatorNode(human=human, wave=wave, tx=c, rx=c, session=session, dt=dt, options=options)
-    if role == "teleoperator":
-        return TeleoperatorNode(
-            environment=env, wave=wave, tx=c, rx=c, session=session, dt=dt, options=options
+        node = OperatorNode(human=dev, wave=wave, tx=c, rx=c, session=session, dt=dt, options=options)
+    else:
+        node = TeleoperatorNode(
+            environment=dev, wave=wave, tx=c, rx=c, session=session, dt=dt, options=options
         )
-    raise ValueError(f"role must be operator or teleoperator, got {role!r}")
+    node.device_spec = spec
+    return node
 
 
 @dataclass
@@ -480,6 +490,7 @@ class Port:
                 "played": node.energy_played,
                 "peer_reported_sent": node.peer_energy_sent,
             },
+            "device": devices.summary_of(node.device, node.device_spec),
         }
 
     def _rate_cap_summary(self) -> dict[str, Any] | None:

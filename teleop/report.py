@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from . import metrics, plots
+from . import devices, metrics, plots
 from .port import wire_block
 from .sim import SimConfig, run_case
 
@@ -146,6 +146,14 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
             },
         },
     }
+    # Each side's device as its own log says (a local choice, see teleop.devices).
+    rep["devices"] = {"hsi": op.get("device"), "robot": to.get("device")}
+    specs = {r: (rep["devices"][r] or {}).get("spec") for r in ("hsi", "robot")}
+    # The sim rebuilds the devices only if they are built-ins: a log file never names a module to import.
+    sim_devices = {r: devices.builtin_only(specs[r], r) for r in ("hsi", "robot")}
+    if any(specs[r] is not None and sim_devices[r] is None for r in specs):
+        compare_sim = False
+        rep["sim_skipped"] = "a third-party device: the sim rebuilds built-in devices only"
     if compare_sim:
         sim = run_case(
             SimConfig(
@@ -167,6 +175,8 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
                 # The allowance the real runner's auto mode keeps, so the comparison is like for like.
                 playout_floor=(to.get("playout") or {}).get("auto_floor_ticks", 0),
                 session=p["session"],  # its size on the wire counts in the byte figures
+                hsi=sim_devices["hsi"],
+                robot=sim_devices["robot"],
             )
         )
         i_sim = sim.summary["I"]
@@ -287,6 +297,9 @@ def summary_text(rep: dict[str, Any]) -> str:
             f"  energy reports clamped {sec['energy_reports_clamped']['forward']}/"
             f"{sec['energy_reports_clamped']['backward']}  (forward/backward)"
         )
+    robot = (rep.get("devices") or {}).get("robot")
+    if robot and (line := devices.describe(robot)) is not None:
+        lines.append(f"  {line}")
     e = rep["energy"]
     lines.append(
         f"  energy margin (sent - played) min: forward {e['forward']['min_margin']:.3e} J, "

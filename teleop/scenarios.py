@@ -1,5 +1,8 @@
 """Scenarios: a human and an environment model with the defaults that suit them.
 
+The models are the built-in devices named like the scenario (``teleop.devices``); ``--hsi`` and
+``--robot`` replace either side's.
+
 Shared by ``teleop sim`` and the two real processes, so a simulated and a real run of the same
 scenario use the same models.
 """
@@ -9,7 +12,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from .models import Environment, Human, LtiEnvironment, ProtocolEnvironment, ProtocolHuman, StepHuman
+from . import devices
+from .models import Environment, Human
 
 
 @dataclass(frozen=True)
@@ -23,6 +27,11 @@ class Scenario:
     make: Callable[[int, float], tuple[Human, Environment]]
 
 
+def _pair(name: str, dof: int, dt: float) -> tuple[Human, Environment]:
+    """The scenario's own HSI and robot: the built-in devices named like it (``teleop.devices``)."""
+    return devices.make("hsi", name, dof, dt), devices.make("robot", name, dof, dt)
+
+
 SCENARIOS: dict[str, Scenario] = {
     "step": Scenario(
         name="step",
@@ -31,7 +40,7 @@ SCENARIOS: dict[str, Scenario] = {
         b=1.0,
         full_scale=2.0,  # waves peak at 1.15 (measured with none)
         duration=5.0,
-        make=lambda dof, dt: (StepHuman(dof, dt), LtiEnvironment(dof, dt)),
+        make=lambda dof, dt: _pair("step", dof, dt),
     ),
     "protocol": Scenario(
         name="protocol",
@@ -40,7 +49,7 @@ SCENARIOS: dict[str, Scenario] = {
         b=20.0,
         full_scale=2.0,  # waves peak at 1.26 (measured with none)
         duration=15.0,
-        make=lambda dof, dt: (ProtocolHuman(dof, dt), ProtocolEnvironment(dof, dt)),
+        make=lambda dof, dt: _pair("protocol", dof, dt),
     ),
 }
 

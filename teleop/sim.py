@@ -35,7 +35,7 @@ import numpy.typing as npt
 
 from transport.netem import Link, make_link
 
-from . import metrics, scenarios, wire
+from . import devices, metrics, scenarios, wire
 from .codecs import Codec
 from .node import PortOptions
 from .port import ConstantDelayLink, Port, make_node, make_shim, wire_block
@@ -71,6 +71,8 @@ class SimConfig:
     rate_cap: float = 0.0  # bit/s per direction in any 100 ms window (teleop.ratecap); 0: none
     playout: str = "auto"  # receivers' playout buffer: off, auto or extra ms (teleop.playout)
     playout_floor: int = 0  # ticks auto keeps at least (a real runner's; to compare with one)
+    hsi: str | None = None  # --hsi spec (teleop.devices); None: the scenario's human
+    robot: str | None = None  # --robot spec; None: the scenario's environment
 
     def resolved(self) -> SimConfig:
         """A copy with every default filled in and every value checked (ValueError says what is wrong)."""
@@ -96,6 +98,9 @@ class SimConfig:
         for spec in (c.netem_forward, c.netem_backward):
             if spec.strip():
                 make_link(spec, c.seed)  # NetemError (a ValueError) says which token is wrong
+        for role, dev in (("hsi", c.hsi), ("robot", c.robot)):
+            if dev is not None:
+                devices.resolve(dev, role)  # DeviceError (a ValueError) lists what is available
         return c
 
     def port_options(self) -> PortOptions:
@@ -158,6 +163,7 @@ def _ports(cfg: SimConfig) -> tuple[Port, Port, Codec]:
             full_scale=cfg.full_scale,
             session=cfg.session,
             options=opts,
+            device=cfg.hsi if role == "operator" else cfg.robot,
         )
         ports.append(
             Port(node, ticks=n_ticks, shim=shims[d], peer_spec=peer_spec, playout_floor=cfg.playout_floor)
@@ -276,6 +282,8 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
         "playout": {"forward": t["playout"], "backward": o["playout"]},
         # What each receiver refused (teleop.auth): forgeries, corruption, replays and duplicates.
         "security": {"forward": t["security"], "backward": o["security"]},
+        # Each side's device (teleop.devices): its spec and, if it keeps one, its own port observer.
+        "devices": {"hsi": o["device"], "robot": t["device"]},
     }
     return summary
 
@@ -324,6 +332,8 @@ def run_set(codecs: list[str], base: SimConfig) -> tuple[dict[str, Any], list[Ca
         "window_ms": base.window_ms,
         "netem": {"forward": base.netem_forward, "backward": base.netem_backward},
         "seed": base.seed,
+        "hsi": base.hsi or base.scenario,
+        "robot": base.robot or base.scenario,
         "cases": [c.summary for c in cases],
     }
     return doc, cases

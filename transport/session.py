@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from teleop import auth, protocol
+from teleop.devices import DeviceError
 from teleop.port import Port, PortKeys, make_node, make_shim
 from teleop.protocol import PROTOCOL_VERSION, SessionParams
 
@@ -85,6 +86,7 @@ class EndpointOptions:
     zenoh: ZenohOptions | None = None
     psk: bytes | None = None  # the deployment's pre-shared key (teleop.auth); None: refuse to start
     insecure: bool = False  # --insecure: run with teleop.auth.INSECURE_KEY (integrity only), say so
+    device: str | None = None  # --hsi/--robot spec (teleop.devices), local only; None: the scenario's
 
 
 @dataclass
@@ -596,6 +598,7 @@ def _make_port(opts: EndpointOptions, tr: Transport, params: SessionParams, k0: 
         full_scale=params.full_scale,
         session=params.session,
         options=params.port_options(),
+        device=opts.device,
     )
     if k0:
         node.joined_late()
@@ -622,6 +625,9 @@ def run_endpoint(
     try:
         summary = loop.run_until_complete(_endpoint(opts, params, expect or {}))
     except SessionError as e:
+        print(f"teleop {opts.role}: error: {e}", file=sys.stderr)
+        return 1
+    except DeviceError as e:  # this side's device cannot run the agreed session (more DoF than it drives)
         print(f"teleop {opts.role}: error: {e}", file=sys.stderr)
         return 1
     except OSError as e:

@@ -246,6 +246,41 @@ def add_model_args(p: argparse.ArgumentParser, scenario_default: str | None) -> 
     )
 
 
+def device_spec(role: str) -> Callable[[str], str]:
+    """A ``--hsi``/``--robot`` spec, resolved now (teleop.devices): a bad one lists what is available."""
+
+    def parse(text: str) -> str:
+        from ..devices import DeviceError, check
+
+        try:
+            check(text, role)
+        except DeviceError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+        return text
+
+    return parse
+
+
+def add_device_args(p: argparse.ArgumentParser, roles: tuple[str, ...]) -> None:
+    """``--hsi`` (operator side) and/or ``--robot`` (teleoperator side): a local choice of each side."""
+    from ..devices import BUILTIN, ENTRY_POINT_GROUP
+
+    what = {
+        "hsi": "the operator's HSI device with its human",
+        "robot": "the teleoperator's robot in its environment",
+    }
+    for role in roles:
+        p.add_argument(
+            f"--{role}",
+            type=device_spec(role),
+            default=None,
+            metavar="SPEC",
+            help=f"{what[role]} (default: the scenario's model). Accepted: "
+            f"{', '.join(b.usage for b in BUILTIN[role].values())}, a {ENTRY_POINT_GROUP} entry point, "
+            "or package.module:Class[:ARG] (see README, Devices)",
+        )
+
+
 def add_session_args(
     p: argparse.ArgumentParser, codec_default: str | None, scenario_default: str | None
 ) -> None:

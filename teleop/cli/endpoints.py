@@ -13,6 +13,7 @@ from ..scenarios import SCENARIOS
 from .args import (
     CliError,
     Subcommands,
+    add_device_args,
     add_endpoint_args,
     add_key_args,
     add_netem_args,
@@ -22,7 +23,7 @@ from .args import (
     session_id,
     udp_addr,
 )
-from .settings import check_duration, endpoint_options, session_params
+from .settings import check_duration, check_robot, endpoint_options, session_params
 
 
 def cmd_operator(args: argparse.Namespace) -> int:
@@ -45,6 +46,8 @@ def cmd_teleoperator(args: argparse.Namespace) -> int:
         if dof is None:
             dof = SCENARIOS[args.scenario].dof if args.scenario is not None else 1
         check_duration(args.duration, dof)
+    if args.dof is not None:
+        check_robot(args.robot, args.dof)
     expect = {
         "codec": args.codec,  # canonical already (the --codec type)
         "scenario": args.scenario,
@@ -101,6 +104,7 @@ def add_operator_parser(sub: Subcommands) -> None:
     )
     o.add_argument("--session", type=session_id, default=0, help="session id (default: random)")
     add_session_args(o, "eds:50", "protocol")
+    add_device_args(o, ("hsi",))
     add_netem_args(o)
     add_passivity_args(o)
     add_endpoint_args(o)
@@ -125,6 +129,7 @@ def add_teleoperator_parser(sub: Subcommands) -> None:
         help="UDP address to wait on, for example 0.0.0.0:7000 (required with --transport udp)",
     )
     add_session_args(t, None, None)
+    add_device_args(t, ("robot",))
     add_endpoint_args(t)
     add_key_args(t, "required unless --insecure")
     add_transport_args(t)

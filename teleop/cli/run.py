@@ -32,6 +32,7 @@ from .args import (
     MAX_PORT,
     CliError,
     Subcommands,
+    add_device_args,
     add_key_args,
     add_netem_args,
     add_passivity_args,
@@ -40,7 +41,7 @@ from .args import (
     int_range,
 )
 from .report import write_report
-from .settings import read_key, session_params, writable_dir
+from .settings import check_robot, read_key, session_params, writable_dir
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
 LOG_FILES = ("operator.json", "teleoperator.json", "operator.npz", "teleoperator.npz")
@@ -169,9 +170,12 @@ def build_commands(args: argparse.Namespace, params: Any, logs: Path, key: RunKe
     """Both children's command lines: network, process and key options, and the operator's session."""
     net = _network(args, params.session)
     common = [*_process_options(args, logs), *key.options]
-    to_cmd = [*TELEOP, "teleoperator", *net.teleoperator, *common]
+    # Each side's device is its own local choice: the robot goes to the teleoperator only.
+    robot = ["--robot", args.robot] if args.robot is not None else []
+    hsi = ["--hsi", args.hsi] if args.hsi is not None else []
+    to_cmd = [*TELEOP, "teleoperator", *net.teleoperator, *robot, *common]
     live = [] if args.no_live else ["--live"]
-    op_cmd = [*TELEOP, "operator", *net.operator, *live, *_session_options(params), *common]
+    op_cmd = [*TELEOP, "operator", *net.operator, *live, *hsi, *_session_options(params), *common]
     return Commands(net, to_cmd, op_cmd)
 
 
@@ -265,6 +269,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from transport.session import new_session_id
 
     params = session_params(args, new_session_id())
+    check_robot(args.robot, params.dof)
     out = writable_dir(Path(args.out), "--out")
     logs = writable_dir(out / "logs", "--out")
     for stale in LOG_FILES:
@@ -305,6 +310,7 @@ def add_parser(sub: Subcommands) -> None:
         "is given.",
     )
     add_session_args(r, "eds:50", "protocol")
+    add_device_args(r, ("hsi", "robot"))
     add_netem_args(r)
     add_passivity_args(r)
     r.add_argument("--transport", choices=["udp", "zenoh"], default="udp", help="transport (default udp)")

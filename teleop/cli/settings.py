@@ -19,6 +19,18 @@ from ..scenarios import SCENARIOS
 from .args import CliError
 
 
+def check_robot(spec: str | None, dof: int) -> None:
+    """CliError when ``--robot`` cannot drive ``dof`` DoF (a built-in's check; e.g. mujoco: 1 to 3)."""
+    from ..devices import DeviceError, check
+
+    if spec is None:
+        return
+    try:
+        check(spec, "robot", dof)
+    except DeviceError as e:
+        raise CliError(f"--robot {spec}: {e}") from None
+
+
 def check_duration(duration: float, dof: int) -> None:
     """CliError when a session of ``duration`` s at ``dof`` DoF (1 kHz) does not fit the record budget."""
     try:
@@ -145,6 +157,7 @@ def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int
         zenoh=zenoh_options(args) if args.transport == "zenoh" else None,
         psk=psk,
         insecure=insecure,
+        device=getattr(args, "hsi" if role == "operator" else "robot", None),
     )
 
 

@@ -8,10 +8,12 @@ from pathlib import Path
 from typing import Any
 
 from ..codecs import ACCEPTED, CodecError
+from ..devices import describe
 from ..scenarios import SCENARIOS
 from .args import (
     CliError,
     Subcommands,
+    add_device_args,
     add_model_args,
     add_netem_args,
     add_passivity_args,
@@ -88,6 +90,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
             b=args.b,
             full_scale=args.range,
             scenario=args.scenario,
+            hsi=args.hsi,
+            robot=args.robot,
             **channel_kwargs(args),
         ).resolved()
         doc, cases = run_set(codecs, base)
@@ -104,6 +108,9 @@ def cmd_sim(args: argparse.Namespace) -> int:
             f"seed {base.seed}"
         )
     print(format_table(doc["cases"]))
+    for c in doc["cases"]:
+        if (line := describe(c["devices"]["robot"])) is not None:
+            print(f"{c['codec']:<10} {line}")
     if impaired or base.on_loss != "conceal" or not base.controller:
         print(format_watchdog(doc["cases"]))
     if out is not None:
@@ -134,6 +141,7 @@ def add_parser(sub: Subcommands) -> None:
         help="one-way delay per direction in ms (default 0)",
     )
     add_model_args(s, "step")
+    add_device_args(s, ("hsi", "robot"))
     add_netem_args(s)
     add_passivity_args(s)
     s.add_argument("--out", metavar="DIR", help="write DIR/results.json and one PNG per codec")
