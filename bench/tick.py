@@ -91,8 +91,9 @@ def bench_nodes(spec: str, dof: int, ticks: int, repeats: int) -> list[float]:
 
 
 def bench_ports(spec: str, dof: int, ticks: int, repeats: int) -> list[float]:
-    """Both ports per tick: node, wire encode and parse, counters, link observer, recorder."""
-    opts = PortOptions()
+    """Both ports per tick: node, wire encode and parse, counters, link observer, playout buffer
+    (``auto`` with the real runner's one-tick floor), recorder."""
+    opts = PortOptions(playout="auto")
     out = []
     for _ in range(repeats):
         ports = [
@@ -109,6 +110,7 @@ def bench_ports(spec: str, dof: int, ticks: int, repeats: int) -> list[float]:
                     options=opts,
                 ),
                 ticks=ticks,
+                playout_floor=1,
             )
             for role in ("operator", "teleoperator")
         ]

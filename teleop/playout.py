@@ -131,23 +131,28 @@ class PlayoutBuffer:
         self._recent.append((k, late))
         while self._recent[0][0] <= k - AUTO_WINDOW:
             self._late_hist[self._recent.popleft()[1]] -= 1
-        need = self._quantile()
-        if need > self.extra:
-            self.extra = need
-            self._last_decrease = k
-        elif need < self.extra and k - self._last_decrease >= DECREASE_EVERY:
-            self.extra -= 1
-            self._last_decrease = k
+        # The quantile is looked at only when it may have moved: a payload later than the
+        # allowance (may raise it), or once per DECREASE_EVERY ticks (may lower it by one).
+        if late > self.extra:
+            need = self._quantile()
+            if need > self.extra:
+                self.extra = need
+                self._last_decrease = k
+        elif self.extra > self.auto_floor and k - self._last_decrease >= DECREASE_EVERY:
+            if self._quantile() < self.extra:
+                self.extra -= 1
+                self._last_decrease = k
+            else:  # not yet: look again in a tenth of the interval
+                self._last_decrease = k - DECREASE_EVERY + DECREASE_EVERY // 10
 
     def _quantile(self) -> int:
         """The smallest allowance that AUTO_QUANTILE of the recent payloads met (>= the floor)."""
         allowed = max(int((1.0 - AUTO_QUANTILE) * len(self._recent)), AUTO_OUTLIERS)
-        above = 0
-        for e in range(self.max_extra + 1, -1, -1):
-            above += int(self._late_hist[e])
-            if above > allowed:
-                return max(min(e, self.max_extra), self.auto_floor)
-        return self.auto_floor
+        above = np.cumsum(self._late_hist[::-1])  # above[i]: payloads with lateness >= top - i
+        i = int(np.searchsorted(above, allowed, side="right"))  # first count beyond the allowed
+        if i >= above.size:
+            return self.auto_floor
+        return max(min(self._late_hist.size - 1 - i, self.max_extra), self.auto_floor)
 
     def add(self, pkt: wire.Packet, k: int) -> list[wire.Packet]:
         """A payload taken during tick ``k``; returns what to hand to the node now."""
