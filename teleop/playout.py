@@ -7,8 +7,10 @@ the buffer instead releases a payload to the decoder at tick ``pkt.tick + d`` of
 (both sides count ticks from the common tick 0 the handshake agreed), and sorts what arrives out of
 order within ``d``.
 
-The target ``d`` (ticks) is the lowest transit seen lately (``a_min``, over two windows of
-``MIN_WINDOW`` ticks, so a lasting route change is followed) plus an *extra* allowance:
+The target ``d`` (ticks) is the low (``LOW_QUANTILE``) quantile of the transit of the payloads of
+the last ``AUTO_WINDOW`` ticks (``a_min``: the lowest but for the few that a receiver whose loop ran
+late took a tick early, which say nothing about the link), so a lasting route change is followed,
+plus an *extra* allowance:
 
 * ``off``: no buffer; a payload goes to the decoder when it arrives (the behaviour before).
 * ``MS``: a fixed extra of ``MS`` milliseconds, rounded up to ticks.
@@ -42,13 +44,15 @@ from . import wire
 
 MAX_EXTRA_MS = 500.0  # the largest allowance a user may ask for (and auto may reach)
 MAX_HELD = 4096  # packets the buffer holds at most; beyond it the oldest is released at once
-MIN_WINDOW = 5000  # ticks per window of the running minimum transit
 AUTO_WINDOW = 5000  # ticks: the auto target looks at the lateness of the payloads of the last 5 s
 AUTO_QUANTILE = 0.995
+LOW_QUANTILE = 0.05  # of the transits lie below a_min: early payloads, held a little longer
 AUTO_OUTLIERS = 2  # late payloads per window ignored whatever the quantile: one stall is no jitter
 DECREASE_EVERY = 1000  # ticks between one-tick decreases of the auto target
 FUTURE_LIMIT = 10_000  # ticks: a payload stamped further ahead than this is released at once
-HIST_TICKS = 4096  # bins of the delay histograms
+HIST_TICKS = 4096  # bins of the delay histograms (transits beyond are counted in the last)
+TRANSIT_LO = -64  # ticks: the lowest transit told apart (below: a clock offset's error, clipped)
+CHECK_EVERY = 100  # ticks between looks at the quantiles when nothing forces one
 
 
 def parse_playout(text: str) -> str:
@@ -89,11 +93,12 @@ class PlayoutBuffer:
         # released in send order, and a change of target moves them all alike.
         self._heap: list[tuple[int, int, int, wire.Packet]] = []
         self._n = 0
-        self._min_cur: int | None = None
-        self._min_prev: int | None = None
-        self._min_window_start: int | None = None
-        self._late_hist = np.zeros(self.max_extra + 2, dtype=np.int64)
-        self._recent: deque[tuple[int, int]] = deque()  # (tick taken, lateness) in the window
+        # One histogram of the transit ``a = k_arrival - pkt.tick`` of the payloads of the last
+        # AUTO_WINDOW ticks gives both ends of the target: a_min, its low quantile, and the extra.
+        self._hist = np.zeros(HIST_TICKS - TRANSIT_LO + 1, dtype=np.int64)
+        self._window: deque[tuple[int, int]] = deque()  # (tick taken, histogram bin)
+        self._a_min: int | None = None
+        self._next_check = 0
         self._last_decrease = 0
         self._max_seen_tick = -1
         self.stats = PlayoutStats()
@@ -111,48 +116,57 @@ class PlayoutBuffer:
         return len(self._heap)
 
     def a_min(self) -> int | None:
-        mins = [m for m in (self._min_cur, self._min_prev) if m is not None]
-        return min(mins) if mins else None
+        return self._a_min
 
     def target(self) -> int | None:
         """Release tick offset ``d`` from a payload's send tick (None before the first payload)."""
-        a = self.a_min()
+        a = self._a_min
         return None if a is None else a + self.extra
 
+    def _allowed(self) -> int:
+        return max(int((1.0 - AUTO_QUANTILE) * len(self._window)), AUTO_OUTLIERS)
+
     def _observe(self, a: int, k: int) -> None:
-        if self._min_window_start is None or k - self._min_window_start >= MIN_WINDOW:
-            self._min_prev, self._min_cur, self._min_window_start = self._min_cur, a, k
-        elif self._min_cur is None or a < self._min_cur:
-            self._min_cur = a
+        b = min(max(a - TRANSIT_LO, 0), self._hist.size - 1)
+        self._hist[b] += 1
+        self._window.append((k, b))
+        while self._window[0][0] <= k - AUTO_WINDOW:
+            self._hist[self._window.popleft()[1]] -= 1
+        if self._a_min is None:
+            self._a_min = a
+        # The quantiles are looked at only when they may have moved: a payload below the lowest
+        # transit or later than the allowance, or every CHECK_EVERY ticks.
+        late = a - self._a_min > self.extra
+        if not (a < self._a_min or late or k >= self._next_check):
+            return
+        self._next_check = k + CHECK_EVERY
+        self._a_min = self._low_quantile(a)
         if self.mode != "auto":
             return
-        late = min(max(a - (self.a_min() or 0), 0), self.max_extra + 1)
-        self._late_hist[late] += 1
-        self._recent.append((k, late))
-        while self._recent[0][0] <= k - AUTO_WINDOW:
-            self._late_hist[self._recent.popleft()[1]] -= 1
-        # The quantile is looked at only when it may have moved: a payload later than the
-        # allowance (may raise it), or once per DECREASE_EVERY ticks (may lower it by one).
-        if late > self.extra:
-            need = self._quantile()
-            if need > self.extra:
-                self.extra = need
-                self._last_decrease = k
-        elif self.extra > self.auto_floor and k - self._last_decrease >= DECREASE_EVERY:
-            if self._quantile() < self.extra:
-                self.extra -= 1
-                self._last_decrease = k
-            else:  # not yet: look again in a tenth of the interval
-                self._last_decrease = k - DECREASE_EVERY + DECREASE_EVERY // 10
+        need = self._extra_quantile()
+        if need > self.extra:
+            self.extra = need
+            self._last_decrease = k
+        elif need < self.extra and k - self._last_decrease >= DECREASE_EVERY:
+            self.extra -= 1
+            self._last_decrease = k
 
-    def _quantile(self) -> int:
-        """The smallest allowance that AUTO_QUANTILE of the recent payloads met (>= the floor)."""
-        allowed = max(int((1.0 - AUTO_QUANTILE) * len(self._recent)), AUTO_OUTLIERS)
-        above = np.cumsum(self._late_hist[::-1])  # above[i]: payloads with lateness >= top - i
-        i = int(np.searchsorted(above, allowed, side="right"))  # first count beyond the allowed
-        if i >= above.size:
-            return self.auto_floor
-        return max(min(self._late_hist.size - 1 - i, self.max_extra), self.auto_floor)
+    def _low_quantile(self, a: int) -> int:
+        """The transit LOW_QUANTILE of the recent payloads undercut: the lowest, but for the few a
+        receiver that ran late took a tick early (they are only held a tick longer for it)."""
+        allowed = max(int(LOW_QUANTILE * len(self._window)), AUTO_OUTLIERS)
+        if len(self._window) <= allowed:
+            return min(a, self._a_min if self._a_min is not None else a)
+        below = np.cumsum(self._hist)
+        return int(np.searchsorted(below, allowed, side="right")) + TRANSIT_LO
+
+    def _extra_quantile(self) -> int:
+        """The smallest allowance above a_min that all but the allowed few recent payloads met."""
+        assert self._a_min is not None
+        above = np.cumsum(self._hist[::-1])  # above[i]: payloads in the top i + 1 bins
+        i = int(np.searchsorted(above, self._allowed(), side="right"))
+        top = self._hist.size - 1 - i + TRANSIT_LO  # the highest transit beyond the allowed few
+        return max(min(top - self._a_min, self.max_extra), self.auto_floor)
 
     def add(self, pkt: wire.Packet, k: int) -> list[wire.Packet]:
         """A payload taken during tick ``k``; returns what to hand to the node now."""
@@ -201,7 +215,10 @@ class PlayoutBuffer:
     def clear(self) -> None:
         """The sender was replaced: forget what it sent (its ticks and transit start anew)."""
         self._heap.clear()
-        self._min_cur = self._min_prev = self._min_window_start = None
+        self._hist[:] = 0
+        self._window.clear()
+        self._a_min = None
+        self._next_check = 0
         self._max_seen_tick = -1
 
     def summary(self) -> dict[str, Any]:

