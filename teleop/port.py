@@ -120,9 +120,14 @@ def make_node(
     full_scale: float,
     session: int,
     options: PortOptions,
+    seed: int = 0,
+    variation: float = 0.0,
 ) -> Node:
-    """The operator's or the teleoperator's node for a scenario: one construction for both runners."""
-    human, env = scenarios.get(scenario).make(dof, dt)
+    """The operator's or the teleoperator's node for a scenario: one construction for both runners.
+
+    ``seed`` and ``variation`` vary the scenario's human (0: the scripted run); both sides must
+    pass the session's, so their models agree on the phase timing."""
+    human, env = scenarios.get(scenario).make(dof, dt, seed, variation)
     wave = WaveImpedance.of(b, dof)
     c = make_codec(codec, dof, full_scale)
     if role == "operator":

@@ -225,6 +225,9 @@ class SessionParams:
     on_loss: str = "conceal"  # reconstruction when nothing is queued (teleop.node.PortOptions)
     controller: bool = True  # passivity controller
     link_timeout: float = 0.05  # s of silence before a side goes to its safe state
+    # Scale of the human's seeded variation (teleop.models.ProtocolPlan, drawn from ``seed``);
+    # 0, the scripted run, is left out of the hello, so a hello without it means 0.
+    variation: float = 0.0
 
     def _check_ranges(self) -> None:
         """ValueError naming the first field outside what this process can afford (teleop.limits).
@@ -244,6 +247,7 @@ class SessionParams:
         if self.on_loss not in ON_LOSS:
             raise ValueError(f"on_loss must be one of {', '.join(ON_LOSS)}, got {_show(self.on_loss)}")
         _between("link_timeout", self.link_timeout, limits.MIN_LINK_TIMEOUT_S, limits.MAX_LINK_TIMEOUT_S)
+        _between("variation", self.variation, 0.0, limits.MAX_VARIATION)
         if len(self.codec) > limits.MAX_CODEC_SPEC_LEN:
             raise ValueError(f"codec must be at most {limits.MAX_CODEC_SPEC_LEN} characters")
         for name in _NETEM_FIELDS:
@@ -304,6 +308,7 @@ class SessionParams:
             on_loss=_str(m, "on_loss", _MAX_NAME_LEN),
             controller=_bool(m, "controller"),
             link_timeout=_float(m, "link_timeout"),
+            variation=_float(m, "variation") if "variation" in m else 0.0,
         )
         try:
             p._check_ranges()
@@ -335,6 +340,7 @@ class SessionParams:
             "on_loss": self.on_loss,
             "controller": self.controller,
             "link_timeout": self.link_timeout,
+            **({"variation": self.variation} if self.variation else {}),
         }
 
 

@@ -68,6 +68,7 @@ class SimConfig:
     on_loss: str = "conceal"  # receivers' reconstruction when nothing is queued (teleop.node.PortOptions)
     controller: bool = True  # passivity controller on both receivers
     link_timeout: float = 0.05  # s of silence before a side goes to its safe state
+    variation: float = 0.0  # the human's seeded variation (teleop.models.ProtocolPlan); 0: scripted
 
     def resolved(self) -> SimConfig:
         """A copy with every default filled in and every value checked (ValueError says what is wrong)."""
@@ -88,6 +89,7 @@ class SimConfig:
         if not c.dof or c.dof < 1:
             raise ValueError(f"dof must be >= 1, got {c.dof}")
         PortOptions(on_loss=c.on_loss, controller=c.controller, link_timeout=c.link_timeout)  # checks them
+        scenarios.get(c.scenario).make(c.dof, c.dt, c.seed, c.variation)  # ModelError says what is wrong
         if not c.window_ms >= c.dt * 1e3:
             raise ValueError(f"window must be at least one tick ({c.dt * 1e3} ms), got {c.window_ms}")
         for spec in (c.netem_forward, c.netem_backward):
@@ -146,6 +148,8 @@ def _ports(cfg: SimConfig) -> tuple[Port, Port, Codec]:
             full_scale=cfg.full_scale,
             session=cfg.session,
             options=opts,
+            seed=cfg.seed,
+            variation=cfg.variation,
         )
         ports.append(Port(node, ticks=n_ticks, shim=shims[d], peer_spec=peer_spec))
     return ports[0], ports[1], ports[0].node.tx_codec
@@ -227,6 +231,16 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
         "codec": codec.spec,
         "class": codec.klass,
         "I": metrics.transparency(tr.v_hsi, tr.v_to, tr.f_hsi, tr.f_to, dt),
+        # Per phase of the scenario (free, foam, wall; ``all``: the run): I per DoF, wire rates (Fig. 15).
+        "phases": metrics.phase_summary(
+            tr.v_hsi,
+            tr.v_to,
+            tr.f_hsi,
+            tr.f_to,
+            dt,
+            _phases(cfg),
+            {"forward": op.tx.wire_per_tick.a, "backward": to.tx.wire_per_tick.a},
+        ),
         "compression": metrics.compression(baseline_total, sent_total),
         "min_instant_compression": min(per_dir[d]["min_instant_compression"] for d in wire.DIRECTIONS),
         "passive": bool(min_margin >= -ENERGY_TOLERANCE),
@@ -260,6 +274,11 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
         "security": {"forward": t["security"], "backward": o["security"]},
     }
     return summary
+
+
+def _phases(cfg: SimConfig) -> list[tuple[str, float, float]]:
+    assert cfg.duration is not None
+    return scenarios.get(cfg.scenario).phases(cfg.seed, cfg.variation, cfg.duration)
 
 
 def _no_dir(p: dict[str, Any]) -> dict[str, Any]:
@@ -306,6 +325,7 @@ def run_set(codecs: list[str], base: SimConfig) -> tuple[dict[str, Any], list[Ca
         "window_ms": base.window_ms,
         "netem": {"forward": base.netem_forward, "backward": base.netem_backward},
         "seed": base.seed,
+        "variation": base.variation,
         "cases": [c.summary for c in cases],
     }
     return doc, cases

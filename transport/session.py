@@ -593,6 +593,8 @@ def _make_port(opts: EndpointOptions, tr: Transport, params: SessionParams, k0: 
         full_scale=params.full_scale,
         session=params.session,
         options=params.port_options(),
+        seed=params.seed,
+        variation=params.variation,
     )
     if k0:
         node.joined_late()

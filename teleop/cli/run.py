@@ -192,6 +192,7 @@ def _session_options(params: Any) -> list[str]:
         *("--netem-forward", params.netem_forward, "--netem-backward", params.netem_backward),
         *("--seed", str(params.seed), "--on-loss", params.on_loss),
         *("--link-timeout", repr(params.link_timeout * 1e3)),
+        *("--variation", repr(params.variation)),
         *([] if params.controller else ["--no-controller"]),
     ]
 
