@@ -71,7 +71,7 @@ def phase_transparency(
     f_to: Array,
     dt: float,
     phases: Phases,
-    valid: npt.NDArray[Any] | None = None,
+    valid: npt.ArrayLike | None = None,
 ) -> dict[str, dict[str, Any]]:
     """I of eq. (7) per phase and per DoF: ``{phase: {"I", "I_dof": [...], "start", "end", "ticks"}}``.
 
@@ -123,7 +123,7 @@ def phase_summary(
     dt: float,
     phases: Phases,
     wire_bytes: dict[str, Array],
-    valid: npt.NDArray[Any] | None = None,
+    valid: npt.ArrayLike | None = None,
 ) -> dict[str, dict[str, Any]]:
     """Per phase: :func:`phase_transparency`'s figures plus, per direction of ``wire_bytes`` (bytes
     on the wire per tick), ``packets_per_s`` and ``wire_bps`` (:func:`phase_rates`)."""

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 
-from . import endpoints, keygen, report, run, sim
+from . import endpoints, experiment, keygen, report, run, sim
 from .args import CliError, Parser
 
 
@@ -13,6 +13,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="teleop", description="Networked haptic teleoperation with passive LDR.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     sim.add_parser(sub)
+    experiment.add_parser(sub)
     run.add_parser(sub)
     endpoints.add_operator_parser(sub)
     endpoints.add_teleoperator_parser(sub)
