@@ -259,6 +259,10 @@ def summary_text(rep: dict[str, Any]) -> str:
         diff = 100 * tr["relative_difference"]
         extra = f"  (teleop sim, same settings: {tr['I_sim']:.4e}; difference {diff:.1f}%)"
     lines.append(f"  transparency I = {tr['I']:.4e}{extra}")
+    if len(rep.get("phases", {})) > 1:
+        lines.append(
+            "  per phase: " + "  ".join(f"{n} {b['I']:.4e}" for n, b in rep["phases"].items() if n != "all")
+        )
     for d, pv in rep["passivity"].items():
         lk = rep["link"][d]
         delay = lk["delay_ms"]["mean"]

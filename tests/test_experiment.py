@@ -70,6 +70,7 @@ def test_every_plan_is_a_well_formed_task(seed: int, variation: float) -> None:
     (_, _, f1), (_, f0, w0), (_, w1, _) = p.phases(15.0)
     assert f1 == f0 >= 4.0 and w0 - f0 >= 4.0 and 15.0 - w0 >= 4.5 and w1 == w0
     assert abs(math.sin(2 * math.pi * p.stroke_freq * p.t_foam)) < 1e-9
+    assert abs(math.sin(2 * math.pi * p.lateral_freq * p.t_foam)) < 1e-9
     assert p.k > 0 and p.k_grip > 0 and p.stroke_amp > 0 and p.foam_depth > 0 and p.wall_depth > 0
 
 

@@ -35,6 +35,17 @@ def format_table(cases: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def format_phases(cases: list[dict[str, Any]]) -> str:
+    """Per case: I of each phase of the scenario (free, foam, wall) next to the whole run's."""
+    names = [n for n in cases[0]["phases"] if n != "all"] if cases else []
+    head = f"{'codec':<10} " + " ".join(f"{'I ' + n:>11}" for n in names) + f" {'I all':>11}"
+    lines = [head, "-" * len(head)]
+    for c in cases:
+        ph = c["phases"]
+        lines.append(f"{c['codec']:<10} " + " ".join(f"{ph[n]['I']:>11.4e}" for n in [*names, "all"]))
+    return "\n".join(lines)
+
+
 def format_watchdog(cases: list[dict[str, Any]]) -> str:
     """Per case and direction: what the link did (observed) and what the watchdog saw and did."""
     lines = [
@@ -104,6 +115,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
             f"seed {base.seed}"
         )
     print(format_table(doc["cases"]))
+    if len(doc["cases"][0]["phases"]) > 1:
+        print(format_phases(doc["cases"]))
     if impaired or base.on_loss != "conceal" or not base.controller:
         print(format_watchdog(doc["cases"]))
     if out is not None:
