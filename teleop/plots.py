@@ -120,7 +120,7 @@ def experiment_bars(path: Path, doc: dict[str, Any], title: str) -> None:
     phases = [n for n in ("free", "foam", "wall", "all") if any(n in c["phases"] for c in doc["cases"])]
     ref = next((c for c in doc["cases"] if c["reference"]), None)
     bars = [c for c in doc["cases"] if not c["reference"]]
-    fig, ax = plt.subplots(figsize=(8.5, 4.2))
+    fig, ax = plt.subplots(figsize=(8.5, 4.6))
     width = 0.8 / max(1, len(bars))
     x = np.arange(len(phases), dtype=np.float64)
     for i, c in enumerate(bars):
@@ -140,7 +140,7 @@ def experiment_bars(path: Path, doc: dict[str, Any], title: str) -> None:
     ax.set_ylabel("transparency I (lower is better)")
     ax.set_title(title, fontsize=10)
     ax.grid(axis="y", alpha=0.3, which="both")
-    ax.legend(fontsize=8, ncol=3, loc="upper left")
+    ax.legend(fontsize=8, ncol=min(7, len(bars) + 1), loc="upper center", bbox_to_anchor=(0.5, -0.09))
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
