@@ -264,7 +264,7 @@ def add_netem_args(p: argparse.ArgumentParser, variation_default: float = 0.0) -
         default=variation_default,
         metavar="X",
         help="protocol scenario: vary the human as a person repeating the task does, seeded by --seed "
-        f"(stroke, push timing and depth, phase times, arm and grip stiffness); 1 = the documented "
+        "(stroke, push timing and depth, phase times, arm and grip stiffness); 1 = the documented "
         f"spread, 0 = the scripted run (default {variation_default:g})",
     )
 
