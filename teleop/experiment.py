@@ -68,6 +68,16 @@ def _mean(values: Sequence[float | None]) -> float | None:
     return float(np.mean(a)) if a else None
 
 
+def _ratios(done: Sequence[RunResult], ref: dict[int, dict[str, Any]], name: str) -> list[float]:
+    """Per seed run by both: this codec's I over the reference's in phase ``name``."""
+    out = []
+    for r in done:
+        i_ref = ref.get(r.seed, {}).get(name, {}).get("I")
+        if i_ref and name in r.phases:
+            out.append(r.phases[name]["I"] / i_ref)
+    return out
+
+
 def _phase_names(runs: Sequence[RunResult]) -> list[str]:
     names = {n for r in runs for n in r.phases}
     return [n for n in PHASE_ORDER if n in names] + sorted(names - set(PHASE_ORDER))
@@ -77,8 +87,10 @@ def aggregate(
     runs: Sequence[RunResult], codecs: Sequence[str], n_runs: int, real: bool, settings: dict[str, Any]
 ) -> dict[str, Any]:
     """The ``experiment.json`` document: per codec (in the given order), per phase, I's mean,
-    spread, min and max over the completed runs, I per DoF, and the mean packet and wire rates."""
+    spread, min and max over the completed runs, I per DoF, the mean packet and wire rates, and
+    (with the reference among the runs) ``I_over_reference``: I over the reference's, seed by seed."""
     cases = []
+    ref = {r.seed: r.phases for r in runs if r.codec == REFERENCE and r.error is None}
     for spec in codecs:
         mine = [r for r in runs if r.codec == spec]
         done = [r for r in mine if r.error is None]
@@ -99,6 +111,9 @@ def aggregate(
                 },
                 "wire_bps": {d: _mean([b["wire_bps"][d] for b in blocks]) for d in ("forward", "backward")},
             }
+            if spec != REFERENCE and ref:
+                # Paired by seed: the same human with and without LDR, so the human's spread cancels.
+                phases[name]["I_over_reference"] = stats(_ratios(done, ref, name))
         cases.append(
             {
                 "codec": spec,
@@ -135,4 +150,22 @@ def format_table(doc: dict[str, Any]) -> str:
         ok = "yes" if c["passive"] else "NO"
         runs = f"{c['completed']}/{doc['runs']}"
         lines.append(f"{c['codec']:<10} " + " ".join(cells) + f"  {ok} ({runs} runs)")
+    return "\n".join(lines)
+
+
+def format_paired(doc: dict[str, Any]) -> str:
+    """Per codec and phase: I over the reference's, seed by seed: mean (min..max)."""
+    names = [n for n in PHASE_ORDER if any(n in c["phases"] for c in doc["cases"])]
+    rows = [c for c in doc["cases"] if any("I_over_reference" in b for b in c["phases"].values())]
+    if not rows:
+        return ""
+    head = f"{'I / ' + REFERENCE + ', same seed':<20} " + " ".join(f"{n:>30}" for n in names)
+    lines = [head, "-" * len(head)]
+    for c in rows:
+        cells = []
+        for n in names:
+            s = c["phases"].get(n, {}).get("I_over_reference", {})
+            text = f"{s['mean']:.3g} ({s['min']:.3g}..{s['max']:.3g})" if s.get("mean") is not None else "-"
+            cells.append(f"{text:>30}")
+        lines.append(f"{c['codec']:<20} " + " ".join(cells))
     return "\n".join(lines)

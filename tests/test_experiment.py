@@ -225,8 +225,15 @@ def test_aggregate_mean_and_sample_spread() -> None:
     assert none["phases"]["free"]["I_dof"][1]["mean"] == pytest.approx(7 / 4)
     assert none["phases"]["all"]["packets_per_s"] == {"forward": 500.0, "backward": 250.0}
     assert none["passive"] and not eds["passive"]
+    assert "I_over_reference" not in none["phases"]["free"]
+    ratio = eds["phases"]["free"]["I_over_reference"]  # 3 over 1, 2 and 4, seed by seed
+    assert ratio["mean"] == pytest.approx((3 + 1.5 + 0.75) / 3) and (ratio["min"], ratio["max"]) == (
+        0.75,
+        3.0,
+    )
     assert [r["seed"] for r in eds["per_run"]] == [0, 1, 2]
     assert "free" in experiment.format_table(doc)
+    assert "eds:2" in experiment.format_paired(doc) and "0.75..3" in experiment.format_paired(doc)
 
 
 def test_experiment_command_writes_json_and_figure(

@@ -145,7 +145,7 @@ def _real_runs(args: argparse.Namespace, codecs: list[str], out: Path, progress:
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
-    from ..experiment import aggregate, format_table
+    from ..experiment import aggregate, format_paired, format_table
     from ..sim import SECTION_V_CODECS
 
     sc = SCENARIOS[args.scenario]
@@ -178,6 +178,8 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     )
     plots.experiment_bars(out / "fig15.png", doc, title)
     print(format_table(doc))
+    if paired := format_paired(doc):
+        print(paired)
     for c in doc["cases"]:
         for r in c["per_run"]:
             if r["error"] or not r["passive"]:
