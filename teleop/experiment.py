@@ -35,6 +35,8 @@ class RunResult:
     passive: bool
     phases: dict[str, dict[str, Any]] = field(default_factory=dict)
     error: str | None = None
+    # Real runs: what the host did to the loops (a stalled tick conceals a late packet, raising I).
+    host: dict[str, int] | None = None
 
 
 def sim_run(base: SimConfig, codec: str, seed: int) -> RunResult:
@@ -48,6 +50,16 @@ def real_passive(report: dict[str, Any]) -> bool:
     (eq. 5, per direction, from both logs), within float rounding; no margin at all is a failure."""
     margins = [report["energy"][d]["min_margin"] for d in ("forward", "backward")]
     return all(m is not None and m >= -ENERGY_TOLERANCE for m in margins)
+
+
+def host_figures(report: dict[str, Any]) -> dict[str, int]:
+    """Both processes' loop overruns and late packets missed, and the watchdogs' violations."""
+    procs = report["processes"].values()
+    return {
+        "overruns": sum(int(p["loop"]["overruns"]) for p in procs),
+        "late_packets_missed": sum(int(p["grace"]["missed"]) for p in procs),
+        "watchdog_violations": sum(int(v["violations"]) for v in report["passivity"].values()),
+    }
 
 
 def stats(values: Sequence[float]) -> dict[str, float | None]:
@@ -127,6 +139,7 @@ def aggregate(
                         "passive": r.passive,
                         "error": r.error,
                         "I": {n: b["I"] for n, b in r.phases.items()},
+                        **({"host": r.host} if r.host is not None else {}),
                     }
                     for r in mine
                 ],

@@ -302,3 +302,4 @@ def test_real_experiment_runs_sessions_with_the_seeded_human(tmp_path: Path) -> 
     (case,) = doc["cases"]
     assert doc["real"] is True and case["passive"] and case["completed"] == 1
     assert case["phases"]["free"]["packets_per_s"]["forward"] == pytest.approx(500.0, rel=0.05)
+    assert set(case["per_run"][0]["host"]) == {"overruns", "late_packets_missed", "watchdog_violations"}

@@ -110,7 +110,7 @@ def _run_args(args: argparse.Namespace, spec: str, seed: int, out: Path) -> argp
 
 def _real_run(args: argparse.Namespace, spec: str, seed: int, out: Path) -> Any:
     """One ``teleop run`` session; its printed summary goes to ``out/run.log``."""
-    from ..experiment import RunResult, real_passive
+    from ..experiment import RunResult, host_figures, real_passive
     from .run import cmd_run
 
     ns = _run_args(args, spec, seed, out)
@@ -126,7 +126,7 @@ def _real_run(args: argparse.Namespace, spec: str, seed: int, out: Path) -> Any:
             shutil.rmtree(out / "logs", ignore_errors=True)
     rep = json.loads((out / "report.json").read_text())
     error = None if rc == 0 else f"teleop run exited with {rc} (exit codes {rep.get('exit_codes')})"
-    return RunResult(rep["codec"], seed, real_passive(rep), rep["phases"], error), rc
+    return RunResult(rep["codec"], seed, real_passive(rep), rep["phases"], error, host_figures(rep)), rc
 
 
 def _real_runs(args: argparse.Namespace, codecs: list[str], out: Path, progress: Progress) -> list[Any]:
