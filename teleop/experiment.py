@@ -52,6 +52,21 @@ def real_passive(report: dict[str, Any]) -> bool:
     return all(m is not None and m >= -ENERGY_TOLERANCE for m in margins)
 
 
+#: A real run whose two logs overlap on fewer of its ticks than this is left out (``error``).
+MIN_TICKS_COMPARED = 0.9
+
+
+def incomplete(report: dict[str, Any]) -> str | None:
+    """Why a real run cannot be compared, or None.  Host stalls skip a few ticks (a few %); a
+    process that joined the session late (seen on a loaded host) leaves most of it unrecorded."""
+    ticks = round(report["duration_s"] * 1000)  # every session runs at 1 kHz (teleop run)
+    got = int(report["transparency"]["ticks_compared"])
+    if got >= MIN_TICKS_COMPARED * ticks:
+        return None
+    per = {role: p["loop"]["ticks"] for role, p in report["processes"].items()}
+    return f"only {got} of {ticks} ticks recorded by both processes (ticks run: {per})"
+
+
 def host_figures(report: dict[str, Any]) -> dict[str, int]:
     """Both processes' loop overruns and late packets missed, and the watchdogs' violations."""
     procs = report["processes"].values()

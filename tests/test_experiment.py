@@ -303,3 +303,13 @@ def test_real_experiment_runs_sessions_with_the_seeded_human(tmp_path: Path) -> 
     assert doc["real"] is True and case["passive"] and case["completed"] == 1
     assert case["phases"]["free"]["packets_per_s"]["forward"] == pytest.approx(500.0, rel=0.05)
     assert set(case["per_run"][0]["host"]) == {"overruns", "late_packets_missed", "watchdog_violations"}
+
+
+def test_a_real_run_a_process_joined_late_is_incomplete() -> None:
+    def report(op: int, to: int, both: int) -> dict[str, object]:
+        procs = {"operator": {"loop": {"ticks": op}}, "teleoperator": {"loop": {"ticks": to}}}
+        return {"duration_s": 15.0, "transparency": {"ticks_compared": both}, "processes": procs}
+
+    assert experiment.incomplete(report(14500, 14480, 14450)) is None  # a few stalled ticks
+    why = experiment.incomplete(report(14873, 6241, 6241))
+    assert why is not None and "only 6241 of 15000 ticks" in why

@@ -2,8 +2,9 @@
 
 In virtual time (``teleop sim``'s runner) by default; with ``--real``, each run is a real
 ``teleop run`` session (two processes on 127.0.0.1), one after another, reusing that command's
-code with its options.  Each real run writes ``DIR/runs/CODEC-seedN/report.json`` (its logs are
-removed unless ``--keep-logs``: about 2 MB per run).
+code with its options, seed by seed, every codec in turn.  Each real run writes
+``DIR/runs/CODEC-seedN/report.json`` (its logs are removed unless ``--keep-logs``: about 2 MB per
+run); a run whose processes did not both record most of the session is left out as incomplete.
 """
 
 from __future__ import annotations
@@ -88,8 +89,8 @@ def _sim_runs(args: argparse.Namespace, codecs: list[str], progress: Progress) -
     except (ValueError, CodecError, OSError) as e:
         raise CliError(str(e)) from None
     runs = []
-    for spec in codecs:
-        for seed in range(args.seed, args.seed + args.runs):
+    for seed in range(args.seed, args.seed + args.runs):
+        for spec in codecs:
             runs.append(sim_run(base, spec, seed))
             progress.step(f"{spec} seed {seed}" + ("" if runs[-1].passive else " NOT PASSIVE"))
     return runs
@@ -110,7 +111,7 @@ def _run_args(args: argparse.Namespace, spec: str, seed: int, out: Path) -> argp
 
 def _real_run(args: argparse.Namespace, spec: str, seed: int, out: Path) -> Any:
     """One ``teleop run`` session; its printed summary goes to ``out/run.log``."""
-    from ..experiment import RunResult, host_figures, real_passive
+    from ..experiment import RunResult, host_figures, incomplete, real_passive
     from .run import cmd_run
 
     ns = _run_args(args, spec, seed, out)
@@ -126,6 +127,7 @@ def _real_run(args: argparse.Namespace, spec: str, seed: int, out: Path) -> Any:
             shutil.rmtree(out / "logs", ignore_errors=True)
     rep = json.loads((out / "report.json").read_text())
     error = None if rc == 0 else f"teleop run exited with {rc} (exit codes {rep.get('exit_codes')})"
+    error = error or incomplete(rep)
     return RunResult(rep["codec"], seed, real_passive(rep), rep["phases"], error, host_figures(rep)), rc
 
 
@@ -133,8 +135,10 @@ def _real_runs(args: argparse.Namespace, codecs: list[str], out: Path, progress:
     from ..plots import safe_name
 
     runs = []
-    for spec in codecs:
-        for seed in range(args.seed, args.seed + args.runs):
+    # Seed by seed, every codec in turn: a host that gets busier during the experiment then
+    # slows every codec alike, instead of the codecs that happen to run last.
+    for seed in range(args.seed, args.seed + args.runs):
+        for spec in codecs:
             folder = writable_dir(out / "runs" / f"{safe_name(spec)}-seed{seed}", "--out")
             r, rc = _real_run(args, spec, seed, folder)
             runs.append(r)
