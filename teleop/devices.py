@@ -40,7 +40,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from .models import Array, LtiEnvironment, ProtocolEnvironment, ProtocolHuman, StepHuman
+from .models import Array, LtiEnvironment, ProtocolEnvironment, ProtocolHuman, ProtocolPlan, StepHuman
 
 ROLES = ("hsi", "robot")
 ENTRY_POINT_GROUP = "teleop.devices"
@@ -77,27 +77,27 @@ def _no_arg(name: str, arg: str | None) -> None:
         raise DeviceError(f"{name!r} takes no argument, got {name}:{arg}")
 
 
-def _step_human(dof: int, dt: float, arg: str | None) -> Device:
+def _step_human(dof: int, dt: float, arg: str | None, **_: Any) -> Device:
     _no_arg("step", arg)
     return StepHuman(dof, dt)
 
 
-def _protocol_human(dof: int, dt: float, arg: str | None) -> Device:
+def _protocol_human(dof: int, dt: float, arg: str | None, seed: int = 0, variation: float = 0.0) -> Device:
     _no_arg("protocol", arg)
-    return ProtocolHuman(dof, dt)
+    return ProtocolHuman(dof, dt, plan=ProtocolPlan.draw(seed, variation))
 
 
-def _lti_env(dof: int, dt: float, arg: str | None) -> Device:
+def _lti_env(dof: int, dt: float, arg: str | None, **_: Any) -> Device:
     _no_arg("step", arg)
     return LtiEnvironment(dof, dt)
 
 
-def _protocol_env(dof: int, dt: float, arg: str | None) -> Device:
+def _protocol_env(dof: int, dt: float, arg: str | None, seed: int = 0, variation: float = 0.0) -> Device:
     _no_arg("protocol", arg)
-    return ProtocolEnvironment(dof, dt)
+    return ProtocolEnvironment(dof, dt, plan=ProtocolPlan.draw(seed, variation))
 
 
-def _mujoco(dof: int, dt: float, arg: str | None) -> Device:
+def _mujoco(dof: int, dt: float, arg: str | None, **_: Any) -> Device:
     from .mujoco_robot import MujocoRobot  # imports mujoco: only a teleoperator that asks pays for it
 
     return MujocoRobot(dof=dof, dt=dt, arg=arg)
@@ -112,18 +112,14 @@ def _mujoco_check(arg: str | None, dof: int) -> None:
 #: The built-in devices by role and name; the scenarios' models are named like the scenarios.
 BUILTIN: dict[str, dict[str, Builtin]] = {
     "hsi": {
-        "step": Builtin(lambda dof, dt, arg: _step_human(dof, dt, arg), "step", "Section V velocity step"),
-        "protocol": Builtin(
-            lambda dof, dt, arg: _protocol_human(dof, dt, arg), "protocol", "Section VI operator"
-        ),
+        "step": Builtin(_step_human, "step", "Section V velocity step"),
+        "protocol": Builtin(_protocol_human, "protocol", "Section VI operator (seeded by the session)"),
     },
     "robot": {
-        "step": Builtin(lambda dof, dt, arg: _lti_env(dof, dt, arg), "step", "ideal robot in 1/(s+1)"),
-        "protocol": Builtin(
-            lambda dof, dt, arg: _protocol_env(dof, dt, arg), "protocol", "ideal robot, Section VI scene"
-        ),
+        "step": Builtin(_lti_env, "step", "ideal robot in 1/(s+1)"),
+        "protocol": Builtin(_protocol_env, "protocol", "ideal robot, Section VI scene (seeded)"),
         "mujoco": Builtin(
-            lambda dof, dt, arg: _mujoco(dof, dt, arg),
+            _mujoco,
             "mujoco[:SCENE.xml]",
             "MuJoCo end effector, default scene: free space, foam, wall",
             _mujoco_check,
@@ -140,11 +136,15 @@ class DeviceSpec:
     spec: str  # as given: the label in the logs
     factory: Factory
     arg: str | None
+    builtin: bool = False
 
-    def build(self, dof: int, dt: float) -> Device:
-        """The device for ``dof`` DoF at period ``dt``; DeviceError says what went wrong."""
+    def build(self, dof: int, dt: float, seed: int = 0, variation: float = 0.0) -> Device:
+        """The device for ``dof`` DoF at period ``dt``; DeviceError says what went wrong.  A built-in
+        also gets the session's ``seed`` and ``variation`` (the seeded Section VI performance);
+        a third-party factory is called with ``dof``, ``dt`` and ``arg`` only."""
+        ctx = {"seed": seed, "variation": variation} if self.builtin else {}
         try:
-            dev = self.factory(dof=dof, dt=dt, arg=self.arg)
+            dev = self.factory(dof=dof, dt=dt, arg=self.arg, **ctx)
         except DeviceError:
             raise
         except (ValueError, TypeError, OSError, RuntimeError, ImportError) as e:
@@ -186,7 +186,7 @@ def resolve(spec: str, role: str) -> DeviceSpec:
     name, _, rest = spec.partition(":")
     arg = rest if rest else None
     if name in BUILTIN[role]:
-        return DeviceSpec(role, spec, BUILTIN[role][name].factory, arg)
+        return DeviceSpec(role, spec, BUILTIN[role][name].factory, arg, builtin=True)
     eps = _entry_points()
     if name in eps:
         try:
@@ -232,9 +232,9 @@ def builtin_only(spec: str | None, role: str) -> str | None:
     return spec
 
 
-def make(role: str, spec: str, dof: int, dt: float) -> Device:
+def make(role: str, spec: str, dof: int, dt: float, seed: int = 0, variation: float = 0.0) -> Device:
     """Resolve and build one device: ``make("robot", "mujoco", 2, 0.001)``."""
-    return resolve(spec, role).build(dof, dt)
+    return resolve(spec, role).build(dof, dt, seed, variation)
 
 
 def describe(dev: dict[str, Any]) -> str | None:

@@ -16,6 +16,7 @@ MIN_DURATION_S = 0.1  # s: shorter sessions have too few ticks to measure anythi
 RECORD_BUDGET_BYTES = 1 << 30  # per process, for the per-tick records of one session
 MAX_SESSION = 2**32 - 1  # the wire's uint32 session id (0 is never used)
 MAX_SEED = 2**32 - 1
+MAX_VARIATION = 2.0  # scale of the human's seeded variation (teleop.models.ProtocolPlan)
 MAX_B = 1e6  # N s/m
 MAX_RANGE = 1e6  # sqrt(W), full scale of the raw 16-bit wave format
 MIN_LINK_TIMEOUT_S = 1e-3

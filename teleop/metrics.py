@@ -4,9 +4,17 @@ Compression is counted from bytes actually produced (payloads, or datagrams on t
 from a codec's nominal figure: ``c = baseline bytes / sent bytes``, the baseline being every tick's
 raw 16-bit sample.  The minimum instantaneous compression is the same ratio over a sliding window
 (default 100 ms): what bounds the peak data rate.
+
+Per phase (Section VI, Fig. 15): the same I and rates over each phase of a scenario, the phases
+given as ``(name, start s, end s)`` by the scenario (``teleop.scenarios.Scenario.phases``); tick
+``n`` (time ``n dt``) belongs to the phase with ``start <= n dt < end``.
 """
 
 from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -41,3 +49,87 @@ def min_instant_compression(baseline_per_tick: Array, sent_per_tick: Array, wind
     with np.errstate(divide="ignore"):
         ratios = np.where(ws > 0, wb / np.where(ws > 0, ws, 1.0), np.inf)
     return float(ratios.min())
+
+
+Phases = Sequence[tuple[str, float, float]]
+
+
+def phase_ticks(n_ticks: int, dt: float, phases: Phases) -> dict[str, slice]:
+    """Each phase's ticks, plus ``all``: every tick of the run."""
+    out = {}
+    for name, t0, t1 in phases:
+        a, b = (min(n_ticks, max(0, math.ceil(t / dt - 1e-6))) for t in (t0, t1))
+        out[name] = slice(a, max(a, b))
+    out["all"] = slice(0, n_ticks)
+    return out
+
+
+def phase_transparency(
+    v_hsi: Array,
+    v_to: Array,
+    f_hsi: Array,
+    f_to: Array,
+    dt: float,
+    phases: Phases,
+    valid: npt.ArrayLike | None = None,
+) -> dict[str, dict[str, Any]]:
+    """I of eq. (7) per phase and per DoF: ``{phase: {"I", "I_dof": [...], "start", "end", "ticks"}}``.
+
+    Signals are (ticks, dof); ``valid`` (bool per tick) leaves out ticks one side did not record (a
+    real run's rows of NaN).  ``all`` is the whole run, so its ``I`` is :func:`transparency`'s."""
+    dv = np.asarray(v_hsi, dtype=np.float64) - np.asarray(v_to, dtype=np.float64)
+    df = np.asarray(f_to, dtype=np.float64) - np.asarray(f_hsi, dtype=np.float64)
+    dv, df = dv.reshape(dv.shape[0], -1), df.reshape(df.shape[0], -1)
+    per_tick = dv * dv + df * df
+    if valid is not None:
+        per_tick = np.where(np.asarray(valid, dtype=bool)[:, None], per_tick, 0.0)
+    n = per_tick.shape[0]
+    out: dict[str, dict[str, Any]] = {}
+    for name, sl in phase_ticks(n, dt, phases).items():
+        i_dof = per_tick[sl].sum(axis=0) * dt
+        counted = sl.stop - sl.start if valid is None else int(np.count_nonzero(np.asarray(valid)[sl]))
+        out[name] = {
+            "I": float(i_dof.sum()),
+            "I_dof": [float(x) for x in i_dof],
+            "start": round(sl.start * dt, 9),
+            "end": round(sl.stop * dt, 9),
+            "ticks": int(counted),
+        }
+    return out
+
+
+def phase_rates(sent_bytes: Array, dt: float, phases: Phases) -> dict[str, dict[str, float | None]]:
+    """Per phase: packets per second (ticks that sent bytes) and bits per second of ``sent_bytes``.
+
+    ``sent_bytes`` is one direction's bytes sent per tick (payload, packet or wire bytes); a phase
+    of no ticks has ``None``."""
+    b = np.nan_to_num(np.asarray(sent_bytes, dtype=np.float64))
+    out: dict[str, dict[str, float | None]] = {}
+    for name, sl in phase_ticks(b.size, dt, phases).items():
+        span = (sl.stop - sl.start) * dt
+        seg = b[sl]
+        out[name] = {
+            "packets_per_s": float(np.count_nonzero(seg)) / span if span > 0 else None,
+            "bps": 8.0 * float(seg.sum()) / span if span > 0 else None,
+        }
+    return out
+
+
+def phase_summary(
+    v_hsi: Array,
+    v_to: Array,
+    f_hsi: Array,
+    f_to: Array,
+    dt: float,
+    phases: Phases,
+    wire_bytes: dict[str, Array],
+    valid: npt.ArrayLike | None = None,
+) -> dict[str, dict[str, Any]]:
+    """Per phase: :func:`phase_transparency`'s figures plus, per direction of ``wire_bytes`` (bytes
+    on the wire per tick), ``packets_per_s`` and ``wire_bps`` (:func:`phase_rates`)."""
+    out = phase_transparency(v_hsi, v_to, f_hsi, f_to, dt, phases, valid)
+    rates = {d: phase_rates(b, dt, phases) for d, b in wire_bytes.items()}
+    for name, block in out.items():
+        block["packets_per_s"] = {d: r[name]["packets_per_s"] for d, r in rates.items()}
+        block["wire_bps"] = {d: r[name]["bps"] for d, r in rates.items()}
+    return out

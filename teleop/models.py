@@ -21,11 +21,14 @@ Section V models: the human exerts a velocity step and reacts to force through t
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
 from numpy.polynomial import polynomial as P
+
+from .limits import MAX_VARIATION
 
 Array = npt.NDArray[np.float64]
 
@@ -162,6 +165,103 @@ def _smooth_steps(t: float, knots: Sequence[tuple[float, float]], ramp: float) -
     return v
 
 
+# MAX_VARIATION (teleop.limits), twice the documented spread, keeps every varied plan's knots in
+# order and its phases at least 4 s long (see :class:`ProtocolPlan`).
+_HUMAN_STREAM = 0x48554D414E  # "HUMAN": the human's draws never share a stream with the netem shims
+
+
+@dataclass(frozen=True)
+class ProtocolPlan:
+    """One performance of the Section VI task: what a person varies when repeating it.
+
+    ``ProtocolPlan.draw(seed, variation)`` draws it from ``seed`` (its own numpy stream, tagged, so
+    it is independent of the netem shims' ``random.Random(2 seed + direction)``); ``variation``
+    scales every spread, 0 giving exactly the scripted plan (the defaults).  Spread per unit of
+    variation, each a uniform draw in +-spread:
+
+    ========================  ============  =================================================
+    stroke amplitude          +-20 %        free-space strokes, default 5 cm
+    stroke frequency          +-20 %        default 0.5 Hz; rounded to whole half-periods in
+                                            free space so the stroke ends at rest (no jump)
+    phase boundaries          +-0.25 s      foam from 5 s, wall from 10 s
+    push timing               +-0.08 s      each knot of the foam and wall pushes but the first
+    push depth                +-20 %        intended push velocity, default 4 and 5 cm/s
+    arm stiffness k           +-20 %        default 300 N/m
+    grip stiffness k_grip     +-30 %        default 2000 N/m
+    lateral sine (DoF >= 1)   +-20 %        amplitude 3 cm/s and frequency 0.3 j Hz; the
+                                            frequency rounded to whole half-periods in free
+                                            space too
+    ========================  ============  =================================================
+
+    Why both roundings: the foam's damping switches on for every DoF at ``t_foam``; a hand still
+    moving then meets a force step, and the one-tick loop floor turns a step into an error that
+    would dominate the foam phase's I (measured, seed 0: 40 times the scripted run's, from the lateral
+    DoF alone).  The scripted plan has both velocities at zero at 5 s; every drawn plan keeps that.
+
+    The grip's damping stays equal to ``b``: it is what absorbs reflections (ProtocolHuman).
+    Both processes draw the same plan from the handshake's ``seed`` and ``variation``, so the
+    environment switches phase exactly when the human expects it.
+    """
+
+    stroke_amp: float = 0.05  # m
+    stroke_freq: float = 0.5  # Hz, whole half-periods in [0, t_foam)
+    t_foam: float = 5.0  # s, free space before
+    t_wall: float = 10.0  # s, foam before, foam and wall after
+    t_end: float = 15.0  # s, the wall pushes are laid out up to here
+    foam_depth: float = 0.04  # m/s intended into the foam
+    wall_depth: float = 0.05  # m/s intended into the wall
+    knot_jitter: tuple[float, ...] = (0.0,) * 10  # s, per knot of the foam then wall pushes
+    k: float = 300.0  # N/m, arm
+    k_grip: float = 2000.0  # N/m, grip
+    lateral_amp: float = 0.03  # m/s
+    lateral_freq: float = 0.3  # Hz (times the DoF index)
+
+    @classmethod
+    def draw(cls, seed: int, variation: float) -> ProtocolPlan:
+        """The plan of run ``seed`` at ``variation`` (0: the scripted plan, bit for bit)."""
+        if not 0.0 <= variation <= MAX_VARIATION:
+            raise ModelError(f"variation must be in 0..{MAX_VARIATION:g}, got {variation!r}")
+        u = np.random.default_rng([seed, _HUMAN_STREAM]).uniform(-1.0, 1.0, 20) * variation
+        t_foam = 5.0 + 0.25 * u[2]
+        half_periods = max(1, round(2.0 * 0.5 * (1.0 + 0.2 * u[1]) * t_foam))
+        return cls(
+            stroke_amp=0.05 * (1.0 + 0.2 * u[0]),
+            stroke_freq=half_periods / (2.0 * t_foam),
+            t_foam=t_foam,
+            t_wall=10.0 + 0.25 * u[3],
+            foam_depth=0.04 * (1.0 + 0.2 * u[4]),
+            wall_depth=0.05 * (1.0 + 0.2 * u[5]),
+            knot_jitter=tuple(float(x) for x in 0.08 * u[6:16]),
+            k=300.0 * (1.0 + 0.2 * u[16]),
+            k_grip=2000.0 * (1.0 + 0.3 * u[17]),
+            lateral_amp=0.03 * (1.0 + 0.2 * u[18]),
+            lateral_freq=max(1, round(2.0 * 0.3 * (1.0 + 0.2 * u[19]) * t_foam)) / (2.0 * t_foam),
+        )
+
+    def phases(self, duration: float) -> list[tuple[str, float, float]]:
+        """``(name, start, end)`` of free space, foam and wall, clipped to ``duration`` s."""
+        bounds = (
+            ("free", 0.0, self.t_foam),
+            ("foam", self.t_foam, self.t_wall),
+            ("wall", self.t_wall, duration),
+        )
+        return [(n, min(a, duration), min(b, duration)) for n, a, b in bounds]
+
+    def knots(self) -> list[tuple[float, float]]:
+        """The foam and wall pushes: the scripted knots scaled to this plan's phase lengths."""
+        foam = ((0.0, 1.0), (2.0, 0.0), (2.5, -1.0), (4.5, 0.0))
+        wall = ((0.0, 1.0), (1.0, -1.0), (2.0, 0.0), (2.5, 1.0), (3.5, -1.0), (4.5, 0.0))
+        sf = (self.t_wall - self.t_foam) / 5.0
+        sw = (self.t_end - self.t_wall) / 5.0
+        out = [(self.t_foam + t * sf, self.foam_depth * a) for t, a in foam]
+        out += [(self.t_wall + t * sw, self.wall_depth * a) for t, a in wall]
+        # The first knot of each phase stays on its boundary: a push starts when contact can.
+        return [
+            (t + (j if i not in (0, 4) else 0.0), a)
+            for i, ((t, a), j) in enumerate(zip(out, self.knot_jitter, strict=True))
+        ]
+
+
 class ProtocolHuman:
     """Section VI's operator: free motion 0-5 s, a push into foam 5-10 s, two wall pushes 10-15 s.
 
@@ -175,7 +275,8 @@ class ProtocolHuman:
     whose other end also reflects (the TO in free space, +1) then rings at the Nyquist frequency
     after any glitch.  The grip's damping ``c`` is what the port sees at high frequency; with
     ``c`` equal to the wave impedance ``b`` (20 N s/m by default) the HSI absorbs reflections.
-    DoF 0 is the pushing direction; any further DoF moves laterally (a slow sine).
+    DoF 0 is the pushing direction; any further DoF moves laterally (a slow sine).  ``plan`` (a
+    seeded :class:`ProtocolPlan`) varies the performance; the default is the scripted one.
     """
 
     def __init__(
@@ -184,11 +285,12 @@ class ProtocolHuman:
         dt: float,
         m: float = 1.0,
         d: float = 20.0,
-        k: float = 300.0,
         c_grip: float = 20.0,
-        k_grip: float = 2000.0,
+        plan: ProtocolPlan | None = None,
     ) -> None:
         self.dof = dof
+        self.plan = plan or ProtocolPlan()
+        k, k_grip = self.plan.k, self.plan.k_grip
         arm_num, arm_den = np.array([1.0, 0.0]), np.array([m, d, k])
         grip_num, grip_den = np.array([1.0, 0.0]), np.array([c_grip, k_grip])
         num = np.polyadd(np.polymul(arm_num, grip_den), np.polymul(grip_num, arm_den))
@@ -196,31 +298,21 @@ class ProtocolHuman:
         self.admittance = DiscreteLTI(tuple(num), tuple(den), dt, dof)
         self._y = np.full(dof, self.admittance.feedthrough)
         self._ref = np.zeros(dof)
+        self._knots = self.plan.knots()
+        self._w = 2 * np.pi * self.plan.stroke_freq
 
-    @staticmethod
-    def push_profile(t: float) -> float:
-        w = 2 * np.pi * 0.5
-        if t < 5.0:  # free space: 0.5 Hz strokes of +-5 cm
-            return float(0.05 * w * np.sin(w * t))
-        knots = [
-            (5.0, 0.04),
-            (7.0, 0.0),
-            (7.5, -0.04),
-            (9.5, 0.0),  # into the foam and out
-            (10.0, 0.05),
-            (11.0, -0.05),
-            (12.0, 0.0),  # first wall push
-            (12.5, 0.05),
-            (13.5, -0.05),
-            (14.5, 0.0),
-        ]  # second wall push
-        return _smooth_steps(t, knots, 0.15)
+    def push_profile(self, t: float) -> float:
+        if t < self.plan.t_foam:  # free space: strokes of +-amplitude, ending at rest
+            w = self._w
+            return float(self.plan.stroke_amp * w * np.sin(w * t))
+        return _smooth_steps(t, self._knots, 0.15)
 
     def reference(self, now: float) -> Array:
         self._ref[0] = self.push_profile(now)
+        p = self.plan
         for j in range(1, self.dof):
             # Starts from rest: a jump would ring the one-tick wave loop (see README, reflections).
-            self._ref[j] = 0.03 * np.sin(2 * np.pi * 0.3 * j * now)
+            self._ref[j] = p.lateral_amp * np.sin(2 * np.pi * p.lateral_freq * j * now)
         return self._ref
 
     def affine(self, now: float) -> tuple[Array, Array]:
@@ -232,6 +324,8 @@ class ProtocolHuman:
 
 class ProtocolEnvironment:
     """Free space 0-5 s, foam (a damper) 5-10 s, foam plus a stiff wall on DoF 0 from 10 s.
+
+    The phase times are the ``plan``'s (the same seeded plan as the human's), 5 and 10 s by default.
 
     The wall is a unilateral spring-damper placed ``wall_gap`` ahead of where the TO is at 10 s.
     Its spring is integrated implicitly (force from the end-of-tick penetration), which is passive;
@@ -247,7 +341,10 @@ class ProtocolEnvironment:
         k_wall: float = 3000.0,
         c_wall: float = 20.0,
         wall_gap: float = 0.02,
+        plan: ProtocolPlan | None = None,
     ) -> None:
+        plan = plan or ProtocolPlan()
+        self.t_foam, self.t_wall = plan.t_foam, plan.t_wall
         self.dt = dt
         self.foam = foam
         self.k = k_wall
@@ -260,8 +357,8 @@ class ProtocolEnvironment:
 
     def affine(self, now: float) -> tuple[Array, Array]:
         self._f0[:] = 0.0
-        self._z[:] = self.foam if now >= 5.0 else 0.0
-        if now >= 10.0:
+        self._z[:] = self.foam if now >= self.t_foam else 0.0
+        if now >= self.t_wall:
             if self.wall is None:
                 self.wall = float(self.x[0]) + self.gap
             pen = self.x[0] - self.wall

@@ -148,3 +148,36 @@ def pareto(path: Path, cases: list[dict[str, Any]], title: str) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def experiment_bars(path: Path, doc: dict[str, Any], title: str) -> None:
+    """Fig. 15: per phase, one bar per codec (mean I over the runs, +-1 std), log scale; the
+    no-LDR reference (``none``) drawn as a dashed line across each group instead of a bar."""
+    plt = _plt()
+    phases = [n for n in ("free", "foam", "wall", "all") if any(n in c["phases"] for c in doc["cases"])]
+    ref = next((c for c in doc["cases"] if c["reference"]), None)
+    bars = [c for c in doc["cases"] if not c["reference"]]
+    fig, ax = plt.subplots(figsize=(8.5, 4.6))
+    width = 0.8 / max(1, len(bars))
+    x = np.arange(len(phases), dtype=np.float64)
+    for i, c in enumerate(bars):
+        st = [c["phases"].get(n, {}).get("I", {}) for n in phases]
+        mean = np.array([s.get("mean") or np.nan for s in st])
+        std = np.array([s.get("std") or 0.0 for s in st])
+        lower = np.minimum(std, 0.95 * mean)  # a log axis has no room below 0
+        ax.bar(x - 0.4 + (i + 0.5) * width, mean, width, yerr=[lower, std], capsize=2, label=c["codec"])
+    if ref is not None:
+        for k, n in enumerate(phases):
+            s = ref["phases"].get(n, {}).get("I", {})
+            if s.get("mean"):
+                ax.hlines(s["mean"], k - 0.45, k + 0.45, colors="k", linestyles="--", lw=1.2)
+        ax.plot([], [], "k--", lw=1.2, label=f"{ref['codec']} (no LDR, reference)")
+    ax.set_yscale("log")
+    ax.set_xticks(x, [n if n != "all" else "whole run" for n in phases])
+    ax.set_ylabel("transparency I (lower is better)")
+    ax.set_title(title, fontsize=10)
+    ax.grid(axis="y", alpha=0.3, which="both")
+    ax.legend(fontsize=8, ncol=min(7, len(bars) + 1), loc="upper center", bbox_to_anchor=(0.5, -0.09))
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)

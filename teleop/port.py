@@ -122,16 +122,21 @@ def make_node(
     session: int,
     options: PortOptions,
     device: str | None = None,
+    seed: int = 0,
+    variation: float = 0.0,
 ) -> Node:
     """The operator's or the teleoperator's node for a scenario: one construction for both runners.
 
     ``device``: this side's ``--hsi``/``--robot`` spec (``teleop.devices``; a local choice, never
     from the network); default the scenario's own model.  Only this side's device is built.
+    ``seed`` and ``variation`` vary the scenario's human (0: the scripted run); both sides must
+    pass the session's, so their built-in models agree on the phase timing.
     """
     if role not in ("operator", "teleoperator"):
         raise ValueError(f"role must be operator or teleoperator, got {role!r}")
     spec = device or scenarios.get(scenario).name
-    dev = devices.make("hsi" if role == "operator" else "robot", spec, dof, dt)
+    side = "hsi" if role == "operator" else "robot"
+    dev = devices.make(side, spec, dof, dt, seed=seed, variation=variation)
     wave = WaveImpedance.of(b, dof)
     c = make_codec(codec, dof, full_scale)
     node: Node

@@ -228,6 +228,9 @@ class SessionParams:
     link_timeout: float = 0.05  # s of silence before a side goes to its safe state
     rate_cap: float = 0.0  # bit/s per direction in any 100 ms window (teleop.ratecap); 0: none
     playout: str = "off"  # both receivers' playout buffer: off, auto or extra ms (teleop.playout)
+    # Scale of the human's seeded variation (teleop.models.ProtocolPlan, drawn from ``seed``);
+    # 0, the scripted run, is left out of the hello, so a hello without it means 0.
+    variation: float = 0.0
 
     def _check_ranges(self) -> None:
         """ValueError naming the first field outside what this process can afford (teleop.limits).
@@ -249,6 +252,7 @@ class SessionParams:
         _between("link_timeout", self.link_timeout, limits.MIN_LINK_TIMEOUT_S, limits.MAX_LINK_TIMEOUT_S)
         if self.rate_cap != 0.0:
             _between("rate_cap", self.rate_cap, MIN_RATE_BPS, MAX_RATE_BPS)
+        _between("variation", self.variation, 0.0, limits.MAX_VARIATION)
         if len(self.codec) > limits.MAX_CODEC_SPEC_LEN:
             raise ValueError(f"codec must be at most {limits.MAX_CODEC_SPEC_LEN} characters")
         for name in _NETEM_FIELDS:
@@ -317,6 +321,7 @@ class SessionParams:
             link_timeout=_float(m, "link_timeout"),
             rate_cap=_float(m, "rate_cap") if "rate_cap" in m else 0.0,
             playout=_str(m, "playout", _MAX_NAME_LEN) if "playout" in m else "off",
+            variation=_float(m, "variation") if "variation" in m else 0.0,
         )
         try:
             p._check_ranges()
@@ -352,6 +357,7 @@ class SessionParams:
             # what it was before the cap existed.
             **({"rate_cap": self.rate_cap} if self.rate_cap else {}),
             **({"playout": self.playout} if self.playout != "off" else {}),
+            **({"variation": self.variation} if self.variation else {}),
         }
 
 

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from . import devices, metrics, plots
+from . import devices, metrics, plots, scenarios
 from .port import wire_block
 from .sim import SimConfig, run_case
 
@@ -87,6 +87,11 @@ def _security(op: dict[str, Any], to: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _phases(p: dict[str, Any]) -> list[tuple[str, float, float]]:
+    """The session's phases from its scenario and seeded plan (older logs: no variation)."""
+    return scenarios.get(p["scenario"]).phases(p["seed"], p.get("variation", 0.0), p["duration"])
+
+
 def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, Any]:
     op, a_op = _load(log_dir, "operator")
     to, a_to = _load(log_dir, "teleoperator")
@@ -121,6 +126,17 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
         "handshake": {"rtt_us": op.get("handshake_rtt_us"), "clock_offset_ns": op.get("clock_offset_ns")},
         "wire": {"forward": _wire(op, to), "backward": _wire(to, op)},
         "transparency": {"I": i_real, "ticks_compared": int(valid.sum())},
+        # Per phase of the scenario (free, foam, wall; ``all``: the run): I per DoF and wire rates.
+        "phases": metrics.phase_summary(
+            a_op["v"],
+            a_to["v"],
+            a_op["f"],
+            a_to["f"],
+            dt,
+            _phases(p),
+            {"forward": a_op["tx_wire"], "backward": a_to["tx_wire"]},
+            valid,
+        ),
         # Watchdog figures of each direction, measured by its receiver.
         "passivity": {"forward": _passivity(to), "backward": _passivity(op)},
         # What each receiver refused (teleop.auth, the watchdog's physical bound), per direction.
@@ -177,6 +193,7 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
                 session=p["session"],  # its size on the wire counts in the byte figures
                 hsi=sim_devices["hsi"],
                 robot=sim_devices["robot"],
+                variation=p.get("variation", 0.0),
             )
         )
         i_sim = sim.summary["I"]
@@ -260,6 +277,10 @@ def summary_text(rep: dict[str, Any]) -> str:
         diff = 100 * tr["relative_difference"]
         extra = f"  (teleop sim, same settings: {tr['I_sim']:.4e}; difference {diff:.1f}%)"
     lines.append(f"  transparency I = {tr['I']:.4e}{extra}")
+    if len(rep.get("phases", {})) > 1:
+        lines.append(
+            "  per phase: " + "  ".join(f"{n} {b['I']:.4e}" for n, b in rep["phases"].items() if n != "all")
+        )
     for d, pv in rep["passivity"].items():
         lk = rep["link"][d]
         delay = lk["delay_ms"]["mean"]

@@ -73,6 +73,7 @@ class SimConfig:
     playout_floor: int = 0  # ticks auto keeps at least (a real runner's; to compare with one)
     hsi: str | None = None  # --hsi spec (teleop.devices); None: the scenario's human
     robot: str | None = None  # --robot spec; None: the scenario's environment
+    variation: float = 0.0  # the human's seeded variation (teleop.models.ProtocolPlan); 0: scripted
 
     def resolved(self) -> SimConfig:
         """A copy with every default filled in and every value checked (ValueError says what is wrong)."""
@@ -93,6 +94,7 @@ class SimConfig:
         if not c.dof or c.dof < 1:
             raise ValueError(f"dof must be >= 1, got {c.dof}")
         c.port_options()  # checks them
+        scenarios.get(c.scenario).make(c.dof, c.dt, c.seed, c.variation)  # ModelError says what is wrong
         if not c.window_ms >= c.dt * 1e3:
             raise ValueError(f"window must be at least one tick ({c.dt * 1e3} ms), got {c.window_ms}")
         for spec in (c.netem_forward, c.netem_backward):
@@ -164,6 +166,8 @@ def _ports(cfg: SimConfig) -> tuple[Port, Port, Codec]:
             session=cfg.session,
             options=opts,
             device=cfg.hsi if role == "operator" else cfg.robot,
+            seed=cfg.seed,
+            variation=cfg.variation,
         )
         ports.append(
             Port(node, ticks=n_ticks, shim=shims[d], peer_spec=peer_spec, playout_floor=cfg.playout_floor)
@@ -247,6 +251,16 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
         "codec": codec.spec,
         "class": codec.klass,
         "I": metrics.transparency(tr.v_hsi, tr.v_to, tr.f_hsi, tr.f_to, dt),
+        # Per phase of the scenario (free, foam, wall; ``all``: the run): I per DoF, wire rates (Fig. 15).
+        "phases": metrics.phase_summary(
+            tr.v_hsi,
+            tr.v_to,
+            tr.f_hsi,
+            tr.f_to,
+            dt,
+            _phases(cfg),
+            {"forward": op.tx.wire_per_tick.a, "backward": to.tx.wire_per_tick.a},
+        ),
         "compression": metrics.compression(baseline_total, sent_total),
         "min_instant_compression": min(per_dir[d]["min_instant_compression"] for d in wire.DIRECTIONS),
         "passive": bool(min_margin >= -ENERGY_TOLERANCE),
@@ -286,6 +300,11 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
         "devices": {"hsi": o["device"], "robot": t["device"]},
     }
     return summary
+
+
+def _phases(cfg: SimConfig) -> list[tuple[str, float, float]]:
+    assert cfg.duration is not None
+    return scenarios.get(cfg.scenario).phases(cfg.seed, cfg.variation, cfg.duration)
 
 
 def _no_dir(p: dict[str, Any]) -> dict[str, Any]:
@@ -334,6 +353,7 @@ def run_set(codecs: list[str], base: SimConfig) -> tuple[dict[str, Any], list[Ca
         "seed": base.seed,
         "hsi": base.hsi or base.scenario,
         "robot": base.robot or base.scenario,
+        "variation": base.variation,
         "cases": [c.summary for c in cases],
     }
     return doc, cases

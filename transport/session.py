@@ -599,6 +599,8 @@ def _make_port(opts: EndpointOptions, tr: Transport, params: SessionParams, k0: 
         session=params.session,
         options=params.port_options(),
         device=opts.device,
+        seed=params.seed,
+        variation=params.variation,
     )
     if k0:
         node.joined_late()

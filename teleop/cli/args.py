@@ -24,6 +24,7 @@ from ..limits import (
     MAX_RANGE,
     MAX_SEED,
     MAX_SESSION,
+    MAX_VARIATION,
     MIN_LINK_TIMEOUT_S,
 )
 from ..scenarios import SCENARIOS
@@ -296,7 +297,7 @@ def add_session_args(
     p.add_argument("--phase", type=float, default=0.5, help=argparse.SUPPRESS)
 
 
-def add_netem_args(p: argparse.ArgumentParser) -> None:
+def add_netem_args(p: argparse.ArgumentParser, variation_default: float = 0.0) -> None:
     p.add_argument(
         "--netem",
         type=netem_spec,
@@ -320,7 +321,16 @@ def add_netem_args(p: argparse.ArgumentParser) -> None:
         "--seed",
         type=int_range("seed", 0, MAX_SEED),
         default=0,
-        help="seed of the impairment shims (default 0)",
+        help="seed of the impairment shims and of the human's variation (default 0)",
+    )
+    p.add_argument(
+        "--variation",
+        type=float_range("variation", 0.0, MAX_VARIATION, "(0: the scripted run)"),
+        default=variation_default,
+        metavar="X",
+        help="protocol scenario: vary the human as a person repeating the task does, seeded by --seed "
+        "(stroke, push timing and depth, phase times, arm and grip stiffness); 1 = the documented "
+        f"spread, 0 = the scripted run (default {variation_default:g})",
     )
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 
-from . import endpoints, keygen, report, run, sim, sweep
+from . import endpoints, experiment, keygen, report, run, sim, sweep
 from .args import CliError, Parser
 
 
@@ -14,6 +14,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     sim.add_parser(sub)
     sweep.add_parser(sub)
+    experiment.add_parser(sub)
     run.add_parser(sub)
     endpoints.add_operator_parser(sub)
     endpoints.add_teleoperator_parser(sub)

@@ -198,6 +198,7 @@ def _session_options(params: Any) -> list[str]:
         *("--link-timeout", repr(params.link_timeout * 1e3)),
         *(("--rate-cap", f"{params.rate_cap!r}bit") if params.rate_cap else ()),
         *("--playout", params.playout),
+        *("--variation", repr(params.variation)),
         *([] if params.controller else ["--no-controller"]),
     ]
 

@@ -74,6 +74,7 @@ def channel_kwargs(args: argparse.Namespace) -> dict[str, Any]:
         "netem_forward": netem(args, "forward"),
         "netem_backward": netem(args, "backward"),
         "seed": args.seed,
+        "variation": args.variation,
         # conceal is passive only behind the controller: without it, zero unless asked otherwise
         "on_loss": args.on_loss or ("zero" if args.no_controller else "conceal"),
         "controller": not args.no_controller,

@@ -37,6 +37,17 @@ def format_table(cases: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def format_phases(cases: list[dict[str, Any]]) -> str:
+    """Per case: I of each phase of the scenario (free, foam, wall) next to the whole run's."""
+    names = [n for n in cases[0]["phases"] if n != "all"] if cases else []
+    head = f"{'codec':<10} " + " ".join(f"{'I ' + n:>11}" for n in names) + f" {'I all':>11}"
+    lines = [head, "-" * len(head)]
+    for c in cases:
+        ph = c["phases"]
+        lines.append(f"{c['codec']:<10} " + " ".join(f"{ph[n]['I']:>11.4e}" for n in [*names, "all"]))
+    return "\n".join(lines)
+
+
 def format_watchdog(cases: list[dict[str, Any]]) -> str:
     """Per case and direction: what the link did (observed) and what the watchdog saw and did."""
     lines = [
@@ -111,6 +122,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
     for c in doc["cases"]:
         if (line := describe(c["devices"]["robot"])) is not None:
             print(f"{c['codec']:<10} {line}")
+    if len(doc["cases"][0]["phases"]) > 1:
+        print(format_phases(doc["cases"]))
     if impaired or base.on_loss != "conceal" or not base.controller:
         print(format_watchdog(doc["cases"]))
     if out is not None:

@@ -1,0 +1,233 @@
+"""``teleop experiment``: the paper's Section VI study, N seeded runs per codec, Fig. 15.
+
+In virtual time (``teleop sim``'s runner) by default; with ``--real``, each run is a real
+``teleop run`` session (two processes on 127.0.0.1), one after another, reusing that command's
+code with its options, seed by seed, every codec in turn.  Each real run writes
+``DIR/runs/CODEC-seedN/report.json`` (its logs are removed unless ``--keep-logs``: about 2 MB per
+run); a run whose processes did not both record most of the session is left out as incomplete.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import shutil
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TextIO
+
+from ..codecs import ACCEPTED, CodecError
+from ..limits import MAX_SEED
+from ..scenarios import SCENARIOS
+from .args import (
+    CliError,
+    Subcommands,
+    add_model_args,
+    add_netem_args,
+    add_passivity_args,
+    codec,
+    int_range,
+    nonneg_float,
+)
+from .settings import channel_kwargs, check_duration, writable_dir
+
+MAX_RUNS = 1000
+
+
+@dataclass
+class Progress:
+    """A one-line ``\\r`` counter on a terminal; one line per run otherwise (a log file)."""
+
+    total: int
+    stream: TextIO
+    done: int = 0
+
+    def step(self, text: str) -> None:
+        self.done += 1
+        if self.stream.isatty():
+            bar = "#" * (20 * self.done // self.total)
+            self.stream.write(f"\r[{bar:<20}] {self.done}/{self.total} {text:<40}")
+            if self.done == self.total:
+                self.stream.write("\n")
+        else:
+            self.stream.write(f"teleop experiment: {self.done}/{self.total} {text}\n")
+        self.stream.flush()
+
+
+def _settings(args: argparse.Namespace, dof: int, duration: float) -> dict[str, Any]:
+    return {
+        "scenario": args.scenario,
+        "dof": dof,
+        "duration": duration,
+        "variation": args.variation,
+        "seeds": [args.seed, args.seed + args.runs - 1],
+        "transport": args.transport if args.real else None,
+        "netem": {
+            "forward": channel_kwargs(args)["netem_forward"],
+            "backward": channel_kwargs(args)["netem_backward"],
+        },
+    }
+
+
+def _sim_runs(args: argparse.Namespace, codecs: list[str], progress: Progress) -> list[Any]:
+    from ..experiment import sim_run
+    from ..sim import SimConfig
+
+    try:
+        base = SimConfig(
+            delay_ms=args.delay,
+            duration=args.duration,
+            dof=args.dof,
+            b=args.b,
+            full_scale=args.range,
+            scenario=args.scenario,
+            **channel_kwargs(args),
+        ).resolved()
+    except (ValueError, CodecError, OSError) as e:
+        raise CliError(str(e)) from None
+    runs = []
+    for seed in range(args.seed, args.seed + args.runs):
+        for spec in codecs:
+            runs.append(sim_run(base, spec, seed))
+            progress.step(f"{spec} seed {seed}" + ("" if runs[-1].passive else " NOT PASSIVE"))
+    return runs
+
+
+def _run_args(args: argparse.Namespace, spec: str, seed: int, out: Path) -> argparse.Namespace:
+    """``teleop run``'s options for one session: its defaults, then every option given here."""
+    from .parser import build_parser
+
+    ns = build_parser().parse_args(["run"])
+    for k, v in vars(args).items():
+        if k in vars(ns) and k not in ("func", "command", "out", "codec"):
+            setattr(ns, k, v)
+    ns.codec, ns.seed, ns.out = spec, seed, str(out)
+    ns.no_sim = ns.no_plots = ns.no_live = True
+    return ns
+
+
+def _real_run(args: argparse.Namespace, spec: str, seed: int, out: Path) -> Any:
+    """One ``teleop run`` session; its printed summary goes to ``out/run.log``."""
+    from ..experiment import RunResult, host_figures, incomplete, real_passive
+    from .run import cmd_run
+
+    ns = _run_args(args, spec, seed, out)
+    buf = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(buf):
+            rc = cmd_run(ns)
+    except CliError as e:
+        return RunResult(spec, seed, False, error=str(e)), 1
+    finally:
+        (out / "run.log").write_text(buf.getvalue())
+        if not args.keep_logs:
+            shutil.rmtree(out / "logs", ignore_errors=True)
+    rep = json.loads((out / "report.json").read_text())
+    error = None if rc == 0 else f"teleop run exited with {rc} (exit codes {rep.get('exit_codes')})"
+    error = error or incomplete(rep)
+    return RunResult(rep["codec"], seed, real_passive(rep), rep["phases"], error, host_figures(rep)), rc
+
+
+def _real_runs(args: argparse.Namespace, codecs: list[str], out: Path, progress: Progress) -> list[Any]:
+    from ..plots import safe_name
+
+    runs = []
+    # Seed by seed, every codec in turn: a host that gets busier during the experiment then
+    # slows every codec alike, instead of the codecs that happen to run last.
+    for seed in range(args.seed, args.seed + args.runs):
+        for spec in codecs:
+            folder = writable_dir(out / "runs" / f"{safe_name(spec)}-seed{seed}", "--out")
+            r, rc = _real_run(args, spec, seed, folder)
+            runs.append(r)
+            progress.step(f"{spec} seed {seed}" + (f" FAILED: {r.error}" if r.error else ""))
+            if rc == 130:
+                raise KeyboardInterrupt
+    return runs
+
+
+def cmd_experiment(args: argparse.Namespace) -> int:
+    from ..experiment import aggregate, format_paired, format_table
+    from ..sim import SECTION_V_CODECS
+
+    sc = SCENARIOS[args.scenario]
+    dof = args.dof if args.dof is not None else sc.dof
+    duration = args.duration if args.duration is not None else sc.duration
+    check_duration(duration, dof)
+    if args.seed + args.runs - 1 > MAX_SEED:
+        raise CliError(f"--seed + --runs - 1 must be at most {MAX_SEED} (run i uses seed + i - 1)")
+    if not args.real and (args.transport != "udp" or args.keep_logs):
+        raise CliError("--transport and --keep-logs apply to real sessions: add --real")
+    if args.real and args.delay:
+        raise CliError("--delay is for the simulation; real sessions take --netem 'delay N ms'")
+    out = writable_dir(Path(args.out), "--out")
+    codecs = list(dict.fromkeys(args.codec or SECTION_V_CODECS))
+    where = f"real sessions over {args.transport}" if args.real else "simulation"
+    print(
+        f"teleop experiment: {len(codecs)} codecs x {args.runs} runs, {args.scenario} scenario, "
+        f"{dof} DoF, {duration:g} s, variation {args.variation:g}, seeds {args.seed}.."
+        f"{args.seed + args.runs - 1}, {where}",
+        flush=True,
+    )
+    progress = Progress(len(codecs) * args.runs, sys.stderr)
+    runs = _real_runs(args, codecs, out, progress) if args.real else _sim_runs(args, codecs, progress)
+    doc = aggregate(runs, codecs, args.runs, args.real, _settings(args, dof, duration))
+    (out / "experiment.json").write_text(json.dumps(doc, indent=2) + "\n")
+    from .. import plots
+
+    title = (
+        f"{args.scenario}: {args.runs} runs per codec (variation {args.variation:g}), mean +- std, {where}"
+    )
+    plots.experiment_bars(out / "fig15.png", doc, title)
+    print(format_table(doc))
+    if paired := format_paired(doc):
+        print(paired)
+    for c in doc["cases"]:
+        for r in c["per_run"]:
+            if r["error"] or not r["passive"]:
+                print(f"  {c['codec']} seed {r['seed']}: {r['error'] or 'NOT PASSIVE'}")
+    print(f"wrote {out / 'experiment.json'} and {out / 'fig15.png'}")
+    return 0 if all(c["passive"] for c in doc["cases"]) else 1
+
+
+def add_parser(sub: Subcommands) -> None:
+    e = sub.add_parser(
+        "experiment",
+        help="the paper's Section VI study: N seeded runs per codec, per-phase mean and spread (Fig. 15)",
+        description="Run every codec over the same N seeded humans (run i uses --seed + i - 1; "
+        "--variation scales how much they differ), in the simulation or with --real as real "
+        "two-process sessions one after another (teleop run). Writes DIR/experiment.json and "
+        "DIR/fig15.png. Exit status 1 if a run was not passive (or did not complete).",
+    )
+    e.add_argument(
+        "--runs",
+        type=int_range("runs", 1, MAX_RUNS),
+        default=10,
+        help="runs per codec (default 10, as in the paper)",
+    )
+    e.add_argument(
+        "--codec",
+        action="append",
+        type=codec,
+        metavar="SPEC",
+        help=f"codec, repeatable (default: the paper's set). Accepted: {ACCEPTED}",
+    )
+    e.add_argument("--real", action="store_true", help="real two-process sessions instead of the simulation")
+    e.add_argument(
+        "--transport", choices=["udp", "zenoh"], default="udp", help="with --real: transport (default udp)"
+    )
+    e.add_argument(
+        "--delay",
+        type=nonneg_float("delay"),
+        default=0.0,
+        metavar="MS",
+        help="simulation: one-way delay per direction in ms (default 0)",
+    )
+    e.add_argument("--keep-logs", action="store_true", help="with --real: keep each run's logs")
+    add_model_args(e, "protocol")
+    add_netem_args(e, variation_default=1.0)
+    add_passivity_args(e)
+    e.add_argument("--out", required=True, metavar="DIR", help="write DIR/experiment.json and DIR/fig15.png")
+    e.set_defaults(func=cmd_experiment)
