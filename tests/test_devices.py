@@ -168,7 +168,7 @@ def test_run_passes_each_device_to_its_own_side_only() -> None:
         argparse.Namespace(
             scenario="protocol", dof=None, duration=1.0, b=None, range=None, codec="none", phase=0.5,
             netem=None, netem_forward=None, netem_backward=None, seed=0, on_loss=None,
-            no_controller=False, link_timeout=50.0, rate_cap=0.0, playout="auto",
+            no_controller=False, link_timeout=50.0, rate_cap=0.0, playout="auto", variation=0.0,
         ),
         1,
     )  # fmt: skip
