@@ -38,7 +38,7 @@ from transport.netem import Link, make_link
 from . import metrics, scenarios, wire
 from .codecs import Codec
 from .node import PortOptions
-from .port import ConstantDelayLink, Port, make_node, make_shim, wire_block
+from .port import ConstantDelayLink, MemorySink, Port, make_node, make_shim, wire_block
 
 Array = npt.NDArray[np.float64]
 
@@ -147,7 +147,8 @@ def _ports(cfg: SimConfig) -> tuple[Port, Port, Codec]:
             session=cfg.session,
             options=opts,
         )
-        ports.append(Port(node, ticks=n_ticks, shim=shims[d], peer_spec=peer_spec))
+        window = max(1, round(cfg.window_ms / 1e3 / cfg.dt))
+        ports.append(Port(node, ticks=n_ticks, shim=shims[d], peer_spec=peer_spec, window_ticks=window))
     return ports[0], ports[1], ports[0].node.tx_codec
 
 
@@ -160,7 +161,7 @@ def run_case(cfg: SimConfig) -> CaseResult:
     """
     cfg = cfg.resolved()
     op, to, codec = _ports(cfg)
-    dt, n_ticks = cfg.dt, op.ticks
+    dt, n_ticks = cfg.dt, _ticks(op)
     backward: list[bytes] = []
     for n in range(n_ticks):
         now = n * dt
@@ -179,23 +180,27 @@ def run_case(cfg: SimConfig) -> CaseResult:
 
 
 def _trace(op: Port, to: Port, dt: float) -> Trace:
-    so, st, eo, et = op.rec.signals, to.rec.signals, op.rec.energy, to.rec.energy
+    """Whole-session arrays from the two ports' in-memory records."""
+    op.finish()
+    to.finish()
+    assert isinstance(op.sink, MemorySink) and isinstance(to.sink, MemorySink) and op.ticks is not None
+    ao, at = op.sink.arrays(op.ticks), to.sink.arrays(op.ticks)
     tr = Trace(
         t=np.arange(op.ticks, dtype=np.float64) * dt,
-        v_hsi=so["v"],
-        f_hsi=so["f"],
-        v_to=st["v"],
-        f_to=st["f"],
-        margin_fwd=eo["energy_sent"] - et["energy_played"],
-        margin_bwd=et["energy_sent"] - eo["energy_played"],
+        v_hsi=ao["v"],
+        f_hsi=ao["f"],
+        v_to=at["v"],
+        f_to=at["f"],
+        margin_fwd=ao["energy_sent"] - at["energy_played"],
+        margin_bwd=at["energy_sent"] - ao["energy_played"],
     )
-    tr.payload_bytes = {"forward": op.rec.produced_payload, "backward": to.rec.produced_payload}
-    tr.packet_bytes = {"forward": op.rec.produced_packet, "backward": to.rec.produced_packet}
+    tr.payload_bytes = {"forward": ao["produced_payload"], "backward": at["produced_payload"]}
+    tr.packet_bytes = {"forward": ao["produced_packet"], "backward": at["produced_packet"]}
     return tr
 
 
 def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]:
-    n_ticks, dt = op.ticks, cfg.dt
+    n_ticks, dt = _ticks(op), cfg.dt
     tr = _trace(op, to, dt)
     window = max(1, round(cfg.window_ms / 1e3 / dt))
     raw_per_tick = np.full(n_ticks, float(codec.raw_bytes_per_tick))
@@ -212,12 +217,8 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
         }
     sent_total = float(sum(a.sum() for a in pay.values()))
     side = {
-        "forward": op.summary(
-            window, peer_produced=_sent_into(to.shim, to), peer_dropped_by_limit=_dropped(to)
-        ),
-        "backward": to.summary(
-            window, peer_produced=_sent_into(op.shim, op), peer_dropped_by_limit=_dropped(op)
-        ),
+        "forward": op.summary(peer_produced=_sent_into(to.shim, to), peer_dropped_by_limit=_dropped(to)),
+        "backward": to.summary(peer_produced=_sent_into(op.shim, op), peer_dropped_by_limit=_dropped(op)),
     }
     # side["forward"] is the operator's own view: it sent forward and received (observed) backward.
     o, t = side["forward"], side["backward"]
@@ -262,6 +263,12 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
     return summary
 
 
+def _ticks(port: Port) -> int:
+    """The simulated session's length (a simulation always has one)."""
+    assert port.ticks is not None
+    return port.ticks
+
+
 def _no_dir(p: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in p.items() if k != "direction"}
 
@@ -283,8 +290,8 @@ def _drain(sender: Port, receiver: Port, n: int, dt: float) -> None:
     """
     while (t := sender.next_due()) is not None:
         n = max(n, math.ceil(t / dt - 1e-6))
-        for data in sender.flush(n * dt, sender.ticks - 1):
-            receiver.receive(data, n * dt, receiver.ticks - 1, play=False)
+        for data in sender.flush(n * dt, _ticks(sender) - 1):
+            receiver.receive(data, n * dt, _ticks(receiver) - 1, play=False)
         n += 1
 
 

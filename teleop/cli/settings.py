@@ -19,10 +19,11 @@ from ..scenarios import SCENARIOS
 from .args import CliError
 
 
-def check_duration(duration: float, dof: int) -> None:
-    """CliError when a session of ``duration`` s at ``dof`` DoF (1 kHz) does not fit the record budget."""
+def check_duration(duration: float, dof: int, in_memory: bool = False) -> None:
+    """CliError when ``duration`` s at ``dof`` DoF (1 kHz) is out of range (``in_memory``: teleop sim,
+    which must end and keeps every tick)."""
     try:
-        limits.check_duration(duration, dof, dt=0.001)
+        limits.check_duration(duration, dof, dt=0.001, in_memory=in_memory)
     except ValueError as e:
         raise CliError(str(e)) from None
 
@@ -143,6 +144,7 @@ def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int
         zenoh=zenoh_options(args) if args.transport == "zenoh" else None,
         psk=psk,
         insecure=insecure,
+        live_view=args.live_view,
     )
 
 

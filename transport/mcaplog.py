@@ -1,0 +1,343 @@
+"""Streamed logs in MCAP, and the live view: the real-time runner's sink for the port's record.
+
+Why MCAP: it is what the field records into and replays (ROS 2 bags, Foxglove, PlotJuggler), it is
+chunked and indexed, so a file written as a session runs is readable at any length, and a crash loses
+at most the chunk in flight.  Why foxglove-sdk's writer (PyPI ``foxglove-sdk``): one library writes
+the file and serves the same channels live over the Foxglove WebSocket protocol (``--live-view``);
+its Rust core compresses (zstd) and writes.  Tests and ``teleop report`` read files with the
+reference ``mcap`` library.
+
+**Who pays.** The port hands a sealed chunk (1000 ticks) to :meth:`McapLog.write`, which only puts
+it on a bounded queue (a chunk that finds the queue full is dropped and counted, never waited for).
+A writer thread turns chunks into messages and logs them; the 1 kHz loop never encodes or writes.
+While it runs, the interpreter's switch interval is set to 100 us (default 5 ms), so the loop waits
+at most that long for the GIL when it wakes (bench/soak.py measures the loop with the log on and off).
+
+**Channels** (``ROLE`` is ``operator`` or ``teleoperator``; JSON messages with a JSON schema each,
+log time = the session's wall-clock start + the tick's time on the session clock):
+
+==========================  =========  ==================================================================
+topic                       rate       fields
+==========================  =========  ==================================================================
+``/ROLE/signals``           each tick  ``k``, ``t`` (s, session clock), ``v``, ``f`` (per DoF)
+``/ROLE/waves``             each tick  ``k``, ``t``, ``wave_out``, ``wave_in`` (per DoF, sqrt(W))
+``/ROLE/energy``            each tick  ``k``, ``t``, ``sent``, ``played``, ``margin_observed`` (the
+                                       watchdog's margin), ``played_epoch``, ``peer_epoch`` (J)
+``/ROLE/wire``              each tick  ``k``, ``t``, ``send_time``, ``tx_seq``, ``rx_seq``, bytes:
+                                       ``produced_payload``, ``produced_packet``, ``tx_wire``,
+                                       ``tx_payload``, ``tx_baseline_wire``, ``tx_baseline_payload``,
+                                       ``rx_wire``, ``rx_payload``
+``/ROLE/loop``              each tick  ``k``, ``t``, ``lateness_ns`` (tick start minus its deadline)
+``/ROLE/link``              1 Hz       ``t``, ``link`` (the incoming link's figures), ``sent`` and
+                                       ``received`` (counters and compression so far),
+                                       ``watchdog`` (violations, controller, dissipated energy)
+``/ROLE/events``            as they    ``t``, ``event`` (``session_start``, ``link_lost``,
+                            happen     ``link_restored``, ``peer_restarted``, ``auth_rejected``,
+                                       ``replayed``, ``overrun``, ``session_end``), ``detail``
+``/ROLE/session``           once       the session's parameters, role, pid, start time
+``/ROLE/summary``           once       the process's summary (what ``ROLE.json`` holds)
+==========================  =========  ==================================================================
+
+The live view serves the same topics, per-tick ones decimated to every ``live_every``-th tick (50 Hz
+by default), sent from the loop through the same queue as they happen (not a chunk later).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import queue
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from teleop.port import Chunk, concat_chunks
+
+__all__ = ["PER_TICK_TOPICS", "TOPICS", "McapLog", "read_log"]
+
+PER_TICK_TOPICS = ("signals", "waves", "energy", "wire", "loop")
+TOPICS = (*PER_TICK_TOPICS, "link", "events", "session", "summary")
+QUEUE_CHUNKS = 16  # chunks (16 s at 1 kHz) the writer may fall behind before one is dropped
+SWITCH_INTERVAL_S = 1e-4
+
+_NUM = {"type": "number"}
+_INT = {"type": "integer"}
+_VEC = {"type": "array", "items": {"type": "number"}}
+
+
+def _schema(title: str, **props: Any) -> dict[str, Any]:
+    return {"title": title, "type": "object", "properties": props}
+
+
+SCHEMAS: dict[str, dict[str, Any]] = {
+    "signals": _schema("teleop.Signals", k=_INT, t=_NUM, v=_VEC, f=_VEC),
+    "waves": _schema("teleop.Waves", k=_INT, t=_NUM, wave_out=_VEC, wave_in=_VEC),
+    "energy": _schema(
+        "teleop.Energy",
+        k=_INT,
+        t=_NUM,
+        sent=_NUM,
+        played=_NUM,
+        margin_observed=_NUM,
+        played_epoch=_NUM,
+        peer_epoch=_INT,
+    ),
+    "wire": _schema(
+        "teleop.Wire",
+        k=_INT,
+        t=_NUM,
+        send_time=_NUM,
+        tx_seq=_INT,
+        rx_seq=_INT,
+        produced_payload=_NUM,
+        produced_packet=_NUM,
+        tx_wire=_NUM,
+        tx_payload=_NUM,
+        tx_baseline_wire=_NUM,
+        tx_baseline_payload=_NUM,
+        rx_wire=_NUM,
+        rx_payload=_NUM,
+    ),
+    "loop": _schema("teleop.Loop", k=_INT, t=_NUM, lateness_ns=_INT),
+    "link": _schema(
+        "teleop.Link",
+        t=_NUM,
+        link={"type": "object"},
+        sent={"type": "object"},
+        received={"type": "object"},
+        watchdog={"type": "object"},
+    ),
+    "events": _schema("teleop.Event", t=_NUM, event={"type": "string"}, detail={"type": "string"}),
+    "session": _schema("teleop.Session", params={"type": "object"}),
+    "summary": _schema("teleop.Summary"),
+}
+
+#: /ROLE/wire fields and the chunk arrays they come from.
+_WIRE = {
+    "send_time": "send_time_s", "tx_seq": "tx_seq", "rx_seq": "rx_seq",
+    "produced_payload": "produced_payload", "produced_packet": "produced_packet",
+    "tx_wire": "tx_wire", "tx_payload": "tx_payload", "tx_baseline_wire": "tx_baseline_wire",
+    "tx_baseline_payload": "tx_baseline_payload", "rx_wire": "rx_wire", "rx_payload": "rx_payload",
+}  # fmt: skip
+_ENERGY = {
+    "sent": "energy_sent", "played": "energy_played", "margin_observed": "energy_margin_observed",
+    "played_epoch": "energy_played_epoch", "peer_epoch": "peer_epoch",
+}  # fmt: skip
+
+
+def _num(x: Any) -> Any:
+    """JSON has no NaN: a missing value (a sample not yet sent) is null."""
+    return None if isinstance(x, float) and math.isnan(x) else x
+
+
+def tick_messages(a: dict[str, npt.NDArray[Any]], r: int, k: int) -> dict[str, dict[str, Any]]:
+    """The per-tick messages of row ``r`` (tick ``k``) of a chunk's arrays, by topic."""
+    t = float(a["play_time_s"][r])
+    return {
+        "signals": {"k": k, "t": t, "v": a["v"][r].tolist(), "f": a["f"][r].tolist()},
+        "waves": {"k": k, "t": t, "wave_out": a["wave_out"][r].tolist(), "wave_in": a["wave_in"][r].tolist()},
+        "energy": {"k": k, "t": t, **{n: _num(a[s][r].item()) for n, s in _ENERGY.items()}},
+        "wire": {"k": k, "t": t, **{n: _num(a[s][r].item()) for n, s in _WIRE.items()}},
+        "loop": {"k": k, "t": t, "lateness_ns": int(a["lateness_ns"][r])},
+    }
+
+
+class McapLog:
+    """``ROLE.mcap`` written as the session runs (a writer thread), and optionally the live view.
+
+    ``write(chunk)`` is the port's sink; ``live``/``event``/``link`` are called by the runner;
+    ``close(summary)`` drains the queue, logs the summary and finishes the file."""
+
+    def __init__(
+        self,
+        path: Path | None,
+        role: str,
+        wall0_ns: int,
+        live_port: int | None = None,
+        live_every: int = 20,
+        live_host: str = "127.0.0.1",
+    ) -> None:
+        import foxglove
+        from foxglove.mcap import MCAPCompression, MCAPWriteOptions
+
+        self.role = role
+        self.path = path
+        self.wall0_ns = wall0_ns  # wall-clock ns of the session's tick 0
+        self.live_every = live_every
+        self.dropped_chunks = 0
+        self.messages = 0
+        self._ctx = foxglove.Context() if path is not None else None
+        self._live_ctx = foxglove.Context() if live_port is not None else None
+        self._writer = None
+        if self._ctx is not None and path is not None:
+            opts = MCAPWriteOptions(compression=MCAPCompression.Zstd, compression_threads=0)
+            self._writer = foxglove.open_mcap(
+                path, allow_overwrite=True, context=self._ctx, writer_options=opts
+            )
+        self.server = None
+        if self._live_ctx is not None:
+            self.server = foxglove.start_server(
+                name=f"teleop {role}", host=live_host, port=live_port, context=self._live_ctx
+            )
+        self._ch = {n: self._channel(self._ctx, n) for n in TOPICS} if self._ctx else {}
+        self._live = {n: self._channel(self._live_ctx, n) for n in TOPICS} if self._live_ctx else {}
+        self._q: queue.Queue[tuple[str, Any]] = queue.Queue(QUEUE_CHUNKS)
+        self._switch = sys.getswitchinterval()
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
+        self._thread = threading.Thread(target=self._run, name=f"teleop-{role}-log", daemon=True)
+        self._thread.start()
+
+    def _channel(self, ctx: Any, name: str) -> Any:
+        import foxglove
+
+        return foxglove.Channel(f"/{self.role}/{name}", schema=SCHEMAS[name], context=ctx)
+
+    @property
+    def live_port(self) -> int | None:
+        return None if self.server is None else int(self.server.port)
+
+    # --- called from the loop: O(1), never blocks ----------------------------------------
+    def write(self, chunk: Chunk) -> None:
+        """The port's sink: a sealed chunk, queued for the writer thread."""
+        self._put(("chunk", chunk))
+
+    def live(self, k: int, t: float, msgs: dict[str, dict[str, Any]]) -> None:
+        """Decimated per-tick messages for the live view (nothing when no client listens)."""
+        if self._live and self._live["signals"].has_sinks():
+            self._put(("live", (t, msgs)))
+
+    def event(self, t: float, event: str, detail: str = "") -> None:
+        self._put(("msg", ("events", t, {"t": t, "event": event, "detail": detail})))
+
+    def status(self, name: str, t: float, msg: dict[str, Any]) -> None:
+        """A low-rate message (``link`` once a second, ``session`` once) to the file and the view."""
+        self._put(("msg", (name, t, msg)))
+
+    def _put(self, item: tuple[str, Any]) -> None:
+        try:
+            self._q.put_nowait(item)
+        except queue.Full:
+            self.dropped_chunks += item[0] == "chunk"
+
+    # --- the writer thread ---------------------------------------------------------------
+    def _log_time(self, t: float) -> int:
+        return self.wall0_ns + (round(t * 1e9) if math.isfinite(t) else 0)
+
+    def _log(self, chans: dict[str, Any], name: str, t: float, msg: dict[str, Any]) -> None:
+        chans[name].log(json.dumps(msg).encode(), log_time=self._log_time(t))
+
+    def _run(self) -> None:
+        while True:
+            kind, item = self._q.get()
+            if kind == "stop":
+                return
+            if kind == "chunk":
+                self._chunk(item)
+            elif kind == "live":
+                t, msgs = item
+                for name, m in msgs.items():
+                    self._log(self._live, name, t, m)
+            else:
+                name, t, msg = item
+                for chans in (self._ch, self._live):
+                    if chans:
+                        self._log(chans, name, t, msg)
+                self.messages += bool(self._ch)
+
+    def _chunk(self, c: Chunk) -> None:
+        if not self._ch:
+            return
+        a = c.arrays()
+        for r in c.ran():
+            k = c.k0 + int(r)
+            msgs = tick_messages(a, int(r), k)
+            t = msgs["signals"]["t"]
+            for name, m in msgs.items():
+                self._log(self._ch, name, t, m)
+            self.messages += len(msgs)
+
+    def close(self, summary: dict[str, Any] | None = None) -> None:
+        """Write what is queued, the summary, and finish the file (the loop is over: we may wait)."""
+        if summary is not None:
+            self._q.put(("msg", ("summary", float(summary.get("end_t", 0.0)), summary)))
+        self._q.put(("stop", None))
+        self._thread.join()
+        sys.setswitchinterval(self._switch)
+        if self._writer is not None:
+            self._writer.close()
+        if self.server is not None:
+            self.server.stop()
+
+
+# --------------------------------------------------------------------------------------------
+# reading (teleop report, tests)
+# --------------------------------------------------------------------------------------------
+def iter_messages(path: Path, topics: list[str] | None = None) -> Iterator[tuple[str, dict[str, Any]]]:
+    """(topic, decoded JSON message) of an MCAP file, in log-time order."""
+    from mcap.reader import make_reader
+
+    with path.open("rb") as f:
+        for _, channel, message in make_reader(f).iter_messages(topics=topics):
+            yield channel.topic, json.loads(message.data)
+
+
+def read_log(path: Path) -> tuple[dict[str, Any], dict[str, npt.NDArray[Any]]]:
+    """``ROLE.mcap`` as (summary, whole-session per-tick arrays by the record's names, from tick 0).
+
+    ``lateness_ns`` holds one entry per tick run, in order (as the loop's record did)."""
+    summary: dict[str, Any] = {}
+    rows: dict[str, list[dict[str, Any]]] = {n: [] for n in PER_TICK_TOPICS}
+    for topic, m in iter_messages(path):
+        name = topic.rsplit("/", 1)[-1]
+        if name in rows:
+            rows[name].append(m)
+        elif name == "summary":
+            summary = m
+    sig = rows["signals"]
+    if not sig:
+        return summary, {}
+    ks = np.array([m["k"] for m in sig], dtype=np.int64)
+    k0 = int(ks.min())
+    part: dict[str, npt.NDArray[Any]] = {"play_time_s": np.array([m["t"] for m in sig], dtype=np.float64)}
+    for name in ("v", "f"):
+        part[name] = np.array([m[name] for m in sig], dtype=np.float64)
+    for name in ("wave_out", "wave_in"):
+        part[name] = _col(rows["waves"], name, ks, float)
+    for field, src in _ENERGY.items():
+        part[src] = _col(rows["energy"], field, ks, int if src == "peer_epoch" else float)
+    for field, src in _WIRE.items():
+        part[src] = _col(rows["wire"], field, ks, int if src.endswith("seq") else float)
+    part["lateness_ns"] = _col(rows["loop"], "lateness_ns", ks, int)
+    # Scatter the ticks run into whole-session arrays (gaps: not run).
+    n = int(ks.max()) - k0 + 1
+    dense: dict[str, npt.NDArray[Any]] = {}
+    for name, v in part.items():
+        fill: Any = -1 if name.endswith("seq") else (np.nan if v.dtype.kind == "f" else 0)
+        if name.startswith(("tx_", "rx_", "produced")) and not name.endswith("seq"):
+            fill = 0.0
+        d = np.full((n, *v.shape[1:]), fill, dtype=v.dtype)
+        d[ks - k0] = v
+        dense[name] = d
+    out = concat_chunks([k0], [dense])
+    out["lateness_ns"] = part["lateness_ns"]
+    return summary, out
+
+
+def _col(msgs: list[dict[str, Any]], field: str, ks: npt.NDArray[np.int64], kind: type) -> npt.NDArray[Any]:
+    """One field of a per-tick topic, aligned with the ticks of ``/signals`` (``ks``)."""
+    by_k = {m["k"]: m[field] for m in msgs}
+    nan = float("nan")
+    if kind is float:
+        return np.array([nan if (x := by_k.get(int(k))) is None else x for k in ks], dtype=np.float64)
+    return np.array([by_k.get(int(k), -1 if field.endswith("seq") else 0) for k in ks], dtype=np.int64)
+
+
+def wall_clock_of(t_common_ns: int) -> int:
+    """Wall-clock ns of a monotonic-clock instant (the session's tick 0), for MCAP log times."""
+    return time.time_ns() - (time.monotonic_ns() - t_common_ns)
