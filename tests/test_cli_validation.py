@@ -152,7 +152,7 @@ def test_unwritable_folder(
 def test_unwritable_report_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     logs = tmp_path / "logs"
     logs.mkdir()
-    for name in ("operator.json", "operator.npz", "teleoperator.json", "teleoperator.npz"):
+    for name in ("operator.mcap", "teleoperator.mcap"):
         (logs / name).write_text("")
     bad = _not_a_folder(tmp_path)
     err = _error(["report", str(logs), "--out", str(bad)], capsys)

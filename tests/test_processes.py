@@ -125,10 +125,11 @@ def test_report_contract_and_logs(tmp_path: Path) -> None:
     import numpy as np
 
     from teleop import auth, wire
+    from transport.mcaplog import read_log
 
-    with np.load(tmp_path / "run" / "logs" / "operator.npz") as z:
-        sent_ticks = np.flatnonzero(z["tx_wire"])
-        per_tick = z["tx_wire"][sent_ticks]
+    z = read_log(tmp_path / "run" / "logs" / "operator.mcap")[1]
+    sent_ticks = np.flatnonzero(z["tx_wire"])
+    per_tick = z["tx_wire"][sent_ticks]
     assert sent_ticks.tolist() == list(range(0, 2000, 50))
     for seq, (tick, counted) in enumerate(zip(sent_ticks.tolist(), per_tick.tolist(), strict=True)):
         pkt = wire.Packet(rep["session"], wire.FORWARD, seq, tick, tick * 1000, 2, bytes(4), 1.0)

@@ -89,7 +89,7 @@ class DirectionCounters:
             for col, attr in ((1, "_min_wire"), (3, "_min_payload")):
                 ratio = metrics.min_instant_compression(block[:, col - 1], block[:, col], w)
                 setattr(self, attr, min(getattr(self, attr), ratio))
-        self._tail = block[len(block) - (w - 1) :] if w > 1 else block[:0]
+        self._tail = block[max(0, len(block) - (w - 1)) :] if w > 1 else block[:0]
 
     def _min_instant(self, wire: bool) -> float:
         if self._seen_ticks < self.window_ticks:  # shorter than one window: the average

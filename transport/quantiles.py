@@ -10,6 +10,7 @@ Memory is then fixed (about 2 x 23k counters), whatever the session's length.
 from __future__ import annotations
 
 import math
+from array import array
 
 import numpy as np
 import numpy.typing as npt
@@ -42,7 +43,7 @@ class Quantiles:
         self._lo = lo
         self._inv_log = 1.0 / math.log1p(rel)
         self._bins = math.ceil(math.log(hi / lo) * self._inv_log) + 2  # 0: below lo; last: above hi
-        self._samples: list[float] | None = []
+        self._samples: array[float] | None = array("d")  # 8 bytes a sample until binned
         self._pos: Array | None = None
         self._neg: Array | None = None
         self.count = 0
@@ -72,7 +73,7 @@ class Quantiles:
         h[i] += 1
 
     def _to_bins(self) -> None:
-        s, self._samples = self._samples or [], None
+        s, self._samples = self._samples or array("d"), None
         self._pos = np.zeros(self._bins)
         self._neg = np.zeros(self._bins)
         for x in s:
