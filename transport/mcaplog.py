@@ -50,6 +50,7 @@ import queue
 import sys
 import threading
 import time
+from array import array
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -290,31 +291,54 @@ def iter_messages(path: Path, topics: list[str] | None = None) -> Iterator[tuple
 def read_log(path: Path) -> tuple[dict[str, Any], dict[str, npt.NDArray[Any]]]:
     """``ROLE.mcap`` as (summary, whole-session per-tick arrays by the record's names, from tick 0).
 
-    ``lateness_ns`` holds one entry per tick run, in order (as the loop's record did)."""
+    Columns are gathered as the messages stream by (8 bytes a value, no message kept), so an hour's
+    log reads in a few hundred MB.  ``lateness_ns`` holds one entry per tick run, in order (as the
+    loop's record did)."""
     summary: dict[str, Any] = {}
-    rows: dict[str, list[dict[str, Any]]] = {n: [] for n in PER_TICK_TOPICS}
+    cols: dict[str, dict[str, array[float]]] = {n: {} for n in PER_TICK_TOPICS}
     for topic, m in iter_messages(path):
         name = topic.rsplit("/", 1)[-1]
-        if name in rows:
-            rows[name].append(m)
-        elif name == "summary":
-            summary = m
-    sig = rows["signals"]
-    if not sig:
+        c = cols.get(name)
+        if c is None:
+            if name == "summary":
+                summary = m
+            continue
+        for key, x in m.items():
+            col = c.get(key)
+            if col is None:
+                col = c[key] = array("d")
+            if isinstance(x, list):
+                col.extend(x)
+            else:
+                col.append(math.nan if x is None else x)
+    if not cols["signals"].get("k"):
         return summary, {}
-    ks = np.array([m["k"] for m in sig], dtype=np.int64)
-    k0 = int(ks.min())
-    part: dict[str, npt.NDArray[Any]] = {"play_time_s": np.array([m["t"] for m in sig], dtype=np.float64)}
-    for name in ("v", "f"):
-        part[name] = np.array([m[name] for m in sig], dtype=np.float64)
-    for name in ("wave_out", "wave_in"):
-        part[name] = _col(rows["waves"], name, ks, float)
-    for field, src in _ENERGY.items():
-        part[src] = _col(rows["energy"], field, ks, int if src == "peer_epoch" else float)
-    for field, src in _WIRE.items():
-        part[src] = _col(rows["wire"], field, ks, int if src.endswith("seq") else float)
-    part["lateness_ns"] = _col(rows["loop"], "lateness_ns", ks, int)
+    ks = np.asarray(cols["signals"]["k"], dtype=np.int64)
+    part: dict[str, npt.NDArray[Any]] = {"play_time_s": np.asarray(cols["signals"]["t"])}
+    dof = len(cols["signals"]["v"]) // len(ks)
+    for topic, fields, names in (
+        ("signals", ("v", "f"), ("v", "f")),
+        ("waves", ("wave_out", "wave_in"), ("wave_out", "wave_in")),
+        ("energy", tuple(_ENERGY), tuple(_ENERGY.values())),
+        ("wire", tuple(_WIRE), tuple(_WIRE.values())),
+        ("loop", ("lateness_ns",), ("lateness_ns",)),
+    ):
+        c = cols[topic]
+        at = np.searchsorted(np.asarray(c.get("k", array("d")), dtype=np.int64), ks)
+        for field, name in zip(fields, names, strict=True):
+            v = np.asarray(c.get(field, array("d")), dtype=np.float64)
+            if field in ("v", "f", "wave_out", "wave_in"):
+                v = v.reshape(-1, dof)
+            if len(v) != len(ks):  # a topic short of some ticks (a log cut off): align by tick
+                ok = at < len(v)
+                full = np.full((len(ks), *v.shape[1:]), math.nan)
+                full[ok] = v[at[ok]]
+                v = full
+            if name.endswith("seq") or name in ("peer_epoch", "lateness_ns"):
+                v = np.nan_to_num(v, nan=-1 if name.endswith("seq") else 0).astype(np.int64)
+            part[name] = v
     # Scatter the ticks run into whole-session arrays (gaps: not run).
+    k0 = int(ks.min())
     n = int(ks.max()) - k0 + 1
     dense: dict[str, npt.NDArray[Any]] = {}
     for name, v in part.items():
@@ -327,15 +351,6 @@ def read_log(path: Path) -> tuple[dict[str, Any], dict[str, npt.NDArray[Any]]]:
     out = concat_chunks([k0], [dense])
     out["lateness_ns"] = part["lateness_ns"]
     return summary, out
-
-
-def _col(msgs: list[dict[str, Any]], field: str, ks: npt.NDArray[np.int64], kind: type) -> npt.NDArray[Any]:
-    """One field of a per-tick topic, aligned with the ticks of ``/signals`` (``ks``)."""
-    by_k = {m["k"]: m[field] for m in msgs}
-    nan = float("nan")
-    if kind is float:
-        return np.array([nan if (x := by_k.get(int(k))) is None else x for k in ks], dtype=np.float64)
-    return np.array([by_k.get(int(k), -1 if field.endswith("seq") else 0) for k in ks], dtype=np.int64)
 
 
 def wall_clock_of(t_common_ns: int) -> int:
