@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import os
 import platform
@@ -82,6 +83,21 @@ def _role_of(pid: int) -> str | None:
         if role.encode() in cmd:
             return role
     return None
+
+
+def _processes(run_pid: int) -> dict[str, int]:
+    """The run's processes by name: each side, and each side's log writer (``ROLE-writer``)."""
+    out: dict[str, int] = {}
+    for child in _children(run_pid):
+        role = _role_of(child)
+        if role is None:
+            continue
+        out[role] = child
+        for grandchild in _children(child):
+            with contextlib.suppress(OSError):
+                if b"transport.mcaplog" in Path(f"/proc/{grandchild}/cmdline").read_bytes():
+                    out[f"{role}-writer"] = grandchild
+    return out
 
 
 # --- part 1: log and live view on vs off --------------------------------------------------------
@@ -217,6 +233,24 @@ def _loop_per_minute(mcap: Path) -> list[dict[str, float]]:
     return out
 
 
+def _growth(samples: list[tuple[float, float]]) -> dict[str, Any]:
+    """RSS figures of one process: first, last, and the slope after the warm-up, MB per hour."""
+    if not samples:
+        return {"rss_samples": []}
+    s = np.asarray(samples)
+    warm = s[s[:, 0] >= WARM_UP_S] if (s[:, 0] >= WARM_UP_S).sum() >= 3 else s
+    slope = float(np.polyfit(warm[:, 0], warm[:, 1], 1)[0]) if len(warm) >= 2 else float("nan")
+    return {
+        "rss_mb_first": float(s[0, 1]),
+        "rss_mb_after_warm_up": float(warm[0, 1]),
+        "rss_mb_last": float(s[-1, 1]),
+        "rss_growth_mb_whole_run": float(s[-1, 1] - s[0, 1]),
+        "rss_growth_mb_per_hour": slope * 3600,
+        "target_under_10_mb_per_hour": slope * 3600 < 10,
+        "rss_samples": [[round(t, 1), round(m, 2)] for t, m in s.tolist()],
+    }
+
+
 def soak(minutes: float, sample_s: float, out_dir: Path) -> dict[str, Any]:
     run = subprocess.Popen(
         [*TELEOP, "run", "--duration", "0", "--out", str(out_dir), "--no-plots", "--no-sim", "--no-live"],
@@ -226,16 +260,14 @@ def soak(minutes: float, sample_s: float, out_dir: Path) -> dict[str, Any]:
         start_new_session=True,
     )
     t0 = time.monotonic()
-    samples: dict[str, list[tuple[float, float]]] = {r: [] for r in ROLES}
+    names = [n for r in ROLES for n in (r, f"{r}-writer")]
+    samples: dict[str, list[tuple[float, float]]] = {n: [] for n in names}
     pids: dict[str, int] = {}
     try:
         while (elapsed := time.monotonic() - t0) < minutes * 60:
             if run.poll() is not None:
                 raise SystemExit(f"teleop run ended early: {run.communicate()[1][-1000:]}")
-            for child in _children(run.pid):
-                role = _role_of(child)
-                if role is not None:
-                    pids[role] = child
+            pids.update(_processes(run.pid))
             for role, pid in pids.items():
                 rss = _rss_mb(pid)
                 if rss is not None:
@@ -248,28 +280,29 @@ def soak(minutes: float, sample_s: float, out_dir: Path) -> dict[str, Any]:
         raise SystemExit(f"teleop run failed ({run.returncode}): {err[-2000:]}")
     rep = json.loads((out_dir / "report.json").read_text())
     res: dict[str, Any] = {"minutes": minutes, "sample_s": sample_s, "session_s": rep["duration_s"]}
+    for name in names:
+        res[name] = _growth(samples[name])
     for role in ROLES:
-        s = np.asarray(samples[role])
-        warm = s[s[:, 0] >= WARM_UP_S] if (s[:, 0] >= WARM_UP_S).sum() >= 3 else s
-        slope = float(np.polyfit(warm[:, 0], warm[:, 1], 1)[0]) if len(warm) >= 2 else float("nan")
         loop = rep["processes"][role]["loop"]
         mcap = out_dir / "logs" / f"{role}.mcap"
-        res[role] = {
-            "rss_mb_first": float(s[0, 1]),
-            "rss_mb_after_warm_up": float(warm[0, 1]),
-            "rss_growth_mb_whole_run": float(s[-1, 1] - s[0, 1]),
-            "rss_mb_last": float(s[-1, 1]),
-            "rss_growth_mb_per_hour": slope * 3600,
-            "target_under_10_mb_per_hour": slope * 3600 < 10,
-            "rss_samples": [[round(t, 1), round(m, 2)] for t, m in s.tolist()],
-            "loop": {
-                k: loop[k]
-                for k in ("ticks", "overruns", "skipped", "period_error_us", "lateness_us", "cpu_fraction")
-            },
-            "loop_per_minute": _loop_per_minute(mcap),
-            "mcap_bytes": mcap.stat().st_size,
-            "mcap_bytes_per_tick": mcap.stat().st_size / max(1, loop["ticks"]),
-        }
+        res[role].update(
+            {
+                "loop": {
+                    k: loop[k]
+                    for k in (
+                        "ticks",
+                        "overruns",
+                        "skipped",
+                        "period_error_us",
+                        "lateness_us",
+                        "cpu_fraction",
+                    )
+                },
+                "loop_per_minute": _loop_per_minute(mcap),
+                "mcap_bytes": mcap.stat().st_size,
+                "mcap_bytes_per_tick": mcap.stat().st_size / max(1, loop["ticks"]),
+            }
+        )
     res["wire"] = {
         d: {k: rep["wire"][d][k] for k in ("packets", "compression_wire", "min_instant_compression_wire")}
         for d in rep["wire"]
@@ -301,6 +334,12 @@ def main() -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=2) + "\n")
     for role in ROLES:
+        w = res["soak"].get(f"{role}-writer", {})
+        if w.get("rss_samples"):
+            print(
+                f"{role + '-writer':<13} RSS {w['rss_mb_first']:.1f} -> {w['rss_mb_last']:.1f} MB, "
+                f"growth after warm-up {w['rss_growth_mb_per_hour']:+.2f} MB/h"
+            )
         s = res["soak"][role]
         print(
             f"{role:<13} RSS {s['rss_mb_first']:.1f} -> {s['rss_mb_last']:.1f} MB, growth after warm-up "

@@ -242,6 +242,7 @@ def test_live_view_serves_the_channels_over_foxglove_websocket() -> None:
     port = _free_port()
     log = McapLog(None, "operator", wall0_ns=0, live_port=port)
     try:
+        assert log.live_port == port  # the writer process is up and serving
 
         async def feed_and_listen() -> tuple[set[str], list[dict[str, Any]]]:
             client = asyncio.create_task(_live_client(port, want=30))

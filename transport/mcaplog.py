@@ -8,10 +8,14 @@ its Rust core compresses (zstd) and writes.  Tests and ``teleop report`` read fi
 reference ``mcap`` library.
 
 **Who pays.** The port hands a sealed chunk (1000 ticks) to :meth:`McapLog.write`, which only puts
-it on a bounded queue (a chunk that finds the queue full is dropped and counted, never waited for).
-A writer thread turns chunks into messages and logs them; the 1 kHz loop never encodes or writes.
-While it runs, the interpreter's switch interval is set to 100 us (default 5 ms), so the loop waits
-at most that long for the GIL when it wakes (bench/soak.py measures the loop with the log on and off).
+it on a bounded queue (an item that finds the queue full is dropped; dropped chunks are counted).
+A sender thread pickles each item into the stdin of a writer *process* (``python -m
+transport.mcaplog``), which turns chunks into messages, compresses and writes them, and serves the
+live view.  A process, not a thread: measured with a writer thread in the same process
+(bench/soak.py, first version), the loop's p99 period error was about 2x that without the log, since
+encoding 5000 messages a second, and foxglove's writer, hold the interpreter lock the loop needs
+when it wakes.  The writer ignores SIGINT/SIGTERM (Ctrl-C reaches the whole process group) and
+finishes the file when told, or when its stdin closes because the process it serves died.
 
 **Channels** (``ROLE`` is ``operator`` or ``teleoperator``; JSON messages with a JSON schema each,
 log time = the session's wall-clock start + the tick's time on the session clock):
@@ -28,7 +32,9 @@ topic                       rate       fields
                                        ``tx_payload``, ``tx_baseline_wire``, ``tx_baseline_payload``,
                                        ``rx_wire``, ``rx_payload``
 ``/ROLE/loop``              each tick  ``k``, ``t``, ``lateness_ns`` (tick start minus its deadline)
-``/ROLE/link``              1 Hz       ``t``, ``link`` (the incoming link's figures), ``sent`` and
+``/ROLE/link``              1 Hz       ``t``, ``link`` (the incoming link so far: received,
+                                       ``loss_so_far``, ``delay_ms_mean``, duplicates,
+                                       reordered), ``sent`` and
                                        ``received`` (counters and compression so far),
                                        ``watchdog`` (violations, controller, dissipated energy)
 ``/ROLE/events``            as they    ``t``, ``event`` (``session_start``, ``link_lost``,
@@ -44,9 +50,13 @@ by default), sent from the loop through the same queue as they happen (not a chu
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import pickle
 import queue
+import signal
+import subprocess
 import sys
 import threading
 import time
@@ -64,8 +74,7 @@ __all__ = ["PER_TICK_TOPICS", "TOPICS", "McapLog", "read_log"]
 
 PER_TICK_TOPICS = ("signals", "waves", "energy", "wire", "loop")
 TOPICS = (*PER_TICK_TOPICS, "link", "events", "session", "summary")
-QUEUE_CHUNKS = 16  # chunks (16 s at 1 kHz) the writer may fall behind before one is dropped
-SWITCH_INTERVAL_S = 1e-4
+QUEUE_ITEMS = 256  # items (chunks are 1 s each at 1 kHz, live messages 50 a second) in flight
 
 _NUM = {"type": "number"}
 _INT = {"type": "integer"}
@@ -149,36 +158,24 @@ def tick_messages(a: dict[str, npt.NDArray[Any]], r: int, k: int) -> dict[str, d
     }
 
 
-class McapLog:
-    """``ROLE.mcap`` written as the session runs (a writer thread), and optionally the live view.
-
-    ``write(chunk)`` is the port's sink; ``live``/``event``/``link`` are called by the runner;
-    ``close(summary)`` drains the queue, logs the summary and finishes the file."""
+class _Writer:
+    """The writer process's side: foxglove contexts, channels, the MCAP file and the live server."""
 
     def __init__(
-        self,
-        path: Path | None,
-        role: str,
-        wall0_ns: int,
-        live_port: int | None = None,
-        live_every: int = 20,
-        live_host: str = "127.0.0.1",
+        self, path: str | None, role: str, wall0_ns: int, live_port: int | None, live_host: str
     ) -> None:
         import foxglove
         from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 
         self.role = role
-        self.path = path
-        self.wall0_ns = wall0_ns  # wall-clock ns of the session's tick 0
-        self.live_every = live_every
-        self.dropped_chunks = 0
+        self.wall0_ns = wall0_ns
         self.messages = 0
         self._ctx = foxglove.Context() if path is not None else None
         self._live_ctx = foxglove.Context() if live_port is not None else None
-        self._writer = None
+        self._file = None
         if self._ctx is not None and path is not None:
-            opts = MCAPWriteOptions(compression=MCAPCompression.Zstd, compression_threads=0)
-            self._writer = foxglove.open_mcap(
+            opts = MCAPWriteOptions(compression=MCAPCompression.Zstd)
+            self._file = foxglove.open_mcap(
                 path, allow_overwrite=True, context=self._ctx, writer_options=opts
             )
         self.server = None
@@ -188,11 +185,6 @@ class McapLog:
             )
         self._ch = {n: self._channel(self._ctx, n) for n in TOPICS} if self._ctx else {}
         self._live = {n: self._channel(self._live_ctx, n) for n in TOPICS} if self._live_ctx else {}
-        self._q: queue.Queue[tuple[str, Any]] = queue.Queue(QUEUE_CHUNKS)
-        self._switch = sys.getswitchinterval()
-        sys.setswitchinterval(SWITCH_INTERVAL_S)
-        self._thread = threading.Thread(target=self._run, name=f"teleop-{role}-log", daemon=True)
-        self._thread.start()
 
     def _channel(self, ctx: Any, name: str) -> Any:
         import foxglove
@@ -203,14 +195,106 @@ class McapLog:
     def live_port(self) -> int | None:
         return None if self.server is None else int(self.server.port)
 
+    def _log(self, chans: dict[str, Any], name: str, t: float, msg: dict[str, Any]) -> None:
+        log_time = self.wall0_ns + (round(t * 1e9) if math.isfinite(t) else 0)
+        chans[name].log(json.dumps(msg).encode(), log_time=log_time)
+
+    def handle(self, kind: str, item: Any) -> None:
+        if kind == "chunk":
+            self._chunk(item)
+        elif kind == "live":
+            if self._live and self._live["signals"].has_sinks():  # nobody watching: nothing encoded
+                t, msgs = item
+                for name, m in msgs.items():
+                    self._log(self._live, name, t, m)
+        else:
+            name, t, msg = item
+            for chans in (self._ch, self._live):
+                if chans:
+                    self._log(chans, name, t, msg)
+            self.messages += bool(self._ch)
+
+    def _chunk(self, c: Chunk) -> None:
+        if not self._ch:
+            return
+        a = c.arrays()
+        for r in c.ran():
+            k = c.k0 + int(r)
+            msgs = tick_messages(a, int(r), k)
+            t = msgs["signals"]["t"]
+            for name, m in msgs.items():
+                self._log(self._ch, name, t, m)
+            self.messages += len(msgs)
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+        if self.server is not None:
+            self.server.stop()
+
+
+class McapLog:
+    """``ROLE.mcap`` written as the session runs by a writer process, and optionally the live view.
+
+    ``write(chunk)`` is the port's sink; ``live``/``event``/``status`` are called by the runner;
+    ``close(summary)`` drains the queue, logs the summary, finishes the file and waits for the
+    writer.  From the loop each call is a ``put_nowait`` on a bounded queue; a sender thread
+    pickles the items into the writer's stdin (a blocking write releases the GIL), and the writer
+    process (``python -m transport.mcaplog``) does all the encoding, compression and writing under
+    its own interpreter lock, so none of it can hold the loop's."""
+
+    def __init__(
+        self,
+        path: Path | None,
+        role: str,
+        wall0_ns: int,
+        live_port: int | None = None,
+        live_every: int = 20,
+        live_host: str = "127.0.0.1",
+    ) -> None:
+        self.role = role
+        self.path = path
+        self.live_every = live_every
+        self.dropped_chunks = 0
+        self.messages = 0
+        self._live_port: int | None = None
+        self._wants_live = live_port is not None
+        cfg = {
+            "path": None if path is None else str(path),
+            "role": role,
+            "wall0_ns": wall0_ns,
+            "live_port": live_port,
+            "live_host": live_host,
+        }
+        # The writer ignores SIGINT/SIGTERM (a terminal's Ctrl-C reaches the whole group): it ends
+        # when told, or when its stdin closes (this process died), finishing the file either way.
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "transport.mcaplog", json.dumps(cfg)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+        )
+        self._q: queue.Queue[tuple[str, Any]] = queue.Queue(QUEUE_ITEMS)
+        self._thread = threading.Thread(target=self._send, name=f"teleop-{role}-log", daemon=True)
+        self._thread.start()
+        self._closed = False
+
+    @property
+    def live_port(self) -> int | None:
+        """The live view's port (waits for the writer to say, the first time)."""
+        if self._wants_live and self._live_port is None and self._proc.stdout is not None:
+            line = self._proc.stdout.readline()
+            if line:
+                self._live_port = json.loads(line).get("live_port")
+        return self._live_port
+
     # --- called from the loop: O(1), never blocks ----------------------------------------
     def write(self, chunk: Chunk) -> None:
-        """The port's sink: a sealed chunk, queued for the writer thread."""
+        """The port's sink: a sealed chunk, queued for the writer."""
         self._put(("chunk", chunk))
 
     def live(self, k: int, t: float, msgs: dict[str, dict[str, Any]]) -> None:
-        """Decimated per-tick messages for the live view (nothing when no client listens)."""
-        if self._live and self._live["signals"].has_sinks():
+        """Decimated per-tick messages for the live view."""
+        if self._wants_live:
             self._put(("live", (t, msgs)))
 
     def event(self, t: float, event: str, detail: str = "") -> None:
@@ -226,54 +310,67 @@ class McapLog:
         except queue.Full:
             self.dropped_chunks += item[0] == "chunk"
 
-    # --- the writer thread ---------------------------------------------------------------
-    def _log_time(self, t: float) -> int:
-        return self.wall0_ns + (round(t * 1e9) if math.isfinite(t) else 0)
-
-    def _log(self, chans: dict[str, Any], name: str, t: float, msg: dict[str, Any]) -> None:
-        chans[name].log(json.dumps(msg).encode(), log_time=self._log_time(t))
-
-    def _run(self) -> None:
+    # --- the sender thread ---------------------------------------------------------------
+    def _send(self) -> None:
+        out = self._proc.stdin
+        assert out is not None
         while True:
-            kind, item = self._q.get()
-            if kind == "stop":
+            item = self._q.get()
+            data = pickle.dumps(item, protocol=pickle.HIGHEST_PROTOCOL)
+            try:
+                out.write(len(data).to_bytes(4, "little") + data)
+                out.flush()
+            except (BrokenPipeError, OSError):  # the writer died: the loop goes on without a log
                 return
-            if kind == "chunk":
-                self._chunk(item)
-            elif kind == "live":
-                t, msgs = item
-                for name, m in msgs.items():
-                    self._log(self._live, name, t, m)
-            else:
-                name, t, msg = item
-                for chans in (self._ch, self._live):
-                    if chans:
-                        self._log(chans, name, t, msg)
-                self.messages += bool(self._ch)
+            if item[0] == "stop":
+                return
 
-    def _chunk(self, c: Chunk) -> None:
-        if not self._ch:
+    def close(self, summary: dict[str, Any] | None = None, timeout: float = 120.0) -> None:
+        """Write what is queued and the summary, finish the file, wait for the writer."""
+        if self._closed:
             return
-        a = c.arrays()
-        for r in c.ran():
-            k = c.k0 + int(r)
-            msgs = tick_messages(a, int(r), k)
-            t = msgs["signals"]["t"]
-            for name, m in msgs.items():
-                self._log(self._ch, name, t, m)
-            self.messages += len(msgs)
-
-    def close(self, summary: dict[str, Any] | None = None) -> None:
-        """Write what is queued, the summary, and finish the file (the loop is over: we may wait)."""
+        self._closed = True
         if summary is not None:
             self._q.put(("msg", ("summary", float(summary.get("end_t", 0.0)), summary)))
         self._q.put(("stop", None))
-        self._thread.join()
-        sys.setswitchinterval(self._switch)
-        if self._writer is not None:
-            self._writer.close()
-        if self.server is not None:
-            self.server.stop()
+        self._thread.join(timeout)
+        try:  # closes the writer's stdin (end of input), then waits for it
+            out, _ = self._proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            out, _ = self._proc.communicate()
+        for line in out.decode(errors="replace").splitlines():
+            with contextlib.suppress(ValueError):
+                d = json.loads(line)
+                self.messages = int(d.get("messages", self.messages))
+                if d.get("live_port"):
+                    self._live_port = int(d["live_port"])
+
+
+def _writer_main(cfg: dict[str, Any]) -> None:
+    """The writer process: framed pickles on stdin (from our own parent) to the file and the view."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    w = _Writer(cfg["path"], cfg["role"], cfg["wall0_ns"], cfg["live_port"], cfg["live_host"])
+    if w.server is not None:
+        print(json.dumps({"live_port": w.live_port}), flush=True)
+        print(
+            f"teleop {cfg['role']}: live view on ws://{cfg['live_host']}:{w.live_port}",
+            file=sys.stderr,
+            flush=True,
+        )
+    port = w.live_port  # (the server says 0 once stopped)
+    stdin = sys.stdin.buffer
+    try:
+        while len(hdr := stdin.read(4)) == 4:
+            body = stdin.read(int.from_bytes(hdr, "little"))
+            kind, item = pickle.loads(body)
+            if kind == "stop":
+                break
+            w.handle(kind, item)
+    finally:
+        w.close()
+    print(json.dumps({"messages": w.messages, "live_port": port}), flush=True)
 
 
 # --------------------------------------------------------------------------------------------
@@ -356,3 +453,7 @@ def read_log(path: Path) -> tuple[dict[str, Any], dict[str, npt.NDArray[Any]]]:
 def wall_clock_of(t_common_ns: int) -> int:
     """Wall-clock ns of a monotonic-clock instant (the session's tick 0), for MCAP log times."""
     return time.time_ns() - (time.monotonic_ns() - t_common_ns)
+
+
+if __name__ == "__main__":
+    _writer_main(json.loads(sys.argv[1]))

@@ -453,7 +453,7 @@ class _Runner:
                 self.now(),
                 {
                     "t": self.now(),
-                    "link": port.observer.summary(),
+                    "link": port.observer.quick(),
                     "sent": port.tx.summary(),
                     "received": port.rx.summary(),
                     "watchdog": {
