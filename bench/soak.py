@@ -312,7 +312,7 @@ def soak(minutes: float, sample_s: float, out_dir: Path) -> dict[str, Any]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--minutes", type=float, default=60.0, help="soak length (default 60)")
+    ap.add_argument("--minutes", type=float, default=60.0, help="soak length (default 60; 0: skip)")
     ap.add_argument("--sample", type=float, default=10.0, help="seconds between RSS samples (default 10)")
     ap.add_argument("--ab-rounds", type=int, default=4, help="log on/off rounds (default 4; 0: skip)")
     ap.add_argument("--ab-seconds", type=float, default=20.0, help="seconds per on/off session (default 20)")
@@ -327,13 +327,19 @@ def main() -> None:
     if a.ab_rounds > 0:
         print(f"log and live view on vs off: {a.ab_rounds} rounds of {a.ab_seconds:g} s each", flush=True)
         res["log_on_vs_off"] = log_on_vs_off(a.ab_rounds, a.ab_seconds)
-    print(f"soak: teleop run --duration 0 for {a.minutes:g} min, RSS every {a.sample:g} s", flush=True)
-    with tempfile.TemporaryDirectory(prefix="teleop-soak-") as tmp:
-        res["soak"] = soak(a.minutes, a.sample, Path(tmp) / "run")
+    if a.minutes > 0:
+        print(f"soak: teleop run --duration 0 for {a.minutes:g} min, RSS every {a.sample:g} s", flush=True)
+        with tempfile.TemporaryDirectory(prefix="teleop-soak-") as tmp:
+            res["soak"] = soak(a.minutes, a.sample, Path(tmp) / "run")
     out = Path(a.out)
+    if out.exists():  # a part not run this time keeps its last result, marked as such
+        old = json.loads(out.read_text())
+        for part in ("log_on_vs_off", "soak"):
+            if part not in res and part in old:
+                res[part] = {**old[part], "from_an_earlier_invocation": True}
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=2) + "\n")
-    for role in ROLES:
+    for role in ROLES if "soak" in res else ():
         w = res["soak"].get(f"{role}-writer", {})
         if w.get("rss_samples"):
             print(
@@ -347,12 +353,12 @@ def main() -> None:
             f"loop p99 {s['loop']['period_error_us']['p99']:.1f} us; "
             f"MCAP {s['mcap_bytes'] / 1e6:.1f} MB ({s['mcap_bytes_per_tick']:.0f} B/tick)"
         )
-        if "log_on_vs_off" in res:
-            x = res["log_on_vs_off"][role]
-            print(
-                f"{'':<13} p99 log on/off {x['p99_us_median_on']:.1f}/{x['p99_us_median_off']:.1f} us "
-                f"= {x['ratio_on_off']:.2f}x"
-            )
+    for role in ROLES if "log_on_vs_off" in res else ():
+        x = res["log_on_vs_off"][role]
+        print(
+            f"{role:<13} p99 with the log and live view on/off (medians) {x['p99_us_median_on']:.1f}/"
+            f"{x['p99_us_median_off']:.1f} us = {x['ratio_on_off']:.2f}x"
+        )
     print(f"wrote {out}")
 
 

@@ -21,9 +21,9 @@ peer's ``bye``), linger briefly to count packets still in flight, say ``bye``, a
 the next tick; the logs are still written.
 
 **Log.** The port hands its per-tick record to a sink a chunk (1000 ticks) at a time; here the sink is
-``transport.mcaplog.McapLog``, which writes ``<role>.mcap`` from a thread as the session runs (and,
-with ``live_view``, serves the same channels over the Foxglove WebSocket protocol), so memory stays
-flat however long the session lasts.
+``transport.mcaplog.McapLog``, which has a writer process write ``<role>.mcap`` as the session runs
+(and, with ``live_view``, serve the same channels over the Foxglove WebSocket protocol), so memory
+stays flat however long the session lasts and the loop never encodes or writes a message.
 """
 
 from __future__ import annotations

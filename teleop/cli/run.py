@@ -222,13 +222,14 @@ def _spawn(cmd: list[str]) -> subprocess.Popen[bytes]:
 
 
 def _stop(procs: list[subprocess.Popen[bytes]]) -> None:
-    """SIGINT to every process still running, then wait for each (killing one that hangs)."""
+    """SIGINT to every process still running, then wait for each (killing one that hangs; 30 s:
+    a process finishes its MCAP log, whose writer may be some chunks behind, before it exits)."""
     for p in procs:
         if p.poll() is None:
             p.send_signal(signal.SIGINT)
     for p in procs:
         try:
-            p.wait(timeout=5)
+            p.wait(timeout=30)
         except subprocess.TimeoutExpired:
             p.kill()
             p.wait()
