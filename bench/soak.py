@@ -251,9 +251,16 @@ def _growth(samples: list[tuple[float, float]]) -> dict[str, Any]:
     }
 
 
-def soak(minutes: float, sample_s: float, out_dir: Path) -> dict[str, Any]:
+def soak(minutes: float, sample_s: float, out_dir: Path, link_timeout_ms: float) -> dict[str, Any]:
+    """``teleop run --duration 0`` for ``minutes``.  ``link_timeout_ms``: long, so that a host stall
+    of some 100 ms on a busy VM does not end in the restart logic (a rejoin offer the teleoperator
+    takes as a new operator: a new session, its log split) in a run that measures memory."""
     run = subprocess.Popen(
-        [*TELEOP, "run", "--duration", "0", "--out", str(out_dir), "--no-plots", "--no-sim", "--no-live"],
+        [
+            *TELEOP,
+            *("run", "--duration", "0", "--out", str(out_dir), "--no-plots", "--no-sim", "--no-live"),
+            *("--link-timeout", repr(link_timeout_ms)),
+        ],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -279,7 +286,14 @@ def soak(minutes: float, sample_s: float, out_dir: Path) -> dict[str, Any]:
     if run.returncode != 0:
         raise SystemExit(f"teleop run failed ({run.returncode}): {err[-2000:]}")
     rep = json.loads((out_dir / "report.json").read_text())
-    res: dict[str, Any] = {"minutes": minutes, "sample_s": sample_s, "session_s": rep["duration_s"]}
+    res: dict[str, Any] = {
+        "minutes": minutes,
+        "sample_s": sample_s,
+        "session_s": rep["duration_s"],
+        "link_timeout_ms": link_timeout_ms,
+        # A teleoperator session replaced mid-run (the restart logic) keeps its log as ROLE-<id>.*
+        "teleoperator_sessions_replaced": len(list((out_dir / "logs").glob("teleoperator-*.json"))),
+    }
     for name in names:
         res[name] = _growth(samples[name])
     for role in ROLES:
@@ -316,6 +330,9 @@ def main() -> None:
     ap.add_argument("--sample", type=float, default=10.0, help="seconds between RSS samples (default 10)")
     ap.add_argument("--ab-rounds", type=int, default=4, help="log on/off rounds (default 4; 0: skip)")
     ap.add_argument("--ab-seconds", type=float, default=20.0, help="seconds per on/off session (default 20)")
+    ap.add_argument(
+        "--link-timeout", type=float, default=1000.0, help="soak's link timeout, ms (default 1000)"
+    )
     ap.add_argument("--out", default="bench/results/soak.json")
     a = ap.parse_args()
     res: dict[str, Any] = {
@@ -330,7 +347,7 @@ def main() -> None:
     if a.minutes > 0:
         print(f"soak: teleop run --duration 0 for {a.minutes:g} min, RSS every {a.sample:g} s", flush=True)
         with tempfile.TemporaryDirectory(prefix="teleop-soak-") as tmp:
-            res["soak"] = soak(a.minutes, a.sample, Path(tmp) / "run")
+            res["soak"] = soak(a.minutes, a.sample, Path(tmp) / "run", a.link_timeout)
     out = Path(a.out)
     if out.exists():  # a part not run this time keeps its last result, marked as such
         old = json.loads(out.read_text())

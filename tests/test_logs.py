@@ -280,9 +280,12 @@ def test_run_until_stopped_reports_and_both_exit_cleanly(tmp_path: Path) -> None
     assert p.returncode == 0, stderr
     rep = json.loads((out / "report.json").read_text())
     assert rep["until_stopped"] is True and rep["exit_codes"] == {"teleoperator": 0, "operator": 0}
+    # What the process adds to its summary after the loop is in the MCAP file too.
+    assert rep["security"]["auth"] == "blake2s-128" and rep["handshake"]["rtt_us"] > 0
     for role, pr in rep["processes"].items():
         assert pr["completed"] is True, role
         assert pr["loop"]["ticks"] > 500, role
+        assert pr["event_loop"] in ("uvloop", "asyncio"), role
     assert 0.5 < rep["duration_s"] < 30
     for role in ("operator", "teleoperator"):
         summary, arrays = read_log(out / "logs" / f"{role}.mcap")

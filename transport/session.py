@@ -567,16 +567,9 @@ async def _run_loop(
     if not runner.replaced:  # a replaced session's operator is gone: nothing is in flight to count
         await runner.linger()
     summary = runner.summary(stats, completed, k0)
-    if log is not None:
+    if log is not None:  # the file is finished by _session, once the summary is complete
         why = f"signal {stop.signal}" if stop.requested else ("peer said bye" if runner.peer_bye else "end")
         log.event(runner.now(), "session_end", f"{why}; {stats.ticks} ticks run")
-        log.close({**summary, "end_t": runner.now()})
-        summary["log"] = {
-            "mcap": f"{opts.role}.mcap" if opts.log_dir is not None else None,
-            "messages": log.messages,
-            "dropped_chunks": log.dropped_chunks,
-            "live_view_port": log.live_port,
-        }
     if opts.log_dir is not None:
         (opts.log_dir / f"{opts.role}.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary, runner.handover
@@ -610,7 +603,6 @@ async def _endpoint(
     try:
         while True:
             summary, handover = await _session(opts, tr, params, expect, stop, handover)
-            summary.update(event_loop=type(loop).__module__.split(".")[0])
             if opts.log_dir is not None:
                 (opts.log_dir / f"{opts.role}.json").write_text(json.dumps(summary, indent=2) + "\n")
             if not summary.get("replaced_by_new_session"):
@@ -674,8 +666,18 @@ async def _session(
         if log is not None:
             log.close()
         raise
-    summary.update(extra, warnings=warnings)
+    summary.update(
+        extra, warnings=warnings, event_loop=type(asyncio.get_running_loop()).__module__.split(".")[0]
+    )
     summary["security"].update(auth=_auth_name(opts), key_id=auth.key_id(psk))
+    if log is not None:  # the complete summary goes into the file: teleop report reads it there
+        log.close({**summary, "end_t": (time.monotonic_ns() - start) / 1e9})
+        summary["log"] = {
+            "mcap": f"{opts.role}.mcap" if opts.log_dir is not None else None,
+            "messages": log.messages,
+            "dropped_chunks": log.dropped_chunks,
+            "live_view_port": log.live_port,
+        }
     return summary, replaced_by
 
 
