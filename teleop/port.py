@@ -382,9 +382,15 @@ class Recorder:
             for a in range(c.k0 + c.size, gap_end, 1 << 20):  # whole chunks a stall skipped: totals only
                 ks = np.arange(a, min(a + (1 << 20), gap_end))
                 self.tx.baseline_bulk(self._baseline(ks), self.raw_payload_len)
+        # The sliding window starts at this side's first tick: rows before it (a late joiner, or a
+        # loop whose first ticks a stall skipped) carry neither baseline nor traffic.
         b, n = c.bytes, c.n
+        r0 = min(max(self.first - c.k0, 0), n) if self.first >= 0 else n
         self.tx.window(
-            b["tx_baseline_wire"][:n], b["tx_wire"][:n], b["tx_baseline_payload"][:n], b["tx_payload"][:n]
+            b["tx_baseline_wire"][r0:n],
+            b["tx_wire"][r0:n],
+            b["tx_baseline_payload"][r0:n],
+            b["tx_payload"][r0:n],
         )
         self.sink.write(c)
 

@@ -86,6 +86,18 @@ def test_chunks_cover_every_tick_run_across_boundaries_and_gaps() -> None:
     assert s["sent"]["packets"] == len(ran)  # codec none: one packet per tick run
 
 
+def test_a_late_first_tick_does_not_make_a_window_of_one_packet() -> None:
+    """A side whose first tick is not a chunk's first (a late joiner, or a loop whose first ticks a
+    stall skipped) has no baseline before it: the windows start at its first tick, so eds:50's
+    minimum instantaneous compression stays what it is from tick 0 (bench/soak.py once showed 1.0)."""
+    late, _ = _pair(codec="eds:50")
+    _run(late, _, range(1370, 6000))
+    prompt, _ = _pair(codec="eds:50")
+    _run(prompt, _, range(0, 6000))
+    got = late.summary()["sent"]["min_instant_compression_wire"]
+    assert got > 45 and abs(got / prompt.summary()["sent"]["min_instant_compression_wire"] - 1) < 0.05
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     st.lists(st.integers(0, 300), min_size=1, max_size=3000),
