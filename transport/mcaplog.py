@@ -270,6 +270,17 @@ class _Writer:
             self.server.stop()
 
 
+def spawn_writer() -> subprocess.Popen[bytes]:
+    """A writer process, started ahead of its session: it imports (numpy, foxglove: about a second
+    of CPU) while the handshake waits, not while the 1 kHz loop starts, then waits for its
+    :class:`McapLog`.  Closing its stdin unused makes it exit."""
+    # The writer ignores SIGINT/SIGTERM (a terminal's Ctrl-C reaches the whole group): it ends when
+    # told, or when its stdin closes (its parent died), finishing the file either way.
+    return subprocess.Popen(
+        [sys.executable, "-m", "transport.mcaplog"], stdin=subprocess.PIPE, stdout=subprocess.PIPE
+    )
+
+
 class McapLog:
     """``ROLE.mcap`` written as the session runs by a writer process, and optionally the live view.
 
@@ -288,12 +299,15 @@ class McapLog:
         live_port: int | None = None,
         live_every: int = 20,
         live_host: str = "127.0.0.1",
+        process: subprocess.Popen[bytes] | None = None,
     ) -> None:
+        """``process``: a writer from :func:`spawn_writer` (default: one started now)."""
         self.role = role
         self.path = path
         self.live_every = live_every
         self.dropped_chunks = 0
         self.messages = 0
+        self.error: str | None = None  # the writer could not open the file or the view
         self._live_port: int | None = None
         self._wants_live = live_port is not None
         cfg = {
@@ -303,14 +317,9 @@ class McapLog:
             "live_port": live_port,
             "live_host": live_host,
         }
-        # The writer ignores SIGINT/SIGTERM (a terminal's Ctrl-C reaches the whole group): it ends
-        # when told, or when its stdin closes (this process died), finishing the file either way.
-        self._proc = subprocess.Popen(
-            [sys.executable, "-m", "transport.mcaplog", json.dumps(cfg)],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-        )
+        self._proc = process if process is not None else spawn_writer()
         self._q: queue.Queue[tuple[str, Any]] = queue.Queue(QUEUE_ITEMS)
+        self._q.put(("open", cfg))
         self._thread = threading.Thread(target=self._send, name=f"teleop-{role}-log", daemon=True)
         self._thread.start()
         self._closed = False
@@ -321,7 +330,8 @@ class McapLog:
         if self._wants_live and self._live_port is None and self._proc.stdout is not None:
             line = self._proc.stdout.readline()
             if line:
-                self._live_port = json.loads(line).get("live_port")
+                d = json.loads(line)
+                self._live_port, self.error = d.get("live_port"), d.get("error", self.error)
         return self._live_port
 
     # --- called from the loop: O(1), never blocks ----------------------------------------
@@ -379,20 +389,43 @@ class McapLog:
         for line in out.decode(errors="replace").splitlines():
             with contextlib.suppress(ValueError):
                 d = json.loads(line)
+                self.error = d.get("error", self.error)
                 self.messages = int(d.get("messages", self.messages))
                 if d.get("live_port"):
                     self._live_port = int(d["live_port"])
 
 
-def _writer_main(cfg: dict[str, Any]) -> None:
-    """The writer process: framed pickles on stdin (from our own parent) to the file and the view."""
+def _read(stdin: Any) -> tuple[str, Any] | None:
+    """One framed item from the parent, or None at the end of input."""
+    hdr = stdin.read(4)
+    if len(hdr) < 4:
+        return None
+    kind, item = pickle.loads(stdin.read(int.from_bytes(hdr, "little")))
+    return str(kind), item
+
+
+def _writer_main() -> None:
+    """The writer process: framed pickles on stdin (from our own parent) to the file and the view;
+    the first item says what to open."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     # Yield the CPU to the 1 kHz loops: on a busy host the writer, not the loop, should wait (it
     # has a queue; the loop has a deadline).  A real-time loop (SCHED_FIFO) preempts it anyway.
     with contextlib.suppress(OSError):
         os.nice(NICE)
-    w = _Writer(cfg["path"], cfg["role"], cfg["wall0_ns"], cfg["live_port"], cfg["live_host"])
+    stdin = sys.stdin.buffer
+    first = _read(stdin)
+    if first is None or first[0] != "open":  # never used (its session did not start)
+        return
+    cfg = first[1]
+    try:
+        w = _Writer(cfg["path"], cfg["role"], cfg["wall0_ns"], cfg["live_port"], cfg["live_host"])
+    except Exception as e:  # a file that cannot be made, a port taken: say so; the session goes on
+        print(f"teleop {cfg['role']}: error: no log and no live view: {e}", file=sys.stderr, flush=True)
+        print(json.dumps({"error": str(e)}), flush=True)
+        while _read(stdin) is not None:  # let the parent's sender finish
+            pass
+        return
     if w.server is not None:
         print(json.dumps({"live_port": w.live_port}), flush=True)
         print(
@@ -401,14 +434,9 @@ def _writer_main(cfg: dict[str, Any]) -> None:
             flush=True,
         )
     port = w.live_port  # (the server says 0 once stopped)
-    stdin = sys.stdin.buffer
     try:
-        while len(hdr := stdin.read(4)) == 4:
-            body = stdin.read(int.from_bytes(hdr, "little"))
-            kind, item = pickle.loads(body)
-            if kind == "stop":
-                break
-            w.handle(kind, item)
+        while (got := _read(stdin)) is not None and got[0] != "stop":
+            w.handle(*got)
     finally:
         w.close()
     print(json.dumps({"messages": w.messages, "live_port": port}), flush=True)
@@ -497,4 +525,4 @@ def wall_clock_of(t_common_ns: int) -> int:
 
 
 if __name__ == "__main__":
-    _writer_main(json.loads(sys.argv[1]))
+    _writer_main()

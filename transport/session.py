@@ -34,6 +34,7 @@ import os
 import random
 import secrets
 import signal
+import subprocess
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -45,7 +46,7 @@ from teleop.port import Chunk, Port, PortKeys, make_node, make_shim
 from teleop.protocol import PROTOCOL_VERSION, SessionParams
 
 from .base import Addr, Transport
-from .mcaplog import McapLog, wall_clock_of
+from .mcaplog import McapLog, spawn_writer, wall_clock_of
 from .realtime import LoopStats, Ticker, setup_realtime
 from .udp import UdpTransport, new_event_loop
 from .zenoh import ZENOH_PEER, ZenohTransport, make_config
@@ -600,9 +601,14 @@ async def _endpoint(
         loop.add_signal_handler(sig, stop, sig)
     tr = await _open_transport(opts)
     handover: _Handover | None = None
+    writer = None
     try:
         while True:
-            summary, handover = await _session(opts, tr, params, expect, stop, handover)
+            # The log's writer process starts now, so that it has imported before the loop starts.
+            wants_log = opts.log_dir is not None or opts.live_view is not None
+            writer = spawn_writer() if wants_log else None
+            summary, handover = await _session(opts, tr, params, expect, stop, handover, writer)
+            writer = None  # the session's log owns it now
             if opts.log_dir is not None:
                 (opts.log_dir / f"{opts.role}.json").write_text(json.dumps(summary, indent=2) + "\n")
             if not summary.get("replaced_by_new_session"):
@@ -620,6 +626,12 @@ async def _endpoint(
                 )
     finally:
         tr.close()
+        if writer is not None and writer.poll() is None:  # unused (no session): it exits at end of input
+            try:
+                writer.communicate(timeout=10)
+            except subprocess.TimeoutExpired:
+                writer.kill()
+                writer.wait()
 
 
 async def _session(
@@ -629,6 +641,7 @@ async def _session(
     expect: dict[str, Any],
     stop: _Stop,
     handover: _Handover | None = None,
+    writer: subprocess.Popen[bytes] | None = None,
 ) -> tuple[dict[str, Any], _Handover | None]:
     """Handshake (unless a running session's takeover already completed one), build the port, run
     the loop: one session of this process."""
@@ -658,7 +671,7 @@ async def _session(
     warnings = setup_realtime(opts.rt_priority)
     for w in warnings:
         print(f"teleop {opts.role}: warning: {w}", file=sys.stderr)
-    log = _open_log(opts, start)
+    log = _open_log(opts, start, writer)
     port = _make_port(opts, tr, params, k0, keys, log)
     try:
         summary, replaced_by = await _run_loop(opts, tr, peer, params, port, t0, start, stop, k0, expect, log)
@@ -677,6 +690,7 @@ async def _session(
             "messages": log.messages,
             "dropped_chunks": log.dropped_chunks,
             "live_view_port": log.live_port,
+            "error": log.error,
         }
     return summary, replaced_by
 
@@ -686,7 +700,9 @@ def _auth_name(opts: EndpointOptions) -> str:
     return "insecure" if opts.insecure else "blake2s-128"
 
 
-def _open_log(opts: EndpointOptions, t_common_ns: int) -> McapLog | None:
+def _open_log(
+    opts: EndpointOptions, t_common_ns: int, writer: subprocess.Popen[bytes] | None
+) -> McapLog | None:
     """``ROLE.mcap`` in the log folder and/or the live view, or None (no log, no view)."""
     if opts.log_dir is None and opts.live_view is None:
         return None
@@ -701,6 +717,7 @@ def _open_log(opts: EndpointOptions, t_common_ns: int) -> McapLog | None:
             wall_clock_of(t_common_ns),
             live_port=opts.live_view,
             live_host=opts.live_view_host,
+            process=writer,
         )
     except (OSError, RuntimeError) as e:  # the file cannot be made, the port is taken
         raise SessionError(f"cannot open the log or the live view: {e}") from None
