@@ -810,17 +810,19 @@ def cpu_share(before: list[int], after: list[int]) -> dict[str, Any]:
 
 def lateness_in_window(log_dir: Path, window: tuple[float, float]) -> dict[str, Any]:
     """Per process: tick lateness inside the attack's window and outside it (the same session's
-    calm part), from the loop's per-tick record (``lateness_ns`` in ROLE.npz; tick i at i ms)."""
+    calm part), from the loop's per-tick record (``/ROLE/loop`` in ROLE.mcap, with each tick's time)."""
     import numpy as np
+
+    from transport.mcaplog import iter_messages
 
     out: dict[str, Any] = {}
     for role in ROLES:
-        path = log_dir / f"{role}.npz"
+        path = log_dir / f"{role}.mcap"
         if not path.exists():
             continue
-        with np.load(path) as z:
-            late = np.abs(z["lateness_ns"].astype(np.float64)) / 1e3
-        t = np.arange(late.size) * 1e-3
+        rows = [(m["t"], m["lateness_ns"]) for _, m in iter_messages(path, [f"/{role}/loop"])]
+        t = np.array([r[0] for r in rows], dtype=np.float64)
+        late = np.abs(np.array([r[1] for r in rows], dtype=np.float64)) / 1e3
         inside = (t >= window[0]) & (t < window[1])
         parts = {"attack_window": late[inside], "rest_of_session": late[~inside]}
         out[role] = {
@@ -1032,7 +1034,7 @@ def figures(run: SessionRun) -> dict[str, Any]:
         out["sniffer"] = run.sniffer
     if run.attack is not None:
         out["attack"] = run.attack.as_dict()
-    if not all((run.log_dir / f"{r}.{x}").exists() for r in ROLES for x in ("json", "npz")):
+    if not all((run.log_dir / f"{r}.{x}").exists() for r in ROLES for x in ("json", "mcap")):
         out["report"] = None
         out["notes"].append("no report: a process left no log (see exit_codes and stderr)")
         return out

@@ -2,9 +2,11 @@
 
 One table for the command line, ``teleop sim`` and the handshake parser, so a value that the
 network proposes is held to the same bounds as one typed by the user (DESIGN.md: validate every
-field against a range the local side can afford).  The binding limit is memory: each process
-records per-tick arrays for the whole session (``teleop.port``), about ``32 dof + 160`` bytes a
-tick, so a session's length is bounded by :data:`RECORD_BUDGET_BYTES`.
+field against a range the local side can afford).  A real process streams its per-tick records to
+disk a chunk at a time (``teleop.port``, ``teleop.logfile``), so its memory does not grow with the
+session: a session runs until stopped (duration :data:`UNTIL_STOPPED`) or for at most
+:data:`MAX_DURATION_S`.  Only ``teleop sim`` keeps every tick in memory, about ``32 dof + 160``
+bytes a tick, so its length is bounded by :data:`RECORD_BUDGET_BYTES`.
 """
 
 from __future__ import annotations
@@ -13,7 +15,9 @@ MAX_DOF = 64
 MIN_DT = 1e-4  # s (10 kHz)
 MAX_DT = 1e-2  # s (100 Hz)
 MIN_DURATION_S = 0.1  # s: shorter sessions have too few ticks to measure anything
-RECORD_BUDGET_BYTES = 1 << 30  # per process, for the per-tick records of one session
+RECORD_BUDGET_BYTES = 1 << 30  # teleop sim: its per-tick records are kept in memory
+MAX_DURATION_S = 7 * 24 * 3600.0  # s: a fixed-length session of a real process (a week)
+UNTIL_STOPPED = 0.0  # duration of a session that runs until a signal or the peer's bye
 MAX_SESSION = 2**32 - 1  # the wire's uint32 session id (0 is never used)
 MAX_SEED = 2**32 - 1
 MAX_VARIATION = 2.0  # scale of the human's seeded variation (teleop.models.ProtocolPlan)
@@ -36,11 +40,22 @@ def max_duration_s(dof: int, dt: float = 1e-3) -> float:
     return (RECORD_BUDGET_BYTES // record_bytes_per_tick(dof)) * dt
 
 
-def check_duration(duration: float, dof: int, dt: float = 1e-3) -> None:
-    """ValueError saying what is allowed when ``duration`` is out of range (or not finite)."""
-    hi = max_duration_s(dof, dt)
-    if not MIN_DURATION_S <= duration <= hi:
+def check_duration(duration: float, dof: int, dt: float = 1e-3, in_memory: bool = False) -> None:
+    """ValueError saying what is allowed when ``duration`` is out of range (or not finite).
+
+    ``in_memory``: the simulation, which keeps every tick (bounded by the record budget, and it
+    must end); otherwise 0 (until stopped) or up to :data:`MAX_DURATION_S`."""
+    if in_memory:
+        hi = max_duration_s(dof, dt)
+        if not MIN_DURATION_S <= duration <= hi:
+            raise ValueError(
+                f"duration must be {MIN_DURATION_S:g} to {hi:g} s at {dof} DoF "
+                f"(the simulation's per-tick records must fit in {RECORD_BUDGET_BYTES >> 20} MiB), "
+                f"got {duration!r}"
+            )
+        return
+    if duration != UNTIL_STOPPED and not MIN_DURATION_S <= duration <= MAX_DURATION_S:
         raise ValueError(
-            f"duration must be {MIN_DURATION_S:g} to {hi:g} s at {dof} DoF "
-            f"(the per-tick records must fit in {RECORD_BUDGET_BYTES >> 20} MiB), got {duration!r}"
+            f"duration must be 0 (until stopped) or {MIN_DURATION_S:g} to {MAX_DURATION_S:g} s, "
+            f"got {duration!r}"
         )

@@ -29,8 +29,9 @@ its last (a stalled loop's skipped ticks included) when the summary is asked for
 from __future__ import annotations
 
 import heapq
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -191,59 +192,238 @@ class SecurityCounters:
     last_rejection: str = ""
 
 
-class Recorder:
-    """Per-tick arrays of one side, preallocated for the session (``teleop.limits`` bounds it)."""
+#: Ticks per chunk of the per-tick record: about 200 kB at 1 DoF, handed on once a second at 1 kHz.
+CHUNK_TICKS = 1000
 
-    def __init__(self, ticks: int, dof: int) -> None:
-        self.ticks = ticks
-        self.signals = {name: np.full((ticks, dof), np.nan) for name in ("v", "f", "wave_out", "wave_in")}
-        names = ("energy_sent", "energy_played", "energy_margin_observed", "energy_played_epoch")
-        self.energy = {name: np.full(ticks, np.nan) for name in names}
-        self.play_time = np.full(ticks, np.nan)  # s, session clock: when tick k played its sample
-        self.send_time = np.full(ticks, np.nan)  # s, session clock: when tick k's packet left
-        self.produced_payload = np.zeros(ticks)  # bytes of the payload the node produced at tick k
-        self.produced_packet = np.zeros(ticks)  # bytes of that packet, before the shim
+SIGNALS = ("v", "f", "wave_out", "wave_in")  # (ticks, dof) each
+ENERGIES = ("energy_sent", "energy_played", "energy_margin_observed", "energy_played_epoch")
+#: The per-tick byte counts of a chunk: what this side sent (``tx_*``, with the uncompressed
+#: baseline) and received (``rx_*``), counted at the socket.
+BYTES = ("tx_wire", "tx_payload", "tx_baseline_wire", "tx_baseline_payload", "rx_wire", "rx_payload")
+
+
+class Chunk:
+    """Per-tick records of ticks ``[k0, k0 + n)`` of one side, in arrays allocated once per chunk.
+
+    Rows of ticks the side did not run (a late joiner's first ticks, a stall's skipped ones) keep
+    ``play_time`` NaN; :meth:`ran` lists the others."""
+
+    def __init__(self, k0: int, size: int, dof: int) -> None:
+        self.k0 = k0
+        self.size = size
+        self.n = 0  # rows in use: up to the last tick recorded or counted
+        self.signals = {name: np.full((size, dof), np.nan) for name in SIGNALS}
+        self.energy = {name: np.full(size, np.nan) for name in ENERGIES}
+        self.play_time = np.full(size, np.nan)  # s, session clock: when tick k played its sample
+        self.send_time = np.full(size, np.nan)  # s, session clock: when tick k's packet left
+        self.produced_payload = np.zeros(size)  # bytes of the payload the node produced at tick k
+        self.produced_packet = np.zeros(size)  # bytes of that packet, before the shim
         # Sequence numbers, so the report can check the energy played against the sender's own log
         # without trusting either clock: the seq sent at tick k, and the newest seq accepted by then.
-        self.tx_seq = np.full(ticks, -1, dtype=np.int64)
-        self.rx_seq = np.full(ticks, -1, dtype=np.int64)
-        self.peer_epoch = np.zeros(ticks, dtype=np.int64)
+        self.tx_seq = np.full(size, -1, dtype=np.int64)
+        self.rx_seq = np.full(size, -1, dtype=np.int64)
+        self.peer_epoch = np.zeros(size, dtype=np.int64)
+        self.lateness_ns = np.zeros(size, dtype=np.int64)  # the real-time loop's, when it says
+        self.bytes = {name: np.zeros(size) for name in BYTES}
 
-    def record(self, k: int, t: float, node: Node) -> None:
-        s, e = self.signals, self.energy
-        s["v"][k] = node.v
-        s["f"][k] = node.f
-        s["wave_out"][k] = node.wave_out
-        s["wave_in"][k] = node.wave_in
-        e["energy_sent"][k] = node.energy_sent
-        e["energy_played"][k] = node.energy_played
-        e["energy_margin_observed"][k] = node.guard.margin
-        e["energy_played_epoch"][k] = node.guard.played_in_epoch
-        self.play_time[k] = t
-        self.rx_seq[k] = node.last_rx_seq
-        self.peer_epoch[k] = node.peer_restarts
+    def row(self, k: int) -> int:
+        r = k - self.k0
+        self.n = max(self.n, r + 1)
+        return r
 
     def ran(self) -> npt.NDArray[np.intp]:
-        """The ticks this side ran (a late joiner starts late; a stalled loop skips some)."""
-        return np.flatnonzero(~np.isnan(self.play_time))
+        """Rows of the ticks this side ran."""
+        return np.flatnonzero(~np.isnan(self.play_time[: self.n]))
 
     def arrays(self) -> dict[str, npt.NDArray[Any]]:
+        """The rows in use, by the names of the log (``teleop.logfile``)."""
+        n = self.n
         return {
-            **self.signals,
-            **self.energy,
-            "play_time_s": self.play_time,
-            "send_time_s": self.send_time,
-            "tx_seq": self.tx_seq,
-            "rx_seq": self.rx_seq,
-            "peer_epoch": self.peer_epoch,
+            **{k: v[:n] for k, v in self.signals.items()},
+            **{k: v[:n] for k, v in self.energy.items()},
+            "play_time_s": self.play_time[:n],
+            "send_time_s": self.send_time[:n],
+            "produced_payload": self.produced_payload[:n],
+            "produced_packet": self.produced_packet[:n],
+            "tx_seq": self.tx_seq[:n],
+            "rx_seq": self.rx_seq[:n],
+            "peer_epoch": self.peer_epoch[:n],
+            "lateness_ns": self.lateness_ns[:n],
+            **{k: v[:n] for k, v in self.bytes.items()},
         }
+
+
+class ChunkSink(Protocol):
+    """Where a port's sealed chunks go: the runner's file writer, or memory (``teleop sim``)."""
+
+    def write(self, chunk: Chunk) -> None: ...
+
+
+class MemorySink:
+    """Keeps every chunk: the simulation's record, whole-session arrays on demand."""
+
+    def __init__(self) -> None:
+        self.chunks: list[Chunk] = []
+
+    def write(self, chunk: Chunk) -> None:
+        self.chunks.append(chunk)
+
+    def arrays(self, ticks: int | None = None) -> dict[str, npt.NDArray[Any]]:
+        """Every field over ticks ``[0, ticks)`` (default: through the last chunk), gaps filled as
+        a chunk fills rows it did not run (NaN signals, zero bytes, seq -1)."""
+        return concat_chunks([c.k0 for c in self.chunks], [c.arrays() for c in self.chunks], ticks)
+
+
+def concat_chunks(
+    starts: list[int], parts: list[dict[str, npt.NDArray[Any]]], ticks: int | None = None
+) -> dict[str, npt.NDArray[Any]]:
+    """Chunk arrays (``parts[i]`` starting at tick ``starts[i]``) as whole-session arrays from tick 0."""
+    if not parts:
+        return {}
+    end = max(k0 + len(a["play_time_s"]) for k0, a in zip(starts, parts, strict=True))
+    n = end if ticks is None else ticks
+    out: dict[str, npt.NDArray[Any]] = {}
+    for name, a in parts[0].items():
+        fill: float = -1 if name in ("tx_seq", "rx_seq") else (np.nan if a.dtype.kind == "f" else 0)
+        if name in BYTES or name.startswith("produced") or name in ("peer_epoch", "lateness_ns"):
+            fill = 0
+        out[name] = np.full((n, *a.shape[1:]), fill, dtype=a.dtype)
+    for k0, part in zip(starts, parts, strict=True):
+        m = max(0, min(len(part["play_time_s"]), n - k0))
+        for name, v in part.items():
+            out[name][k0 : k0 + m] = v[:m]
+    return out
+
+
+class Recorder:
+    """The per-tick record of one side, a chunk at a time: ``CHUNK_TICKS`` ticks are kept in
+    arrays allocated for the chunk, and a chunk is handed to the sink once a tick beyond it comes
+    (or at :meth:`seal`), so memory does not grow with the session and the port does no I/O.
+
+    ``baseline(ks)``: the uncompressed stream's datagram sizes at ticks ``ks`` (closed form), so a
+    sealed chunk carries the baseline of every tick from this side's first to its last, skipped
+    ones included: the uncompressed stream runs at 1 kHz whether or not a stalled loop ran each tick.
+    """
+
+    def __init__(
+        self,
+        dof: int,
+        sink: ChunkSink,
+        tx: DirectionCounters,
+        rx: DirectionCounters,
+        baseline: Callable[[npt.NDArray[np.int64]], npt.NDArray[np.int64]],
+        raw_payload_len: int,
+        chunk_ticks: int = CHUNK_TICKS,
+    ) -> None:
+        self.dof = dof
+        self.sink = sink
+        self.tx, self.rx = tx, rx
+        self._baseline = baseline
+        self.raw_payload_len = raw_payload_len
+        self.chunk_ticks = chunk_ticks
+        self.chunk: Chunk | None = None
+        self.first = -1  # first tick run, -1 none yet
+        self.last = -1  # last tick run
+        self.ticks_run = 0
+        tx.on_tick = self._tx_bytes
+        rx.on_tick = self._rx_bytes
+
+    def _at(self, k: int) -> tuple[Chunk, int]:
+        """The chunk and row of tick ``k``: a tick past the chunk seals it and opens the next one
+        (aligned on multiples of the chunk size); an earlier one counts in the chunk's first row."""
+        c = self.chunk
+        if c is None or k >= c.k0 + c.size:
+            if c is not None:
+                self._seal(c, k)
+            c = self.chunk = Chunk(k - k % self.chunk_ticks, self.chunk_ticks, self.dof)
+        return c, c.row(max(k, c.k0))
+
+    def _tx_bytes(self, k: int, wire: int, payload: int) -> None:
+        c, r = self._at(k)
+        c.bytes["tx_wire"][r] += wire
+        c.bytes["tx_payload"][r] += payload
+
+    def _rx_bytes(self, k: int, wire: int, payload: int) -> None:
+        c, r = self._at(k)
+        c.bytes["rx_wire"][r] += wire
+        c.bytes["rx_payload"][r] += payload
+
+    def produced(self, k: int, payload: int, packet: int, seq: int) -> None:
+        c, r = self._at(k)
+        c.produced_payload[r] = payload
+        c.produced_packet[r] = packet
+        c.tx_seq[r] = seq
+
+    def record(self, k: int, t: float, node: Node) -> None:
+        c, r = self._at(k)
+        s, e = c.signals, c.energy
+        s["v"][r] = node.v
+        s["f"][r] = node.f
+        s["wave_out"][r] = node.wave_out
+        s["wave_in"][r] = node.wave_in
+        e["energy_sent"][r] = node.energy_sent
+        e["energy_played"][r] = node.energy_played
+        e["energy_margin_observed"][r] = node.guard.margin
+        e["energy_played_epoch"][r] = node.guard.played_in_epoch
+        c.play_time[r] = t
+        c.rx_seq[r] = node.last_rx_seq
+        c.peer_epoch[r] = node.peer_restarts
+        if self.first < 0:
+            self.first = k
+        self.last = max(self.last, k)
+        self.ticks_run += 1
+
+    def sent(self, k: int, t: float) -> None:
+        c, r = self._at(k)
+        c.send_time[r] = t
+
+    def lateness(self, k: int, late_ns: int) -> None:
+        c, r = self._at(k)
+        c.lateness_ns[r] = late_ns
+
+    def _seal(self, c: Chunk, next_k: int | None) -> None:
+        """Baseline of the chunk's ticks (and of ticks skipped before ``next_k``), the sliding
+        compression window, then the chunk to the sink."""
+        if self.first >= 0:
+            # The session goes on (next_k): every tick to the chunk's end counts; else to the last run.
+            hi = c.k0 + c.size - 1 if next_k is not None else self.last
+            lo = max(self.first, c.k0)
+            if hi >= lo:
+                ks = np.arange(lo, hi + 1)
+                wire = self.tx.baseline_bulk(self._baseline(ks), self.raw_payload_len)
+                c.n = max(c.n, hi - c.k0 + 1)
+                c.bytes["tx_baseline_wire"][lo - c.k0 : hi - c.k0 + 1] = wire
+                c.bytes["tx_baseline_payload"][lo - c.k0 : hi - c.k0 + 1] = self.raw_payload_len
+            gap_end = (next_k - next_k % self.chunk_ticks) if next_k is not None else 0
+            for a in range(c.k0 + c.size, gap_end, 1 << 20):  # whole chunks a stall skipped: totals only
+                ks = np.arange(a, min(a + (1 << 20), gap_end))
+                self.tx.baseline_bulk(self._baseline(ks), self.raw_payload_len)
+        # The sliding window starts at this side's first tick: rows before it (a late joiner, or a
+        # loop whose first ticks a stall skipped) carry neither baseline nor traffic.
+        b, n = c.bytes, c.n
+        r0 = min(max(self.first - c.k0, 0), n) if self.first >= 0 else n
+        self.tx.window(
+            b["tx_baseline_wire"][r0:n],
+            b["tx_wire"][r0:n],
+            b["tx_baseline_payload"][r0:n],
+            b["tx_payload"][r0:n],
+        )
+        self.sink.write(c)
+
+    def seal(self) -> None:
+        """The session is over: the current chunk to the sink (once)."""
+        if self.chunk is not None:
+            self._seal(self.chunk, None)
+            self.chunk = None
 
 
 class Port:
     """One side of a session, sans-I/O: node, shim, counters, link observer, recorder, summary.
 
-    ``shim`` sits between the node and the socket: what it drops never reaches the socket (and is
-    not counted as sent); what it duplicates is sent and counted twice.  ``peer_spec`` is the
+    ``sink`` takes the per-tick record a chunk at a time (default: kept in memory, a
+    :class:`MemorySink`); ``window_ticks`` is the sliding window of the minimum instantaneous
+    compression.  ``shim`` sits between the node and the socket: what it drops never reaches the
+    socket (and is not counted as sent); what it duplicates is sent and counted twice.  ``peer_spec`` is the
     impairment configured for the incoming direction, echoed in the link figures.
     """
 
@@ -251,13 +431,15 @@ class Port:
         self,
         node: Node,
         *,
-        ticks: int,
+        ticks: int | None = None,
         shim: Link | None = None,
         peer_spec: str = "",
         header_bytes: int = UDP_IPV4_HEADER,
         first_tick: int = 0,
         keys: PortKeys | None = None,
         playout_floor: int = 0,
+        sink: ChunkSink | None = None,
+        window_ticks: int = 100,
     ) -> None:
         self.node = node
         node.datagram_overhead = auth.OVERHEAD + header_bytes
@@ -267,17 +449,18 @@ class Port:
         self.keys = keys
         self.security = SecurityCounters()
         self._seen = auth.SeenTags(protocol.SEEN_TAGS)  # handshake datagrams have no replay window
-        self.ticks = ticks
+        self.ticks = ticks  # the session's length when fixed (informative: nothing is sized by it)
         self.dt = node.dt
         self.shim = shim
-        self.tx = DirectionCounters(ticks, header_bytes)
-        self.rx = DirectionCounters(ticks, header_bytes)
+        self.tx = DirectionCounters(header_bytes, window_ticks)
+        self.rx = DirectionCounters(header_bytes, window_ticks)
         self.observer = LinkObserver(peer_spec, joined_late=first_tick > 0)
-        self.rec = Recorder(ticks, node.wave.dof)
         self.raw_payload_len = packed_size(node.wave.dof, RAW_BITS)
         # ``auto`` keeps at least ``playout_floor`` ticks of allowance: the real-time runner asks for
         # one (its loops and transport jitter by a fraction of a tick; the simulation by none).
         self.playout = PlayoutBuffer(node.options.playout, node.dt, auto_floor=playout_floor)
+        self.sink: ChunkSink = sink if sink is not None else MemorySink()
+        self.rec = Recorder(node.wave.dof, self.sink, self.tx, self.rx, self._baseline, self.raw_payload_len)
         self.control_rejected = 0  # control messages that did not parse (counted, dropped)
         self.last_control_error = ""
         self._last_k = 0
@@ -313,7 +496,7 @@ class Port:
                 sec.rejected += 1
                 sec.last_rejection = str(e)
             return None
-        k = min(max(k, 0), self.ticks - 1)
+        k = max(k, 0)
         if body[:1] != b"\x9a":  # not a 10-element msgpack array: a control message
             return self._control(body, auth.SESSION) if self._accept(counter, t) else None
         node = self.node
@@ -396,9 +579,7 @@ class Port:
         rec = self.rec
         if pkt is not None:
             data = self.keys.tx.seal(wire.encode(pkt))
-            rec.produced_payload[k] = len(pkt.payload)
-            rec.produced_packet[k] = len(data)
-            rec.tx_seq[k] = pkt.seq
+            rec.produced(k, len(pkt.payload), len(data), pkt.seq)
             if self.shim is None:
                 self.tx.packet(k, len(data), len(pkt.payload))
                 out.append(data)
@@ -413,7 +594,11 @@ class Port:
     def sent(self, k: int, t: float) -> None:
         """Tick ``k``'s sample was produced by session time ``t``, before its datagrams left (for the
         true energy margin of ``teleop.report``)."""
-        self.rec.send_time[k] = t
+        self.rec.sent(k, t)
+
+    def loop_timing(self, k: int, lateness_ns: int) -> None:
+        """How late the real-time loop started tick ``k`` (recorded with the tick)."""
+        self.rec.lateness(k, lateness_ns)
 
     def payload_ready(self, k: int) -> bool:
         """Whether tick ``k`` has something to play: queued in the decoder or due from the buffer."""
@@ -428,7 +613,7 @@ class Port:
         if self.shim is None:
             return []
         out = self.shim.due(t)
-        k = min(max(k, 0), self.ticks - 1)
+        k = max(k, 0)
         for data in out:
             try:
                 payload_len: int | None = len(wire.decode(data[auth.HEADER_BYTES : -auth.TAG_BYTES]).payload)
@@ -438,19 +623,17 @@ class Port:
         return out
 
     # --- results -------------------------------------------------------------------------
-    def _count_baseline(self) -> None:
-        """Fill the sender's baseline counters for the session's ticks (once)."""
-        if self.tx.baseline_packets:
-            return
-        ran = self.rec.ran()
-        if ran.size == 0:
-            return
-        # Every tick of the session from this side's first to its last, skipped ones included: the
-        # uncompressed stream runs at 1 kHz whether or not a stalled loop ran each tick.
-        ks = np.arange(ran[0], ran[-1] + 1)
+    def _baseline(self, ks: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+        """Datagram sizes of the uncompressed stream at ticks ``ks`` (closed form, never encoded)."""
         us = round(self.dt * 1e6)
-        sizes = wire.packet_size(self.node.session, ks, ks, ks * us, self.raw_payload_len) + auth.OVERHEAD
-        self.tx.baseline_bulk(ks, sizes, self.raw_payload_len)
+        sizes: npt.NDArray[np.int64] = (
+            wire.packet_size(self.node.session, ks, ks, ks * us, self.raw_payload_len) + auth.OVERHEAD
+        )
+        return sizes
+
+    def finish(self) -> None:
+        """The session is over: the last chunk of the record goes to the sink (idempotent)."""
+        self.rec.seal()
 
     def produced(self) -> int:
         """Packets the node produced (before the shim): what the peer's loss is counted against."""
@@ -459,20 +642,18 @@ class Port:
     def shim_stats(self) -> dict[str, Any] | None:
         return asdict(self.shim.stats) if self.shim is not None else None
 
-    def summary(
-        self, window_ticks: int = 100, peer_produced: int | None = None, peer_dropped_by_limit: int = 0
-    ) -> dict[str, Any]:
+    def summary(self, peer_produced: int | None = None, peer_dropped_by_limit: int = 0) -> dict[str, Any]:
         """This side's figures: what it sent and received, the link it observed, its watchdog.
 
         ``peer_produced``: the peer's packet count, when known (its bye, or the sim's other port),
         so the loss covers packets lost after the last one that arrived.
         """
-        self._count_baseline()
+        self.finish()
         node = self.node
         tx_dir = node.tx_direction
         return {
-            "sent": {"direction": wire.DIRECTIONS[tx_dir], **self.tx.summary(window_ticks)},
-            "received": {"direction": wire.DIRECTIONS[1 - tx_dir], **self.rx.summary(window_ticks)},
+            "sent": {"direction": wire.DIRECTIONS[tx_dir], **self.tx.summary()},
+            "received": {"direction": wire.DIRECTIONS[1 - tx_dir], **self.rx.summary()},
             "link_received": self.observer.summary(
                 sent=peer_produced, dropped_by_limit=peer_dropped_by_limit
             ),
@@ -503,22 +684,16 @@ class Port:
         cap = self.node.rate_cap
         if cap is None:
             return None
-        a = self.tx.wire_per_tick.a
-        w = min(cap.window, a.size)
-        peak = float(np.convolve(a, np.ones(w), mode="valid").max()) if a.size else 0.0
+        peak = self.tx.peak_window_wire_bytes
+        same_window = self.tx.window_ticks == cap.window  # else the counters' window is another
         return {
             "bps": cap.rate_bps,
             "window_ms": cap.window * self.dt * 1e3,
             "limit_bytes_per_window": cap.limit_bytes,
             "peak_bytes_per_window": peak,
             "held_back": cap.held_back,
-            "held": bool(peak <= cap.limit_bytes + 1e-9),
+            "held": bool(peak <= cap.limit_bytes + 1e-9) if same_window else None,
         }
-
-    def arrays(self) -> dict[str, npt.NDArray[Any]]:
-        """Per-tick arrays for the log (``ROLE.npz``)."""
-        self._count_baseline()
-        return {**self.rec.arrays(), **self.tx.arrays("tx"), **self.rx.arrays("rx")}
 
 
 def wire_block(sent: dict[str, Any], received: dict[str, Any]) -> dict[str, Any]:

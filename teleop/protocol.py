@@ -291,8 +291,19 @@ class SessionParams:
         )
 
     @property
+    def until_stopped(self) -> bool:
+        """A session without a fixed end: it runs until a signal or the peer's bye."""
+        return self.duration == limits.UNTIL_STOPPED
+
+    @property
+    def span_s(self) -> float:
+        """The longest the session can last, s (an open one: :data:`teleop.limits.MAX_DURATION_S`)."""
+        return limits.MAX_DURATION_S if self.until_stopped else self.duration
+
+    @property
     def ticks(self) -> int:
-        return round(self.duration / self.dt)
+        """Ticks of the session (an open one: as many as :attr:`span_s` holds)."""
+        return round(self.span_s / self.dt)
 
     @classmethod
     def from_msg(cls, m: Mapping[str, object], *, local_netem: Collection[str] = ()) -> SessionParams:
@@ -967,7 +978,7 @@ class TeleoperatorHandshake:
         """A start under a candidate's session key: commit to that operator."""
         # The loop sleeps until start_ns: a start far off would park the endpoint, so it must lie
         # within the session (a rejoin joins a running one) and a few seconds ahead.
-        earliest = now_ns - (int(cand.params.duration * 1e9) if msg.rejoin else START_SLACK_NS)
+        earliest = now_ns - (int(cand.params.span_s * 1e9) if msg.rejoin else START_SLACK_NS)
         if not earliest <= msg.start_ns <= now_ns + START_AHEAD_NS:
             return self._ignore(f"a start {(msg.start_ns - now_ns) / 1e9:+.3g} s from now")
         self.params, self.peer = cand.params, addr

@@ -2,16 +2,21 @@
 
 Every figure here is read from the logs: bytes counted at the sockets, ticks counted by the loops,
 signals recorded by the nodes.  Signals are aligned by tick index (the handshake's common start).
+The logs are the processes' ``ROLE.mcap`` files (``transport.mcaplog``: per-tick channels and the
+summary), read with the ``mcap`` library; a session without a fixed end is compared with
+``teleop sim`` over the ticks both sides actually ran.
 """
 
 from __future__ import annotations
 
-import json
+import functools
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+
+from transport.mcaplog import read_log
 
 from . import devices, metrics, plots, scenarios
 from .port import wire_block
@@ -21,10 +26,29 @@ Array = npt.NDArray[np.float64]
 
 
 def _load(log_dir: Path, role: str) -> tuple[dict[str, Any], dict[str, Array]]:
-    summary = json.loads((log_dir / f"{role}.json").read_text())
-    with np.load(log_dir / f"{role}.npz") as z:
-        arrays = {k: z[k] for k in z.files}
+    """One process's summary and per-tick arrays (from tick 0), from its ``ROLE.mcap``."""
+    path = log_dir / f"{role}.mcap"
+    return _read(str(path), path.stat().st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=2)
+def _read(path: str, mtime_ns: int) -> tuple[dict[str, Any], dict[str, Array]]:
+    """Read once per file version (the report and the plots both need it)."""
+    summary, arrays = read_log(Path(path))
+    if not summary:
+        raise ValueError(f"{path} has no summary: the process did not finish its log")
     return summary, arrays
+
+
+def _both(log_dir: Path) -> tuple[dict[str, Any], dict[str, Array], dict[str, Any], dict[str, Array]]:
+    """Both processes' logs, their arrays cut to the ticks both sides' logs cover (a session without
+    a fixed end stops at a slightly different tick on each side)."""
+    op, a_op = _load(log_dir, "operator")
+    to, a_to = _load(log_dir, "teleoperator")
+    n = min(len(a_op["v"]), len(a_to["v"]))
+    cut = {k: v if k == "lateness_ns" else v[:n] for k, v in a_op.items()}
+    cut_to = {k: v if k == "lateness_ns" else v[:n] for k, v in a_to.items()}
+    return op, cut, to, cut_to
 
 
 def _wire(sender: dict[str, Any], receiver: dict[str, Any]) -> dict[str, Any]:
@@ -93,10 +117,10 @@ def _phases(p: dict[str, Any]) -> list[tuple[str, float, float]]:
 
 
 def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, Any]:
-    op, a_op = _load(log_dir, "operator")
-    to, a_to = _load(log_dir, "teleoperator")
+    op, a_op, to, a_to = _both(log_dir)
     p = op["params"]
     dt = p["dt"]
+    ticks = len(a_op["v"])  # the ticks both logs cover: the session's, or those run until stopped
     valid = ~(np.isnan(a_op["v"]).any(axis=1) | np.isnan(a_to["v"]).any(axis=1))
     i_real = metrics.transparency(a_op["v"][valid], a_to["v"][valid], a_op["f"][valid], a_to["f"][valid], dt)
     m_fwd = _true_margin(a_op, a_to)
@@ -105,7 +129,8 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
         "transport": transport,
         "codec": p["codec"],
         "scenario": p["scenario"],
-        "duration_s": p["duration"],
+        "duration_s": p["duration"] or ticks * dt,
+        "until_stopped": p["duration"] == 0,
         "session": p["session"],
         "dof": p["dof"],
         "b": p["b"],
@@ -175,7 +200,7 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
             SimConfig(
                 codec=p["codec"],
                 scenario=p["scenario"],
-                duration=p["duration"],
+                duration=ticks * dt,
                 dof=p["dof"],
                 b=p["b"],
                 full_scale=p["full_scale"],
@@ -206,8 +231,7 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
 
 
 def write_plots(log_dir: Path, out: Path, rep: dict[str, Any]) -> list[Path]:
-    _, a_op = _load(log_dir, "operator")
-    _, a_to = _load(log_dir, "teleoperator")
+    _, a_op, _, a_to = _both(log_dir)
     dt = 1e-3
     n = a_op["v"].shape[0]
     t = np.arange(n, dtype=np.float64) * dt

@@ -38,7 +38,7 @@ from transport.netem import Link, make_link
 from . import devices, metrics, scenarios, wire
 from .codecs import Codec
 from .node import PortOptions
-from .port import ConstantDelayLink, Port, make_node, make_shim, wire_block
+from .port import ConstantDelayLink, MemorySink, Port, make_node, make_shim, wire_block
 
 Array = npt.NDArray[np.float64]
 
@@ -135,6 +135,7 @@ class Trace:
     margin_bwd: Array
     payload_bytes: dict[str, Array] = field(default_factory=dict)
     packet_bytes: dict[str, Array] = field(default_factory=dict)
+    wire_bytes: dict[str, Array] = field(default_factory=dict)  # on the wire as it left the shim
 
 
 @dataclass
@@ -169,8 +170,16 @@ def _ports(cfg: SimConfig) -> tuple[Port, Port, Codec]:
             seed=cfg.seed,
             variation=cfg.variation,
         )
+        window = max(1, round(cfg.window_ms / 1e3 / cfg.dt))
         ports.append(
-            Port(node, ticks=n_ticks, shim=shims[d], peer_spec=peer_spec, playout_floor=cfg.playout_floor)
+            Port(
+                node,
+                ticks=n_ticks,
+                shim=shims[d],
+                peer_spec=peer_spec,
+                window_ticks=window,
+                playout_floor=cfg.playout_floor,
+            )
         )
     return ports[0], ports[1], ports[0].node.tx_codec
 
@@ -184,7 +193,7 @@ def run_case(cfg: SimConfig) -> CaseResult:
     """
     cfg = cfg.resolved()
     op, to, codec = _ports(cfg)
-    dt, n_ticks = cfg.dt, op.ticks
+    dt, n_ticks = cfg.dt, _ticks(op)
     backward: list[bytes] = []
     for n in range(n_ticks):
         now = n * dt
@@ -203,23 +212,28 @@ def run_case(cfg: SimConfig) -> CaseResult:
 
 
 def _trace(op: Port, to: Port, dt: float) -> Trace:
-    so, st, eo, et = op.rec.signals, to.rec.signals, op.rec.energy, to.rec.energy
+    """Whole-session arrays from the two ports' in-memory records."""
+    op.finish()
+    to.finish()
+    assert isinstance(op.sink, MemorySink) and isinstance(to.sink, MemorySink) and op.ticks is not None
+    ao, at = op.sink.arrays(op.ticks), to.sink.arrays(op.ticks)
     tr = Trace(
         t=np.arange(op.ticks, dtype=np.float64) * dt,
-        v_hsi=so["v"],
-        f_hsi=so["f"],
-        v_to=st["v"],
-        f_to=st["f"],
-        margin_fwd=eo["energy_sent"] - et["energy_played"],
-        margin_bwd=et["energy_sent"] - eo["energy_played"],
+        v_hsi=ao["v"],
+        f_hsi=ao["f"],
+        v_to=at["v"],
+        f_to=at["f"],
+        margin_fwd=ao["energy_sent"] - at["energy_played"],
+        margin_bwd=at["energy_sent"] - ao["energy_played"],
     )
-    tr.payload_bytes = {"forward": op.rec.produced_payload, "backward": to.rec.produced_payload}
-    tr.packet_bytes = {"forward": op.rec.produced_packet, "backward": to.rec.produced_packet}
+    tr.payload_bytes = {"forward": ao["produced_payload"], "backward": at["produced_payload"]}
+    tr.packet_bytes = {"forward": ao["produced_packet"], "backward": at["produced_packet"]}
+    tr.wire_bytes = {"forward": ao["tx_wire"], "backward": at["tx_wire"]}
     return tr
 
 
 def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]:
-    n_ticks, dt = op.ticks, cfg.dt
+    n_ticks, dt = _ticks(op), cfg.dt
     tr = _trace(op, to, dt)
     window = max(1, round(cfg.window_ms / 1e3 / dt))
     raw_per_tick = np.full(n_ticks, float(codec.raw_bytes_per_tick))
@@ -236,12 +250,8 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
         }
     sent_total = float(sum(a.sum() for a in pay.values()))
     side = {
-        "forward": op.summary(
-            window, peer_produced=_sent_into(to.shim, to), peer_dropped_by_limit=_dropped(to)
-        ),
-        "backward": to.summary(
-            window, peer_produced=_sent_into(op.shim, op), peer_dropped_by_limit=_dropped(op)
-        ),
+        "forward": op.summary(peer_produced=_sent_into(to.shim, to), peer_dropped_by_limit=_dropped(to)),
+        "backward": to.summary(peer_produced=_sent_into(op.shim, op), peer_dropped_by_limit=_dropped(op)),
     }
     # side["forward"] is the operator's own view: it sent forward and received (observed) backward.
     o, t = side["forward"], side["backward"]
@@ -259,7 +269,7 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
             tr.f_to,
             dt,
             _phases(cfg),
-            {"forward": op.tx.wire_per_tick.a, "backward": to.tx.wire_per_tick.a},
+            tr.wire_bytes,
         ),
         "compression": metrics.compression(baseline_total, sent_total),
         "min_instant_compression": min(per_dir[d]["min_instant_compression"] for d in wire.DIRECTIONS),
@@ -307,6 +317,12 @@ def _phases(cfg: SimConfig) -> list[tuple[str, float, float]]:
     return scenarios.get(cfg.scenario).phases(cfg.seed, cfg.variation, cfg.duration)
 
 
+def _ticks(port: Port) -> int:
+    """The simulated session's length (a simulation always has one)."""
+    assert port.ticks is not None
+    return port.ticks
+
+
 def _no_dir(p: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in p.items() if k != "direction"}
 
@@ -328,8 +344,8 @@ def _drain(sender: Port, receiver: Port, n: int, dt: float) -> None:
     """
     while (t := sender.next_due()) is not None:
         n = max(n, math.ceil(t / dt - 1e-6))
-        for data in sender.flush(n * dt, sender.ticks - 1):
-            receiver.receive(data, n * dt, receiver.ticks - 1, play=False)
+        for data in sender.flush(n * dt, _ticks(sender) - 1):
+            receiver.receive(data, n * dt, _ticks(receiver) - 1, play=False)
         n += 1
 
 

@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 
 from teleop import auth, wire
 from teleop.node import PortOptions
-from teleop.port import WIRE_KEYS, Port, make_node, make_shim
+from teleop.port import WIRE_KEYS, MemorySink, Port, make_node, make_shim
 from teleop.sim import SimConfig, run_case
 
 U32 = 2**32 - 1
@@ -75,13 +75,17 @@ def test_receive_never_raises_and_counts(data: bytes) -> None:
     assert to.node.counters.received == 0 and to.rx.packets == 0
 
 
-def test_receive_clamps_the_tick_index() -> None:
+def test_receive_counts_bytes_at_their_tick() -> None:
     op, to = _pair(ticks=10)
     data = op.tick(0, 0.0)[0]
-    to.receive(data, 0.0, 10**9)  # a tick outside the session: counted at the last one
-    assert to.rx.packets == 1 and to.rx.wire_per_tick.a[-1] > 0
+    to.receive(data, 0.0, 2500)  # a tick in a later chunk: counted there (no session length needed)
+    assert to.rx.packets == 1
     to.receive(b"junk", 0.0, -5)
     assert to.rx.packets == 1 and to.security.rejected == 1
+    to.finish()
+    assert isinstance(to.sink, MemorySink)
+    rx = to.sink.arrays()["rx_wire"]
+    assert rx.size == 2501 and rx[2500] == len(data) + 28 and rx[:2500].sum() == 0
 
 
 def test_sim_wire_block_has_the_report_keys_and_counts_agree() -> None:
@@ -107,8 +111,11 @@ def test_recorder_marks_the_ticks_that_ran() -> None:
     op, _ = _pair(ticks=50)
     for k in (0, 1, 2, 10):
         op.tick(k, k * 1e-3)
-    assert list(op.rec.ran()) == [0, 1, 2, 10]
-    assert np.isnan(op.rec.signals["v"][5]).all()
+    op.finish()
+    assert isinstance(op.sink, MemorySink)
+    a = op.sink.arrays()
+    assert list(np.flatnonzero(~np.isnan(a["play_time_s"]))) == [0, 1, 2, 10]
+    assert np.isnan(a["v"][5]).all()
     # the uncompressed stream had every tick from the first to the last, skipped ones included
     assert op.summary()["sent"]["baseline_packets"] == 11
 

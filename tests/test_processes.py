@@ -126,11 +126,12 @@ def test_report_contract_and_logs(tmp_path: Path) -> None:
     import numpy as np
 
     from teleop import auth, wire
+    from transport.mcaplog import read_log
 
-    with np.load(tmp_path / "run" / "logs" / "operator.npz") as z:
-        sent_ticks = np.flatnonzero(z["tx_wire"])
-        per_tick = z["tx_wire"][sent_ticks]
-        ran = np.flatnonzero(~np.isnan(z["play_time_s"]))
+    z = read_log(tmp_path / "run" / "logs" / "operator.mcap")[1]
+    sent_ticks = np.flatnonzero(z["tx_wire"])
+    per_tick = z["tx_wire"][sent_ticks]
+    ran = np.flatnonzero(~np.isnan(z["play_time_s"]))
     # eDS counts its calls: every 50th tick the loop ran (ticks 0, 50, ... unless a stall skipped some).
     assert sent_ticks.tolist() == ran[::50].tolist()
     if rep["processes"]["operator"]["loop"]["skipped"] == 0:

@@ -804,7 +804,7 @@ def test_bad_values_that_parse_but_are_out_of_range() -> None:
     to = waiting()
     cases = {
         "dof": (limits.MAX_DOF + 1, "dof must be an integer in 1..64, got 65"),
-        "duration": (1e9, "duration must be 0.1 to"),
+        "duration": (1e9, "duration must be 0 \\(until stopped\\) or 0.1 to 604800 s"),
         "dt": (1.0, "dt must be in 0.0001..0.01"),
         "phase": (1.0, "phase must be in \\[0, 1\\)"),
         "b": (0.0, "b must be > 0"),

@@ -6,12 +6,16 @@ baseline is the uncompressed stream, every tick's raw 16-bit sample in a packet 
 (what the ``none`` codec sends); its size is computed in closed form (``teleop.wire.packet_size``)
 for every tick of the session, never encoded or sent.
 
-Per-tick arrays keep the time structure, so the report can give the minimum instantaneous
-compression over a sliding window (Section III) and bandwidth over time.
+Per-tick byte counts keep the time structure (the minimum instantaneous compression over a
+sliding window, Section III, and bandwidth over time), but they are not held here for the whole
+session: the port's recorder keeps them in its current chunk (``teleop.port``), and each sealed
+chunk is shown to :meth:`DirectionCounters.window` so the minimum is found as the session runs,
+with memory that does not grow.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -24,19 +28,18 @@ UDP_IPV4_HEADER = 28
 Array = npt.NDArray[np.float64]
 
 
-class _PerTick:
-    def __init__(self, ticks: int) -> None:
-        self.a = np.zeros(max(ticks, 1))
-
-    def add(self, k: int, v: float) -> None:
-        self.a[min(max(k, 0), self.a.size - 1)] += v
-
-
 class DirectionCounters:
-    """One direction as seen by one end: what it sent (sender) or received (receiver)."""
+    """One direction as seen by one end: what it sent (sender) or received (receiver).
 
-    def __init__(self, ticks: int, header_bytes: int = UDP_IPV4_HEADER) -> None:
+    Totals only; ``on_tick(k, wire_bytes, payload_bytes)``, when set, receives each datagram's
+    sizes for the per-tick record (the port's chunked recorder)."""
+
+    def __init__(self, header_bytes: int = UDP_IPV4_HEADER, window_ticks: int = 100) -> None:
+        if window_ticks < 1:
+            raise ValueError(f"window must be >= 1 tick, got {window_ticks}")
         self.header = header_bytes
+        self.window_ticks = window_ticks
+        self.on_tick: Callable[[int, int, int], None] | None = None
         self.packets = 0
         self.payload_bytes = 0
         self.wire_bytes = 0
@@ -44,45 +47,61 @@ class DirectionCounters:
         self.baseline_payload_bytes = 0
         self.baseline_wire_bytes = 0
         self.malformed = 0
-        self.wire_per_tick = _PerTick(ticks)
-        self.payload_per_tick = _PerTick(ticks)
-        self.baseline_wire_per_tick = _PerTick(ticks)
-        self.baseline_payload_per_tick = _PerTick(ticks)
+        # The sliding window over the chunks seen so far: the last window - 1 ticks of
+        # (baseline wire, wire, baseline payload, payload), and the minimum ratios found.
+        self._tail = np.zeros((0, 4))
+        self._seen_ticks = 0
+        self._min_wire = float("inf")
+        self._min_payload = float("inf")
+        self.peak_window_wire_bytes = 0.0  # the most wire bytes in any window (a rate cap's check)
 
     def packet(self, k: int, datagram_len: int, payload_len: int | None) -> None:
         """A datagram sent (or received) during tick ``k``; ``payload_len`` None if unparseable."""
         wire = datagram_len + self.header
         self.packets += 1
         self.wire_bytes += wire
-        self.wire_per_tick.add(k, wire)
         if payload_len is None:
             self.malformed += 1
         else:
             self.payload_bytes += payload_len
-            self.payload_per_tick.add(k, payload_len)
-
-    def baseline(self, k: int, datagram_len: int, payload_len: int) -> None:
-        """What the uncompressed stream would have sent at tick ``k``."""
-        wire = datagram_len + self.header
-        self.baseline_packets += 1
-        self.baseline_wire_bytes += wire
-        self.baseline_payload_bytes += payload_len
-        self.baseline_wire_per_tick.add(k, wire)
-        self.baseline_payload_per_tick.add(k, payload_len)
+        if self.on_tick is not None:
+            self.on_tick(k, wire, payload_len or 0)
 
     def baseline_bulk(
-        self, ks: npt.NDArray[np.intp], datagram_lens: npt.NDArray[np.int64], payload_len: int
-    ) -> None:
-        """The uncompressed stream at ticks ``ks`` at once (datagram sizes computed, not encoded)."""
+        self, datagram_lens: npt.NDArray[np.int64], payload_len: int
+    ) -> npt.NDArray[np.float64]:
+        """The uncompressed stream over some ticks (datagram sizes computed, not encoded): counted in
+        the totals; returns each tick's wire bytes (for the per-tick record)."""
         wire = datagram_lens.astype(np.float64) + self.header
-        ks = np.clip(ks, 0, self.baseline_wire_per_tick.a.size - 1)
-        self.baseline_packets += int(ks.size)
+        self.baseline_packets += int(wire.size)
         self.baseline_wire_bytes += int(wire.sum())
-        self.baseline_payload_bytes += payload_len * int(ks.size)
-        np.add.at(self.baseline_wire_per_tick.a, ks, wire)
-        np.add.at(self.baseline_payload_per_tick.a, ks, float(payload_len))
+        self.baseline_payload_bytes += payload_len * int(wire.size)
+        return wire
 
-    def summary(self, window_ticks: int = 100) -> dict[str, Any]:
+    def window(self, baseline_wire: Array, wire: Array, baseline_payload: Array, payload: Array) -> None:
+        """The next ticks of this direction, in order: the minimum instantaneous compression over
+        every full window seen so far (``teleop.metrics.min_instant_compression``, streamed)."""
+        w = self.window_ticks
+        block = np.concatenate(
+            [self._tail, np.column_stack([baseline_wire, wire, baseline_payload, payload])]
+        )
+        self._seen_ticks += len(wire)
+        sums = np.convolve(block[:, 1], np.ones(w), mode="valid") if len(block) >= w else block[:, 1].sum()
+        self.peak_window_wire_bytes = max(self.peak_window_wire_bytes, float(np.max(sums)))
+        if len(block) >= w:
+            for col, attr in ((1, "_min_wire"), (3, "_min_payload")):
+                ratio = metrics.min_instant_compression(block[:, col - 1], block[:, col], w)
+                setattr(self, attr, min(getattr(self, attr), ratio))
+        self._tail = block[max(0, len(block) - (w - 1)) :] if w > 1 else block[:0]
+
+    def _min_instant(self, wire: bool) -> float:
+        if self._seen_ticks < self.window_ticks:  # shorter than one window: the average
+            if wire:
+                return metrics.compression(self.baseline_wire_bytes, self.wire_bytes)
+            return metrics.compression(self.baseline_payload_bytes, self.payload_bytes)
+        return self._min_wire if wire else self._min_payload
+
+    def summary(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "packets": self.packets,
             "payload_bytes": self.payload_bytes,
@@ -96,17 +115,7 @@ class DirectionCounters:
                 baseline_wire_bytes=self.baseline_wire_bytes,
                 compression_payload=metrics.compression(self.baseline_payload_bytes, self.payload_bytes),
                 compression_wire=metrics.compression(self.baseline_wire_bytes, self.wire_bytes),
-                min_instant_compression_payload=metrics.min_instant_compression(
-                    self.baseline_payload_per_tick.a, self.payload_per_tick.a, window_ticks
-                ),
-                min_instant_compression_wire=metrics.min_instant_compression(
-                    self.baseline_wire_per_tick.a, self.wire_per_tick.a, window_ticks
-                ),
+                min_instant_compression_payload=self._min_instant(wire=False),
+                min_instant_compression_wire=self._min_instant(wire=True),
             )
         return out
-
-    def arrays(self, prefix: str) -> dict[str, Array]:
-        d = {f"{prefix}_wire": self.wire_per_tick.a, f"{prefix}_payload": self.payload_per_tick.a}
-        if self.baseline_packets:
-            d[f"{prefix}_baseline_wire"] = self.baseline_wire_per_tick.a
-        return d

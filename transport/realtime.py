@@ -28,6 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from .quantiles import Quantiles
+
 PR_SET_TIMERSLACK = 29
 
 
@@ -64,7 +66,9 @@ def percentiles_us(samples_ns: npt.NDArray[np.int64]) -> dict[str, float]:
 
 @dataclass
 class LoopStats:
-    """What the scheduler saw; ``lateness_ns[i]`` is tick i's start minus its deadline."""
+    """What the scheduler saw; ``lateness_ns[i]`` is tick i's start minus its deadline (kept only by
+    a ticker with a ``capacity``; a session's loop streams it to its log instead, and its
+    percentiles come from ``lateness_q`` and ``period_error_q``)."""
 
     period_ns: int
     ticks: int
@@ -74,6 +78,8 @@ class LoopStats:
     period_error_ns: npt.NDArray[np.int64]
     cpu_s: float
     wall_s: float
+    lateness_q: Quantiles | None = None
+    period_error_q: Quantiles | None = None
 
     def summary(self) -> dict[str, object]:
         return {
@@ -81,16 +87,27 @@ class LoopStats:
             "overruns": self.overruns,
             "skipped": self.skipped,
             "period_us": self.period_ns / 1e3,
-            "period_error_us": percentiles_us(self.period_error_ns),
-            "lateness_us": percentiles_us(self.lateness_ns),
+            "period_error_us": _percentiles(self.period_error_q, self.period_error_ns),
+            "lateness_us": _percentiles(self.lateness_q, self.lateness_ns),
             "cpu_s": self.cpu_s,
             "wall_s": self.wall_s,
             "cpu_fraction": self.cpu_s / self.wall_s if self.wall_s > 0 else 0.0,
         }
 
 
+def _percentiles(q: Quantiles | None, samples_ns: npt.NDArray[np.int64]) -> dict[str, float]:
+    if q is None or samples_ns.size:
+        return percentiles_us(samples_ns)
+    p50, p99, p999 = q.percentiles([50, 99, 99.9], absolute=True)
+    return {"p50": p50 / 1e3, "p99": p99 / 1e3, "p999": p999 / 1e3, "max": q.max_abs / 1e3}
+
+
 class Ticker:
-    """Blocking absolute-deadline ticker: ``start(t0_ns)``, then ``wait() -> k`` for each tick."""
+    """Blocking absolute-deadline ticker: ``start(t0_ns)``, then ``wait() -> k`` for each tick.
+
+    ``capacity`` > 0 keeps every tick's lateness and period error in arrays (benchmarks); 0 keeps
+    only streaming percentiles, so a loop of any length runs in fixed memory (``last_lateness_ns``
+    says how late the latest tick started, for the caller's own record)."""
 
     def __init__(
         self,
@@ -110,8 +127,12 @@ class Ticker:
         self.t0 = 0
         self.overruns = 0
         self.skipped = 0
-        self._lateness = np.zeros(max(capacity, 1024), dtype=np.int64)
+        self._keep = capacity > 0
+        self._lateness = np.zeros(max(capacity, 1024) if self._keep else 0, dtype=np.int64)
         self._perr = np.zeros_like(self._lateness)
+        self._late_q = Quantiles(lo=1.0, hi=1e12)
+        self._perr_q = Quantiles(lo=1.0, hi=1e12)
+        self.last_lateness_ns = 0
         self._n = 0
         self._last_start = 0
         self._cpu0 = 0.0
@@ -151,11 +172,16 @@ class Ticker:
         return k
 
     def _record(self, late: int, now: int) -> None:
-        if self._n == self._lateness.size:
-            self._lateness = np.concatenate([self._lateness, np.zeros_like(self._lateness)])
-            self._perr = np.concatenate([self._perr, np.zeros_like(self._perr)])
-        self._lateness[self._n] = late
-        self._perr[self._n] = (now - self._last_start - self.period) if self._n else 0
+        self.last_lateness_ns = late
+        self._late_q.add(late)
+        if self._n:
+            self._perr_q.add(now - self._last_start - self.period)
+        if self._keep:
+            if self._n == self._lateness.size:
+                self._lateness = np.concatenate([self._lateness, np.zeros_like(self._lateness)])
+                self._perr = np.concatenate([self._perr, np.zeros_like(self._perr)])
+            self._lateness[self._n] = late
+            self._perr[self._n] = (now - self._last_start - self.period) if self._n else 0
         self._last_start = now
         self._n += 1
 
@@ -166,8 +192,10 @@ class Ticker:
             ticks=n,
             overruns=self.overruns,
             skipped=self.skipped,
-            lateness_ns=self._lateness[:n].copy(),
-            period_error_ns=self._perr[1:n].copy(),
+            lateness_ns=self._lateness[:n].copy() if self._keep else self._lateness[:0],
+            period_error_ns=self._perr[1:n].copy() if self._keep else self._perr[:0],
             cpu_s=time.process_time() - self._cpu0,
             wall_s=(self.clock() - self._wall0) / 1e9,
+            lateness_q=self._late_q,
+            period_error_q=self._perr_q,
         )

@@ -15,9 +15,15 @@ uses.
 **Loop.** Each tick: wait for the deadline (``transport.realtime``), drain the transport into the
 port, poll a little for a payload that is due (grace), tick the port, send what it returns.
 
-**End.** Both run the agreed number of ticks, linger briefly to count packets still in flight, say
-``bye``, and write ``<role>.json`` (summary) and ``<role>.npz`` (per-tick signals) to the log
-folder.  SIGINT/SIGTERM stop the loop at the next tick; the logs are still written.
+**End.** Both run the agreed number of ticks (a session of duration 0: until SIGINT/SIGTERM, or the
+peer's ``bye``), linger briefly to count packets still in flight, say ``bye``, and finish
+``<role>.mcap`` and write ``<role>.json`` (summary) in the log folder.  SIGINT/SIGTERM stop the loop at
+the next tick; the logs are still written.
+
+**Log.** The port hands its per-tick record to a sink a chunk (1000 ticks) at a time; here the sink is
+``transport.mcaplog.McapLog``, which has a writer process write ``<role>.mcap`` as the session runs
+(and, with ``live_view``, serve the same channels over the Foxglove WebSocket protocol), so memory
+stays flat however long the session lasts and the loop never encodes or writes a message.
 """
 
 from __future__ import annotations
@@ -28,20 +34,20 @@ import os
 import random
 import secrets
 import signal
+import subprocess
 import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from teleop import auth, protocol
 from teleop.devices import DeviceError
-from teleop.port import Port, PortKeys, make_node, make_shim
+from teleop.port import Chunk, Port, PortKeys, make_node, make_shim
 from teleop.protocol import PROTOCOL_VERSION, SessionParams
 
 from .base import Addr, Transport
+from .mcaplog import McapLog, spawn_writer, wall_clock_of
 from .realtime import LoopStats, Ticker, setup_realtime
 from .udp import UdpTransport, new_event_loop
 from .zenoh import ZENOH_PEER, ZenohTransport, make_config
@@ -87,6 +93,8 @@ class EndpointOptions:
     psk: bytes | None = None  # the deployment's pre-shared key (teleop.auth); None: refuse to start
     insecure: bool = False  # --insecure: run with teleop.auth.INSECURE_KEY (integrity only), say so
     device: str | None = None  # --hsi/--robot spec (teleop.devices), local only; None: the scenario's
+    live_view: int | None = None  # serve the Foxglove WebSocket live view on this port (0: any free)
+    live_view_host: str = "127.0.0.1"
 
 
 @dataclass
@@ -98,6 +106,13 @@ class ZenohOptions:
     connect: list[str] = field(default_factory=list)
     prefix: str = "teleop/default"
     config_file: str | None = None
+
+
+class _Discard:
+    """The sink of a process that keeps no log and serves no live view: chunks are dropped."""
+
+    def write(self, chunk: Chunk) -> None:
+        pass
 
 
 class _Stop:
@@ -213,9 +228,12 @@ class _Runner:
         t_common_ns: int,
         stop: _Stop,
         expect: dict[str, Any] | None = None,
+        log: McapLog | None = None,
     ) -> None:
         self.opts, self.tr, self.peer, self.params, self.port = opts, tr, peer, params, port
         self.expect = expect or {}
+        self.log = log
+        self._watched: tuple[int, ...] = ()  # what the events channel last saw (teleop.port state)
         # Teleoperator, link lost: the handshake of whoever may replace the silent operator, and
         # its result once a start proved it (a hello alone may be a recording: teleop.protocol).
         self.takeover: protocol.TeleoperatorHandshake | None = None
@@ -384,7 +402,10 @@ class _Runner:
     async def run(self, ticker: Ticker) -> None:
         """Tick until the session's end, a signal, or (teleoperator) a new operator's session."""
         n, port, opts = self.params.ticks, self.port, self.opts
+        open_ended = self.params.until_stopped
         while not self.stop.requested and ticker.k < n:
+            if open_ended and self.peer_bye is not None:  # the peer was stopped: so is the session
+                break
             k = ticker.wait()
             if k >= n:  # a stall skipped past the end
                 break
@@ -401,14 +422,78 @@ class _Runner:
             port.sent(k, self.now())
             for data in datagrams:
                 self.tr.send(data, self.peer)
+            port.loop_timing(k, ticker.last_lateness_ns)
+            if self.log is not None:
+                self.observe(k, ticker)
             if opts.live and k % 1000 == 999:
                 self.status(k, ticker)
+
+    def observe(self, k: int, ticker: Ticker) -> None:
+        """The log's low-rate channels: events as they happen, the live view's decimated ticks, and
+        the link figures once a second.  A few integer comparisons a tick; messages are queued."""
+        log, node, port = self.log, self.node, self.port
+        assert log is not None
+        sec = port.security
+        watched = (int(node.link_lost), node.peer_restarts, sec.rejected, sec.replayed, ticker.overruns)
+        if watched != self._watched:
+            t = self.now()
+            if self._watched:
+                old = self._watched
+                if watched[0] != old[0]:
+                    log.event(t, "link_lost" if watched[0] else "link_restored", f"tick {k}")
+                if watched[1] != old[1]:
+                    log.event(t, "peer_restarted", f"energy epoch {watched[1]}")
+                if watched[2] != old[2]:
+                    log.event(t, "auth_rejected", f"{watched[2]} so far: {sec.last_rejection}")
+                if watched[3] != old[3]:
+                    log.event(t, "replayed", f"{watched[3]} so far")
+                if watched[4] != old[4]:
+                    log.event(t, "overrun", f"tick {k}: {ticker.overruns} so far")
+            self._watched = watched
+        if k % log.live_every == 0:
+            log.live(k, self.now(), self._live_messages(k))
+        if k % 1000 == 999:
+            pv = node.passivity
+            log.status(
+                "link",
+                self.now(),
+                {
+                    "t": self.now(),
+                    "link": port.observer.quick(),
+                    "sent": port.tx.summary(),
+                    "received": port.rx.summary(),
+                    "watchdog": {
+                        "violations": pv.violations,
+                        "controller_active_ticks": pv.controller_active_ticks,
+                        "energy_dissipated": pv.energy_dissipated,
+                        "margin": node.guard.margin,
+                        "link_lost": node.link_lost,
+                    },
+                },
+            )
+
+    def _live_messages(self, k: int) -> dict[str, dict[str, Any]]:
+        """This tick's per-tick messages, built from the node (the record's chunk is not sealed yet)."""
+        node, t = self.node, self.now()
+        return {
+            "signals": {"k": k, "t": t, "v": node.v.tolist(), "f": node.f.tolist()},
+            "waves": {"k": k, "t": t, "wave_out": node.wave_out.tolist(), "wave_in": node.wave_in.tolist()},
+            "energy": {
+                "k": k,
+                "t": t,
+                "sent": node.energy_sent,
+                "played": node.energy_played,
+                "margin_observed": node.guard.margin,
+                "played_epoch": node.guard.played_in_epoch,
+                "peer_epoch": node.peer_restarts,
+            },
+        }
 
     async def linger(self) -> None:
         """Deliver what the shim still holds, say bye, and count what is still in flight, so that
         sender and receiver counts can be compared; the bye tells the receiver how many packets
         there were."""
-        port, last = self.port, self.params.ticks - 1
+        port, last = self.port, max(self.port.rec.last, 0)
         clock = time.monotonic_ns
         t_end = clock() + int(self.opts.linger * 1e9)
         while (due := port.next_due()) is not None and clock() < t_end + 2_000_000_000:
@@ -426,9 +511,7 @@ class _Runner:
 
     def summary(self, stats: LoopStats, completed: bool, k0: int) -> dict[str, Any]:
         bye = self.peer_bye
-        window = max(1, round(0.1 / self.params.dt))
         s = self.port.summary(
-            window,
             peer_produced=bye.produced if bye else None,
             peer_dropped_by_limit=bye.dropped_by_limit if bye else 0,
         )
@@ -468,25 +551,33 @@ async def _run_loop(
     stop: _Stop,
     k0: int = 0,
     expect: dict[str, Any] | None = None,
+    log: McapLog | None = None,
 ) -> tuple[dict[str, Any], _Handover | None]:
     """Tick from ``k0`` to the session's end; tick ``k`` is due at ``t0_ns + k dt``, and
     ``t_common_ns`` is the session's tick 0 on this clock.  Returns the summary and, when a new
     operator replaced a silent one, its completed handshake."""
-    runner = _Runner(opts, tr, peer, params, port, t_common_ns, stop, expect)
+    runner = _Runner(opts, tr, peer, params, port, t_common_ns, stop, expect, log)
+    if log is not None:
+        log.status("session", 0.0, {"role": opts.role, "pid": os.getpid(), "params": asdict(params)})
+        log.event(0.0, "session_start", f"session {params.session}, first tick {k0}")
     await runner.until(t0_ns + k0 * round(params.dt * 1e9) - 2_000_000, k0)
-    ticker = Ticker(period_ns=round(params.dt * 1e9), spin_ns=opts.spin_us * 1000, capacity=params.ticks + 16)
+    # No per-tick arrays in the ticker: the loop's timing goes to the port's record, a chunk at a time.
+    ticker = Ticker(period_ns=round(params.dt * 1e9), spin_ns=opts.spin_us * 1000)
     ticker.start(t0_ns, k0)
     await runner.run(ticker)
     stats = ticker.stats()  # the ticking only, not the linger
-    completed = not stop.requested and ticker.k >= params.ticks and not runner.replaced
+    ended = ticker.k >= params.ticks or (
+        params.until_stopped and (stop.requested or runner.peer_bye is not None)
+    )
+    completed = ended and not runner.replaced and (params.until_stopped or not stop.requested)
     if not runner.replaced:  # a replaced session's operator is gone: nothing is in flight to count
         await runner.linger()
     summary = runner.summary(stats, completed, k0)
+    if log is not None:  # the file is finished by _session, once the summary is complete
+        why = f"signal {stop.signal}" if stop.requested else ("peer said bye" if runner.peer_bye else "end")
+        log.event(runner.now(), "session_end", f"{why}; {stats.ticks} ticks run")
     if opts.log_dir is not None:
-        opts.log_dir.mkdir(parents=True, exist_ok=True)
         (opts.log_dir / f"{opts.role}.json").write_text(json.dumps(summary, indent=2) + "\n")
-        arrays: dict[str, Any] = {**port.arrays(), "lateness_ns": stats.lateness_ns}
-        np.savez_compressed(opts.log_dir / f"{opts.role}.npz", **arrays)
     return summary, runner.handover
 
 
@@ -515,10 +606,14 @@ async def _endpoint(
         loop.add_signal_handler(sig, stop, sig)
     tr = await _open_transport(opts)
     handover: _Handover | None = None
+    writer = None
     try:
         while True:
-            summary, handover = await _session(opts, tr, params, expect, stop, handover)
-            summary.update(event_loop=type(loop).__module__.split(".")[0])
+            # The log's writer process starts now, so that it has imported before the loop starts.
+            wants_log = opts.log_dir is not None or opts.live_view is not None
+            writer = spawn_writer() if wants_log else None
+            summary, handover = await _session(opts, tr, params, expect, stop, handover, writer)
+            writer = None  # the session's log owns it now
             if opts.log_dir is not None:
                 (opts.log_dir / f"{opts.role}.json").write_text(json.dumps(summary, indent=2) + "\n")
             if not summary.get("replaced_by_new_session"):
@@ -527,7 +622,7 @@ async def _endpoint(
             # session's logs under its id and serve the new operator.
             if opts.log_dir is not None:
                 old = summary["params"]["session"]
-                for ext in ("json", "npz"):
+                for ext in ("json", "mcap"):
                     (opts.log_dir / f"{opts.role}.{ext}").replace(opts.log_dir / f"{opts.role}-{old}.{ext}")
             if not opts.quiet:
                 print(
@@ -536,6 +631,12 @@ async def _endpoint(
                 )
     finally:
         tr.close()
+        if writer is not None and writer.poll() is None:  # unused (no session): it exits at end of input
+            try:
+                writer.communicate(timeout=10)
+            except subprocess.TimeoutExpired:
+                writer.kill()
+                writer.wait()
 
 
 async def _session(
@@ -545,6 +646,7 @@ async def _session(
     expect: dict[str, Any],
     stop: _Stop,
     handover: _Handover | None = None,
+    writer: subprocess.Popen[bytes] | None = None,
 ) -> tuple[dict[str, Any], _Handover | None]:
     """Handshake (unless a running session's takeover already completed one), build the port, run
     the loop: one session of this process."""
@@ -574,10 +676,27 @@ async def _session(
     warnings = setup_realtime(opts.rt_priority)
     for w in warnings:
         print(f"teleop {opts.role}: warning: {w}", file=sys.stderr)
-    port = _make_port(opts, tr, params, k0, keys)
-    summary, replaced_by = await _run_loop(opts, tr, peer, params, port, t0, start, stop, k0, expect)
-    summary.update(extra, warnings=warnings)
+    log = _open_log(opts, start, writer)
+    port = _make_port(opts, tr, params, k0, keys, log)
+    try:
+        summary, replaced_by = await _run_loop(opts, tr, peer, params, port, t0, start, stop, k0, expect, log)
+    except BaseException:
+        if log is not None:
+            log.close()
+        raise
+    summary.update(
+        extra, warnings=warnings, event_loop=type(asyncio.get_running_loop()).__module__.split(".")[0]
+    )
     summary["security"].update(auth=_auth_name(opts), key_id=auth.key_id(psk))
+    if log is not None:  # the complete summary goes into the file: teleop report reads it there
+        log.close({**summary, "end_t": (time.monotonic_ns() - start) / 1e9})
+        summary["log"] = {
+            "mcap": f"{opts.role}.mcap" if opts.log_dir is not None else None,
+            "messages": log.messages,
+            "dropped_chunks": log.dropped_chunks,
+            "live_view_port": log.live_port,
+            "error": log.error,
+        }
     return summary, replaced_by
 
 
@@ -586,7 +705,32 @@ def _auth_name(opts: EndpointOptions) -> str:
     return "insecure" if opts.insecure else "blake2s-128"
 
 
-def _make_port(opts: EndpointOptions, tr: Transport, params: SessionParams, k0: int, keys: PortKeys) -> Port:
+def _open_log(
+    opts: EndpointOptions, t_common_ns: int, writer: subprocess.Popen[bytes] | None
+) -> McapLog | None:
+    """``ROLE.mcap`` in the log folder and/or the live view, or None (no log, no view)."""
+    if opts.log_dir is None and opts.live_view is None:
+        return None
+    path = None
+    if opts.log_dir is not None:
+        opts.log_dir.mkdir(parents=True, exist_ok=True)
+        path = opts.log_dir / f"{opts.role}.mcap"
+    try:
+        return McapLog(
+            path,
+            opts.role,
+            wall_clock_of(t_common_ns),
+            live_port=opts.live_view,
+            live_host=opts.live_view_host,
+            process=writer,
+        )
+    except (OSError, RuntimeError) as e:  # the file cannot be made, the port is taken
+        raise SessionError(f"cannot open the log or the live view: {e}") from None
+
+
+def _make_port(
+    opts: EndpointOptions, tr: Transport, params: SessionParams, k0: int, keys: PortKeys, log: McapLog | None
+) -> Port:
     """This side's port: its node, its outgoing shim (seeded as in ``teleop sim``), counters."""
     node = make_node(
         opts.role,
@@ -616,6 +760,8 @@ def _make_port(opts: EndpointOptions, tr: Transport, params: SessionParams, k0: 
         first_tick=k0,
         keys=keys,
         playout_floor=REAL_PLAYOUT_FLOOR_TICKS,
+        sink=log if log is not None else _Discard(),
+        window_ticks=max(1, round(0.1 / params.dt)),
     )
 
 
@@ -647,9 +793,9 @@ def run_endpoint(
             f"received {summary['received']['packets']}",
             file=sys.stderr,
         )
-    if summary["stopped_by_signal"] is not None:
+    if summary["stopped_by_signal"] is not None and summary["params"]["duration"] != 0:
         return 128 + int(summary["stopped_by_signal"])
-    return 0
+    return 0  # a session without a fixed end stopped by a signal ended as it should
 
 
 def new_session_id() -> int:

@@ -43,7 +43,7 @@ ip -n "$NS_TO" link set "vto$tag" up
 
 mkdir -p "$OUT/logs"
 [ -f "$KEY" ] || "$TELEOP" keygen "$KEY" >/dev/null
-rm -f "$OUT"/logs/{operator,teleoperator}.{json,npz}
+rm -f "$OUT"/logs/{operator,teleoperator}.{json,mcap}
 ip netns exec "$NS_TO" "$TELEOP" teleoperator --key-file "$KEY" --listen 10.77.0.2:7000 --log "$OUT/logs" --quiet &
 pids+=($!)
 sleep 0.5

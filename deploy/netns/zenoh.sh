@@ -45,7 +45,7 @@ ip -n "$NS_TO" link set "zto$tag" up; ip -n "$NS_RT" link set "zrt$tag" up
 
 mkdir -p "$OUT/logs"
 [ -f "$KEY" ] || "$TELEOP" keygen "$KEY" >/dev/null
-rm -f "$OUT"/logs/{operator,teleoperator}.{json,npz}
+rm -f "$OUT"/logs/{operator,teleoperator}.{json,mcap}
 ip netns exec "$NS_RT" "$TELEOP" router --listen tcp/10.77.1.2:7447 --listen tcp/10.77.2.2:7447 &
 pids+=($!)
 sleep 1

@@ -226,10 +226,11 @@ def add_model_args(p: argparse.ArgumentParser, scenario_default: str | None) -> 
     )
     p.add_argument(
         "--duration",
-        type=positive_float("duration"),
+        type=nonneg_float("duration", why=" (0: until stopped)"),
         default=None,
         metavar="S",
-        help="seconds to run (default: the scenario's, 5 for step, 15 for protocol)",
+        help="seconds to run, 0 to run until Ctrl-C/SIGTERM or the peer's bye (teleop sim: > 0) "
+        "(default: the scenario's, 5 for step, 15 for protocol)",
     )
     p.add_argument("--dof", type=dof, default=None, help="degrees of freedom (default: the scenario's)")
     p.add_argument(
@@ -390,7 +391,14 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
 
 def add_endpoint_args(p: argparse.ArgumentParser) -> None:
     """Options of one real process: its logs, its loop, what it prints."""
-    p.add_argument("--log", metavar="DIR", help="write ROLE.json and ROLE.npz logs to DIR")
+    p.add_argument(
+        "--log", metavar="DIR", help="write ROLE.mcap (streamed as the session runs) and ROLE.json to DIR"
+    )
+    add_live_view_arg(
+        p,
+        "serve the log's channels live over the Foxglove WebSocket protocol on "
+        f"127.0.0.1:PORT (default {LIVE_VIEW_PORT}; 0: any free port)",
+    )
     add_process_args(p)
     p.add_argument("--quiet", action="store_true", help="no summary line at the end")
     p.add_argument("--live", action="store_true", help="print a status line every second (traffic, watchdog)")
@@ -400,6 +408,22 @@ def add_endpoint_args(p: argparse.ArgumentParser) -> None:
         default=400.0,
         metavar="US",
         help="wait up to US microseconds into a tick for a payload that is due (default 400)",
+    )
+
+
+LIVE_VIEW_PORT = 8765  # Foxglove's default WebSocket port
+
+
+def add_live_view_arg(p: argparse.ArgumentParser, help_text: str) -> None:
+    """--live-view [PORT]: the Foxglove WebSocket live view (``transport.mcaplog``)."""
+    p.add_argument(
+        "--live-view",
+        nargs="?",
+        const=LIVE_VIEW_PORT,
+        default=None,
+        type=int_range("live view port", 0, MAX_PORT, " (0: a free one)"),
+        metavar="PORT",
+        help=help_text,
     )
 
 

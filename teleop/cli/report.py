@@ -10,7 +10,7 @@ from typing import Any
 from .args import CliError, Subcommands
 from .settings import writable_dir
 
-LOG_FILES = [f"{role}.{ext}" for role in ("operator", "teleoperator") for ext in ("json", "npz")]
+LOG_FILES = [f"{role}.mcap" for role in ("operator", "teleoperator")]
 
 
 def write_report(
@@ -42,7 +42,7 @@ def add_parser(sub: Subcommands) -> None:
     rp = sub.add_parser(
         "report",
         help="build a report from the two processes' logs",
-        description="Merge operator.json/.npz and teleoperator.json/.npz (written with --log) "
+        description="Merge operator.mcap and teleoperator.mcap (written with --log) "
         "into report.json, plots and a printed summary.",
     )
     rp.add_argument("logs", metavar="LOGDIR", help="folder holding both processes' logs")

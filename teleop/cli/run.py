@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import shutil
 import signal
@@ -34,6 +35,7 @@ from .args import (
     Subcommands,
     add_device_args,
     add_key_args,
+    add_live_view_arg,
     add_netem_args,
     add_passivity_args,
     add_process_args,
@@ -44,7 +46,7 @@ from .report import write_report
 from .settings import check_robot, read_key, session_params, writable_dir
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
-LOG_FILES = ("operator.json", "teleoperator.json", "operator.npz", "teleoperator.npz")
+LOG_FILES = ("operator.json", "teleoperator.json", "operator.mcap", "teleoperator.mcap")
 
 
 @dataclass
@@ -173,9 +175,10 @@ def build_commands(args: argparse.Namespace, params: Any, logs: Path, key: RunKe
     # Each side's device is its own local choice: the robot goes to the teleoperator only.
     robot = ["--robot", args.robot] if args.robot is not None else []
     hsi = ["--hsi", args.hsi] if args.hsi is not None else []
-    to_cmd = [*TELEOP, "teleoperator", *net.teleoperator, *robot, *common]
+    view_op, view_to = _live_view_options(args)
+    to_cmd = [*TELEOP, "teleoperator", *net.teleoperator, *robot, *view_to, *common]
     live = [] if args.no_live else ["--live"]
-    op_cmd = [*TELEOP, "operator", *net.operator, *live, *hsi, *_session_options(params), *common]
+    op_cmd = [*TELEOP, "operator", *net.operator, *live, *hsi, *view_op, *_session_options(params), *common]
     return Commands(net, to_cmd, op_cmd)
 
 
@@ -185,6 +188,16 @@ def _process_options(args: argparse.Namespace, logs: Path) -> list[str]:
     common += ["--no-rt"] if args.no_rt else []
     common += ["--asyncio"] if args.asyncio else []
     return common
+
+
+def _live_view_options(args: argparse.Namespace) -> tuple[list[str], list[str]]:
+    """--live-view PORT: the operator's view on PORT, the teleoperator's on PORT + 1 (0: free ones)."""
+    port = args.live_view
+    if port is None:
+        return [], []
+    if port == MAX_PORT:
+        raise CliError(f"--live-view needs PORT and PORT + 1 (one per process): at most {MAX_PORT - 1}")
+    return ["--live-view", str(port)], ["--live-view", str(port + 1 if port else 0)]
 
 
 def _session_options(params: Any) -> list[str]:
@@ -216,13 +229,14 @@ def _spawn(cmd: list[str]) -> subprocess.Popen[bytes]:
 
 
 def _stop(procs: list[subprocess.Popen[bytes]]) -> None:
-    """SIGINT to every process still running, then wait for each (killing one that hangs)."""
+    """SIGINT to every process still running, then wait for each (killing one that hangs; 30 s:
+    a process finishes its MCAP log, whose writer may be some chunks behind, before it exits)."""
     for p in procs:
         if p.poll() is None:
             p.send_signal(signal.SIGINT)
     for p in procs:
         try:
-            p.wait(timeout=5)
+            p.wait(timeout=30)
         except subprocess.TimeoutExpired:
             p.kill()
             p.wait()
@@ -278,14 +292,21 @@ def cmd_run(args: argparse.Namespace) -> int:
     with run_key(args) as key:
         cmds = build_commands(args, params, logs, key)
         net = cmds.net
+        length = "until Ctrl-C" if params.until_stopped else f"{params.duration:g} s"
         print(
-            f"teleop run: {net.where}; {params.codec}, {params.scenario}, {params.duration:g} s; "
-            f"logs in {logs}",
+            f"teleop run: {net.where}; {params.codec}, {params.scenario}, {length}; logs in {logs}",
             flush=True,
         )
+        if args.live_view is not None:
+            view = (
+                "free ports (see each process's log)"
+                if args.live_view == 0
+                else (f"ws://127.0.0.1:{args.live_view} (operator) and :{args.live_view + 1} (teleoperator)")
+            )
+            print(f"teleop run: live view (Foxglove WebSocket) on {view}", flush=True)
         router = _start_router(net)
         try:
-            timeout = params.duration + 2 * args.connect_timeout + 10
+            timeout = math.inf if params.until_stopped else params.duration + 2 * args.connect_timeout + 10
             codes, interrupted = _run_pair(cmds.teleoperator, cmds.operator, timeout)
         finally:
             if router is not None:
@@ -296,7 +317,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if net.zenoh is not None:
         extra["zenoh"] = net.zenoh
     write_report(logs, out, args, args.transport, extra)
-    if interrupted:
+    if interrupted and not params.until_stopped:  # an open session ends with Ctrl-C: that is no error
         return 130
     return 0 if all(c == 0 for c in codes.values()) else 1
 
@@ -335,4 +356,9 @@ def add_parser(sub: Subcommands) -> None:
     r.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     r.add_argument("--no-sim", action="store_true", help="skip the teleop sim comparison in the report")
     r.add_argument("--no-live", action="store_true", help="no status line every second during the run")
+    add_live_view_arg(
+        r,
+        "serve both processes' log channels live over the Foxglove WebSocket protocol: the operator "
+        "on 127.0.0.1:PORT, the teleoperator on PORT + 1 (default 8765; 0: free ports)",
+    )
     r.set_defaults(func=cmd_run)

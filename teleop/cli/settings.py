@@ -31,10 +31,11 @@ def check_robot(spec: str | None, dof: int) -> None:
         raise CliError(f"--robot {spec}: {e}") from None
 
 
-def check_duration(duration: float, dof: int) -> None:
-    """CliError when a session of ``duration`` s at ``dof`` DoF (1 kHz) does not fit the record budget."""
+def check_duration(duration: float, dof: int, in_memory: bool = False) -> None:
+    """CliError when ``duration`` s at ``dof`` DoF (1 kHz) is out of range (``in_memory``: teleop sim,
+    which must end and keeps every tick)."""
     try:
-        limits.check_duration(duration, dof, dt=0.001)
+        limits.check_duration(duration, dof, dt=0.001, in_memory=in_memory)
     except ValueError as e:
         raise CliError(str(e)) from None
 
@@ -159,6 +160,7 @@ def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int
         psk=psk,
         insecure=insecure,
         device=getattr(args, "hsi" if role == "operator" else "robot", None),
+        live_view=args.live_view,
     )
 
 

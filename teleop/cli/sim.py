@@ -90,7 +90,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
     sc = SCENARIOS[args.scenario]
     duration = args.duration if args.duration is not None else sc.duration
-    check_duration(duration, args.dof if args.dof is not None else sc.dof)
+    check_duration(duration, args.dof if args.dof is not None else sc.dof, in_memory=True)
     out = writable_dir(Path(args.out), "--out") if args.out is not None else None
     codecs = args.codec or list(SECTION_V_CODECS)
     try:

@@ -1,0 +1,340 @@
+"""Issue 12: the chunked per-tick record, flat memory, streamed MCAP logs and the live view.
+
+Sim-level (two ports joined in one process, no clock), except the last tests, which run two real
+processes for a few seconds: a session without a fixed end stopped by a signal, and the peer's bye.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import json
+import math
+import os
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import time
+import tracemalloc
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from teleop import metrics
+from teleop.node import PortOptions
+from teleop.port import MemorySink, Port, make_node
+from transport.counters import DirectionCounters
+from transport.mcaplog import PER_TICK_TOPICS, TOPICS, McapLog, read_log
+from transport.quantiles import Quantiles
+
+TELEOP = [sys.executable, "-m", "teleop.cli"]
+
+
+def _pair(sinks: tuple[Any, Any] | None = None, codec: str = "none") -> tuple[Port, Port]:
+    ports = []
+    for i, role in enumerate(("operator", "teleoperator")):
+        node = make_node(
+            role,
+            scenario="protocol",
+            dof=2,
+            dt=1e-3,
+            b=20.0,
+            codec=codec,
+            full_scale=2.0,
+            session=7,
+            options=PortOptions(),
+        )
+        ports.append(Port(node, sink=sinks[i] if sinks else None))
+    return ports[0], ports[1]
+
+
+def _run(op: Port, to: Port, ticks: range) -> None:
+    """The simulation's order within a tick (teleop.sim.run_case), over ``ticks``."""
+    backward: list[bytes] = []
+    for n in ticks:
+        now = n * 1e-3
+        for data in backward:
+            op.receive(data, now, n)
+        for data in op.tick(n, now):
+            to.receive(data, now, n)
+        op.sent(n, now)
+        backward = to.tick(n, now)
+        to.sent(n, now)
+
+
+# --- the chunked record ------------------------------------------------------------------------
+def test_chunks_cover_every_tick_run_across_boundaries_and_gaps() -> None:
+    op, to = _pair()
+    ran = [*range(0, 1200), *range(3500, 4100)]  # a stall skipped 1200..3499: two whole chunks
+    _run(op, to, range(0, 1200))
+    _run(op, to, range(3500, 4100))
+    s = op.summary()
+    assert isinstance(op.sink, MemorySink)
+    assert [c.k0 for c in op.sink.chunks] == [0, 1000, 3000, 4000]
+    a = op.sink.arrays()
+    assert a["v"].shape == (4100, 2)
+    assert list(np.flatnonzero(~np.isnan(a["play_time_s"]))) == ran
+    assert np.isnan(a["v"][1200:3500]).all() and not np.isnan(a["v"][ran]).any()
+    # The baseline counts every tick from the first to the last, the skipped ones included.
+    assert s["sent"]["baseline_packets"] == 4100
+    assert s["sent"]["packets"] == len(ran)  # codec none: one packet per tick run
+
+
+def test_a_late_first_tick_does_not_make_a_window_of_one_packet() -> None:
+    """A side whose first tick is not a chunk's first (a late joiner, or a loop whose first ticks a
+    stall skipped) has no baseline before it: the windows start at its first tick, so eds:50's
+    minimum instantaneous compression stays what it is from tick 0 (bench/soak.py once showed 1.0)."""
+    late, _ = _pair(codec="eds:50")
+    _run(late, _, range(1370, 6000))
+    prompt, _ = _pair(codec="eds:50")
+    _run(prompt, _, range(0, 6000))
+    got = late.summary()["sent"]["min_instant_compression_wire"]
+    assert got > 45 and abs(got / prompt.summary()["sent"]["min_instant_compression_wire"] - 1) < 0.05
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.integers(0, 300), min_size=1, max_size=3000),
+    st.integers(1, 250),
+    st.lists(st.integers(1, 900), max_size=8),
+)
+def test_min_instant_compression_streamed_equals_the_whole_session(
+    sent: list[int], window: int, cuts: list[int]
+) -> None:
+    """Chunk by chunk (the sliding window carried across) gives the figure of the whole array."""
+    s = np.asarray(sent, dtype=np.float64)
+    b = np.full(s.size, 80.0)
+    c = DirectionCounters(window_ticks=window)
+    c.baseline_bulk(np.full(s.size, 52, dtype=np.int64), 4)  # totals: 80 B on the wire a tick
+    c.wire_bytes = int(s.sum())
+    c.payload_bytes = int(s.sum())
+    bounds = sorted({0, s.size, *(x % (s.size + 1) for x in cuts)})
+    for lo, hi in itertools.pairwise(bounds):
+        c.window(b[lo:hi], s[lo:hi], b[lo:hi], s[lo:hi])
+    got = c.summary()["min_instant_compression_wire"]
+    want = metrics.min_instant_compression(b, s, window)
+    assert got == want or (math.isinf(got) and math.isinf(want))
+
+
+def test_memory_stays_flat_as_the_session_goes_on() -> None:
+    """The record leaves with each chunk (here to a sink that drops it): 20 s more of a session
+    adds no memory beyond noise (the old preallocated record held ~180 bytes a tick: 3.6 MB)."""
+
+    class Drop:
+        def write(self, chunk: object) -> None:
+            pass
+
+    op, to = _pair((Drop(), Drop()), codec="eds:50")
+    _run(op, to, range(0, 5000))
+    tracemalloc.start()
+    try:
+        _run(op, to, range(5000, 10000))
+        before = tracemalloc.get_traced_memory()[0]
+        _run(op, to, range(10000, 30000))
+        after = tracemalloc.get_traced_memory()[0]
+    finally:
+        tracemalloc.stop()
+    assert after - before < 150_000, after - before
+
+
+# --- streaming percentiles ---------------------------------------------------------------------
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(-1e3, 1e3, allow_nan=False), min_size=1, max_size=400))
+def test_quantiles_are_exact_until_binned_then_within_the_resolution(xs: list[float]) -> None:
+    exact = Quantiles(exact=10_000)
+    binned = Quantiles(exact=0, lo=1e-6, hi=1e4, rel=1e-3)
+    for x in xs:
+        exact.add(x)
+        binned.add(x)
+    qs = [0.0, 50.0, 99.0, 100.0]
+    assert exact.percentiles(qs) == [float(v) for v in np.percentile(xs, qs)]
+    # Binned: each percentile is the value of a sample's bin at the nearest rank (0.1 % wide).
+    srt = np.sort(xs)
+    for q, got in zip(qs, binned.percentiles(qs), strict=True):
+        near = srt[
+            max(0, math.ceil(q / 100 * (len(xs) - 1) - 1e-9) - 1) : math.ceil(q / 100 * (len(xs) - 1)) + 2
+        ]
+        assert any(abs(got - v) <= 1e-3 * abs(v) + 1e-6 for v in near), (q, got, near)
+    assert binned.max_abs == max(abs(x) for x in xs)
+
+
+# --- MCAP --------------------------------------------------------------------------------------
+def test_mcap_log_channels_counts_and_contents(tmp_path: Path) -> None:
+    """Both sides log to ROLE.mcap; read back with the mcap library, the file has the documented
+    channels (JSON, with a JSON schema each), one message per tick on each per-tick channel, and
+    its arrays are the in-memory record's, bit for bit."""
+    from mcap.reader import make_reader
+
+    ticks = 2500
+    logs = [
+        McapLog(tmp_path / f"{r}.mcap", r, wall0_ns=1_700_000_000 * 10**9)
+        for r in ("operator", "teleoperator")
+    ]
+    op, to = _pair((logs[0], logs[1]))
+    _run(op, to, range(ticks))
+    for log, port in zip(logs, (op, to), strict=True):
+        log.status("session", 0.0, {"role": log.role})
+        log.status("link", 1.0, {"t": 1.0, "link": port.observer.summary()})
+        log.event(1.0, "link_lost", "test")
+        summary = port.summary()
+        log.close(summary)
+        assert log.dropped_chunks == 0
+    ref_op, ref_to = _pair()
+    _run(ref_op, ref_to, range(ticks))
+    ref_op.finish()
+    assert isinstance(ref_op.sink, MemorySink)
+    want = ref_op.sink.arrays()
+
+    with (tmp_path / "operator.mcap").open("rb") as f:
+        reader = make_reader(f)
+        summary_rec = reader.get_summary()
+        assert summary_rec is not None and summary_rec.statistics is not None
+        topics = {c.topic: c for c in summary_rec.channels.values()}
+        assert set(topics) == {f"/operator/{n}" for n in TOPICS}
+        for ch in topics.values():
+            assert ch.message_encoding == "json"
+            assert summary_rec.schemas[ch.schema_id].encoding == "jsonschema"
+        counts = {
+            summary_rec.channels[i].topic: n for i, n in summary_rec.statistics.channel_message_counts.items()
+        }
+    for name in PER_TICK_TOPICS:
+        assert counts[f"/operator/{name}"] == ticks, name
+    for name in ("events", "summary", "session", "link"):
+        assert counts[f"/operator/{name}"] == 1, name
+    summary, arrays = read_log(tmp_path / "operator.mcap")
+    assert summary["sent"]["packets"] == ticks
+    for name in ("v", "f", "wave_out", "wave_in", "energy_sent", "energy_played", "tx_wire", "rx_wire"):
+        np.testing.assert_array_equal(arrays[name], want[name], err_msg=name)
+    np.testing.assert_array_equal(arrays["tx_seq"], want["tx_seq"])
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+async def _live_client(port: int, want: int) -> tuple[set[str], list[dict[str, Any]]]:
+    """A Foxglove WebSocket client: subscribe to every advertised channel, collect messages."""
+    import websockets
+
+    topics: set[str] = set()
+    got: list[dict[str, Any]] = []
+    async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"]) as ws:  # type: ignore[list-item]
+        subs: dict[int, str] = {}
+        deadline = time.monotonic() + 10
+        while len(got) < want and time.monotonic() < deadline:
+            try:
+                frame = await asyncio.wait_for(ws.recv(), timeout=1.0)
+            except TimeoutError:
+                continue
+            if isinstance(frame, str):
+                msg = json.loads(frame)
+                if msg.get("op") == "advertise":
+                    new = []
+                    for ch in msg["channels"]:
+                        topics.add(ch["topic"])
+                        sid = len(subs) + 1
+                        subs[sid] = ch["topic"]
+                        new.append({"id": sid, "channelId": ch["id"]})
+                    await ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+            elif frame[0] == 1:  # message data: opcode, subscription id u32, log time u64, payload
+                sid, _log_time = struct.unpack_from("<IQ", frame, 1)
+                got.append({"topic": subs[sid], **json.loads(frame[13:])})
+    return topics, got
+
+
+def test_live_view_serves_the_channels_over_foxglove_websocket() -> None:
+    port = _free_port()
+    log = McapLog(None, "operator", wall0_ns=0, live_port=port)
+    try:
+        assert log.live_port == port  # the writer process is up and serving
+
+        async def feed_and_listen() -> tuple[set[str], list[dict[str, Any]]]:
+            client = asyncio.create_task(_live_client(port, want=30))
+            for k in range(0, 4000, 20):
+                await asyncio.sleep(0.005)
+                msgs = {"signals": {"k": k, "t": k * 1e-3, "v": [0.1, 0.2], "f": [1.0, 2.0]}}
+                log.live(k, k * 1e-3, msgs)
+                if client.done():
+                    break
+            return await client
+
+        topics, got = asyncio.run(feed_and_listen())
+    finally:
+        log.close()
+    assert topics == {f"/operator/{n}" for n in TOPICS}
+    signals = [m for m in got if m["topic"] == "/operator/signals"]
+    assert len(signals) >= 10
+    assert all(m["v"] == [0.1, 0.2] and m["k"] % 20 == 0 for m in signals)
+
+
+# --- real processes ----------------------------------------------------------------------------
+@pytest.mark.integration
+def test_run_until_stopped_reports_and_both_exit_cleanly(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    p = subprocess.Popen(
+        [*TELEOP, "run", "--out", str(out), "--no-plots", "--no-sim", "--no-live", "--duration", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    time.sleep(3.0)
+    os.killpg(p.pid, signal.SIGINT)  # Ctrl-C: the way an open session ends
+    _, stderr = p.communicate(timeout=30)
+    assert p.returncode == 0, stderr
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["until_stopped"] is True and rep["exit_codes"] == {"teleoperator": 0, "operator": 0}
+    # What the process adds to its summary after the loop is in the MCAP file too.
+    assert rep["security"]["auth"] == "blake2s-128" and rep["handshake"]["rtt_us"] > 0
+    for role, pr in rep["processes"].items():
+        assert pr["completed"] is True, role
+        assert pr["loop"]["ticks"] > 500, role
+        assert pr["event_loop"] in ("uvloop", "asyncio"), role
+    assert 0.5 < rep["duration_s"] < 30
+    for role in ("operator", "teleoperator"):
+        summary, arrays = read_log(out / "logs" / f"{role}.mcap")
+        assert summary["params"]["duration"] == 0
+        ran = int(np.count_nonzero(~np.isnan(arrays["play_time_s"])))
+        assert ran == summary["loop"]["ticks"], role  # every tick run is in the log
+
+
+@pytest.mark.integration
+def test_the_peers_bye_ends_an_open_session(tmp_path: Path) -> None:
+    """SIGTERM to the operator alone: it says bye, and the teleoperator ends its loop, writes its
+    log and exits 0 by itself; `teleop report` then builds the report from the two MCAP files."""
+    port = _free_port()
+    logs = tmp_path / "logs"
+    common = ["--log", str(logs), "--insecure", "--no-rt", "--quiet"]
+    to = subprocess.Popen([*TELEOP, "teleoperator", "--listen", f"127.0.0.1:{port}", *common], text=True)
+    try:
+        time.sleep(0.5)
+        op = subprocess.Popen(
+            [*TELEOP, "operator", "--peer", f"127.0.0.1:{port}", "--duration", "0", *common], text=True
+        )
+        time.sleep(3.0)
+        op.send_signal(signal.SIGTERM)
+        assert op.wait(timeout=20) == 0
+        assert to.wait(timeout=20) == 0
+    finally:
+        for proc in (to,):
+            if proc.poll() is None:
+                proc.kill()
+    t = json.loads((logs / "teleoperator.json").read_text())
+    assert t["peer_said_bye"] is True and t["completed"] is True and t["stopped_by_signal"] is None
+    r = subprocess.run(
+        [*TELEOP, "report", str(logs), "--out", str(tmp_path / "rep"), "--no-plots", "--no-sim"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 0, r.stderr
+    rep = json.loads((tmp_path / "rep" / "report.json").read_text())
+    assert rep["until_stopped"] is True and rep["transparency"]["ticks_compared"] > 1000

@@ -1,0 +1,528 @@
+"""Streamed logs in MCAP, and the live view: the real-time runner's sink for the port's record.
+
+Why MCAP: it is what the field records into and replays (ROS 2 bags, Foxglove, PlotJuggler), it is
+chunked and indexed, so a file written as a session runs is readable at any length, and a crash loses
+at most the chunk in flight.  Why foxglove-sdk's writer (PyPI ``foxglove-sdk``): one library writes
+the file and serves the same channels live over the Foxglove WebSocket protocol (``--live-view``);
+its Rust core compresses (zstd) and writes.  Tests and ``teleop report`` read files with the
+reference ``mcap`` library.
+
+**Who pays.** The port hands a sealed chunk (1000 ticks) to :meth:`McapLog.write`, which only puts
+it on a bounded queue (an item that finds the queue full is dropped; dropped chunks are counted).
+A sender thread pickles each item into the stdin of a writer *process* (``python -m
+transport.mcaplog``), which turns chunks into messages, compresses and writes them, and serves the
+live view.  A process, not a thread: measured with a writer thread in the same process
+(bench/soak.py, first version), the loop's p99 period error was about 2x that without the log, since
+encoding 5000 messages a second, and foxglove's writer, hold the interpreter lock the loop needs
+when it wakes.  The writer ignores SIGINT/SIGTERM (Ctrl-C reaches the whole process group) and
+finishes the file when told, or when its stdin closes because the process it serves died.
+
+**Channels** (``ROLE`` is ``operator`` or ``teleoperator``; JSON messages with a JSON schema each,
+log time = the session's wall-clock start + the tick's time on the session clock):
+
+==========================  =========  ==================================================================
+topic                       rate       fields
+==========================  =========  ==================================================================
+``/ROLE/signals``           each tick  ``k``, ``t`` (s, session clock), ``v``, ``f`` (per DoF)
+``/ROLE/waves``             each tick  ``k``, ``t``, ``wave_out``, ``wave_in`` (per DoF, sqrt(W))
+``/ROLE/energy``            each tick  ``k``, ``t``, ``sent``, ``played``, ``margin_observed`` (the
+                                       watchdog's margin), ``played_epoch``, ``peer_epoch`` (J)
+``/ROLE/wire``              each tick  ``k``, ``t``, ``send_time``, ``tx_seq``, ``rx_seq``, bytes:
+                                       ``produced_payload``, ``produced_packet``, ``tx_wire``,
+                                       ``tx_payload``, ``tx_baseline_wire``, ``tx_baseline_payload``,
+                                       ``rx_wire``, ``rx_payload``
+``/ROLE/loop``              each tick  ``k``, ``t``, ``lateness_ns`` (tick start minus its deadline)
+``/ROLE/link``              1 Hz       ``t``, ``link`` (the incoming link so far: received,
+                                       ``loss_so_far``, ``delay_ms_mean``, duplicates,
+                                       reordered), ``sent`` and
+                                       ``received`` (counters and compression so far),
+                                       ``watchdog`` (violations, controller, dissipated energy)
+``/ROLE/events``            as they    ``t``, ``event`` (``session_start``, ``link_lost``,
+                            happen     ``link_restored``, ``peer_restarted``, ``auth_rejected``,
+                                       ``replayed``, ``overrun``, ``session_end``), ``detail``
+``/ROLE/session``           once       the session's parameters, role, pid, start time
+``/ROLE/summary``           once       the process's summary (what ``ROLE.json`` holds)
+==========================  =========  ==================================================================
+
+The live view serves the same topics, per-tick ones decimated to every ``live_every``-th tick (50 Hz
+by default), sent from the loop through the same queue as they happen (not a chunk later).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import pickle
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+from array import array
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from teleop.port import Chunk, concat_chunks
+
+__all__ = ["PER_TICK_TOPICS", "TOPICS", "McapLog", "read_log"]
+
+PER_TICK_TOPICS = ("signals", "waves", "energy", "wire", "loop")
+TOPICS = (*PER_TICK_TOPICS, "link", "events", "session", "summary")
+NICE = 10  # the writer process's niceness
+QUEUE_ITEMS = 256  # items (chunks are 1 s each at 1 kHz, live messages 50 a second) in flight
+
+_NUM = {"type": "number"}
+_INT = {"type": "integer"}
+_VEC = {"type": "array", "items": {"type": "number"}}
+
+
+def _schema(title: str, **props: Any) -> dict[str, Any]:
+    return {"title": title, "type": "object", "properties": props}
+
+
+SCHEMAS: dict[str, dict[str, Any]] = {
+    "signals": _schema("teleop.Signals", k=_INT, t=_NUM, v=_VEC, f=_VEC),
+    "waves": _schema("teleop.Waves", k=_INT, t=_NUM, wave_out=_VEC, wave_in=_VEC),
+    "energy": _schema(
+        "teleop.Energy",
+        k=_INT,
+        t=_NUM,
+        sent=_NUM,
+        played=_NUM,
+        margin_observed=_NUM,
+        played_epoch=_NUM,
+        peer_epoch=_INT,
+    ),
+    "wire": _schema(
+        "teleop.Wire",
+        k=_INT,
+        t=_NUM,
+        send_time=_NUM,
+        tx_seq=_INT,
+        rx_seq=_INT,
+        produced_payload=_NUM,
+        produced_packet=_NUM,
+        tx_wire=_NUM,
+        tx_payload=_NUM,
+        tx_baseline_wire=_NUM,
+        tx_baseline_payload=_NUM,
+        rx_wire=_NUM,
+        rx_payload=_NUM,
+    ),
+    "loop": _schema("teleop.Loop", k=_INT, t=_NUM, lateness_ns=_INT),
+    "link": _schema(
+        "teleop.Link",
+        t=_NUM,
+        link={"type": "object"},
+        sent={"type": "object"},
+        received={"type": "object"},
+        watchdog={"type": "object"},
+    ),
+    "events": _schema("teleop.Event", t=_NUM, event={"type": "string"}, detail={"type": "string"}),
+    "session": _schema("teleop.Session", params={"type": "object"}),
+    "summary": _schema("teleop.Summary"),
+}
+
+#: /ROLE/wire fields and the chunk arrays they come from.
+_WIRE = {
+    "send_time": "send_time_s", "tx_seq": "tx_seq", "rx_seq": "rx_seq",
+    "produced_payload": "produced_payload", "produced_packet": "produced_packet",
+    "tx_wire": "tx_wire", "tx_payload": "tx_payload", "tx_baseline_wire": "tx_baseline_wire",
+    "tx_baseline_payload": "tx_baseline_payload", "rx_wire": "rx_wire", "rx_payload": "rx_payload",
+}  # fmt: skip
+_ENERGY = {
+    "sent": "energy_sent", "played": "energy_played", "margin_observed": "energy_margin_observed",
+    "played_epoch": "energy_played_epoch", "peer_epoch": "peer_epoch",
+}  # fmt: skip
+
+
+def _num(x: Any) -> Any:
+    """JSON has no NaN: a missing value (a sample not yet sent) is null."""
+    return None if isinstance(x, float) and math.isnan(x) else x
+
+
+def tick_messages(a: dict[str, npt.NDArray[Any]], r: int, k: int) -> dict[str, dict[str, Any]]:
+    """The per-tick messages of row ``r`` (tick ``k``) of a chunk's arrays, by topic."""
+    t = float(a["play_time_s"][r])
+    return {
+        "signals": {"k": k, "t": t, "v": a["v"][r].tolist(), "f": a["f"][r].tolist()},
+        "waves": {"k": k, "t": t, "wave_out": a["wave_out"][r].tolist(), "wave_in": a["wave_in"][r].tolist()},
+        "energy": {"k": k, "t": t, **{n: _num(a[s][r].item()) for n, s in _ENERGY.items()}},
+        "wire": {"k": k, "t": t, **{n: _num(a[s][r].item()) for n, s in _WIRE.items()}},
+        "loop": {"k": k, "t": t, "lateness_ns": int(a["lateness_ns"][r])},
+    }
+
+
+def _template(fields: dict[str, str]) -> str:
+    """A ``%`` template of a flat per-tick message: ``k``, ``t``, then ``fields`` (ints as ints)."""
+    parts = ['"k":%d', '"t":%r']
+    for name, src in fields.items():
+        whole = src.endswith("seq") or src == "peer_epoch"
+        parts.append(f'"{name}":%{"d" if whole else "r"}')
+    return "{" + ",".join(parts) + "}"
+
+
+class _Writer:
+    """The writer process's side: foxglove contexts, channels, the MCAP file and the live server."""
+
+    def __init__(
+        self, path: str | None, role: str, wall0_ns: int, live_port: int | None, live_host: str
+    ) -> None:
+        import foxglove
+        from foxglove.mcap import MCAPCompression, MCAPWriteOptions
+
+        self.role = role
+        self.wall0_ns = wall0_ns
+        self.messages = 0
+        self._ctx = foxglove.Context() if path is not None else None
+        self._live_ctx = foxglove.Context() if live_port is not None else None
+        self._file = None
+        if self._ctx is not None and path is not None:
+            opts = MCAPWriteOptions(compression=MCAPCompression.Zstd)
+            self._file = foxglove.open_mcap(
+                path, allow_overwrite=True, context=self._ctx, writer_options=opts
+            )
+        self.server = None
+        if self._live_ctx is not None:
+            self.server = foxglove.start_server(
+                name=f"teleop {role}", host=live_host, port=live_port, context=self._live_ctx
+            )
+        self._ch = {n: self._channel(self._ctx, n) for n in TOPICS} if self._ctx else {}
+        self._live = {n: self._channel(self._live_ctx, n) for n in TOPICS} if self._live_ctx else {}
+
+    def _channel(self, ctx: Any, name: str) -> Any:
+        import foxglove
+
+        return foxglove.Channel(f"/{self.role}/{name}", schema=SCHEMAS[name], context=ctx)
+
+    @property
+    def live_port(self) -> int | None:
+        return None if self.server is None else int(self.server.port)
+
+    def _log(self, chans: dict[str, Any], name: str, t: float, msg: dict[str, Any]) -> None:
+        log_time = self.wall0_ns + (round(t * 1e9) if math.isfinite(t) else 0)
+        chans[name].log(json.dumps(msg).encode(), log_time=log_time)
+
+    def handle(self, kind: str, item: Any) -> None:
+        if kind == "chunk":
+            self._chunk(item)
+        elif kind == "live":
+            if self._live and self._live["signals"].has_sinks():  # nobody watching: nothing encoded
+                t, msgs = item
+                for name, m in msgs.items():
+                    self._log(self._live, name, t, m)
+        else:
+            name, t, msg = item
+            for chans in (self._ch, self._live):
+                if chans:
+                    self._log(chans, name, t, msg)
+            self.messages += bool(self._ch)
+
+    def _chunk(self, c: Chunk) -> None:
+        """A chunk's per-tick messages, formatted a topic at a time from the arrays (``%`` with a
+        template is a third of what a dict and ``json.dumps`` cost; ``repr`` of a float is what
+        ``json.dumps`` writes); a row holding a NaN or an infinity (JSON has neither) takes the dict path."""
+        if not self._ch:
+            return
+        a = c.arrays()
+        rows = c.ran()
+        if rows.size == 0:
+            return
+        ks = (c.k0 + rows).astype(np.float64)
+        t = a["play_time_s"][rows]
+        log_times = (self.wall0_ns + np.round(t * 1e9)).astype(np.int64).tolist()
+        dof = a["v"].shape[1]
+        vec = "[" + ",".join(["%r"] * dof) + "]"
+        for name, cols, tmpl in (
+            ("signals", ("v", "f"), '{"k":%d,"t":%r,"v":' + vec + ',"f":' + vec + "}"),
+            (
+                "waves",
+                ("wave_out", "wave_in"),
+                '{"k":%d,"t":%r,"wave_out":' + vec + ',"wave_in":' + vec + "}",
+            ),
+            ("energy", tuple(_ENERGY.values()), _template(_ENERGY)),
+            ("wire", tuple(_WIRE.values()), _template(_WIRE)),
+            ("loop", ("lateness_ns",), '{"k":%d,"t":%r,"lateness_ns":%d}'),
+        ):
+            m = np.column_stack([ks, t, *(a[col][rows].reshape(len(rows), -1) for col in cols)])
+            bad = ~np.isfinite(m).all(axis=1)
+            log = self._ch[name].log
+            for i, (row, lt) in enumerate(zip(m.tolist(), log_times, strict=True)):
+                if bad[i]:
+                    r = int(rows[i])
+                    data = json.dumps(tick_messages(a, r, c.k0 + r)[name]).encode()
+                else:
+                    data = (tmpl % tuple(row)).encode()
+                log(data, log_time=lt)
+        self.messages += 5 * len(rows)
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+        if self.server is not None:
+            self.server.stop()
+
+
+def spawn_writer() -> subprocess.Popen[bytes]:
+    """A writer process, started ahead of its session: it imports (numpy, foxglove: about a second
+    of CPU) while the handshake waits, not while the 1 kHz loop starts, then waits for its
+    :class:`McapLog`.  Closing its stdin unused makes it exit."""
+    # The writer ignores SIGINT/SIGTERM (a terminal's Ctrl-C reaches the whole group): it ends when
+    # told, or when its stdin closes (its parent died), finishing the file either way.
+    return subprocess.Popen(
+        [sys.executable, "-m", "transport.mcaplog"], stdin=subprocess.PIPE, stdout=subprocess.PIPE
+    )
+
+
+class McapLog:
+    """``ROLE.mcap`` written as the session runs by a writer process, and optionally the live view.
+
+    ``write(chunk)`` is the port's sink; ``live``/``event``/``status`` are called by the runner;
+    ``close(summary)`` drains the queue, logs the summary, finishes the file and waits for the
+    writer.  From the loop each call is a ``put_nowait`` on a bounded queue; a sender thread
+    pickles the items into the writer's stdin (a blocking write releases the GIL), and the writer
+    process (``python -m transport.mcaplog``) does all the encoding, compression and writing under
+    its own interpreter lock, so none of it can hold the loop's."""
+
+    def __init__(
+        self,
+        path: Path | None,
+        role: str,
+        wall0_ns: int,
+        live_port: int | None = None,
+        live_every: int = 20,
+        live_host: str = "127.0.0.1",
+        process: subprocess.Popen[bytes] | None = None,
+    ) -> None:
+        """``process``: a writer from :func:`spawn_writer` (default: one started now)."""
+        self.role = role
+        self.path = path
+        self.live_every = live_every
+        self.dropped_chunks = 0
+        self.messages = 0
+        self.error: str | None = None  # the writer could not open the file or the view
+        self._live_port: int | None = None
+        self._wants_live = live_port is not None
+        cfg = {
+            "path": None if path is None else str(path),
+            "role": role,
+            "wall0_ns": wall0_ns,
+            "live_port": live_port,
+            "live_host": live_host,
+        }
+        self._proc = process if process is not None else spawn_writer()
+        self._q: queue.Queue[tuple[str, Any]] = queue.Queue(QUEUE_ITEMS)
+        self._q.put(("open", cfg))
+        self._thread = threading.Thread(target=self._send, name=f"teleop-{role}-log", daemon=True)
+        self._thread.start()
+        self._closed = False
+
+    @property
+    def live_port(self) -> int | None:
+        """The live view's port (waits for the writer to say, the first time)."""
+        if self._wants_live and self._live_port is None and self._proc.stdout is not None:
+            line = self._proc.stdout.readline()
+            if line:
+                d = json.loads(line)
+                self._live_port, self.error = d.get("live_port"), d.get("error", self.error)
+        return self._live_port
+
+    # --- called from the loop: O(1), never blocks ----------------------------------------
+    def write(self, chunk: Chunk) -> None:
+        """The port's sink: a sealed chunk, queued for the writer."""
+        self._put(("chunk", chunk))
+
+    def live(self, k: int, t: float, msgs: dict[str, dict[str, Any]]) -> None:
+        """Decimated per-tick messages for the live view."""
+        if self._wants_live:
+            self._put(("live", (t, msgs)))
+
+    def event(self, t: float, event: str, detail: str = "") -> None:
+        self._put(("msg", ("events", t, {"t": t, "event": event, "detail": detail})))
+
+    def status(self, name: str, t: float, msg: dict[str, Any]) -> None:
+        """A low-rate message (``link`` once a second, ``session`` once) to the file and the view."""
+        self._put(("msg", (name, t, msg)))
+
+    def _put(self, item: tuple[str, Any]) -> None:
+        try:
+            self._q.put_nowait(item)
+        except queue.Full:
+            self.dropped_chunks += item[0] == "chunk"
+
+    # --- the sender thread ---------------------------------------------------------------
+    def _send(self) -> None:
+        out = self._proc.stdin
+        assert out is not None
+        while True:
+            item = self._q.get()
+            data = pickle.dumps(item, protocol=pickle.HIGHEST_PROTOCOL)
+            try:
+                out.write(len(data).to_bytes(4, "little") + data)
+                out.flush()
+            except (BrokenPipeError, OSError):  # the writer died: the loop goes on without a log
+                return
+            if item[0] == "stop":
+                return
+
+    def close(self, summary: dict[str, Any] | None = None, timeout: float = 120.0) -> None:
+        """Write what is queued and the summary, finish the file, wait for the writer."""
+        if self._closed:
+            return
+        self._closed = True
+        if summary is not None:
+            self._q.put(("msg", ("summary", float(summary.get("end_t", 0.0)), summary)))
+        self._q.put(("stop", None))
+        self._thread.join(timeout)
+        try:  # closes the writer's stdin (end of input), then waits for it
+            out, _ = self._proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            out, _ = self._proc.communicate()
+        for line in out.decode(errors="replace").splitlines():
+            with contextlib.suppress(ValueError):
+                d = json.loads(line)
+                self.error = d.get("error", self.error)
+                self.messages = int(d.get("messages", self.messages))
+                if d.get("live_port"):
+                    self._live_port = int(d["live_port"])
+
+
+def _read(stdin: Any) -> tuple[str, Any] | None:
+    """One framed item from the parent, or None at the end of input."""
+    hdr = stdin.read(4)
+    if len(hdr) < 4:
+        return None
+    kind, item = pickle.loads(stdin.read(int.from_bytes(hdr, "little")))
+    return str(kind), item
+
+
+def _writer_main() -> None:
+    """The writer process: framed pickles on stdin (from our own parent) to the file and the view;
+    the first item says what to open."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    # Yield the CPU to the 1 kHz loops: on a busy host the writer, not the loop, should wait (it
+    # has a queue; the loop has a deadline).  A real-time loop (SCHED_FIFO) preempts it anyway.
+    with contextlib.suppress(OSError):
+        os.nice(NICE)
+    stdin = sys.stdin.buffer
+    first = _read(stdin)
+    if first is None or first[0] != "open":  # never used (its session did not start)
+        return
+    cfg = first[1]
+    try:
+        w = _Writer(cfg["path"], cfg["role"], cfg["wall0_ns"], cfg["live_port"], cfg["live_host"])
+    except Exception as e:  # a file that cannot be made, a port taken: say so; the session goes on
+        print(f"teleop {cfg['role']}: error: no log and no live view: {e}", file=sys.stderr, flush=True)
+        print(json.dumps({"error": str(e)}), flush=True)
+        while _read(stdin) is not None:  # let the parent's sender finish
+            pass
+        return
+    if w.server is not None:
+        print(json.dumps({"live_port": w.live_port}), flush=True)
+        print(
+            f"teleop {cfg['role']}: live view on ws://{cfg['live_host']}:{w.live_port}",
+            file=sys.stderr,
+            flush=True,
+        )
+    port = w.live_port  # (the server says 0 once stopped)
+    try:
+        while (got := _read(stdin)) is not None and got[0] != "stop":
+            w.handle(*got)
+    finally:
+        w.close()
+    print(json.dumps({"messages": w.messages, "live_port": port}), flush=True)
+
+
+# --------------------------------------------------------------------------------------------
+# reading (teleop report, tests)
+# --------------------------------------------------------------------------------------------
+def iter_messages(path: Path, topics: list[str] | None = None) -> Iterator[tuple[str, dict[str, Any]]]:
+    """(topic, decoded JSON message) of an MCAP file, in log-time order."""
+    from mcap.reader import make_reader
+
+    with path.open("rb") as f:
+        for _, channel, message in make_reader(f).iter_messages(topics=topics):
+            yield channel.topic, json.loads(message.data)
+
+
+def read_log(path: Path) -> tuple[dict[str, Any], dict[str, npt.NDArray[Any]]]:
+    """``ROLE.mcap`` as (summary, whole-session per-tick arrays by the record's names, from tick 0).
+
+    Columns are gathered as the messages stream by (8 bytes a value, no message kept), so an hour's
+    log reads in a few hundred MB.  ``lateness_ns`` holds one entry per tick run, in order (as the
+    loop's record did)."""
+    summary: dict[str, Any] = {}
+    cols: dict[str, dict[str, array[float]]] = {n: {} for n in PER_TICK_TOPICS}
+    for topic, m in iter_messages(path):
+        name = topic.rsplit("/", 1)[-1]
+        c = cols.get(name)
+        if c is None:
+            if name == "summary":
+                summary = m
+            continue
+        for key, x in m.items():
+            col = c.get(key)
+            if col is None:
+                col = c[key] = array("d")
+            if isinstance(x, list):
+                col.extend(x)
+            else:
+                col.append(math.nan if x is None else x)
+    if not cols["signals"].get("k"):
+        return summary, {}
+    ks = np.asarray(cols["signals"]["k"], dtype=np.int64)
+    part: dict[str, npt.NDArray[Any]] = {"play_time_s": np.asarray(cols["signals"]["t"])}
+    dof = len(cols["signals"]["v"]) // len(ks)
+    for topic, fields, names in (
+        ("signals", ("v", "f"), ("v", "f")),
+        ("waves", ("wave_out", "wave_in"), ("wave_out", "wave_in")),
+        ("energy", tuple(_ENERGY), tuple(_ENERGY.values())),
+        ("wire", tuple(_WIRE), tuple(_WIRE.values())),
+        ("loop", ("lateness_ns",), ("lateness_ns",)),
+    ):
+        c = cols[topic]
+        at = np.searchsorted(np.asarray(c.get("k", array("d")), dtype=np.int64), ks)
+        for field, name in zip(fields, names, strict=True):
+            v = np.asarray(c.get(field, array("d")), dtype=np.float64)
+            if field in ("v", "f", "wave_out", "wave_in"):
+                v = v.reshape(-1, dof)
+            if len(v) != len(ks):  # a topic short of some ticks (a log cut off): align by tick
+                ok = at < len(v)
+                full = np.full((len(ks), *v.shape[1:]), math.nan)
+                full[ok] = v[at[ok]]
+                v = full
+            if name.endswith("seq") or name in ("peer_epoch", "lateness_ns"):
+                v = np.nan_to_num(v, nan=-1 if name.endswith("seq") else 0).astype(np.int64)
+            part[name] = v
+    # Scatter the ticks run into whole-session arrays (gaps: not run).
+    k0 = int(ks.min())
+    n = int(ks.max()) - k0 + 1
+    dense: dict[str, npt.NDArray[Any]] = {}
+    for name, v in part.items():
+        fill: Any = -1 if name.endswith("seq") else (np.nan if v.dtype.kind == "f" else 0)
+        if name.startswith(("tx_", "rx_", "produced")) and not name.endswith("seq"):
+            fill = 0.0
+        d = np.full((n, *v.shape[1:]), fill, dtype=v.dtype)
+        d[ks - k0] = v
+        dense[name] = d
+    out = concat_chunks([k0], [dense])
+    out["lateness_ns"] = part["lateness_ns"]
+    return summary, out
+
+
+def wall_clock_of(t_common_ns: int) -> int:
+    """Wall-clock ns of a monotonic-clock instant (the session's tick 0), for MCAP log times."""
+    return time.time_ns() - (time.monotonic_ns() - t_common_ns)
+
+
+if __name__ == "__main__":
+    _writer_main()

@@ -1,0 +1,110 @@
+"""Percentiles of a stream in bounded memory: loop timing and one-way delay of a session of any length.
+
+A session without a fixed end cannot keep every sample (8 bytes a tick is 29 MB an hour).
+:class:`Quantiles` keeps the first ``exact`` samples as they are, so short sessions (every test, most
+runs) report exact percentiles; past that it moves to a histogram of log-spaced bins of ``|x|`` per
+sign, whose relative resolution is ``rel`` (0.1 %: a p99 of 123.4 us reads as 123.4 +- 0.06 us).
+Memory is then fixed (about 2 x 23k counters), whatever the session's length.
+"""
+
+from __future__ import annotations
+
+import math
+from array import array
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["Quantiles"]
+
+Array = npt.NDArray[np.float64]
+
+
+class Quantiles:
+    """Streaming percentiles: exact up to ``exact`` samples, then binned (``lo`` .. ``hi`` in |x|)."""
+
+    __slots__ = (
+        "_bins",
+        "_exact",
+        "_inv_log",
+        "_lo",
+        "_neg",
+        "_pos",
+        "_samples",
+        "count",
+        "max_abs",
+        "total",
+    )
+
+    def __init__(self, exact: int = 1 << 16, lo: float = 1e-9, hi: float = 1e3, rel: float = 1e-3) -> None:
+        if not 0 < lo < hi or rel <= 0 or exact < 0:
+            raise ValueError("need 0 < lo < hi, rel > 0 and exact >= 0")
+        self._exact = exact
+        self._lo = lo
+        self._inv_log = 1.0 / math.log1p(rel)
+        self._bins = math.ceil(math.log(hi / lo) * self._inv_log) + 2  # 0: below lo; last: above hi
+        self._samples: array[float] | None = array("d")  # 8 bytes a sample until binned
+        self._pos: Array | None = None
+        self._neg: Array | None = None
+        self.count = 0
+        self.total = 0.0
+        self.max_abs = 0.0
+
+    def add(self, x: float) -> None:
+        """One sample (O(1), no allocation once binned)."""
+        self.count += 1
+        self.total += x
+        a = abs(x)
+        if a > self.max_abs:
+            self.max_abs = a
+        s = self._samples
+        if s is not None:
+            s.append(x)
+            if len(s) > self._exact:
+                self._to_bins()
+            return
+        self._bin(x)
+
+    def _bin(self, x: float) -> None:
+        a = abs(x)
+        i = 0 if a < self._lo else min(self._bins - 1, 1 + int(math.log(a / self._lo) * self._inv_log))
+        h = self._pos if x >= 0 else self._neg
+        assert h is not None
+        h[i] += 1
+
+    def _to_bins(self) -> None:
+        s, self._samples = self._samples or array("d"), None
+        self._pos = np.zeros(self._bins)
+        self._neg = np.zeros(self._bins)
+        for x in s:
+            self._bin(x)
+
+    def _centers(self) -> Array:
+        """A value for each bin: 0 below ``lo``, else the bin's geometric middle."""
+        i = np.arange(self._bins, dtype=np.float64)
+        c = self._lo * np.exp((i - 0.5) / self._inv_log)
+        c[0] = 0.0
+        return c
+
+    def percentiles(self, qs: list[float], absolute: bool = False) -> list[float]:
+        """The ``qs`` percentiles (0..100) of the samples (of their absolute values with ``absolute``);
+        exact while unbinned (numpy's linear interpolation), else the bin's value (nearest rank)."""
+        if self.count == 0:
+            return [0.0] * len(qs)
+        if self._samples is not None:
+            a = np.asarray(self._samples, dtype=np.float64)
+            return [float(v) for v in np.percentile(np.abs(a) if absolute else a, qs)]
+        assert self._pos is not None and self._neg is not None
+        c = self._centers()
+        if absolute:
+            values, counts = c, self._pos + self._neg
+        else:
+            values = np.concatenate([-c[::-1], c])
+            counts = np.concatenate([self._neg[::-1], self._pos])
+        cum = np.cumsum(counts)
+        out = []
+        for q in qs:
+            rank = q / 100.0 * (self.count - 1)
+            i = int(np.searchsorted(cum, rank, side="right"))
+            out.append(float(values[min(i, len(values) - 1)]))
+        return out
