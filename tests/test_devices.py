@@ -161,7 +161,13 @@ def test_run_passes_each_device_to_its_own_side_only() -> None:
     from teleop.cli.run import RunKey, build_commands
 
     args = argparse.Namespace(
-        transport="udp", port=7999, no_live=True, connect_timeout=5.0, no_rt=True, asyncio=False
+        transport="udp",
+        port=7999,
+        no_live=True,
+        connect_timeout=5.0,
+        no_rt=True,
+        asyncio=False,
+        live_view=None,
     )
     args.robot, args.hsi = "mujoco", "step"
     params = teleop.cli.settings.session_params(

@@ -144,9 +144,16 @@ def test_report_contract_and_logs(tmp_path: Path) -> None:
     # same packets and bytes in both directions (issue 9).
     from teleop.port import WIRE_KEYS
 
-    for d in ("forward", "backward"):
+    for d, sender in (("forward", "operator"), ("backward", "teleoperator")):
         assert tuple(rep["wire"][d]) == tuple(rep["sim_wire"][d]) == WIRE_KEYS
-        for k in ("packets", "payload_bytes", "wire_bytes", "baseline_wire_bytes", "received_packets"):
+        # The same packets; the same bytes too unless a host stall made the real run differ from
+        # the simulation's schedule: skipped ticks, or a playout target (which sets the
+        # teleoperator's send phase, hence its ticks' msgpack sizes) that rose above its floor.
+        targets = rep["playout"]["forward"]["target_ms"]
+        same = rep["processes"][sender]["loop"]["skipped"] == 0 and targets["max"] == targets["p50"]
+        keys = ("packets", "payload_bytes", "received_packets")
+        keys += ("wire_bytes", "baseline_wire_bytes") if same else ()
+        for k in keys:
             assert rep["wire"][d][k] == rep["sim_wire"][d][k], (d, k)
 
 
