@@ -106,6 +106,7 @@ class PlayoutBuffer:
         # tick to its release, and the target d at each release; the last bin takes the rest.
         self.delay_hist = np.zeros(HIST_TICKS + 1, dtype=np.int64)
         self.target_hist = np.zeros(HIST_TICKS + 1, dtype=np.int64)
+        self.extra_hist = np.zeros(self.max_extra + 1, dtype=np.int64)
 
     @property
     def enabled(self) -> bool:
@@ -198,6 +199,7 @@ class PlayoutBuffer:
         self.stats.released += 1
         self.delay_hist[min(max(k - pkt.tick, 0), HIST_TICKS)] += 1
         self.target_hist[min(max(self.target() or 0, 0), HIST_TICKS)] += 1
+        self.extra_hist[min(self.extra, self.max_extra)] += 1
         return pkt
 
     def due(self, k: int) -> list[wire.Packet]:
@@ -241,5 +243,8 @@ class PlayoutBuffer:
             "extra_ms_final": self.extra * ms,
             "delay_ms": pct(self.delay_hist),
             "target_ms": pct(self.target_hist),
+            # The allowance above the lowest transit, at each release: what a simulation needs to
+            # play like this run (``teleop.report`` gives it the median as its floor).
+            "extra_ms": pct(self.extra_hist),
             **self.stats.__dict__,
         }

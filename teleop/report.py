@@ -102,6 +102,15 @@ def _passivity(receiver: dict[str, Any]) -> dict[str, Any]:
     return p
 
 
+def _settled_allowance(receiver: dict[str, Any], dt: float) -> int:
+    """Ticks of playout allowance a receiver used most (the median over its payloads; at least
+    the auto mode's floor): the floor of the simulation that compares with this run."""
+    pl = receiver.get("playout") or {}
+    floor = int(pl.get("auto_floor_ticks", 0))
+    p50 = (pl.get("extra_ms") or {}).get("p50")
+    return floor if p50 is None else max(floor, round(p50 * 1e-3 / dt))
+
+
 def _security(op: dict[str, Any], to: dict[str, Any]) -> dict[str, Any]:
     """``security``: how the datagrams were protected and what each receiver refused."""
     o, t = op.get("security", {}), to.get("security", {})
@@ -213,8 +222,9 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
                 link_timeout=p["link_timeout"],
                 rate_cap=p.get("rate_cap", 0.0),
                 playout=p.get("playout", "off"),
-                # The allowance the real runner's auto mode keeps, so the comparison is like for like.
-                playout_floor=(to.get("playout") or {}).get("auto_floor_ticks", 0),
+                # The allowance each real receiver's playout buffer settled on (its median), so the
+                # comparison is like for like: delay costs transparency through the wave loop.
+                playout_floor=(_settled_allowance(to, dt), _settled_allowance(op, dt)),
                 session=p["session"],  # its size on the wire counts in the byte figures
                 hsi=sim_devices["hsi"],
                 robot=sim_devices["robot"],

@@ -70,7 +70,9 @@ class SimConfig:
     link_timeout: float = 0.05  # s of silence before a side goes to its safe state
     rate_cap: float = 0.0  # bit/s per direction in any 100 ms window (teleop.ratecap); 0: none
     playout: str = "auto"  # receivers' playout buffer: off, auto or extra ms (teleop.playout)
-    playout_floor: int = 0  # ticks auto keeps at least (a real runner's; to compare with one)
+    # Ticks ``auto`` keeps at least, at the teleoperator (forward) and the operator (backward):
+    # what a real run's buffers settled on, to compare with one (teleop.report).
+    playout_floor: tuple[int, int] = (0, 0)
     hsi: str | None = None  # --hsi spec (teleop.devices); None: the scenario's human
     robot: str | None = None  # --robot spec; None: the scenario's environment
     variation: float = 0.0  # the human's seeded variation (teleop.models.ProtocolPlan); 0: scripted
@@ -178,7 +180,7 @@ def _ports(cfg: SimConfig) -> tuple[Port, Port, Codec]:
                 shim=shims[d],
                 peer_spec=peer_spec,
                 window_ticks=window,
-                playout_floor=cfg.playout_floor,
+                playout_floor=cfg.playout_floor[0 if role == "teleoperator" else 1],
             )
         )
     return ports[0], ports[1], ports[0].node.tx_codec

@@ -151,7 +151,7 @@ def test_report_contract_and_logs(tmp_path: Path) -> None:
         # teleoperator's send phase, hence its ticks' msgpack sizes) that rose above its floor.
         targets = rep["playout"]["forward"]["target_ms"]
         same = rep["processes"][sender]["loop"]["skipped"] == 0 and targets["max"] == targets["p50"]
-        keys = ("packets", "payload_bytes", "received_packets")
+        keys: tuple[str, ...] = ("packets", "payload_bytes", "received_packets")
         keys += ("wire_bytes", "baseline_wire_bytes") if same else ()
         for k in keys:
             assert rep["wire"][d][k] == rep["sim_wire"][d][k], (d, k)
