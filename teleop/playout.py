@@ -14,9 +14,12 @@ plus an *extra* allowance:
 
 * ``off``: no buffer; a payload goes to the decoder when it arrives (the behaviour before).
 * ``MS``: a fixed extra of ``MS`` milliseconds, rounded up to ticks.
-* ``auto``: the extra follows the observed lateness ``a - a_min``: the smallest allowance that
-  ``AUTO_QUANTILE`` of the last ``AUTO_WINDOW`` payloads met, never below ``auto_floor`` ticks.  It
-  rises at once when lateness grows and falls by one tick per ``DECREASE_EVERY`` ticks.
+* ``auto``: the extra follows the observed lateness ``a - a_min``: the smallest allowance that the
+  latest payload of every 100 ms of the last ``AUTO_WINDOW`` ticks met, but for the
+  ``OUTLIER_BUCKETS`` worst 100 ms (network jitter delays payloads all the time, so it is covered; a
+  host stall delays a burst of payloads once, and following it would add its delay to every payload
+  for seconds), never below ``auto_floor`` ticks.  It rises at once and falls by one tick per
+  ``DECREASE_EVERY`` ticks.
 
 On a constant-delay channel ``a`` never varies, so ``auto`` with no floor adds nothing and
 ``teleop sim`` gives the same bits as without a buffer.  A payload that arrives after its release
@@ -45,9 +48,10 @@ from . import wire
 MAX_EXTRA_MS = 500.0  # the largest allowance a user may ask for (and auto may reach)
 MAX_HELD = 4096  # packets the buffer holds at most; beyond it the oldest is released at once
 AUTO_WINDOW = 5000  # ticks: the auto target looks at the lateness of the payloads of the last 5 s
-AUTO_QUANTILE = 0.995
 LOW_QUANTILE = 0.05  # of the transits lie below a_min: early payloads, held a little longer
-AUTO_OUTLIERS = 2  # late payloads per window ignored whatever the quantile: one stall is no jitter
+AUTO_OUTLIERS = 2  # late payloads per window ignored whatever the quantile (the lowest transit's too)
+BUCKET = 100  # ticks: the auto allowance looks at the latest payload of each 100 ms ...
+OUTLIER_BUCKETS = 2  # ... and covers all but the 2 worst buckets of the window: a stall is no jitter
 DECREASE_EVERY = 1000  # ticks between one-tick decreases of the auto target
 FUTURE_LIMIT = 10_000  # ticks: a payload stamped further ahead than this is released at once
 HIST_TICKS = 4096  # bins of the delay histograms (transits beyond are counted in the last)
@@ -100,6 +104,7 @@ class PlayoutBuffer:
         self._a_min: int | None = None
         self._next_check = 0
         self._last_decrease = 0
+        self._buckets: deque[tuple[int, int]] = deque()  # (100-ms bucket, its latest payload's lateness)
         self._max_seen_tick = -1
         self.stats = PlayoutStats()
         # Histograms (flat memory, whatever the session's length): ticks from each payload's send
@@ -124,9 +129,6 @@ class PlayoutBuffer:
         a = self._a_min
         return None if a is None else a + self.extra
 
-    def _allowed(self) -> int:
-        return max(int((1.0 - AUTO_QUANTILE) * len(self._window)), AUTO_OUTLIERS)
-
     def _observe(self, a: int, k: int) -> None:
         b = min(max(a - TRANSIT_LO, 0), self._hist.size - 1)
         self._hist[b] += 1
@@ -135,6 +137,8 @@ class PlayoutBuffer:
             self._hist[self._window.popleft()[1]] -= 1
         if self._a_min is None:
             self._a_min = a
+        if self.mode == "auto":
+            self._note_bucket(k, max(a - self._a_min, 0))
         # The quantiles are looked at only when they may have moved: a payload below the lowest
         # transit or later than the allowance, or every CHECK_EVERY ticks.
         late = a - self._a_min > self.extra
@@ -144,13 +148,36 @@ class PlayoutBuffer:
         self._a_min = self._low_quantile(a)
         if self.mode != "auto":
             return
-        need = self._extra_quantile()
+        need = self._bucket_allowance()
         if need > self.extra:
             self.extra = need
             self._last_decrease = k
         elif need < self.extra and k - self._last_decrease >= DECREASE_EVERY:
             self.extra -= 1
             self._last_decrease = k
+
+    def _note_bucket(self, k: int, late: int) -> None:
+        """The latest payload of each BUCKET ticks of the window (auto mode)."""
+        b = k // BUCKET
+        if self._buckets and self._buckets[-1][0] == b:
+            if late > self._buckets[-1][1]:
+                self._buckets[-1] = (b, late)
+        else:
+            self._buckets.append((b, late))
+        while self._buckets[0][0] <= b - AUTO_WINDOW // BUCKET:
+            self._buckets.popleft()
+
+    def _bucket_allowance(self) -> int:
+        """The allowance that every 100 ms bucket of the window met but the OUTLIER_BUCKETS worst.
+
+        Jitter delays payloads in every bucket, so it is covered; a host stall delays a burst of
+        payloads in one or two buckets, and following it would add its delay to every payload for
+        seconds (it did: one 25 ms stall of a sender held `none`'s playout at 25 ms for a whole run).
+        """
+        lates = sorted((late for _, late in self._buckets), reverse=True)
+        # Until the window holds enough buckets to tell a stall from jitter, cover the worst seen.
+        e = lates[OUTLIER_BUCKETS] if len(lates) > 2 * OUTLIER_BUCKETS + 1 else lates[0]
+        return max(min(e, self.max_extra), self.auto_floor)
 
     def _low_quantile(self, a: int) -> int:
         """The transit LOW_QUANTILE of the recent payloads undercut: the lowest, but for the few a
@@ -160,14 +187,6 @@ class PlayoutBuffer:
             return min(a, self._a_min if self._a_min is not None else a)
         below = np.cumsum(self._hist)
         return int(np.searchsorted(below, allowed, side="right")) + TRANSIT_LO
-
-    def _extra_quantile(self) -> int:
-        """The smallest allowance above a_min that all but the allowed few recent payloads met."""
-        assert self._a_min is not None
-        above = np.cumsum(self._hist[::-1])  # above[i]: payloads in the top i + 1 bins
-        i = int(np.searchsorted(above, self._allowed(), side="right"))
-        top = self._hist.size - 1 - i + TRANSIT_LO  # the highest transit beyond the allowed few
-        return max(min(top - self._a_min, self.max_extra), self.auto_floor)
 
     def add(self, pkt: wire.Packet, k: int) -> list[wire.Packet]:
         """A payload taken during tick ``k``; returns what to hand to the node now."""
@@ -221,6 +240,7 @@ class PlayoutBuffer:
         self._window.clear()
         self._a_min = None
         self._next_check = 0
+        self._buckets.clear()
         self._max_seen_tick = -1
 
     def summary(self) -> dict[str, Any]:
