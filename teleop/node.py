@@ -28,6 +28,7 @@ transmitted wave is scaled by ``c``, so the safe state only removes energy.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -70,6 +71,17 @@ class PortOptions:
     fade_time: float = 0.1  # s to fade the coupling out (and back in)
     rate_cap: float = 0.0  # bit/s on the wire in any 100 ms window (teleop.ratecap); 0: no cap
     playout: str = "off"  # the receiver's playout buffer: "off", "auto" or extra ms (teleop.playout)
+
+    @classmethod
+    def of(cls, settings: Any) -> PortOptions:
+        """The options a session's settings (``SessionParams``, ``SimConfig``) give both ports."""
+        return cls(
+            on_loss=settings.on_loss,
+            controller=settings.controller,
+            link_timeout=settings.link_timeout,
+            rate_cap=settings.rate_cap,
+            playout=settings.playout,
+        )
 
     def __post_init__(self) -> None:
         if self.on_loss not in ON_LOSS:

@@ -282,13 +282,7 @@ class SessionParams:
         return dataclasses.replace(self, codec=spec, playout=opts.playout)
 
     def port_options(self) -> PortOptions:
-        return PortOptions(
-            on_loss=self.on_loss,
-            controller=self.controller,
-            link_timeout=self.link_timeout,
-            rate_cap=self.rate_cap,
-            playout=self.playout,
-        )
+        return PortOptions.of(self)
 
     @property
     def until_stopped(self) -> bool:

@@ -108,13 +108,7 @@ class SimConfig:
         return c
 
     def port_options(self) -> PortOptions:
-        return PortOptions(
-            on_loss=self.on_loss,
-            controller=self.controller,
-            link_timeout=self.link_timeout,
-            rate_cap=self.rate_cap,
-            playout=self.playout,
-        )
+        return PortOptions.of(self)
 
     def shims(self) -> dict[str, Link | None]:
         """One shim per direction: the netem spec if given, else ``delay_ms`` of constant delay."""

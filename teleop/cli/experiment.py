@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
-from ..codecs import ACCEPTED, CodecError
+from ..codecs import ACCEPTED
 from ..limits import MAX_SEED
 from ..scenarios import SCENARIOS
 from .args import (
@@ -32,7 +32,7 @@ from .args import (
     int_range,
     nonneg_float,
 )
-from .settings import channel_kwargs, check_duration, writable_dir
+from .settings import channel_kwargs, check_duration, sim_config, writable_dir
 
 MAX_RUNS = 1000
 
@@ -74,20 +74,8 @@ def _settings(args: argparse.Namespace, dof: int, duration: float) -> dict[str, 
 
 def _sim_runs(args: argparse.Namespace, codecs: list[str], progress: Progress) -> list[Any]:
     from ..experiment import sim_run
-    from ..sim import SimConfig
 
-    try:
-        base = SimConfig(
-            delay_ms=args.delay,
-            duration=args.duration,
-            dof=args.dof,
-            b=args.b,
-            full_scale=args.range,
-            scenario=args.scenario,
-            **channel_kwargs(args),
-        ).resolved()
-    except (ValueError, CodecError, OSError) as e:
-        raise CliError(str(e)) from None
+    base = sim_config(args)
     runs = []
     for seed in range(args.seed, args.seed + args.runs):
         for spec in codecs:

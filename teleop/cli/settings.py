@@ -85,6 +85,28 @@ def channel_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+def sim_config(args: argparse.Namespace) -> Any:
+    """The resolved ``SimConfig`` of a simulating command (sim, sweep, experiment): the model,
+    impairment and passivity options; CliError says what is wrong."""
+    from ..codecs import CodecError
+    from ..sim import SimConfig
+
+    try:
+        return SimConfig(
+            delay_ms=getattr(args, "delay", 0.0),
+            duration=args.duration,
+            dof=args.dof,
+            b=args.b,
+            full_scale=args.range,
+            scenario=args.scenario,
+            hsi=getattr(args, "hsi", None),
+            robot=getattr(args, "robot", None),
+            **channel_kwargs(args),
+        ).resolved()
+    except (ValueError, CodecError, OSError) as e:
+        raise CliError(str(e)) from None
+
+
 def session_params(args: argparse.Namespace, session: int) -> Any:
     """The SessionParams an operator proposes (``run`` and ``operator``), every default filled in."""
     from transport.session import SessionParams

@@ -20,7 +20,7 @@ from .args import (
     codec,
     nonneg_float,
 )
-from .settings import channel_kwargs, check_duration, writable_dir
+from .settings import check_duration, sim_config, writable_dir
 
 
 def format_table(cases: list[dict[str, Any]]) -> str:
@@ -86,25 +86,15 @@ def _write_results(out: Path, doc: dict[str, Any], cases: list[Any]) -> None:
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
-    from ..sim import SECTION_V_CODECS, SimConfig, run_set
+    from ..sim import SECTION_V_CODECS, run_set
 
     sc = SCENARIOS[args.scenario]
     duration = args.duration if args.duration is not None else sc.duration
     check_duration(duration, args.dof if args.dof is not None else sc.dof, in_memory=True)
     out = writable_dir(Path(args.out), "--out") if args.out is not None else None
     codecs = args.codec or list(SECTION_V_CODECS)
+    base = sim_config(args)
     try:
-        base = SimConfig(
-            delay_ms=args.delay,
-            duration=args.duration,
-            dof=args.dof,
-            b=args.b,
-            full_scale=args.range,
-            scenario=args.scenario,
-            hsi=args.hsi,
-            robot=args.robot,
-            **channel_kwargs(args),
-        ).resolved()
         doc, cases = run_set(codecs, base)
     except (ValueError, CodecError, OSError) as e:
         raise CliError(str(e)) from None

@@ -11,7 +11,7 @@ from pathlib import Path
 from ..codecs import ACCEPTED, CodecError
 from ..scenarios import SCENARIOS
 from .args import CliError, Subcommands, add_model_args, add_netem_args, add_passivity_args, codec, int_range
-from .settings import channel_kwargs, check_duration, writable_dir
+from .settings import check_duration, sim_config, writable_dir
 
 
 def _progress(done: int, total: int, spec: str) -> None:
@@ -28,7 +28,6 @@ def _progress(done: int, total: int, spec: str) -> None:
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     from .. import plots
-    from ..sim import SimConfig
     from ..sweep import DEFAULT_GRID, format_table, run_sweep
 
     sc = SCENARIOS[args.scenario]
@@ -37,15 +36,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     out = writable_dir(Path(args.out), "--out")
     codecs = args.codec or list(DEFAULT_GRID)
     workers = args.jobs or min(len(codecs), os.cpu_count() or 1)
+    base = sim_config(args)
     try:
-        base = SimConfig(
-            duration=args.duration,
-            dof=args.dof,
-            b=args.b,
-            full_scale=args.range,
-            scenario=args.scenario,
-            **channel_kwargs(args),
-        ).resolved()
         print(
             f"teleop sweep: {len(codecs)} codecs, scenario {base.scenario}, {base.duration:g} s, "
             f"netem {base.netem_forward or '-'} / {base.netem_backward or '-'}, {workers} workers",
