@@ -49,7 +49,6 @@ MAX_EXTRA_MS = 500.0  # the largest allowance a user may ask for (and auto may r
 MAX_HELD = 4096  # packets the buffer holds at most; beyond it the oldest is released at once
 AUTO_WINDOW = 5000  # ticks: the auto target looks at the lateness of the payloads of the last 5 s
 LOW_QUANTILE = 0.05  # of the transits lie below a_min: early payloads, held a little longer
-AUTO_OUTLIERS = 2  # late payloads per window ignored whatever the quantile (the lowest transit's too)
 BUCKET = 100  # ticks: the auto allowance looks at the latest payload of each 100 ms ...
 OUTLIER_BUCKETS = 2  # ... and covers all but the 2 worst buckets of the window: a stall is no jitter
 DECREASE_EVERY = 1000  # ticks between one-tick decreases of the auto target
@@ -182,8 +181,9 @@ class PlayoutBuffer:
     def _low_quantile(self, a: int) -> int:
         """The transit LOW_QUANTILE of the recent payloads undercut: the lowest, but for the few a
         receiver that ran late took a tick early (they are only held a tick longer for it)."""
-        allowed = max(int(LOW_QUANTILE * len(self._window)), AUTO_OUTLIERS)
-        if len(self._window) <= allowed:
+        # No fixed minimum of outliers here: in a short window it would make a_min the highest.
+        allowed = int(LOW_QUANTILE * len(self._window))
+        if allowed == 0:
             return min(a, self._a_min if self._a_min is not None else a)
         below = np.cumsum(self._hist)
         return int(np.searchsorted(below, allowed, side="right")) + TRANSIT_LO
