@@ -315,7 +315,42 @@ class _Fresh:
         return x
 
 
-class DriverHsi:
+class _DriverDevice:
+    """What both adapters share: the driver's sample checked for freshness and plausibility (else
+    the safe state: zero out, zero commanded), and the command saturated to ``limit`` (norm)."""
+
+    def __init__(
+        self, driver: HsiDriver | RobotDriver, dof: int, *, limit: float, plausible: float, stale_after: float
+    ) -> None:
+        self.driver = driver
+        self.limit = limit
+        self._fresh = _Fresh(dof, stale_after, plausible)
+        self._zero = np.zeros(dof)
+        self._safe = True
+        self.saturated_ticks = 0
+
+    def affine(self, now: float) -> tuple[Array, Array]:
+        y = self._fresh.sample(now, *self.driver.read())
+        self._safe = y is None
+        return (self._zero if y is None else y), self._zero
+
+    def _command(self, x: Array) -> None:
+        if self._safe:
+            self.driver.command(self._zero)
+            return
+        out = saturate(x, self.limit)
+        self.saturated_ticks += out is not x
+        self.driver.command(out)
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "stale_ticks": self._fresh.stale_ticks,
+            "faults": self._fresh.faults,
+            "saturated_ticks": self.saturated_ticks,
+        }
+
+
+class DriverHsi(_DriverDevice):
     """A real haptic device as the operator's HSI: velocity in, force out, with safety rules.
 
     * velocity: the driver's newest sample (``Y = 0``: the device is a velocity source this tick);
@@ -339,35 +374,14 @@ class DriverHsi:
     ) -> None:
         if not max_force > 0:
             raise DeviceError(f"max_force must be > 0 N, got {max_force}")
-        self.driver = driver
+        super().__init__(driver, dof, limit=max_force, plausible=max_velocity, stale_after=stale_after)
         self.max_force = max_force
-        self._fresh = _Fresh(dof, stale_after, max_velocity)
-        self._zero = np.zeros(dof)
-        self._safe = True
-        self.saturated_ticks = 0
-
-    def affine(self, now: float) -> tuple[Array, Array]:
-        v = self._fresh.sample(now, *self.driver.read())
-        self._safe = v is None
-        return (self._zero if v is None else v), self._zero
 
     def advance(self, now: float, v: Array, f: Array) -> None:
-        if self._safe:
-            self.driver.command(self._zero)
-            return
-        out = saturate(f, self.max_force)
-        self.saturated_ticks += out is not f
-        self.driver.command(out)
-
-    def summary(self) -> dict[str, Any]:
-        return {
-            "stale_ticks": self._fresh.stale_ticks,
-            "faults": self._fresh.faults,
-            "saturated_ticks": self.saturated_ticks,
-        }
+        self._command(f)
 
 
-class DriverRobot:
+class DriverRobot(_DriverDevice):
     """A real robot as the teleoperator's device: velocity command out, measured force in.
 
     * force: the driver's newest sample (``Z = 0``: measured after the motion, so one tick late;
@@ -390,29 +404,8 @@ class DriverRobot:
     ) -> None:
         if not max_velocity > 0:
             raise DeviceError(f"max_velocity must be > 0 m/s, got {max_velocity}")
-        self.driver = driver
+        super().__init__(driver, dof, limit=max_velocity, plausible=max_force, stale_after=stale_after)
         self.max_velocity = max_velocity
-        self._fresh = _Fresh(dof, stale_after, max_force)
-        self._zero = np.zeros(dof)
-        self._safe = True
-        self.saturated_ticks = 0
-
-    def affine(self, now: float) -> tuple[Array, Array]:
-        f = self._fresh.sample(now, *self.driver.read())
-        self._safe = f is None
-        return (self._zero if f is None else f), self._zero
 
     def advance(self, now: float, v: Array, f: Array) -> None:
-        if self._safe:
-            self.driver.command(self._zero)
-            return
-        out = saturate(v, self.max_velocity)
-        self.saturated_ticks += out is not v
-        self.driver.command(out)
-
-    def summary(self) -> dict[str, Any]:
-        return {
-            "stale_ticks": self._fresh.stale_ticks,
-            "faults": self._fresh.faults,
-            "saturated_ticks": self.saturated_ticks,
-        }
+        self._command(v)

@@ -284,7 +284,7 @@ class _Port:
         )
         cap = self.rate_cap
         if cap is not None:
-            size = len(wire.encode(pkt)) + self.datagram_overhead
+            size = wire.encoded_size(pkt) + self.datagram_overhead
             if not cap.allows(tick, size):
                 self.encoder.cancel()
                 return None

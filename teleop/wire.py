@@ -101,6 +101,19 @@ def packet_size(
     return fixed + uint_size(session) + uint_size(seq) + uint_size(tick) + uint_size(t_us)
 
 
+def _usize(v: int) -> int:
+    return 1 if v < 128 else 2 if v < 256 else 3 if v < 65536 else 5 if v < 2**32 else 9
+
+
+def encoded_size(pkt: Packet) -> int:
+    """``len(encode(pkt))`` without encoding it (codec_id < 128): :func:`packet_size` for one packet,
+    in plain integers, so a rate cap can size a datagram on the 1 kHz path before it is built."""
+    n = len(pkt.payload)
+    bin_header = 2 if n < 256 else 3 if n < 65536 else 5
+    fixed = 1 + (2 + len(MAGIC)) + 1 + 1 + 1 + bin_header + n + 9 + 4
+    return fixed + _usize(pkt.session) + _usize(pkt.seq) + _usize(pkt.tick) + _usize(pkt.t_us)
+
+
 def _uint(name: str, v: object, hi: int) -> int:
     if type(v) is not int or not 0 <= v <= hi:
         raise WireError(f"field {name} must be an unsigned integer <= {hi}, got {v!r}")

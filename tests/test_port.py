@@ -24,6 +24,7 @@ def test_packet_size_is_the_encoded_length(session: int, k: int, t_us: int, payl
     seq = min(k, U32)
     p = wire.Packet(session, 1, seq, k, t_us, 0, bytes(payload_len), 3.25)
     assert int(wire.packet_size(session, seq, k, t_us, payload_len)) == len(wire.encode(p))
+    assert wire.encoded_size(p) == len(wire.encode(p))  # the scalar twin the rate cap uses
 
 
 def _pair(codec: str = "none", ticks: int = 300, netem: str = "") -> tuple[Port, Port]:
