@@ -465,6 +465,27 @@ def test_a_recorded_hello_during_an_outage_does_not_replace_the_session(tmp_path
     assert t["passivity"]["link_lost_events"] >= 1  # the outage really happened
 
 
+def test_an_outage_both_sides_see_leaves_the_session_whole(tmp_path: Path) -> None:
+    """A 1.5 s outage in both directions (a Mahimahi trace with a gap, named to both processes by
+    teleop run): the operator offers rejoins to its live teleoperator, which drops them; one
+    session, one log per side, and the link comes back."""
+    trace = tmp_path / "gap.trace"
+    trace.write_text("\n".join(str(t) for t in [*range(1, 1501), *range(3000, 6001)]) + "\n")
+    r, rep = _run(tmp_path, "--duration", "5", "--codec", "eds:50", "--netem", f"trace {trace}")
+    assert r.returncode == 0, r.stderr
+    logs = tmp_path / "run" / "logs"
+    o = json.loads((logs / "operator.json").read_text())
+    t = json.loads((logs / "teleoperator.json").read_text())
+    assert o["completed"] and t["completed"] and not t["replaced_by_new_session"] and not t["joined_late"]
+    assert not list(logs.glob("teleoperator-*"))
+    assert o["rejoin"]["offers"] >= 3 and o["rejoin"]["rejoins"] == 0
+    assert t["rejoin"]["own_offers_ignored"] >= 1
+    for side in (o, t):
+        assert side["passivity"]["link_lost_events"] == 1, side["role"]
+    for d in ("forward", "backward"):
+        assert rep["energy"][d]["min_margin"] >= -1e-9, d
+
+
 @pytest.mark.parametrize(
     "codec,extra",
     [("dct:20:2", []), ("pdp:1", []), ("pd:2", ["--transport", "zenoh"]), ("none", ["--rate-cap", "64kbit"])],

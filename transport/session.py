@@ -246,6 +246,10 @@ class _Runner:
         self._offer_t1 = -1  # t_ns of the last rejoin offer not yet answered
         self.replaced = False  # teleoperator: a new operator session replaces the silent one
         self.rejoin_offers = self.rejoins = 0
+        self.own_hellos_ignored = 0  # teleoperator: our own operator's rejoin offers (see _own_hello)
+        self._local_netem = {
+            v for k in ("netem_forward", "netem_backward") if isinstance(v := self.expect.get(k), str)
+        }
         self._last_offer = 0
         self.grace = {"limit_us": opts.grace_us, "waits": 0, "missed": 0, "waited_us_total": 0.0}
         self._grace_streak = self._grace_resume = 0
@@ -304,6 +308,9 @@ class _Runner:
         hdr = auth.peek(data)
         if hdr is None or (hdr[0] == auth.SESSION and self.port.verifies(data)):
             return False
+        if hdr[0] == auth.HANDSHAKE and addr == self.peer and self._own_hello(data):
+            self.own_hellos_ignored += 1
+            return True
         hs = self.takeover
         if hs is not None:
             hs.poll(t_rx)
@@ -320,6 +327,19 @@ class _Runner:
         if hs.done:
             self.handover, self.replaced = _Handover.of(hs), True
         return True
+
+    def _own_hello(self, data: bytes) -> bool:
+        """Whether ``data`` is an authentic hello of this very session: our own operator offering a
+        rejoin (meant for a restarted teleoperator) across an outage that both sides saw.  This
+        process did not restart, so it must not answer as one: taken as a takeover, the offer split
+        the session in two (a "replaced" log and a late-joined one) although nobody was replaced.
+        Dropped, the session simply goes on when the link comes back."""
+        try:
+            body = self.port.keys.hs_rx.verify(data)[1]
+            msg = protocol.parse(body, local_netem=self._local_netem)
+        except (auth.AuthError, protocol.ProtocolError):
+            return False
+        return isinstance(msg, protocol.Hello) and msg.params.session == self.params.session
 
     # --- per tick --------------------------------------------------------------------------
     async def wait_for_payload(self, ticker: Ticker, k: int) -> None:
@@ -531,7 +551,11 @@ class _Runner:
             "peer_said_bye": bye is not None,
             "first_tick": k0,
             "replaced_by_new_session": self.replaced,
-            "rejoin": {"offers": self.rejoin_offers, "rejoins": self.rejoins},
+            "rejoin": {
+                "offers": self.rejoin_offers,
+                "rejoins": self.rejoins,
+                "own_offers_ignored": self.own_hellos_ignored,
+            },
             "shim": {"spec": spec_tx, **shim} if shim else None,
             "grace": self.grace,
             "params": asdict(self.params),

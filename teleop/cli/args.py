@@ -298,26 +298,34 @@ def add_session_args(
     p.add_argument("--phase", type=float, default=0.5, help=argparse.SUPPRESS)
 
 
-def add_netem_args(p: argparse.ArgumentParser, variation_default: float = 0.0) -> None:
+def add_netem_specs(p: argparse.ArgumentParser, teleoperator: bool = False) -> None:
+    """--netem and its per-direction overrides.  On the teleoperator they say which impairment it
+    accepts from the operator's hello (a ``trace FILE`` only when named here: a peer may not make
+    this side read a file of its choosing)."""
+    what = "accept only an operator impairing" if teleoperator else "impair"
     p.add_argument(
         "--netem",
         type=netem_spec,
         metavar="SPEC",
-        help='impair both directions, netem grammar, e.g. "delay 50ms 5ms '
+        help=f'{what} both directions, netem grammar, e.g. "delay 50ms 5ms '
         'loss 2%%" (see README); "trace FILE" for a Mahimahi-style trace',
     )
     p.add_argument(
         "--netem-forward",
         type=netem_spec,
         metavar="SPEC",
-        help="impair operator -> teleoperator only (overrides --netem)",
+        help=f"{what} operator -> teleoperator with SPEC (overrides --netem)",
     )
     p.add_argument(
         "--netem-backward",
         type=netem_spec,
         metavar="SPEC",
-        help="impair teleoperator -> operator only (overrides --netem)",
+        help=f"{what} teleoperator -> operator with SPEC (overrides --netem)",
     )
+
+
+def add_netem_args(p: argparse.ArgumentParser, variation_default: float = 0.0) -> None:
+    add_netem_specs(p)
     p.add_argument(
         "--seed",
         type=int_range("seed", 0, MAX_SEED),

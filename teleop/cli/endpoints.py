@@ -17,13 +17,14 @@ from .args import (
     add_endpoint_args,
     add_key_args,
     add_netem_args,
+    add_netem_specs,
     add_passivity_args,
     add_session_args,
     add_transport_args,
     session_id,
     udp_addr,
 )
-from .settings import check_duration, check_robot, endpoint_options, session_params
+from .settings import check_duration, check_robot, endpoint_options, netem, session_params
 
 
 def cmd_operator(args: argparse.Namespace) -> int:
@@ -55,6 +56,7 @@ def cmd_teleoperator(args: argparse.Namespace) -> int:
         "b": args.b,
         "full_scale": args.range,
         "duration": args.duration,
+        **{f"netem_{d}": netem(args, d) or None for d in ("forward", "backward")},
     }
     opts = endpoint_options(args, "teleoperator", args.listen or ("127.0.0.1", 0))
     return run_endpoint(opts, None, expect)
@@ -130,6 +132,7 @@ def add_teleoperator_parser(sub: Subcommands) -> None:
     )
     add_session_args(t, None, None)
     add_device_args(t, ("robot",))
+    add_netem_specs(t, teleoperator=True)
     add_endpoint_args(t)
     add_key_args(t, "required unless --insecure")
     add_transport_args(t)

@@ -176,7 +176,13 @@ def build_commands(args: argparse.Namespace, params: Any, logs: Path, key: RunKe
     robot = ["--robot", args.robot] if args.robot is not None else []
     hsi = ["--hsi", args.hsi] if args.hsi is not None else []
     view_op, view_to = _live_view_options(args)
-    to_cmd = [*TELEOP, "teleoperator", *net.teleoperator, *robot, *view_to, *common]
+    # The teleoperator is told the impairment too: it accepts a hello naming a trace file only if
+    # it named that file itself.
+    netem = [
+        *(("--netem-forward", params.netem_forward) if params.netem_forward else ()),
+        *(("--netem-backward", params.netem_backward) if params.netem_backward else ()),
+    ]
+    to_cmd = [*TELEOP, "teleoperator", *net.teleoperator, *robot, *netem, *view_to, *common]
     live = [] if args.no_live else ["--live"]
     op_cmd = [*TELEOP, "operator", *net.operator, *live, *hsi, *view_op, *_session_options(params), *common]
     return Commands(net, to_cmd, op_cmd)
