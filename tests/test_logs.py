@@ -165,6 +165,21 @@ def test_quantiles_are_exact_until_binned_then_within_the_resolution(xs: list[fl
 
 
 # --- MCAP --------------------------------------------------------------------------------------
+def test_the_writer_process_yields_to_the_loops(tmp_path: Path) -> None:
+    """The log's writer runs under SCHED_IDLE, so that a waking 1 kHz loop preempts it at once
+    (bench/soak.py measured what a niced writer cost the loops' p99)."""
+    log = McapLog(tmp_path / "operator.mcap", "operator", wall0_ns=0)
+    try:
+        pid = log._proc.pid
+        deadline = time.monotonic() + 30  # it sets its policy as it starts, before it imports
+        while os.sched_getscheduler(pid) != os.SCHED_IDLE and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert os.sched_getscheduler(pid) == os.SCHED_IDLE
+    finally:
+        log.close()
+    assert log.error is None
+
+
 def test_mcap_log_channels_counts_and_contents(tmp_path: Path) -> None:
     """Both sides log to ROLE.mcap; read back with the mcap library, the file has the documented
     channels (JSON, with a JSON schema each), one message per tick on each per-tick channel, and
