@@ -312,8 +312,10 @@ def summary_text(rep: dict[str, Any]) -> str:
         extra = f"  (teleop sim, same settings: {tr['I_sim']:.4e}; difference {diff:.1f}%)"
     lines.append(f"  transparency I = {tr['I']:.4e}{extra}")
     if len(rep.get("phases", {})) > 1:
+        ran = [f"{n} {b['I']:.4e}" for n, b in rep["phases"].items() if n != "all" and b["ticks"]]
+        missed = [n for n, b in rep["phases"].items() if n != "all" and not b["ticks"]]
         lines.append(
-            "  per phase: " + "  ".join(f"{n} {b['I']:.4e}" for n, b in rep["phases"].items() if n != "all")
+            "  per phase: " + "  ".join(ran) + (f"  (not reached: {', '.join(missed)})" if missed else "")
         )
     for d, pv in rep["passivity"].items():
         lk = rep["link"][d]

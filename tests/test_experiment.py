@@ -168,6 +168,17 @@ def test_sim_summary_has_the_phases_and_wire_rates() -> None:
     assert list(step["phases"]) == ["all"]  # the step scenario has no phases
 
 
+def test_a_phase_not_reached_is_shown_as_such_not_as_zero() -> None:
+    """A run shorter than the scenario never reaches the wall: its I there is no figure, not 0."""
+    from teleop.cli.sim import format_phases
+
+    s = run_case(SimConfig(codec="ids:2", scenario="protocol", duration=6.0)).summary
+    table = format_phases([{"codec": "ids:2", **s}]).splitlines()
+    row = table[2].split()
+    assert table[0].split()[1:] == ["I", "free", "I", "foam", "I", "wall", "I", "all"]
+    assert row[3] == "-" and float(row[1]) > 0 and float(row[4]) == pytest.approx(s["I"], rel=1e-4)
+
+
 # --------------------------------------------------------------------------------------------
 # the handshake carries the variation
 # --------------------------------------------------------------------------------------------

@@ -38,13 +38,15 @@ def format_table(cases: list[dict[str, Any]]) -> str:
 
 
 def format_phases(cases: list[dict[str, Any]]) -> str:
-    """Per case: I of each phase of the scenario (free, foam, wall) next to the whole run's."""
+    """Per case: I of each phase of the scenario (free, foam, wall) next to the whole run's; a
+    phase the run did not reach (shorter than the scenario) shows "-", not an I of 0."""
     names = [n for n in cases[0]["phases"] if n != "all"] if cases else []
     head = f"{'codec':<10} " + " ".join(f"{'I ' + n:>11}" for n in names) + f" {'I all':>11}"
     lines = [head, "-" * len(head)]
     for c in cases:
         ph = c["phases"]
-        lines.append(f"{c['codec']:<10} " + " ".join(f"{ph[n]['I']:>11.4e}" for n in [*names, "all"]))
+        cells = [f"{ph[n]['I']:>11.4e}" if ph[n]["ticks"] else f"{'-':>11}" for n in [*names, "all"]]
+        lines.append(f"{c['codec']:<10} " + " ".join(cells))
     return "\n".join(lines)
 
 
