@@ -97,10 +97,11 @@ def _protocol_env(dof: int, dt: float, arg: str | None, seed: int = 0, variation
     return ProtocolEnvironment(dof, dt, plan=ProtocolPlan.draw(seed, variation))
 
 
-def _mujoco(dof: int, dt: float, arg: str | None, **_: Any) -> Device:
+def _mujoco(dof: int, dt: float, arg: str | None, seed: int = 0, variation: float = 0.0) -> Device:
     from .mujoco_robot import MujocoRobot  # imports mujoco: only a teleoperator that asks pays for it
 
-    return MujocoRobot(dof=dof, dt=dt, arg=arg)
+    plan = ProtocolPlan.draw(seed, variation)  # the seeded human's phase times (scripted: 5 s, 10 s)
+    return MujocoRobot(dof=dof, dt=dt, arg=arg, foam_at=plan.t_foam, wall_at=plan.t_wall)
 
 
 def _mujoco_check(arg: str | None, dof: int) -> None:

@@ -36,7 +36,7 @@ a passive robot never lets it go below 0): ``min_port_energy_J`` and ``active_ti
 foam block (a compliant, damped contact) and a stiff wall are mocap bodies that the robot brings in
 on the Section VI timeline, as the built-in ``protocol`` environment does: the foam face 1 mm ahead
 of the tip at 5 s, the wall 2 cm ahead of it at 10 s (both placed out of contact, so placing them
-adds no energy).
+adds no energy); with ``--variation`` at the seeded human's phase times instead.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ from .devices import DeviceError
 from .models import Array
 
 PROBE = 1e-3  # m/s: the probe command of the linearisation (the response is linear in it)
-FOAM_AT, WALL_AT = 5.0, 10.0  # s: Section VI timeline
+FOAM_AT, WALL_AT = 5.0, 10.0  # s: Section VI timeline, the scripted run's (--variation 0)
 FOAM_GAP, WALL_GAP = 0.001, 0.02  # m ahead of the tip's front
 ENERGY_TOLERANCE = 1e-9  # J
 MAX_DOF = 3
@@ -74,7 +74,13 @@ class MujocoRobot:
 
     role = "robot"
 
-    def __init__(self, dof: int, dt: float, arg: str | None = None) -> None:
+    def __init__(
+        self, dof: int, dt: float, arg: str | None = None, foam_at: float = FOAM_AT, wall_at: float = WALL_AT
+    ) -> None:
+        """``foam_at``/``wall_at``: when the timeline places the foam and the wall (s), the seeded
+        human's phase boundaries (:class:`teleop.models.ProtocolPlan`), so the scene switches phase
+        when the operator's human expects it, as the built-in environment does."""
+        self.foam_at, self.wall_at = foam_at, wall_at
         try:
             import mujoco
         except ImportError:
@@ -222,8 +228,8 @@ class MujocoRobot:
 
     def affine(self, now: float) -> tuple[Array, Array]:
         mj, m, d = self._mj, self.m, self.d
-        if self._timeline and now >= FOAM_AT:
-            for name, at, gap in (("foam", FOAM_AT, FOAM_GAP), ("wall", WALL_AT, WALL_GAP)):
+        if self._timeline and now >= self.foam_at:
+            for name, at, gap in (("foam", self.foam_at, FOAM_GAP), ("wall", self.wall_at, WALL_GAP)):
                 if name in self._timeline and name not in self.placed and now >= at:
                     self._place(name, gap, now)
         ctrl = self._ctrl

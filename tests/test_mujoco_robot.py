@@ -157,6 +157,26 @@ def test_a_scene_without_timeline_bodies_stays_static(tmp_path: Path) -> None:
     assert robot.max_force < 25.0  # the first tick's step of command, then nothing
 
 
+def test_the_scene_switches_phase_when_the_seeded_human_does() -> None:
+    """With --variation the foam and the wall come in at the seeded plan's phase times (drawn from
+    the same seed on both sides), not at the scripted 5 s and 10 s."""
+    from teleop import devices
+    from teleop.models import ProtocolPlan
+
+    plan = ProtocolPlan.draw(3, 1.5)
+    assert abs(plan.t_foam - 5.0) > 1e-3 and abs(plan.t_wall - 10.0) > 1e-3  # this seed moves both
+    robot = devices.make("robot", "mujoco", 1, DT, seed=3, variation=1.5)
+    assert isinstance(robot, MujocoRobot)
+    for n in range(11000):
+        now = n * DT
+        f0, _z = robot.affine(now)
+        robot.advance(now, np.zeros(1), f0)
+    assert robot.placed["foam"] == pytest.approx(plan.t_foam, abs=DT)
+    assert robot.placed["wall"] == pytest.approx(plan.t_wall, abs=DT)
+    scripted = devices.make("robot", "mujoco", 1, DT)
+    assert isinstance(scripted, MujocoRobot) and (scripted.foam_at, scripted.wall_at) == (5.0, 10.0)
+
+
 def test_port_observer_counts_energy_the_robot_gives_back() -> None:
     """The observer is not a formality: a port that reports a force against the motion (energy out
     of the robot) shows as a negative port energy and counted active ticks."""
