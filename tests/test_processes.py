@@ -157,7 +157,12 @@ def test_report_contract_and_logs(tmp_path: Path) -> None:
             assert rep["wire"][d][k] == rep["sim_wire"][d][k], (d, k)
 
 
-def test_ctrl_c_stops_both_cleanly(tmp_path: Path) -> None:
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # what `cmd &` in a script gives its command
+
+
+@pytest.mark.parametrize("inherited", ["default", "ignored"])
+def test_ctrl_c_stops_both_cleanly(tmp_path: Path, inherited: str) -> None:
     out = tmp_path / "run"
     p = subprocess.Popen(
         [*TELEOP, "run", "--out", str(out), "--no-plots", "--no-sim", "--duration", "30"],
@@ -165,6 +170,7 @@ def test_ctrl_c_stops_both_cleanly(tmp_path: Path) -> None:
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
+        preexec_fn=_ignore_sigint if inherited == "ignored" else None,
     )
     time.sleep(3.0)
     os.killpg(p.pid, signal.SIGINT)  # what a terminal's Ctrl-C does: the whole process group

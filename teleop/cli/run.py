@@ -310,6 +310,10 @@ def cmd_run(args: argparse.Namespace) -> int:
                 else (f"ws://127.0.0.1:{args.live_view} (operator) and :{args.live_view + 1} (teleoperator)")
             )
             print(f"teleop run: live view (Foxglove WebSocket) on {view}", flush=True)
+        # The children stop on SIGINT whatever they inherited (asyncio installs their handlers), so
+        # the launcher must too: started with SIGINT ignored (`teleop run &` in a script, nohup), it
+        # missed the Ctrl-C its children obeyed and reported their exit 130 as a failure.
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         router = _start_router(net)
         try:
             timeout = math.inf if params.until_stopped else params.duration + 2 * args.connect_timeout + 10
