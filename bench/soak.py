@@ -317,7 +317,17 @@ def soak(minutes: float, sample_s: float, out_dir: Path, link_timeout_ms: float)
             time.sleep(sample_s)
     finally:
         os.killpg(run.pid, signal.SIGINT)  # Ctrl-C: the session's end
-    _, err = run.communicate(timeout=600)
+        # Said now, not only in the results: the report that follows reads the whole log, which
+        # for an hour took over 10 minutes (a first hour-long soak lost its samples to a timeout).
+        for name, got in samples.items():
+            g = _growth(got)
+            if got:
+                print(
+                    f"{name:<20} RSS {g['rss_mb_first']:.1f} -> {g['rss_mb_last']:.1f} MB, growth after "
+                    f"warm-up {g['rss_growth_mb_per_hour']:+.2f} MB/h ({len(got)} samples)",
+                    flush=True,
+                )
+    _, err = run.communicate(timeout=600 + 60 * minutes)  # the report: about a minute per minute
     if run.returncode != 0:
         raise SystemExit(f"teleop run failed ({run.returncode}): {err[-2000:]}")
     rep = json.loads((out_dir / "report.json").read_text())
