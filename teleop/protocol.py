@@ -207,6 +207,12 @@ def _first_line(e: Exception) -> str:
 _NETEM_FIELDS = ("netem_forward", "netem_backward")
 
 
+def configured_netem(expect: Mapping[str, object]) -> frozenset[str]:
+    """The netem specs a teleoperator was configured with (its ``expect``): the only ones a hello
+    may repeat when they name a trace file."""
+    return frozenset(v for k in _NETEM_FIELDS if isinstance(v := expect.get(k), str))
+
+
 @dataclass(frozen=True)
 class SessionParams:
     """What the handshake agrees on."""
@@ -832,8 +838,7 @@ class TeleoperatorHandshake:
         if unknown:
             raise ValueError(f"expect names unknown session parameters: {', '.join(sorted(unknown))}")
         self.expect = dict(expect)
-        own = {v for k in _NETEM_FIELDS if isinstance(v := self.expect.get(k), str)}
-        self.local_netem = frozenset(local_netem) | own
+        self.local_netem = frozenset(local_netem) | configured_netem(self.expect)
         self.timeout_s = timeout_s
         self._give_up = now_ns + round(timeout_s * 1e9)
         self.params: SessionParams | None = None

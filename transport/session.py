@@ -247,9 +247,7 @@ class _Runner:
         self.replaced = False  # teleoperator: a new operator session replaces the silent one
         self.rejoin_offers = self.rejoins = 0
         self.own_hellos_ignored = 0  # teleoperator: our own operator's rejoin offers (see _own_hello)
-        self._local_netem = {
-            v for k in ("netem_forward", "netem_backward") if isinstance(v := self.expect.get(k), str)
-        }
+        self._local_netem = protocol.configured_netem(self.expect)
         self._last_offer = 0
         self.grace = {"limit_us": opts.grace_us, "waits": 0, "missed": 0, "waited_us_total": 0.0}
         self._grace_streak = self._grace_resume = 0
