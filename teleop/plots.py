@@ -49,22 +49,22 @@ def velocity_force(
     plt.close(fig)
 
 
-def bandwidth(path: Path, dt: float, series: dict[str, tuple[Array, Array]], window: int = 100) -> None:
-    """Per direction: kbit/s on the wire and the baseline over ``window`` ticks; compression over time."""
+def bandwidth(
+    path: Path, window_s: float, series: dict[str, tuple[Array, Array | None, Array | None]]
+) -> None:
+    """Per direction ``(t, sent, baseline)``: bytes on the wire and the uncompressed baseline over
+    windows of ``window_s`` ending at ``t``, as kbit/s, and their ratio: compression over time."""
     plt = _plt()
     fig, axes = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True)
-    kernel = np.ones(window)
-    for name, (sent, base) in series.items():
-        s = np.convolve(sent, kernel, "valid")
-        b = np.convolve(base, kernel, "valid")
-        t = (np.arange(s.size) + window) * dt
-        secs = window * dt
-        axes[0].plot(t, s * 8 / secs / 1e3, label=f"{name} (sent)")
-        axes[0].plot(t, b * 8 / secs / 1e3, ls="--", lw=0.8, label=f"{name} (uncompressed baseline)")
+    for name, (t, s, b) in series.items():
+        if s is None or b is None:
+            continue
+        axes[0].plot(t, s * 8 / window_s / 1e3, label=f"{name} (sent)")
+        axes[0].plot(t, b * 8 / window_s / 1e3, ls="--", lw=0.8, label=f"{name} (uncompressed baseline)")
         with np.errstate(divide="ignore", invalid="ignore"):
             axes[1].plot(t, np.where(s > 0, b / s, np.nan), label=name)
     axes[0].set_ylabel("kbit/s on the wire")
-    axes[1].set_ylabel(f"compression c (per {window * dt * 1e3:g} ms)")
+    axes[1].set_ylabel(f"compression c (per {window_s * 1e3:g} ms)")
     axes[1].set_xlabel("time [s]")
     for ax in axes:
         ax.grid(alpha=0.3)
@@ -74,14 +74,15 @@ def bandwidth(path: Path, dt: float, series: dict[str, tuple[Array, Array]], win
     plt.close(fig)
 
 
-def timing_histogram(path: Path, lateness_ns: dict[str, Array]) -> None:
-    """Histogram of each loop's tick lateness (start minus deadline), log count axis."""
+def timing_histogram(path: Path, lateness_us: dict[str, tuple[Array, Array]]) -> None:
+    """Histogram of each loop's tick lateness (start minus deadline), log count axis; per loop
+    ``(lateness in us, ticks at it)`` (the report keeps counts, not every tick)."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(8, 4))
-    hi = max((float(np.max(v)) for v in lateness_ns.values() if v.size), default=1.0) / 1e3
+    hi = max((float(np.max(v)) for v, _ in lateness_us.values() if v.size), default=1.0)
     bins = np.linspace(0, max(hi, 10.0), 120)
-    for name, v in lateness_ns.items():
-        ax.hist(v / 1e3, bins=bins, alpha=0.6, label=f"{name} ({v.size} ticks)")
+    for name, (v, w) in lateness_us.items():
+        ax.hist(v, bins=bins, weights=w, alpha=0.6, label=f"{name} ({int(w.sum())} ticks)")
     ax.set_yscale("log")
     ax.set_xlabel("tick lateness (start - deadline) [us]")
     ax.set_ylabel("ticks")
@@ -92,12 +93,11 @@ def timing_histogram(path: Path, lateness_ns: dict[str, Array]) -> None:
     plt.close(fig)
 
 
-def energy(path: Path, dt: float, series: dict[str, tuple[Array, Array, Array]]) -> None:
+def energy(path: Path, t: Array, series: dict[str, tuple[Array, Array, Array]]) -> None:
     """Per direction: wave energy sent and played (eq. 4-5), and the watchdog's observed margin."""
     plt = _plt()
     fig, axes = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True)
     for name, (sent, played, margin) in series.items():
-        t = np.arange(sent.size) * dt
         axes[0].plot(t, sent, label=f"{name}: sent")
         axes[0].plot(t, played, ls="--", label=f"{name}: played")
         axes[1].plot(t, margin, label=f"{name}: reported sent - played")

@@ -10,90 +10,348 @@ summary), read with the ``mcap`` library; a session without a fixed end is compa
 from __future__ import annotations
 
 import functools
+import math
+from collections import deque
+from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from transport.mcaplog import read_log
+from transport.mcaplog import iter_ticks, read_summary
 
-from . import devices, metrics, plots, scenarios
+from . import devices, plots, scenarios
 from .port import wire_block
 from .sim import SimConfig, run_case
 
 Array = npt.NDArray[np.float64]
+Block = dict[str, npt.NDArray[Any]]
+
+#: The report's topics (the waves are for viewers; no figure here needs them).
+TOPICS = ("signals", "energy", "wire", "loop")
+#: Receiver ticks wait this long for the sender's log before their margin is computed: a payload
+#: accepted at tick k was sent at a sender tick <= k (a common clock), this is slack for its error.
+LOOKAHEAD_TICKS = 1000
+#: ``teleop sim`` re-runs at most this much of a session (it keeps every tick: about 1 MB and
+#: 0.18 s of CPU per simulated second, measured), and the real I is compared over the same ticks.
+SIM_CAP_S = 300.0
+PLOT_POINTS = 1 << 17  # samples kept per plotted series: every tick up to 131 s, then thinned
+BANDWIDTH_WINDOW = 100  # ticks per bandwidth point (100 ms at 1 kHz)
+HIST_US = 100_000  # the lateness histogram's 1 us bins; later ticks are kept one by one
 
 
-def _load(log_dir: Path, role: str) -> tuple[dict[str, Any], dict[str, Array]]:
-    """One process's summary and per-tick arrays (from tick 0), from its ``ROLE.mcap``."""
+def _summary(log_dir: Path, role: str) -> dict[str, Any]:
     path = log_dir / f"{role}.mcap"
-    return _read(str(path), path.stat().st_mtime_ns)
+    summary = read_summary(path)
+    if not summary:
+        raise ValueError(f"{path} has no summary: the process did not finish its log")
+    return summary
+
+
+def _paired(
+    a: Iterator[tuple[int, Block]], b: Iterator[tuple[int, Block]]
+) -> Iterator[tuple[int, Block, Block]]:
+    """Both logs' blocks cut to the same ticks; ends with the shorter log (a session without a fixed
+    end stops at a slightly different tick on each side)."""
+    have: list[tuple[int, Block] | None] = [None, None]
+    its = (a, b)
+    while True:
+        for i in (0, 1):
+            if have[i] is None:
+                nxt = next(its[i], None)
+                if nxt is None:
+                    return
+                have[i] = nxt
+        (k0, x), (_, y) = have[0], have[1]  # type: ignore[misc]
+        m = min(len(x["ran"]), len(y["ran"]))
+        yield k0, {n: v[:m] for n, v in x.items()}, {n: v[:m] for n, v in y.items()}
+        for i, blk in ((0, x), (1, y)):
+            rest = len(blk["ran"]) - m
+            have[i] = (k0 + m, {n: v[m:] for n, v in blk.items()}) if rest else None
+
+
+class _Grow:
+    """A numpy array appended to in place (capacity doubling), for ``searchsorted`` over it."""
+
+    def __init__(self, dtype: Any) -> None:
+        self._a = np.zeros(1024, dtype=dtype)
+        self.n = 0
+
+    def extend(self, x: npt.NDArray[Any]) -> None:
+        if self.n + x.size > self._a.size:
+            self._a = np.resize(self._a, max(2 * self._a.size, self.n + x.size))
+        self._a[self.n : self.n + x.size] = x
+        self.n += x.size
+
+    @property
+    def values(self) -> npt.NDArray[Any]:
+        return self._a[: self.n]
+
+
+class _Margin:
+    """One direction's true margin, eq. (5), per receiver tick: the energy the sender's own log says
+    it had put into the packets the receiver had accepted by then, minus the energy played since the
+    receiver's last energy epoch.  Aligned by sequence number, so no clock is trusted: the newest
+    seq accepted by each receiver tick is looked up in the sender's log (16 bytes kept per packet
+    sent).  Only the receiver's last epoch counts (a restarted peer starts a new one), so minima
+    are kept per epoch and the last one chosen at the end."""
+
+    def __init__(self) -> None:
+        self.seqs, self.energy = _Grow(np.int64), _Grow(np.float64)
+        self.min_by_epoch: dict[int, float] = {}
+        self.last_epoch = 0
+
+    def sent(self, s: Block) -> None:
+        out = s["tx_seq"] >= 0
+        self.seqs.extend(s["tx_seq"][out])
+        self.energy.extend(s["energy_sent"][out])
+
+    def per_tick(self, r: Block) -> Array:
+        """The margin of each of these receiver ticks (NaN: nothing to compare), any epoch."""
+        seqs, energy = self.seqs.values, self.energy.values
+        rx = r["rx_seq"]
+        if seqs.size:
+            idx = np.minimum(np.searchsorted(seqs, rx, side="left"), seqs.size - 1)
+            found = (rx >= 0) & (seqs[idx] == rx)
+            sent = np.where(found, energy[idx], 0.0)
+        else:
+            found, sent = np.zeros(rx.size, dtype=bool), np.zeros(rx.size)
+        played = r["energy_played_epoch"]
+        ok = ~np.isnan(played) & ((rx < 0) | found)
+        m: Array = np.where(ok, sent - played, np.nan)
+        epochs = r["peer_epoch"]
+        if epochs.size:
+            self.last_epoch = max(self.last_epoch, int(epochs.max()))
+        for e in np.unique(epochs[np.isfinite(m)]).tolist():
+            low = float(np.min(m[(epochs == e) & np.isfinite(m)]))
+            self.min_by_epoch[e] = min(low, self.min_by_epoch.get(e, math.inf))
+        return m
+
+    def minimum(self) -> float:
+        return self.min_by_epoch.get(self.last_epoch, math.nan)
+
+
+class _Thin:
+    """Every ``stride``-th tick of some series for the plots, ``stride`` doubling whenever more
+    than :data:`PLOT_POINTS` are kept: an hour's session plots from a few MB."""
+
+    def __init__(self) -> None:
+        self.stride = 1
+        self.k: list[npt.NDArray[np.int64]] = []
+        self.cols: dict[str, list[Array]] = {}
+
+    def add(self, k: npt.NDArray[np.int64], **series: Array) -> None:
+        keep = k % self.stride == 0
+        self.k.append(k[keep])
+        for name, v in series.items():
+            self.cols.setdefault(name, []).append(v[keep])
+        if sum(x.size for x in self.k) > PLOT_POINTS:
+            self.stride *= 2
+            k_all, cols = self.get()
+            keep = k_all % self.stride == 0
+            self.k = [k_all[keep]]
+            self.cols = {n: [v[keep]] for n, v in cols.items()}
+
+    def get(self) -> tuple[npt.NDArray[np.int64], dict[str, Array]]:
+        if not self.k:
+            return np.zeros(0, dtype=np.int64), {}
+        return np.concatenate(self.k), {n: np.concatenate(v) for n, v in self.cols.items()}
+
+
+@dataclass
+class _Windowed:
+    """Sums over the last :data:`BANDWIDTH_WINDOW` ticks, carried across blocks."""
+
+    tail: Array = field(default_factory=lambda: np.zeros(0))
+
+    def add(self, k0: int, x: Array) -> tuple[npt.NDArray[np.int64], Array]:
+        """(tick each window ends at, its sum) for the windows ending in this block."""
+        w = BANDWIDTH_WINDOW
+        xs = np.concatenate([self.tail, np.nan_to_num(x)])
+        first = k0 - self.tail.size  # the tick of xs[0]
+        self.tail = xs[-(w - 1) :] if w > 1 else np.zeros(0)
+        if xs.size < w:
+            return np.zeros(0, dtype=np.int64), np.zeros(0)
+        cs = np.concatenate(([0.0], np.cumsum(xs)))
+        return first + w - 1 + np.arange(xs.size - w + 1), cs[w:] - cs[:-w]
+
+
+class _Lateness:
+    """One loop's tick lateness (start minus deadline) as a histogram of 1 us bins."""
+
+    def __init__(self) -> None:
+        self.counts = np.zeros(HIST_US, dtype=np.int64)
+        self.beyond: list[float] = []
+        self.ticks = 0
+
+    def add(self, lateness_ns: npt.NDArray[np.int64]) -> None:
+        us = lateness_ns // 1000
+        self.ticks += us.size
+        inside = us[(us >= 0) & (us < HIST_US)]
+        self.counts += np.bincount(inside, minlength=HIST_US)[:HIST_US]
+        self.beyond.extend(us[us >= HIST_US].astype(float).tolist())
+
+    def values(self) -> tuple[Array, Array]:
+        """(lateness in us, ticks at it), for a weighted histogram."""
+        at = np.flatnonzero(self.counts)
+        b = np.asarray(self.beyond, dtype=np.float64)
+        return np.concatenate([at.astype(np.float64), b]), np.concatenate(
+            [self.counts[at].astype(np.float64), np.ones(b.size)]
+        )
+
+
+def _tick_at(t: float, dt: float) -> int:
+    """The first tick at or after ``t`` s (metrics.phase_ticks's rounding)."""
+    return max(0, math.ceil(t / dt - 1e-6))
+
+
+class _Fold:
+    """The report's whole-session figures, folded a block of ticks at a time from both logs: eq. (7)
+    per phase and DoF, wire rates per phase, the true energy margins (eq. 4-5), and the plots'
+    thinned series.  Memory: the plots' series, a lookahead of ticks and 16 bytes per packet sent."""
+
+    def __init__(self, phases: list[tuple[str, float, float]], dof: int, dt: float) -> None:
+        self.dt, self.dof = dt, dof
+        # Phase bounds in ticks, clipped to the run's length at the end (metrics.phase_ticks's rule).
+        self.phases = [(n, _tick_at(a, dt), _tick_at(b, dt)) for n, a, b in phases]
+        names = [n for n, _, _ in self.phases] + ["all"]
+        self.i_dof = {n: np.zeros(dof) for n in names}
+        self.counted = dict.fromkeys(names, 0)
+        self.packets = {d: dict.fromkeys(names, 0) for d in ("forward", "backward")}
+        self.bytes = {d: dict.fromkeys(names, 0.0) for d in ("forward", "backward")}
+        self.sim_ticks = round(SIM_CAP_S / dt)
+        self.i_sim_window = 0.0
+        self.fwd, self.bwd = _Margin(), _Margin()
+        self.two_port: dict[tuple[int, int], float] = {}
+        self.n = 0
+        self.any_valid = False
+        self.queue: deque[tuple[int, Block, Block]] = deque()
+        self.seen = 0
+        self.signals, self.energy, self.bandwidth = _Thin(), _Thin(), _Thin()
+        self.windows = {n: _Windowed() for n in ("fwd", "fwd_base", "bwd", "bwd_base")}
+        self.lateness = {"operator": _Lateness(), "teleoperator": _Lateness()}
+
+    def add(self, k0: int, op: Block, to: Block) -> None:
+        """Take a block of both logs; blocks run once the senders' logs are LOOKAHEAD_TICKS ahead."""
+        self.fwd.sent(op)
+        self.bwd.sent(to)
+        self.queue.append((k0, op, to))
+        self.seen = k0 + len(op["ran"])
+        while self.queue and self.queue[0][0] + len(self.queue[0][1]["ran"]) + LOOKAHEAD_TICKS <= self.seen:
+            self._run(*self.queue.popleft())
+
+    def finish(self) -> None:
+        while self.queue:
+            self._run(*self.queue.popleft())
+
+    def _run(self, k0: int, op: Block, to: Block) -> None:
+        n = len(op["ran"])
+        k = np.arange(k0, k0 + n, dtype=np.int64)
+        self.n = k0 + n
+        valid = np.asarray(~(np.isnan(op["v"]).any(axis=1) | np.isnan(to["v"]).any(axis=1)), dtype=bool)
+        self.any_valid |= bool(valid.any())
+        dv, df = op["v"] - to["v"], to["f"] - op["f"]
+        per_tick = np.where(valid[:, None], dv * dv + df * df, 0.0)  # eq. (7)'s integrand per DoF
+        wire = {"forward": np.nan_to_num(op["tx_wire"]), "backward": np.nan_to_num(to["tx_wire"])}
+        for name, a, b in [*self.phases, ("all", 0, k0 + n)]:
+            lo, hi = max(a, k0) - k0, min(b, k0 + n) - k0
+            if hi <= lo:
+                continue
+            self.i_dof[name] += per_tick[lo:hi].sum(axis=0)
+            self.counted[name] += int(np.count_nonzero(valid[lo:hi]))
+            for d, w in wire.items():
+                self.packets[d][name] += int(np.count_nonzero(w[lo:hi]))
+                self.bytes[d][name] += float(w[lo:hi].sum())
+        self.i_sim_window += float(per_tick[: max(0, self.sim_ticks - k0)].sum())
+        m_fwd, m_bwd = self.fwd.per_tick(to), self.bwd.per_tick(op)
+        both = m_fwd + m_bwd
+        fin = np.isfinite(both)
+        if fin.any():
+            pairs = np.stack([to["peer_epoch"][fin], op["peer_epoch"][fin]], axis=1)
+            for e_to, e_op in np.unique(pairs, axis=0).tolist():
+                sel = (to["peer_epoch"] == e_to) & (op["peer_epoch"] == e_op) & fin
+                low = float(both[sel].min())
+                self.two_port[(e_to, e_op)] = min(low, self.two_port.get((e_to, e_op), math.inf))
+        self.signals.add(k, v_op=op["v"], v_to=to["v"], f_op=op["f"], f_to=to["f"])
+        self.energy.add(
+            k,
+            fwd_sent=op["energy_sent"],
+            fwd_played=to["energy_played"],
+            fwd_margin=to["energy_margin_observed"],
+            bwd_sent=to["energy_sent"],
+            bwd_played=op["energy_played"],
+            bwd_margin=op["energy_margin_observed"],
+        )
+        ends, fwd = self.windows["fwd"].add(k0, op["tx_wire"])
+        _, fwd_base = self.windows["fwd_base"].add(k0, op["tx_baseline_wire"])
+        _, bwd = self.windows["bwd"].add(k0, to["tx_wire"])
+        _, bwd_base = self.windows["bwd_base"].add(k0, to["tx_baseline_wire"])
+        if ends.size:
+            self.bandwidth.add(ends, fwd=fwd, fwd_base=fwd_base, bwd=bwd, bwd_base=bwd_base)
+        self.lateness["operator"].add(op["lateness_ns"][op["ran"]])
+        self.lateness["teleoperator"].add(to["lateness_ns"][to["ran"]])
+
+    # --- the figures, once every block is in ------------------------------------------------------
+    def phase_summary(self) -> dict[str, dict[str, Any]]:
+        """metrics.phase_summary's figures: per phase I per DoF, ticks, packets/s and bits/s."""
+        out: dict[str, dict[str, Any]] = {}
+        for name, a, b in [*self.phases, ("all", 0, self.n)]:
+            lo = min(self.n, a)
+            hi = max(lo, min(self.n, b))
+            span = (hi - lo) * self.dt
+            i_dof = self.i_dof[name] * self.dt
+            out[name] = {
+                "I": float(i_dof.sum()),
+                "I_dof": [float(x) for x in i_dof],
+                "start": round(lo * self.dt, 9),
+                "end": round(hi * self.dt, 9),
+                "ticks": self.counted[name],
+                "packets_per_s": {
+                    d: self.packets[d][name] / span if span > 0 else None for d in self.packets
+                },
+                "wire_bps": {d: 8.0 * self.bytes[d][name] / span if span > 0 else None for d in self.bytes},
+            }
+        return out
+
+    def min_two_port(self) -> float | None:
+        return self.two_port.get((self.fwd.last_epoch, self.bwd.last_epoch))
+
+
+def fold_logs(
+    op_log: Path, to_log: Path, phases: list[tuple[str, float, float]], dof: int, dt: float
+) -> _Fold:
+    """One pass over both processes' logs, a block of ticks at a time (transport.mcaplog.iter_ticks)."""
+    fold = _Fold(phases, dof, dt)
+    for k0, a_op, a_to in _paired(iter_ticks(op_log, TOPICS), iter_ticks(to_log, TOPICS)):
+        fold.add(k0, a_op, a_to)
+    fold.finish()
+    if fold.n == 0:
+        raise ValueError(f"{op_log} and {to_log} hold no tick both processes ran")
+    return fold
 
 
 @functools.lru_cache(maxsize=2)
-def _read(path: str, mtime_ns: int) -> tuple[dict[str, Any], dict[str, Array]]:
-    """Read once per file version (the report and the plots both need it)."""
-    summary, arrays = read_log(Path(path))
-    if not summary:
-        raise ValueError(f"{path} has no summary: the process did not finish its log")
-    return summary, arrays
+def _fold_of(log_dir: str, mtimes: tuple[int, int]) -> tuple[dict[str, Any], dict[str, Any], _Fold]:
+    """Both summaries and the fold of both logs, once per version of the files (the report and the
+    plots both need it)."""
+    d = Path(log_dir)
+    op, to = _summary(d, "operator"), _summary(d, "teleoperator")
+    p = op["params"]
+    # A session without a fixed end: its last phase lasts until the end of the log.
+    phases = _phases(p, p["duration"] or 1e9)
+    return op, to, fold_logs(d / "operator.mcap", d / "teleoperator.mcap", phases, p["dof"], p["dt"])
 
 
-def _both(log_dir: Path) -> tuple[dict[str, Any], dict[str, Array], dict[str, Any], dict[str, Array]]:
-    """Both processes' logs, their arrays cut to the ticks both sides' logs cover (a session without
-    a fixed end stops at a slightly different tick on each side)."""
-    op, a_op = _load(log_dir, "operator")
-    to, a_to = _load(log_dir, "teleoperator")
-    n = min(len(a_op["v"]), len(a_to["v"]))
-    cut = {k: v if k == "lateness_ns" else v[:n] for k, v in a_op.items()}
-    cut_to = {k: v if k == "lateness_ns" else v[:n] for k, v in a_to.items()}
-    return op, cut, to, cut_to
+def _load(log_dir: Path) -> tuple[dict[str, Any], dict[str, Any], _Fold]:
+    paths = [log_dir / f"{r}.mcap" for r in ("operator", "teleoperator")]
+    return _fold_of(str(log_dir), (paths[0].stat().st_mtime_ns, paths[1].stat().st_mtime_ns))
 
 
 def _wire(sender: dict[str, Any], receiver: dict[str, Any]) -> dict[str, Any]:
     """One direction's wire block from the two processes' port summaries (as ``teleop sim``'s)."""
     return wire_block(sender["sent"], receiver["received"])
-
-
-def _true_margin(sender: dict[str, Array], receiver: dict[str, Array]) -> Array:
-    """Per receiver tick: the energy the sender's own log says it had put into the packets the
-    receiver had accepted by then, minus the energy played since the receiver's last energy epoch
-    (eq. 5).  Aligned by sequence number, so no clock is trusted: the newest seq accepted by each
-    receiver tick is looked up in the sender's log (the survivor's, after a peer restart: only the
-    receiver's last epoch is compared).  Older logs without seqs fall back to time alignment."""
-    if "rx_seq" not in receiver or "tx_seq" not in sender:
-        return _true_margin_by_time(sender, receiver)
-    played = receiver["energy_played_epoch"]
-    sent_ticks = np.flatnonzero(sender["tx_seq"] >= 0)
-    seqs, energy = sender["tx_seq"][sent_ticks], sender["energy_sent"][sent_ticks]
-    rx = receiver["rx_seq"]
-    idx = np.searchsorted(seqs, rx, side="left")
-    found = (rx >= 0) & (idx < seqs.size) & (seqs[np.minimum(idx, max(seqs.size - 1, 0))] == rx)
-    sent = np.where(found, energy[np.minimum(idx, max(energy.size - 1, 0))] if energy.size else 0.0, 0.0)
-    last_epoch = receiver["peer_epoch"] == receiver["peer_epoch"].max()
-    ok = last_epoch & ~np.isnan(played) & ((rx < 0) | found)
-    return np.where(ok, sent - played, np.nan)
-
-
-def _true_margin_by_time(sender: dict[str, Array], receiver: dict[str, Array]) -> Array:
-    """Per receiver tick: energy the sender had sent by the instant the receiver played its sample,
-    minus energy played so far (eq. 5).  Aligned on the common session clock, not by tick index:
-    a receiver tick that waits for a late payload may rightly play a sample the sender produced in
-    a *later* tick index."""
-    # Played since the receiver's last energy epoch (a restarted peer starts a new one).
-    played = receiver.get("energy_played_epoch", receiver["energy_played"])
-    if "send_time_s" not in sender or "play_time_s" not in receiver:
-        return sender["energy_sent"] - played  # older logs: by tick index
-    s_t, r_t = sender["send_time_s"], receiver["play_time_s"]
-    ok = ~np.isnan(s_t)
-    if not ok.any():
-        return np.full(r_t.shape, np.nan)
-    s_times, s_energy = s_t[ok], sender["energy_sent"][ok]
-    idx = np.searchsorted(s_times, r_t, side="left") - 1  # the sender's last send before the play
-    sent = s_energy[np.clip(idx, 0, None)]
-    # Before the sender's log begins (it joined late), there is nothing to compare with.
-    return np.where(np.isnan(r_t) | (idx < 0), np.nan, sent - played)
 
 
 def _passivity(receiver: dict[str, Any]) -> dict[str, Any]:
@@ -120,20 +378,19 @@ def _security(op: dict[str, Any], to: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _phases(p: dict[str, Any]) -> list[tuple[str, float, float]]:
+def _phases(p: dict[str, Any], duration: float) -> list[tuple[str, float, float]]:
     """The session's phases from its scenario and seeded plan (older logs: no variation)."""
-    return scenarios.get(p["scenario"]).phases(p["seed"], p.get("variation", 0.0), p["duration"])
+    return scenarios.get(p["scenario"]).phases(p["seed"], p.get("variation", 0.0), duration)
 
 
 def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, Any]:
-    op, a_op, to, a_to = _both(log_dir)
+    """The report of the session whose two logs are in ``log_dir`` (one streamed pass over both)."""
+    op, to, fold = _load(log_dir)
     p = op["params"]
     dt = p["dt"]
-    ticks = len(a_op["v"])  # the ticks both logs cover: the session's, or those run until stopped
-    valid = ~(np.isnan(a_op["v"]).any(axis=1) | np.isnan(a_to["v"]).any(axis=1))
-    i_real = metrics.transparency(a_op["v"][valid], a_to["v"][valid], a_op["f"][valid], a_to["f"][valid], dt)
-    m_fwd = _true_margin(a_op, a_to)
-    m_bwd = _true_margin(a_to, a_op)
+    ticks = fold.n  # the ticks both logs cover: the session's, or those run until stopped
+    phases = fold.phase_summary()
+    i_real = phases["all"]["I"]
     rep: dict[str, Any] = {
         "transport": transport,
         "codec": p["codec"],
@@ -159,18 +416,9 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
         },
         "handshake": {"rtt_us": op.get("handshake_rtt_us"), "clock_offset_ns": op.get("clock_offset_ns")},
         "wire": {"forward": _wire(op, to), "backward": _wire(to, op)},
-        "transparency": {"I": i_real, "ticks_compared": int(valid.sum())},
+        "transparency": {"I": i_real, "ticks_compared": phases["all"]["ticks"]},
         # Per phase of the scenario (free, foam, wall; ``all``: the run): I per DoF and wire rates.
-        "phases": metrics.phase_summary(
-            a_op["v"],
-            a_to["v"],
-            a_op["f"],
-            a_to["f"],
-            dt,
-            _phases(p),
-            {"forward": a_op["tx_wire"], "backward": a_to["tx_wire"]},
-            valid,
-        ),
+        "phases": phases,
         # Watchdog figures of each direction, measured by its receiver.
         "passivity": {"forward": _passivity(to), "backward": _passivity(op)},
         # What each receiver refused (teleop.auth, the watchdog's physical bound), per direction.
@@ -182,17 +430,17 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
         # The data-rate cap of each direction, at its sender, and whether it held on the wire.
         "rate_cap": {"forward": op.get("rate_cap"), "backward": to.get("rate_cap")},
         # Eq. (4): energy into the communication two-port, forward plus backward margin, per tick.
-        "two_port_min_energy": float(np.nanmin(m_fwd + m_bwd)) if np.isfinite(m_fwd + m_bwd).any() else None,
+        "two_port_min_energy": fold.min_two_port(),
         "energy": {
             "forward": {
                 "sent": op["energy"]["sent"],
                 "played": to["energy"]["played"],
-                "min_margin": float(np.nanmin(m_fwd)) if valid.any() else None,
+                "min_margin": fold.fwd.minimum() if fold.any_valid else None,
             },
             "backward": {
                 "sent": to["energy"]["sent"],
                 "played": op["energy"]["played"],
-                "min_margin": float(np.nanmin(m_bwd)) if valid.any() else None,
+                "min_margin": fold.bwd.minimum() if fold.any_valid else None,
             },
         },
     }
@@ -205,11 +453,12 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
         compare_sim = False
         rep["sim_skipped"] = "a third-party device: the sim rebuilds built-in devices only"
     if compare_sim:
+        sim_ticks = min(ticks, fold.sim_ticks)
         sim = run_case(
             SimConfig(
                 codec=p["codec"],
                 scenario=p["scenario"],
-                duration=ticks * dt,
+                duration=sim_ticks * dt,
                 dof=p["dof"],
                 b=p["b"],
                 full_scale=p["full_scale"],
@@ -232,8 +481,13 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
             )
         )
         i_sim = sim.summary["I"]
+        # A long session is compared over its first SIM_CAP_S: the real I over those ticks.
+        i_cmp = fold.i_sim_window * dt
         rep["transparency"].update(
-            I_sim=i_sim, relative_difference=abs(i_real - i_sim) / i_sim if i_sim else None
+            I_sim=i_sim,
+            sim_s=sim_ticks * dt,
+            I_over_sim_s=i_cmp,
+            relative_difference=abs(i_cmp - i_sim) / i_sim if i_sim else None,
         )
         # The simulation's wire blocks, counted by the same port code: equal counts without impairment.
         rep["sim_wire"] = sim.summary["wire"]
@@ -241,45 +495,42 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
 
 
 def write_plots(log_dir: Path, out: Path, rep: dict[str, Any]) -> list[Path]:
-    _, a_op, _, a_to = _both(log_dir)
-    dt = 1e-3
-    n = a_op["v"].shape[0]
-    t = np.arange(n, dtype=np.float64) * dt
+    """signals.png, bandwidth.png, energy.png and loop_timing.png, from the fold's thinned series
+    (every tick of a session up to about two minutes; a longer one's every 2nd, 4th, ... tick)."""
+    _, _, fold = _load(log_dir)
+    dt = fold.dt
     files = []
+    k, sig = fold.signals.get()
+    t = k.astype(np.float64) * dt
     f1 = out / "signals.png"
-    plots.velocity_force(
-        f1,
-        t,
-        a_op["v"],
-        a_to["v"],
-        a_op["f"],
-        a_to["f"],
-        f"{rep['codec']} over {rep['transport']}: I = {rep['transparency']['I']:.3e}",
-    )
+    title = f"{rep['codec']} over {rep['transport']}: I = {rep['transparency']['I']:.3e}"
+    plots.velocity_force(f1, t, sig["v_op"], sig["v_to"], sig["f_op"], sig["f_to"], title)
     files.append(f1)
     f2 = out / "bandwidth.png"
+    k, bw = fold.bandwidth.get()
+    t = (k + 1).astype(np.float64) * dt  # a window is plotted at its end
     plots.bandwidth(
         f2,
-        dt,
+        BANDWIDTH_WINDOW * dt,
         {
-            "forward": (a_op["tx_wire"], a_op["tx_baseline_wire"]),
-            "backward": (a_to["tx_wire"], a_to["tx_baseline_wire"]),
+            "forward": (t, bw.get("fwd"), bw.get("fwd_base")),
+            "backward": (t, bw.get("bwd"), bw.get("bwd_base")),
         },
-        window=100,
     )
     files.append(f2)
     f4 = out / "energy.png"
+    k, en = fold.energy.get()
     plots.energy(
         f4,
-        dt,
+        k.astype(np.float64) * dt,
         {
-            "forward": (a_op["energy_sent"], a_to["energy_played"], a_to["energy_margin_observed"]),
-            "backward": (a_to["energy_sent"], a_op["energy_played"], a_op["energy_margin_observed"]),
+            "forward": (en["fwd_sent"], en["fwd_played"], en["fwd_margin"]),
+            "backward": (en["bwd_sent"], en["bwd_played"], en["bwd_margin"]),
         },
     )
     files.append(f4)
     f3 = out / "loop_timing.png"
-    plots.timing_histogram(f3, {"operator": a_op["lateness_ns"], "teleoperator": a_to["lateness_ns"]})
+    plots.timing_histogram(f3, {r: late.values() for r, late in fold.lateness.items()})
     files.append(f3)
     return files
 
@@ -310,6 +561,11 @@ def summary_text(rep: dict[str, Any]) -> str:
     if "I_sim" in tr:
         diff = 100 * tr["relative_difference"]
         extra = f"  (teleop sim, same settings: {tr['I_sim']:.4e}; difference {diff:.1f}%)"
+        if tr["sim_s"] < rep["duration_s"]:
+            extra = (
+                f"  (over the first {tr['sim_s']:g} s: {tr['I_over_sim_s']:.4e}; teleop sim, same "
+                f"settings: {tr['I_sim']:.4e}; difference {diff:.1f}%)"
+            )
     lines.append(f"  transparency I = {tr['I']:.4e}{extra}")
     if len(rep.get("phases", {})) > 1:
         ran = [f"{n} {b['I']:.4e}" for n, b in rep["phases"].items() if n != "all" and b["ticks"]]

@@ -292,7 +292,9 @@ def test_live_view_serves_the_channels_over_foxglove_websocket() -> None:
 
 # --- real processes ----------------------------------------------------------------------------
 @pytest.mark.integration
-def test_run_until_stopped_reports_and_both_exit_cleanly(tmp_path: Path) -> None:
+def test_run_until_stopped_reports_and_both_exit_cleanly(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     out = tmp_path / "run"
     p = subprocess.Popen(
         [*TELEOP, "run", "--out", str(out), "--no-plots", "--no-sim", "--no-live", "--duration", "0"],
@@ -314,6 +316,22 @@ def test_run_until_stopped_reports_and_both_exit_cleanly(tmp_path: Path) -> None
         assert pr["loop"]["ticks"] > 500, role
         assert pr["event_loop"] in ("uvloop", "asyncio"), role
     assert 0.5 < rep["duration_s"] < 30
+    # The scenario's phases are the open session's too (they were all empty: cut at duration 0).
+    assert rep["phases"]["free"]["ticks"] > 500 and rep["phases"]["free"]["start"] == 0.0
+    # A session longer than the simulation's cap is compared over the cap's ticks (here 0.5 s).
+    from teleop import metrics, report
+
+    monkeypatch.setattr(report, "SIM_CAP_S", 0.5)
+    rep = report.build(out / "logs", "udp", compare_sim=True)
+    tr = rep["transparency"]
+    assert tr["sim_s"] == 0.5 < rep["duration_s"] and tr["I_over_sim_s"] < tr["I"]
+    a_op, a_to = (read_log(out / "logs" / f"{r}.mcap")[1] for r in ("operator", "teleoperator"))
+    ok = ~(np.isnan(a_op["v"][:500]).any(axis=1) | np.isnan(a_to["v"][:500]).any(axis=1))
+    v_op, v_to, f_op, f_to = (a[x][:500][ok] for x in ("v", "f") for a in (a_op, a_to))
+    i_first = metrics.transparency(v_op, v_to, f_op, f_to, 1e-3)
+    assert tr["I_over_sim_s"] == pytest.approx(i_first, rel=1e-9)
+    assert tr["relative_difference"] == pytest.approx(abs(i_first - tr["I_sim"]) / tr["I_sim"])
+    assert "over the first 0.5 s" in report.summary_text(rep)
     for role in ("operator", "teleoperator"):
         summary, arrays = read_log(out / "logs" / f"{role}.mcap")
         assert summary["params"]["duration"] == 0
@@ -353,3 +371,61 @@ def test_the_peers_bye_ends_an_open_session(tmp_path: Path) -> None:
     assert r.returncode == 0, r.stderr
     rep = json.loads((tmp_path / "rep" / "report.json").read_text())
     assert rep["until_stopped"] is True and rep["transparency"]["ticks_compared"] > 1000
+
+
+# --- the streamed report ------------------------------------------------------------------------
+def test_the_streamed_report_equals_the_whole_session_figures(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``teleop report`` folds both logs a block of ticks at a time (flat memory, any length); its
+    figures equal their whole-array definitions (tests/report_oracle.py) on a session with forward
+    loss, backward reordering, a teleoperator stall (ticks it did not run, payloads it took late),
+    a teleoperator log that starts late and an operator log that ends early.  Small lookahead and
+    plot budget, so blocks queue, the plots thin, and the lookup waits for the sender's log."""
+    from teleop import report
+    from tests.report_oracle import assert_fold_matches, figures
+
+    monkeypatch.setattr(report, "LOOKAHEAD_TICKS", 37)
+    monkeypatch.setattr(report, "PLOT_POINTS", 1000)
+    logs = [
+        McapLog(tmp_path / f"{r}.mcap", r, wall0_ns=1_700_000_000 * 10**9)
+        for r in ("operator", "teleoperator")
+    ]
+    op, to = _pair((logs[0], logs[1]), codec="ids:2")
+    rng = np.random.default_rng(5)
+    backward: list[tuple[int, bytes]] = []
+    forward: list[bytes] = []
+    ticks = 7000
+    for n in range(ticks):
+        now = n * 1e-3
+        for _, data in [b for b in backward if b[0] <= n]:
+            if n < 6500:  # the operator's log ends early: it stops at 6500
+                op.receive(data, now, n)
+        backward = [b for b in backward if b[0] > n]
+        if n < 6500:
+            for data in op.tick(n, now):
+                if rng.random() >= 0.05:  # 5% forward loss
+                    forward.append(data)
+            op.sent(n, now)
+        if n < 300 or 2200 <= n < 2260:  # the teleoperator joins at 300 and stalls 60 ticks
+            continue
+        for data in forward:
+            to.receive(data, now, n)
+        forward = []
+        for data in to.tick(n, now):
+            backward.append((n + int(rng.integers(0, 4)), data))  # 0-3 ticks late: reordered
+        to.sent(n, now)
+    for log, port in zip(logs, (op, to), strict=True):
+        log.close(port.summary())
+    phases = [("free", 0.0, 2.5), ("foam", 2.5, 5.0), ("wall", 5.0, 1e9)]
+    want = figures(tmp_path / "operator.mcap", tmp_path / "teleoperator.mcap", phases, 1e-3)
+    fold = report.fold_logs(tmp_path / "operator.mcap", tmp_path / "teleoperator.mcap", phases, 2, 1e-3)
+    assert want["ticks"] == 6500 and want["phases"]["all"]["ticks"] == 6500 - 300 - 60
+    assert want["min_margin"]["forward"] is not None and want["two_port"] is not None
+    assert_fold_matches(fold, want)
+    k, sig = fold.signals.get()
+    assert fold.signals.stride == 8 and k.size <= 1000 and np.all(k % 8 == 0)  # 6500 ticks, thinned
+    np.testing.assert_array_equal(sig["v_op"], read_log(tmp_path / "operator.mcap")[1]["v"][k])
+    kb, bw = fold.bandwidth.get()
+    wire = np.nan_to_num(read_log(tmp_path / "operator.mcap")[1]["tx_wire"])
+    np.testing.assert_allclose(bw["fwd"], [wire[j - 99 : j + 1].sum() for j in kb])  # 100-tick windows

@@ -375,6 +375,12 @@ def test_teleoperator_restarted_mid_session_and_the_operator_recovers(tmp_path: 
     for d in ("forward", "backward"):
         assert rep["energy"][d]["min_margin"] >= -1e-9, d  # no energy across the two incarnations
         assert rep["link"][d]["duplicates"] == 0 and rep["link"][d]["loss"] < 0.01  # per incarnation
+    # The streamed report's figures are their whole-session definitions on real logs (one starts late).
+    from tests.report_oracle import assert_fold_matches, figures
+
+    paths = (logs / "operator.mcap", logs / "teleoperator.mcap")
+    phases = report._phases(o["params"], 5.0)
+    assert_fold_matches(report.fold_logs(*paths, phases, 2, 1e-3), figures(*paths, phases, 1e-3))
 
 
 def test_operator_restarted_mid_session_and_the_teleoperator_serves_the_new_one(
