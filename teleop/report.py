@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from transport.mcaplog import iter_ticks, read_summary
+from transport.mcaplog import LogError, iter_ticks, read_summary
 
 from . import devices, plots, scenarios
 from .port import wire_block
@@ -46,7 +46,7 @@ def _summary(log_dir: Path, role: str) -> dict[str, Any]:
     path = log_dir / f"{role}.mcap"
     summary = read_summary(path)
     if not summary:
-        raise ValueError(f"{path} has no summary: the process did not finish its log")
+        raise LogError(f"{path} has no summary: the process did not finish its log")
     return summary
 
 
@@ -328,7 +328,7 @@ def fold_logs(
         fold.add(k0, a_op, a_to)
     fold.finish()
     if fold.n == 0:
-        raise ValueError(f"{op_log} and {to_log} hold no tick both processes ran")
+        raise LogError(f"{op_log} and {to_log} hold no tick both processes ran")
     return fold
 
 

@@ -429,3 +429,69 @@ def test_the_streamed_report_equals_the_whole_session_figures(
     kb, bw = fold.bandwidth.get()
     wire = np.nan_to_num(read_log(tmp_path / "operator.mcap")[1]["tx_wire"])
     np.testing.assert_allclose(bw["fwd"], [wire[j - 99 : j + 1].sum() for j in kb])  # 100-tick windows
+
+
+def _mcap(path: Path, messages: list[tuple[str, bytes]], chunk_size: int = 1 << 20) -> Path:
+    """An MCAP file of raw JSON messages on ``/operator/TOPIC`` channels (the reference writer)."""
+    from mcap.writer import Writer
+
+    with path.open("wb") as f:
+        w = Writer(f, chunk_size=chunk_size)
+        w.start()
+        ids: dict[str, int] = {}
+        for i, (topic, data) in enumerate(messages):
+            if topic not in ids:
+                schema = w.register_schema(name=topic, encoding="jsonschema", data=b"{}")
+                ids[topic] = w.register_channel(f"/operator/{topic}", "json", schema)
+            w.add_message(ids[topic], log_time=i, data=data, publish_time=i)
+        w.finish()  # type: ignore[no-untyped-call]
+    return path
+
+
+def _sig(k: Any, v: Any = (0.1, 0.2)) -> tuple[str, bytes]:
+    return "signals", json.dumps({"k": k, "t": 0.0, "v": v, "f": [0.0, 0.0]}).encode()
+
+
+@pytest.mark.parametrize(
+    ("messages", "says"),
+    [
+        ([_sig(0), _sig(10**15)], "a jump of 1000000000000000 ticks"),  # no 10^15-tick allocation
+        ([_sig(0), ("x", b""), _sig(10**15)], "tick 1000000000000000 after tick 0"),  # across chunks
+        ([_sig(10**12)], "tick 1000000000000 after tick -1"),
+        ([_sig(5), _sig(3)], "tick numbers must increase"),
+        ([_sig(-1)], "tick numbers must increase"),
+        ([_sig(0, "abc")], "does not follow its schema"),
+        ([_sig(0, [1.0, [2.0]])], "does not follow its schema"),
+        ([_sig("x")], "does not follow its schema"),
+        ([("signals", b"not json")], "does not follow its schema"),
+        ([("signals", b"[1, 2]")], "does not follow its schema"),
+        ([_sig(0), _sig(1, [0.1, 0.2, 0.3])], "does not follow its schema"),
+        ([_sig(0), ("x", b""), _sig(1, [0.1, 0.2, 0.3])], "must have 2 values"),
+    ],
+)
+def test_a_damaged_log_is_a_clear_error_not_a_crash_or_a_huge_allocation(
+    tmp_path: Path, messages: list[tuple[str, bytes]], says: str
+) -> None:
+    """``teleop report`` may read logs copied from another host: every field is checked as it is
+    read, a tick jump is bounded before anything is allocated, and what is wrong is said."""
+    from transport.mcaplog import LogError, iter_ticks
+
+    # A message on another channel ("x") between two closes a chunk: the checks across chunks.
+    path = _mcap(
+        tmp_path / "operator.mcap", messages, chunk_size=1 if any(t == "x" for t, _ in messages) else 1 << 20
+    )
+    with pytest.raises(LogError, match=says):
+        for _ in iter_ticks(path):
+            pass
+
+
+def test_teleop_report_on_a_damaged_log_says_what_is_wrong(tmp_path: Path) -> None:
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    (logs / "operator.mcap").write_bytes(b"hello world" * 50)
+    _mcap(logs / "teleoperator.mcap", [_sig(0)])
+    r = subprocess.run(
+        [*TELEOP, "report", str(logs), "--no-sim", "--no-plots"], capture_output=True, text=True
+    )
+    assert r.returncode == 2 and r.stderr.startswith("teleop: error: cannot build the report: ")
+    assert "operator.mcap: not a readable MCAP file (InvalidMagic" in r.stderr and "Traceback" not in r.stderr

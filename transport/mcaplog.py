@@ -76,13 +76,15 @@ import numpy.typing as npt
 
 from teleop.port import Chunk
 
-__all__ = ["PER_TICK_TOPICS", "TOPICS", "McapLog", "iter_ticks", "read_log", "read_summary"]
+__all__ = ["PER_TICK_TOPICS", "TOPICS", "LogError", "McapLog", "iter_ticks", "read_log", "read_summary"]
 
 PER_TICK_TOPICS = ("signals", "waves", "energy", "wire", "loop")
 TOPICS = (*PER_TICK_TOPICS, "link", "events", "session", "summary")
 NICE = 10  # the writer process's niceness (on top of SCHED_IDLE, or instead where refused)
 LIVE_BATCH = 5  # live-view ticks per queued item
 LAG_TICKS = 5000  # how far a topic may trail the signals in the file (iter_ticks)
+BLOCK_TICKS = 1 << 16  # iter_ticks hands on at most this many ticks a block (a long gap: several)
+MAX_GAP_TICKS = 100_000_000  # a jump in a log's ticks beyond this (28 h at 1 kHz) is not a session
 QUEUE_ITEMS = 256  # items (chunks are 1 s each at 1 kHz, live batches 10 a second) in flight
 
 _NUM = {"type": "number"}
@@ -473,12 +475,26 @@ def iter_messages(path: Path, topics: list[str] | None = None) -> Iterator[tuple
             yield channel.topic, json.loads(message.data)
 
 
+class LogError(ValueError):
+    """A file that is not a log this stack wrote, or is damaged: what is wrong, where."""
+
+
 def read_summary(path: Path) -> dict[str, Any]:
     """The ``/ROLE/summary`` message (empty if the process did not finish its log); through the
-    file's index, so only the chunk holding it is read."""
+    file's index, so only the chunk holding it is read.  A damaged file raises :class:`LogError`."""
+    from mcap.exceptions import McapError
+    from zstandard import ZstdError
+
     role = path.stem.split("-", 1)[0]
-    for _, m in iter_messages(path, topics=[f"/{role}/summary"]):
-        return m
+    try:
+        for _, m in iter_messages(path, topics=[f"/{role}/summary"]):
+            if not isinstance(m, dict):
+                raise LogError(f"{path}: its summary is not a JSON object")
+            return m
+    except (McapError, ZstdError, struct.error, UnicodeDecodeError, ValueError) as e:
+        if isinstance(e, LogError):
+            raise
+        raise LogError(f"{path}: not a readable MCAP file ({type(e).__name__}: {e})") from None
     return {}
 
 
@@ -545,11 +561,24 @@ def _iter_payloads(path: Path) -> Iterator[dict[str, list[bytes]]]:
 
 
 def _columns(topic: str, payloads: list[bytes]) -> dict[str, npt.NDArray[Any]]:
-    """One topic's messages as columns: ``k`` and the record's names (JSON null: NaN)."""
-    ms = json.loads(b"[" + b",".join(payloads) + b"]")  # one parse, not one per message
-    cols: dict[str, npt.NDArray[Any]] = {"k": np.array([m["k"] for m in ms], dtype=np.int64)}
-    for field, name, _ in _FIELDS[topic]:
-        cols[name] = np.array([m.get(field) for m in ms], dtype=np.float64)
+    """One topic's messages as columns: ``k`` and the record's names (JSON null: NaN); a message
+    that is not the documented schema raises :class:`LogError`."""
+    try:
+        ms = json.loads(b"[" + b",".join(payloads) + b"]")  # one parse, not one per message
+        cols: dict[str, npt.NDArray[Any]] = {"k": np.array([m["k"] for m in ms], dtype=np.int64)}
+        for field, name, kind in _FIELDS[topic]:
+            cols[name] = np.array([m.get(field) for m in ms], dtype=np.float64)
+            if cols[name].ndim != (2 if kind == "vec" else 1):
+                raise ValueError(f"{field} is not a {'list' if kind == 'vec' else 'number'} in every message")
+    except (ValueError, TypeError, KeyError, OverflowError) as e:
+        raise LogError(
+            f"a /ROLE/{topic} message does not follow its schema: {type(e).__name__}: {e}"
+        ) from None
+    k = cols["k"]
+    if k.size and (k.min() < 0 or np.any(np.diff(k) <= 0)):
+        raise LogError(f"/ROLE/{topic}: tick numbers must increase from 0 (got {k[:8].tolist()}...)")
+    if k.size > 1 and (jump := int(np.diff(k).max())) > MAX_GAP_TICKS:
+        raise LogError(f"/ROLE/{topic}: a jump of {jump} ticks (at most {MAX_GAP_TICKS}): not a session")
     return cols
 
 
@@ -565,6 +594,9 @@ def iter_ticks(
     chunk of ticks a topic at a time), so memory holds a few MCAP chunks, not the session.  A topic
     more than ``LAG_TICKS`` behind the signals (a log cut off mid-chunk) counts as missing those
     ticks, as does a message for a tick whose signals are not in the log."""
+    from mcap.exceptions import McapError
+    from zstandard import ZstdError
+
     wanted = ("signals", *(t for t in topics if t != "signals"))
     role = path.stem.split("-", 1)[0]
     names = {f"/{role}/{t}": t for t in wanted}
@@ -615,23 +647,35 @@ def iter_ticks(
         next_k = upto + 1
         return k0, block
 
-    for chunk in _iter_payloads(path):
-        for topic, payloads in chunk.items():
-            t = names.get(topic)
-            if t is None:
-                continue
-            cols = _columns(t, payloads)
-            if t == "signals":
-                dof = dof or cols["v"].shape[1]
-            pending[t].append(cols)
-            last[t] = max(last[t], int(cols["k"].max()))
-        ready = min(max(last[t], last["signals"] - LAG_TICKS) for t in wanted)
-        out = emit(min(ready, last["signals"]))
-        if out is not None:
+    def blocks(upto: int) -> Iterator[tuple[int, dict[str, npt.NDArray[Any]]]]:
+        while (out := emit(min(upto, next_k + BLOCK_TICKS - 1))) is not None:
             yield out
-    out = emit(last["signals"])
-    if out is not None:
-        yield out
+
+    try:
+        for chunk in _iter_payloads(path):
+            for topic, payloads in chunk.items():
+                t = names.get(topic)
+                if t is None:
+                    continue
+                cols = _columns(t, payloads)
+                first, end = int(cols["k"][0]), int(cols["k"][-1])
+                if first <= last[t] or first - last[t] > MAX_GAP_TICKS:
+                    raise LogError(f"{topic}: tick {first} after tick {last[t]} (ticks are logged in order)")
+                if t == "signals":
+                    dof = dof or cols["v"].shape[1]
+                    if cols["v"].shape[1] != dof or cols["f"].shape[1] != dof:
+                        raise LogError(f"{topic}: v and f must have {dof} values (DoF) in every message")
+                elif t == "waves" and cols["wave_out"].shape[1] != (dof or cols["wave_out"].shape[1]):
+                    raise LogError(f"{topic}: waves must have as many values as the signals")
+                pending[t].append(cols)
+                last[t] = end
+            ready = min(max(last[t], last["signals"] - LAG_TICKS) for t in wanted)
+            yield from blocks(min(ready, last["signals"]))
+        yield from blocks(last["signals"])
+    except LogError as e:
+        raise LogError(f"{path}: {e}") from None
+    except (McapError, ZstdError, struct.error, UnicodeDecodeError) as e:  # damaged or cut off
+        raise LogError(f"{path}: not a readable MCAP file ({type(e).__name__}: {e})") from None
 
 
 def read_log(path: Path) -> tuple[dict[str, Any], dict[str, npt.NDArray[Any]]]:

@@ -34,7 +34,12 @@ def cmd_report(args: argparse.Namespace) -> int:
     if missing:
         raise CliError(f"{logs} lacks {', '.join(missing)}: pass the folder both processes wrote with --log")
     out = writable_dir(Path(args.out) if args.out else logs.parent, "--out")
-    write_report(logs, out, args, args.transport)
+    from transport.mcaplog import LogError
+
+    try:
+        write_report(logs, out, args, args.transport)
+    except LogError as e:
+        raise CliError(f"cannot build the report: {e}") from None
     return 0
 
 
