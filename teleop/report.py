@@ -561,7 +561,7 @@ def summary_text(rep: dict[str, Any]) -> str:
     if "I_sim" in tr:
         diff = 100 * tr["relative_difference"]
         extra = f"  (teleop sim, same settings: {tr['I_sim']:.4e}; difference {diff:.1f}%)"
-        if tr["sim_s"] < rep["duration_s"]:
+        if tr["sim_s"] < rep["duration_s"] - 1e-6:  # float ticks * dt: not a cut
             extra = (
                 f"  (over the first {tr['sim_s']:g} s: {tr['I_over_sim_s']:.4e}; teleop sim, same "
                 f"settings: {tr['I_sim']:.4e}; difference {diff:.1f}%)"
