@@ -54,11 +54,16 @@ def min_instant_compression(baseline_per_tick: Array, sent_per_tick: Array, wind
 Phases = Sequence[tuple[str, float, float]]
 
 
+def first_tick(t: float, dt: float) -> int:
+    """The first tick at or after ``t`` s (a phase's bound in ticks; 1e-6 tick of float slack)."""
+    return max(0, math.ceil(t / dt - 1e-6))
+
+
 def phase_ticks(n_ticks: int, dt: float, phases: Phases) -> dict[str, slice]:
     """Each phase's ticks, plus ``all``: every tick of the run."""
     out = {}
     for name, t0, t1 in phases:
-        a, b = (min(n_ticks, max(0, math.ceil(t / dt - 1e-6))) for t in (t0, t1))
+        a, b = (min(n_ticks, first_tick(t, dt)) for t in (t0, t1))
         out[name] = slice(a, max(a, b))
     out["all"] = slice(0, n_ticks)
     return out

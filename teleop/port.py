@@ -29,6 +29,7 @@ its last (a stalled loop's skipped ticks included) when the summary is asked for
 from __future__ import annotations
 
 import heapq
+import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any, Protocol
@@ -274,6 +275,16 @@ class MemorySink:
         return concat_chunks([c.k0 for c in self.chunks], [c.arrays() for c in self.chunks], ticks)
 
 
+def fill_value(name: str) -> float:
+    """A record field's value at a tick not run: no sequence number (-1), no bytes, no epoch
+    change and no lateness (0), otherwise no value (NaN)."""
+    if name in ("tx_seq", "rx_seq"):
+        return -1
+    if name in BYTES or name.startswith("produced") or name in ("peer_epoch", "lateness_ns"):
+        return 0
+    return math.nan
+
+
 def concat_chunks(
     starts: list[int], parts: list[dict[str, npt.NDArray[Any]]], ticks: int | None = None
 ) -> dict[str, npt.NDArray[Any]]:
@@ -284,10 +295,7 @@ def concat_chunks(
     n = end if ticks is None else ticks
     out: dict[str, npt.NDArray[Any]] = {}
     for name, a in parts[0].items():
-        fill: float = -1 if name in ("tx_seq", "rx_seq") else (np.nan if a.dtype.kind == "f" else 0)
-        if name in BYTES or name.startswith("produced") or name in ("peer_epoch", "lateness_ns"):
-            fill = 0
-        out[name] = np.full((n, *a.shape[1:]), fill, dtype=a.dtype)
+        out[name] = np.full((n, *a.shape[1:]), fill_value(name), dtype=a.dtype)
     for k0, part in zip(starts, parts, strict=True):
         m = max(0, min(len(part["play_time_s"]), n - k0))
         for name, v in part.items():

@@ -22,7 +22,7 @@ import numpy.typing as npt
 
 from transport.mcaplog import LogError, iter_ticks, read_summary
 
-from . import devices, plots, scenarios
+from . import devices, metrics, plots, scenarios
 from .port import wire_block
 from .sim import SimConfig, run_case
 
@@ -125,8 +125,7 @@ class _Margin:
         if epochs.size:
             self.last_epoch = max(self.last_epoch, int(epochs.max()))
         for e in np.unique(epochs[np.isfinite(m)]).tolist():
-            low = float(np.min(m[(epochs == e) & np.isfinite(m)]))
-            self.min_by_epoch[e] = min(low, self.min_by_epoch.get(e, math.inf))
+            _keep_min(self.min_by_epoch, e, m[(epochs == e) & np.isfinite(m)])
         return m
 
     def minimum(self) -> float:
@@ -202,9 +201,9 @@ class _Lateness:
         )
 
 
-def _tick_at(t: float, dt: float) -> int:
-    """The first tick at or after ``t`` s (metrics.phase_ticks's rounding)."""
-    return max(0, math.ceil(t / dt - 1e-6))
+def _keep_min(table: dict[Any, float], key: Any, values: Array) -> None:
+    """``table[key]``: the least of ``values`` seen under ``key`` so far."""
+    table[key] = min(float(values.min()), table.get(key, math.inf))
 
 
 class _Fold:
@@ -213,10 +212,12 @@ class _Fold:
     thinned series.  Memory: the plots' series, a lookahead of ticks and 16 bytes per packet sent."""
 
     def __init__(self, phases: list[tuple[str, float, float]], dof: int, dt: float) -> None:
-        self.dt, self.dof = dt, dof
-        # Phase bounds in ticks, clipped to the run's length at the end (metrics.phase_ticks's rule).
-        self.phases = [(n, _tick_at(a, dt), _tick_at(b, dt)) for n, a, b in phases]
-        names = [n for n, _, _ in self.phases] + ["all"]
+        self.dt = dt
+        # Phases as given (clipped to the run's length at the end, by metrics.phase_ticks) and their
+        # bounds in ticks, unclipped, to sum each block's ticks into.
+        self.phases = phases
+        self.bounds = [(n, metrics.first_tick(a, dt), metrics.first_tick(b, dt)) for n, a, b in phases]
+        names = [n for n, _, _ in phases] + ["all"]
         self.i_dof = {n: np.zeros(dof) for n in names}
         self.counted = dict.fromkeys(names, 0)
         self.packets = {d: dict.fromkeys(names, 0) for d in ("forward", "backward")}
@@ -255,7 +256,7 @@ class _Fold:
         dv, df = op["v"] - to["v"], to["f"] - op["f"]
         per_tick = np.where(valid[:, None], dv * dv + df * df, 0.0)  # eq. (7)'s integrand per DoF
         wire = {"forward": np.nan_to_num(op["tx_wire"]), "backward": np.nan_to_num(to["tx_wire"])}
-        for name, a, b in [*self.phases, ("all", 0, k0 + n)]:
+        for name, a, b in [*self.bounds, ("all", 0, k0 + n)]:
             lo, hi = max(a, k0) - k0, min(b, k0 + n) - k0
             if hi <= lo:
                 continue
@@ -272,8 +273,7 @@ class _Fold:
             pairs = np.stack([to["peer_epoch"][fin], op["peer_epoch"][fin]], axis=1)
             for e_to, e_op in np.unique(pairs, axis=0).tolist():
                 sel = (to["peer_epoch"] == e_to) & (op["peer_epoch"] == e_op) & fin
-                low = float(both[sel].min())
-                self.two_port[(e_to, e_op)] = min(low, self.two_port.get((e_to, e_op), math.inf))
+                _keep_min(self.two_port, (e_to, e_op), both[sel])
         self.signals.add(k, v_op=op["v"], v_to=to["v"], f_op=op["f"], f_to=to["f"])
         self.energy.add(
             k,
@@ -284,12 +284,14 @@ class _Fold:
             bwd_played=op["energy_played"],
             bwd_margin=op["energy_margin_observed"],
         )
-        ends, fwd = self.windows["fwd"].add(k0, op["tx_wire"])
-        _, fwd_base = self.windows["fwd_base"].add(k0, op["tx_baseline_wire"])
-        _, bwd = self.windows["bwd"].add(k0, to["tx_wire"])
-        _, bwd_base = self.windows["bwd_base"].add(k0, to["tx_baseline_wire"])
+        wire_bytes = {
+            "fwd": op["tx_wire"], "fwd_base": op["tx_baseline_wire"],
+            "bwd": to["tx_wire"], "bwd_base": to["tx_baseline_wire"],
+        }  # fmt: skip
+        sums = {name: self.windows[name].add(k0, x) for name, x in wire_bytes.items()}
+        ends = sums["fwd"][0]  # every series' windows end at the same ticks
         if ends.size:
-            self.bandwidth.add(ends, fwd=fwd, fwd_base=fwd_base, bwd=bwd, bwd_base=bwd_base)
+            self.bandwidth.add(ends, **{name: s for name, (_, s) in sums.items()})
         self.lateness["operator"].add(op["lateness_ns"][op["ran"]])
         self.lateness["teleoperator"].add(to["lateness_ns"][to["ran"]])
 
@@ -297,9 +299,8 @@ class _Fold:
     def phase_summary(self) -> dict[str, dict[str, Any]]:
         """metrics.phase_summary's figures: per phase I per DoF, ticks, packets/s and bits/s."""
         out: dict[str, dict[str, Any]] = {}
-        for name, a, b in [*self.phases, ("all", 0, self.n)]:
-            lo = min(self.n, a)
-            hi = max(lo, min(self.n, b))
+        for name, sl in metrics.phase_ticks(self.n, self.dt, self.phases).items():
+            lo, hi = sl.start, sl.stop
             span = (hi - lo) * self.dt
             i_dof = self.i_dof[name] * self.dt
             out[name] = {

@@ -75,7 +75,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from teleop.port import Chunk
+from teleop.port import Chunk, fill_value
 
 __all__ = ["PER_TICK_TOPICS", "TOPICS", "LogError", "McapLog", "iter_ticks", "read_log", "read_summary"]
 
@@ -511,15 +511,6 @@ _FIELDS: dict[str, tuple[tuple[str, str, str], ...]] = {
 }
 
 
-def _fill(name: str) -> float:
-    """A tick not run, or a field its topic lacks: no sequence number, no bytes, no value."""
-    if name.endswith("seq"):
-        return -1
-    if name.startswith(("tx_", "rx_", "produced")) or name in ("peer_epoch", "lateness_ns"):
-        return 0
-    return math.nan
-
-
 def _chunk_payloads(data: bytes, channels: dict[int, str]) -> dict[str, list[bytes]]:
     """The message payloads of a decompressed MCAP chunk by topic, in file order (channel records
     inside the chunk are learnt on the way).  A plain loop over the records' headers: the ``mcap``
@@ -637,11 +628,11 @@ def iter_ticks(
                 # A tick run whose row is missing has no value (NaN); a tick not run has the fill.
                 full = np.full((n, dof) if kind == "vec" else n, math.nan)
                 if kind != "vec":
-                    full[~ran] = _fill(name)
+                    full[~ran] = fill_value(name)
                 if c:
                     full[rows] = c[name][hit]
                 if kind == "int":
-                    block[name] = np.nan_to_num(full, nan=_fill(name)).astype(np.int64)
+                    block[name] = np.nan_to_num(full, nan=fill_value(name)).astype(np.int64)
                 else:
                     block[name] = full
         k0 = next_k
