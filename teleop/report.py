@@ -46,7 +46,10 @@ def _summary(log_dir: Path, role: str) -> dict[str, Any]:
     path = log_dir / f"{role}.mcap"
     summary = read_summary(path)
     if not summary:
-        raise LogError(f"{path} has no summary: the process did not finish its log")
+        raise LogError(
+            f"{path} has no /{role}/summary message: the process did not finish its log, "
+            "or the file is another process's"
+        )
     return summary
 
 

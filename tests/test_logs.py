@@ -495,3 +495,44 @@ def test_teleop_report_on_a_damaged_log_says_what_is_wrong(tmp_path: Path) -> No
     )
     assert r.returncode == 2 and r.stderr.startswith("teleop: error: cannot build the report: ")
     assert "operator.mcap: not a readable MCAP file (InvalidMagic" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("kind", ["directory", "fifo", "device", "swapped", "transport"])
+def test_teleop_report_refuses_what_is_not_a_log_in_one_line(tmp_path: Path, kind: str) -> None:
+    """A directory, a FIFO (a read would block) or a device where a log should be is never opened;
+    logs of the wrong role, or a transport the stack does not have, are named as such."""
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    _mcap(logs / "teleoperator.mcap", [_sig(0)])
+    op = logs / "operator.mcap"
+    args: list[str] = []
+    if kind == "directory":
+        op.mkdir()
+    elif kind == "fifo":
+        os.mkfifo(op)
+    elif kind == "device":
+        op.symlink_to("/dev/zero")
+    elif kind == "swapped":  # the teleoperator's log under the operator's name: no /operator/summary
+        _mcap(op, [_sig(0)])
+        (logs / "teleoperator.mcap").rename(tmp_path / "x.mcap")
+        op.rename(logs / "teleoperator.mcap")
+        (tmp_path / "x.mcap").rename(op)
+    else:
+        _mcap(op, [_sig(0)])
+        args = ["--transport", "nan"]
+    r = subprocess.run(
+        [*TELEOP, "report", str(logs), "--no-sim", "--no-plots", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+    want = {
+        "directory": "operator.mcap: not a regular file",
+        "fifo": "operator.mcap: not a regular file",
+        "device": "operator.mcap: not a regular file",
+        "swapped": "has no /operator/summary message",
+        "transport": "invalid choice: 'nan'",
+    }[kind]
+    assert want in lines[0], lines[0]

@@ -33,6 +33,10 @@ def cmd_report(args: argparse.Namespace) -> int:
     missing = [name for name in LOG_FILES if not (logs / name).exists()]
     if missing:
         raise CliError(f"{logs} lacks {', '.join(missing)}: pass the folder both processes wrote with --log")
+    # Not a directory, a FIFO (which would block the read) or a device: only files are opened.
+    odd = [name for name in LOG_FILES if not (logs / name).is_file()]
+    if odd:
+        raise CliError(f"{', '.join(str(logs / n) for n in odd)}: not a regular file (a log is one)")
     out = writable_dir(Path(args.out) if args.out else logs.parent, "--out")
     from transport.mcaplog import LogError
 
@@ -52,7 +56,12 @@ def add_parser(sub: Subcommands) -> None:
     )
     rp.add_argument("logs", metavar="LOGDIR", help="folder holding both processes' logs")
     rp.add_argument("--out", metavar="DIR", help="report folder (default: LOGDIR's parent)")
-    rp.add_argument("--transport", default="udp", help="transport name to record (default udp)")
+    rp.add_argument(
+        "--transport",
+        default="udp",
+        choices=("udp", "zenoh"),
+        help="the transport the session ran over, recorded in the report (default udp)",
+    )
     rp.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     rp.add_argument("--no-sim", action="store_true", help="skip the teleop sim comparison")
     rp.set_defaults(func=cmd_report)
