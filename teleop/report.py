@@ -34,7 +34,7 @@ TOPICS = ("signals", "energy", "wire", "loop")
 #: Receiver ticks wait this long for the sender's log before their margin is computed: a payload
 #: accepted at tick k was sent at a sender tick <= k (a common clock), this is slack for its error.
 LOOKAHEAD_TICKS = 1000
-#: ``teleop sim`` re-runs at most this much of a session (it keeps every tick: about 1 MB and
+#: ``teleop sim`` re-runs at most this much of a session (it keeps every tick: under 1 MB and
 #: 0.18 s of CPU per simulated second, measured), and the real I is compared over the same ticks.
 SIM_CAP_S = 300.0
 PLOT_POINTS = 1 << 17  # samples kept per plotted series: every tick up to 131 s, then thinned
