@@ -37,9 +37,9 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from transport.counters import UDP_IPV4_HEADER, DirectionCounters
-from transport.linkstats import LinkObserver
-from transport.netem import Link, NetemStats, make_link
+from teleop.link.counters import UDP_IPV4_HEADER, DirectionCounters
+from teleop.link.linkstats import LinkObserver
+from teleop.link.netem import Link, NetemStats, make_link
 
 from . import auth, devices, protocol, scenarios, wire
 from .codecs import make_codec
@@ -74,7 +74,7 @@ WIRE_KEYS = (
 class ConstantDelayLink:
     """A lossless link with constant delay: ``send(now, data)``, ``due(now) -> [data]``.
 
-    Same interface as the netem shim's link model (``transport.netem.Link``), so a port does not
+    Same interface as the netem shim's link model (``teleop.link.netem.Link``), so a port does not
     care which it has.
     """
 

@@ -41,13 +41,13 @@ import msgpack
 
 from teleop import auth, limits, scenarios
 from teleop.codecs import CodecError, make_codec
+from teleop.link import Addr
+from teleop.link.netem import NetemError, NetemSpec, make_link, parse_netem
 from teleop.node import PortOptions
 from teleop.passivity import ON_LOSS
 from teleop.ratecap import MAX_RATE_BPS, MIN_RATE_BPS
 from teleop.scenarios import SCENARIOS
 from teleop.wave import WaveImpedance
-from transport.base import Addr
-from transport.netem import NetemError, NetemSpec, make_link, parse_netem
 
 FORWARD, BACKWARD = 0, 1  # the directions of teleop.wire: operator -> TO, TO -> operator
 

@@ -20,9 +20,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from transport.mcaplog import LogError, iter_ticks, read_summary
-
 from . import devices, metrics, plots, scenarios
+from .logfile import LogError, iter_ticks, read_summary
 from .port import wire_block
 from .sim import SimConfig, run_case
 
@@ -326,7 +325,7 @@ class _Fold:
 def fold_logs(
     op_log: Path, to_log: Path, phases: list[tuple[str, float, float]], dof: int, dt: float
 ) -> _Fold:
-    """One pass over both processes' logs, a block of ticks at a time (transport.mcaplog.iter_ticks)."""
+    """One pass over both processes' logs, a block of ticks at a time (teleop.logfile.iter_ticks)."""
     fold = _Fold(phases, dof, dt)
     for k0, a_op, a_to in _paired(iter_ticks(op_log, TOPICS), iter_ticks(to_log, TOPICS)):
         fold.add(k0, a_op, a_to)

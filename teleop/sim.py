@@ -13,12 +13,12 @@ Packets cross the links as wire bytes (``teleop.wire``), so the sim exercises th
 the real processes, and payload and packet sizes are counted, not estimated.
 
 Impairment: each direction may carry a netem spec (``SimConfig.netem_forward`` /
-``netem_backward``, grammar in ``transport.netem``; ``trace FILE`` gives a Mahimahi trace link).  A
+``netem_backward``, grammar in ``teleop.link.netem``; ``trace FILE`` gives a Mahimahi trace link).  A
 spec *replaces* ``delay_ms`` for its direction (write ``delay`` into the spec); ``delay_ms`` still
 applies to a direction without one.  Direction ``i`` (0 forward, 1 backward) is seeded
 ``2 seed + i``, so the two directions (and neighbouring seeds) draw independent streams and the
 same config gives the same bits.  What each link actually did is measured at the receiver by
-``transport.linkstats.LinkObserver`` and reported per case under ``link``.  The sim delivers at
+``teleop.link.linkstats.LinkObserver`` and reported per case under ``link``.  The sim delivers at
 tick granularity: a packet due at ``t`` is taken at the first tick ``n dt >= t``, so the observed
 one-way delay is the link's delay rounded *up* to the tick (e.g. netem's uniform jitter on
 50 +- 5 ms is observed on a 1 ms grid, mean about 0.5 ms higher).
@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from transport.netem import Link, make_link
+from teleop.link.netem import Link, make_link
 
 from . import devices, metrics, scenarios, wire
 from .codecs import Codec

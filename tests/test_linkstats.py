@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from transport.linkstats import LinkObserver
+from teleop.link.linkstats import LinkObserver
 
 KEYS = {
     "spec",

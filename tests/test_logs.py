@@ -27,11 +27,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from teleop import metrics
+from teleop.link.counters import DirectionCounters
+from teleop.link.quantiles import Quantiles
 from teleop.node import PortOptions
 from teleop.port import MemorySink, Port, make_node
-from transport.counters import DirectionCounters
 from transport.mcaplog import PER_TICK_TOPICS, TOPICS, McapLog, read_log
-from transport.quantiles import Quantiles
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
 

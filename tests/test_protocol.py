@@ -32,7 +32,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import transport.netem
+import teleop.link.netem
 from teleop import auth, limits, protocol, wire
 from teleop.auth import HANDSHAKE, SESSION, AuthError
 from teleop.codecs import CodecError
@@ -666,8 +666,8 @@ def no_files(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[str]]:
         (pathlib.Path, "open"),
         (pathlib.Path, "read_text"),
         (pathlib.Path, "read_bytes"),
-        (transport.netem, "load_trace"),
-        (transport.netem, "make_link"),
+        (teleop.link.netem, "load_trace"),
+        (teleop.link.netem, "make_link"),
         (protocol, "make_link"),
     ]:
         monkeypatch.setattr(target, name, refuse)

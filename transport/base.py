@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from typing import Protocol
 
-Addr = tuple[str, int]
+from teleop.link import Addr
+
+__all__ = ["Addr", "Transport"]
 
 
 class Transport(Protocol):

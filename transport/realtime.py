@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from .quantiles import Quantiles
+from teleop.link.quantiles import Quantiles
 
 PR_SET_TIMERSLACK = 29
 

@@ -129,7 +129,7 @@ def playout(text: str) -> str:
 
 def rate_cap(text: str) -> float:
     """A rate in netem's units (``64kbit``; ``kbps`` are bytes/s), within teleop.ratecap's range."""
-    from transport.netem import NetemError, parse_rate
+    from teleop.link.netem import NetemError, parse_rate
 
     from ..ratecap import MAX_RATE_BPS, MIN_RATE_BPS
 
@@ -166,7 +166,7 @@ def codec(text: str) -> str:
 
 def netem_spec(text: str) -> str:
     """A netem spec or ``trace FILE``, checked by building its link (so a trace file is read now)."""
-    from transport.netem import make_link
+    from teleop.link.netem import make_link
 
     if len(text) > MAX_NETEM_SPEC_LEN:
         raise argparse.ArgumentTypeError(

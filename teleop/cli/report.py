@@ -38,7 +38,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     if odd:
         raise CliError(f"{', '.join(str(logs / n) for n in odd)}: not a regular file (a log is one)")
     out = writable_dir(Path(args.out) if args.out else logs.parent, "--out")
-    from transport.mcaplog import LogError
+    from teleop.logfile import LogError
 
     try:
         write_report(logs, out, args, args.transport)

@@ -9,7 +9,7 @@ spec.
 ``observe`` runs once per datagram in the 1 kHz loop, so it is O(1) and allocation-light: the
 sequence numbers seen go into a sparse bitmap (chunks of 65536 bits, made on first use, so a large or
 corrupted uint32 costs one 8 KiB chunk, never an array sized by the largest seq: 0.5 MB an hour at
-1 kHz), the one-way delays into a :class:`transport.quantiles.Quantiles` (exact for the first 65536
+1 kHz), the one-way delays into a :class:`teleop.link.quantiles.Quantiles` (exact for the first 65536
 packets, then a fixed histogram), so a session without a fixed end does not grow; percentiles are
 computed only in :meth:`LinkObserver.summary`.
 
