@@ -59,7 +59,7 @@ def _not_a_folder(tmp_path: Path) -> Path:
     return tmp_path / "afile" / "sub"
 
 
-TRACE = "cannot read the trace file '/nonexistent/trace': No such file or directory"
+TRACE = "trace /nonexistent/trace: No such file or directory"
 DURATION = "duration must be 0.1 to"
 RUN_DURATION = "duration must be 0 (until stopped) or 0.1 to 604800 s"
 MAX_SEED, MAX_SESSION = limits.MAX_SEED, limits.MAX_SESSION

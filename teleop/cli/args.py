@@ -190,6 +190,19 @@ def netem_spec(text: str) -> str:
     return text
 
 
+def zenoh_config_file(text: str) -> str:
+    """A Zenoh JSON5 config file: a regular file of at most ``teleop.files.MAX_CONFIG_BYTES``
+    (a FIFO or a device is refused by its type, before it is opened), checked now; the session
+    reads it again the same way."""
+    from ..files import MAX_CONFIG_BYTES, FileRefused, read_regular
+
+    try:
+        read_regular(text, MAX_CONFIG_BYTES, "cannot load Zenoh config")
+    except FileRefused as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return text
+
+
 def udp_addr(what: str) -> Callable[[str], tuple[str, int]]:
     """``HOST:PORT`` with HOST resolved to an IPv4 address now, so a bad name fails before a session."""
 
@@ -479,5 +492,8 @@ def add_transport_args(p: argparse.ArgumentParser) -> None:
         help="key prefix: data on KEY/forward and KEY/backward (default teleop/default)",
     )
     z.add_argument(
-        "--zenoh-config", metavar="FILE", help="Zenoh JSON5 config loaded first (deploy/zenoh/*.json5)"
+        "--zenoh-config",
+        metavar="FILE",
+        type=zenoh_config_file,
+        help="Zenoh JSON5 config loaded first (deploy/zenoh/*.json5; a regular file of at most 1 MiB)",
     )

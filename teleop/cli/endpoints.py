@@ -23,6 +23,7 @@ from .args import (
     add_transport_args,
     session_id,
     udp_addr,
+    zenoh_config_file,
 )
 from .settings import check_duration, check_robot, endpoint_options, netem, session_params
 
@@ -155,6 +156,9 @@ def add_router_parser(sub: Subcommands) -> None:
         help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
     )
     ro.add_argument(
-        "--config", metavar="FILE", help="Zenoh JSON5 config (deploy/zenoh/router.json5, TLS variants)"
+        "--config",
+        metavar="FILE",
+        type=zenoh_config_file,
+        help="Zenoh JSON5 config (deploy/zenoh/router.json5, TLS variants; a regular file of at most 1 MiB)",
     )
     ro.set_defaults(func=cmd_router)

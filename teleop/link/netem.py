@@ -96,6 +96,8 @@ from pathlib import Path
 from statistics import NormalDist
 from typing import Any, Protocol
 
+from teleop.files import MAX_TRACE_BYTES, FileRefused, read_regular
+
 __all__ = [
     "GRAMMAR",
     "PACKET_SIZE",
@@ -682,12 +684,20 @@ def load_trace(path_or_text: str | os.PathLike[str]) -> list[float]:
     """A Mahimahi trace as a list of ms timestamps.
 
     A path-like is read as a file; a ``str`` is trace text if it contains a newline, else a path.
+    The file is read through :func:`teleop.files.read_regular` (a regular file of at most
+    :data:`teleop.files.MAX_TRACE_BYTES`), the one place the core opens an input.
     One number per line (blank lines skipped), non-negative, non-decreasing, last one > 0.
     """
     if isinstance(path_or_text, str) and "\n" in path_or_text:
         text, name = path_or_text, "<text>"
     else:
-        text, name = Path(path_or_text).read_text(), os.fspath(path_or_text)
+        name = os.fspath(path_or_text)
+        try:  # a regular file of bounded size only: a FIFO or /dev/zero is refused by its type
+            text = read_regular(name, MAX_TRACE_BYTES, "trace").decode()
+        except FileRefused as e:
+            raise NetemError(str(e)) from None
+        except UnicodeDecodeError:
+            raise NetemError(f"trace {name}: not text (a trace is ms timestamps, one a line)") from None
     out: list[float] = []
     for lineno, raw in enumerate(text.splitlines(), 1):
         line = raw.strip()

@@ -1,0 +1,151 @@
+"""Files as input and output (issue 21, item 3): a trace or a Zenoh config is a regular file of
+bounded size, refused by its type before it is opened (a FIFO or a device never hangs or fills
+memory); a log folder another user can write is refused.  Each case is one ``teleop: error:`` line.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from teleop import files
+from teleop.cli import main
+from teleop.link.netem import NetemError, load_trace
+from transport.zenoh import make_config
+
+PEER = ["--peer", "127.0.0.1:9", "--connect-timeout", "1"]
+ZENOH = ["--transport", "zenoh", "--zenoh-listen", "tcp/127.0.0.1:0"]
+
+
+@pytest.fixture(autouse=True)
+def no_hang() -> Iterator[None]:
+    """A read that blocks (a FIFO opened without O_NONBLOCK) fails the test instead of hanging it."""
+
+    def hung(signum: int, frame: object) -> None:
+        raise TimeoutError("hung on a file")
+
+    old = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(20)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+
+
+@pytest.fixture
+def fifo(tmp_path: Path) -> Path:
+    p = tmp_path / "fifo"
+    os.mkfifo(p)
+    return p
+
+
+def _inputs(tmp_path: Path, fifo: Path) -> dict[str, tuple[Path, str]]:
+    big = tmp_path / "big"
+    with big.open("wb") as f:
+        f.truncate(files.MAX_TRACE_BYTES + 1)  # sparse: costs no disk
+    return {
+        "fifo": (fifo, "a FIFO, not a regular file"),
+        "dev_zero": (Path("/dev/zero"), "a character device, not a regular file"),
+        "dev_urandom": (Path("/dev/urandom"), "a character device, not a regular file"),
+        "directory": (tmp_path, "a directory, not a regular file"),
+        "too_big": (big, f"more than the {files.MAX_TRACE_BYTES} accepted"),
+    }
+
+
+KINDS = ["fifo", "dev_zero", "dev_urandom", "directory", "too_big"]
+
+
+def _one_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2, err
+    assert "Traceback" not in err
+    assert err.startswith("teleop: error: ") and len(err.strip().splitlines()) == 1, err
+    return err
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_trace_loader_refuses_by_type_and_size(kind: str, tmp_path: Path, fifo: Path) -> None:
+    path, why = _inputs(tmp_path, fifo)[kind]
+    with pytest.raises(NetemError, match=why):
+        load_trace(path)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize(
+    "cmd", [["sim"], ["run"], ["operator", *PEER], ["teleoperator", "--listen", "127.0.0.1:0"]]
+)
+def test_every_command_refuses_a_bad_trace(
+    cmd: list[str], kind: str, tmp_path: Path, fifo: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path, why = _inputs(tmp_path, fifo)[kind]
+    opt = "--netem-forward" if cmd[0] == "teleoperator" else "--netem"
+    assert why in _one_line([*cmd, opt, f"trace {path}"], capsys)
+
+
+@pytest.mark.parametrize("kind", ["fifo", "dev_zero", "directory"])
+def test_zenoh_config_refuses_by_type(
+    kind: str, tmp_path: Path, fifo: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path, why = _inputs(tmp_path, fifo)[kind]
+    with pytest.raises(ValueError, match=why):
+        make_config("peer", ["tcp/127.0.0.1:0"], None, str(path))
+    assert why in _one_line(["operator", *ZENOH, "--zenoh-config", str(path)], capsys)
+    assert why in _one_line(["router", "--config", str(path)], capsys)
+
+
+def test_zenoh_config_size_is_bounded(tmp_path: Path) -> None:
+    big = tmp_path / "big.json5"
+    with big.open("wb") as f:
+        f.truncate(files.MAX_CONFIG_BYTES + 1)
+    with pytest.raises(ValueError, match=f"more than the {files.MAX_CONFIG_BYTES} accepted"):
+        make_config("peer", ["tcp/127.0.0.1:0"], None, str(big))
+
+
+def test_a_good_trace_and_config_still_load(tmp_path: Path) -> None:
+    trace = tmp_path / "trace"
+    trace.write_text("1\n2\n")
+    assert load_trace(trace) == [1.0, 2.0]
+    link = tmp_path / "link"
+    link.symlink_to(trace)  # a symlink the user names is followed once, by resolving it
+    assert load_trace(link) == [1.0, 2.0]
+    cfg = tmp_path / "z.json5"
+    cfg.write_text('{ "mode": "peer" }')
+    make_config("peer", ["tcp/127.0.0.1:0"], None, str(cfg))
+
+
+@pytest.mark.parametrize("mode", [0o777, 0o775, 0o757])
+def test_a_log_folder_others_can_write_is_refused(tmp_path: Path, mode: int) -> None:
+    d = tmp_path / "logs"
+    d.mkdir()
+    d.chmod(mode)
+    with pytest.raises(files.FileRefused, match="writable by other users"):
+        files.check_private_dir(d)
+    d.chmod(mode | 0o1000)  # sticky, as /tmp: names cannot be taken from us; O_EXCL does the rest
+    files.check_private_dir(d)
+    d.chmod(0o755)
+    files.check_private_dir(d)
+
+
+def test_a_log_folder_of_another_user_is_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(os, "geteuid", lambda: os.stat(tmp_path).st_uid + 1)
+    with pytest.raises(files.FileRefused, match="owned by uid"):
+        files.check_private_dir(tmp_path)
+
+
+def test_create_new_never_follows_or_overwrites(tmp_path: Path) -> None:
+    victim = tmp_path / "victim"
+    victim.write_text("precious")
+    (tmp_path / "planted").symlink_to(victim)
+    (tmp_path / "dangling").symlink_to(tmp_path / "nowhere")
+    for name in ("victim", "planted", "dangling"):
+        with pytest.raises(OSError) as e:
+            files.create_new(tmp_path / name)
+        assert files.is_exists(e.value)
+    assert victim.read_text() == "precious" and not (tmp_path / "nowhere").exists()
