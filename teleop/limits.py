@@ -28,6 +28,9 @@ MAX_LINK_TIMEOUT_S = 10.0
 MAX_CODEC_SPEC_LEN = 64
 MAX_NETEM_SPEC_LEN = 1024
 MAX_REASON_LEN = 300  # characters of a peer's reject reason that are kept and printed
+#: Largest control message body, checked before unpacking (a full hello is about 2.3 kB at most);
+#: here so that ``teleop.wire`` can bound every datagram without importing the protocol.
+MAX_CONTROL_BYTES = 4096
 
 
 def record_bytes_per_tick(dof: int) -> int:

@@ -75,7 +75,7 @@ __all__ = [
 
 PROTOCOL_VERSION = 1
 #: Largest control datagram accepted, checked before unpacking (a full hello is about 2.3 kB at most).
-MAX_CONTROL_BYTES = 4096
+MAX_CONTROL_BYTES = limits.MAX_CONTROL_BYTES
 #: Timestamps are monotonic ns: non-negative and within a signed 64-bit integer.
 MAX_TIMESTAMP = 2**63 - 1
 #: Bound of the packet counters in ``bye``.

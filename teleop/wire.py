@@ -39,6 +39,10 @@ import msgpack
 import numpy as np
 import numpy.typing as npt
 
+from teleop import auth, limits
+from teleop.codecs.base import RAW_BITS, packed_size
+from teleop.codecs.frequency import MAX_FRAME
+
 MAGIC = b"TW"
 VERSION = 1
 FORWARD = 0
@@ -156,3 +160,14 @@ def decode(data: bytes) -> Packet:
         payload=payload,
         energy=energy,
     )
+
+
+#: The largest codec payload any session can send: ``teleop.limits.MAX_DOF`` DoF of the codec with
+#: the most values per payload (``dct:N:N`` at the longest frame), raw 16-bit values.
+MAX_PAYLOAD_BYTES = packed_size(limits.MAX_DOF * MAX_FRAME, RAW_BITS)
+#: The largest data packet: that payload with every header field at its widest.
+MAX_PACKET_BYTES = len(encode(Packet(_U32, BACKWARD, _U32, _U64, _U64, 255, bytes(MAX_PAYLOAD_BYTES))))
+#: The largest datagram (or Zenoh sample) of the protocol, authenticated envelope included: data
+#: packet or control message.  Transports refuse anything longer by its length alone, before any
+#: hashing or parsing (DESIGN.md: the cost of refusing must be small and flat).
+MAX_DATAGRAM_BYTES = max(MAX_PACKET_BYTES, limits.MAX_CONTROL_BYTES) + auth.OVERHEAD

@@ -19,6 +19,7 @@ class Transport(Protocol):
 
     inbox_overflow: int
     socket_errors: int
+    oversize: int  # datagrams/samples longer than teleop.wire.MAX_DATAGRAM_BYTES, refused by length
     header_bytes: int
 
     @property

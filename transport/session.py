@@ -536,6 +536,7 @@ class _Runner:
         s["received"].update(
             foreign=self.foreign, inbox_overflow=self.tr.inbox_overflow, socket_errors=self.tr.socket_errors
         )
+        s["received"]["oversize"] = self.tr.oversize  # refused by length (teleop.wire.MAX_DATAGRAM_BYTES)
         shim = self.port.shim_stats()
         spec_tx = self.params.netem_forward if self.opts.role == "operator" else self.params.netem_backward
         return {

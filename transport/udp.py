@@ -1,7 +1,9 @@
 """UDP datagrams on asyncio, with uvloop when available (the default) and stdlib asyncio otherwise.
 
 The protocol callback only appends to a bounded inbox; the 1 kHz loop drains it once per tick.
-Anything that overflows the inbox is counted, never silently lost.
+Anything that overflows the inbox is counted, never silently lost.  A datagram longer than the
+protocol's largest (``teleop.wire.MAX_DATAGRAM_BYTES``) is refused by its length alone, before it
+is queued, hashed or parsed, and counted in ``oversize``.
 """
 
 from __future__ import annotations
@@ -11,6 +13,8 @@ import contextlib
 import os
 import time
 from collections import deque
+
+from teleop.wire import MAX_DATAGRAM_BYTES
 
 from .base import Addr
 
@@ -47,6 +51,9 @@ class _Protocol(asyncio.DatagramProtocol):
 
     def datagram_received(self, data: bytes, addr: Addr) -> None:
         o = self.owner
+        if len(data) > MAX_DATAGRAM_BYTES:  # by length alone: nothing else is spent on it
+            o.oversize += 1
+            return
         if len(o.inbox) == o.inbox.maxlen:
             o.inbox_overflow += 1
         o.inbox.append((data, addr, time.monotonic_ns()))
@@ -71,6 +78,7 @@ class UdpTransport:
         self.inbox: deque[tuple[bytes, Addr, int]] = deque(maxlen=inbox_size)
         self._waiter: asyncio.Future[None] | None = None
         self.inbox_overflow = 0
+        self.oversize = 0
         self.socket_errors = 0
         self.last_socket_error = ""
         self._transport: asyncio.DatagramTransport | None = None

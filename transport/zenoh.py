@@ -19,8 +19,15 @@ so ``make_config`` sets the REAL_TIME queue to ``RT_QUEUE_BATCHES`` (16) unless 
 like a UDP socket buffer, it absorbs a starved moment instead of dropping.
 
 **Threads.** The subscriber callback runs on a Zenoh thread.  It never blocks: it stamps
-``time.monotonic_ns()``, appends to a bounded deque (oldest dropped, counted in ``inbox_overflow``)
-and, if the loop is waiting, schedules the wake-up with ``loop.call_soon_threadsafe``.
+``time.monotonic_ns()``, appends to a deque bounded in count and in bytes (``INBOX_BYTES``; oldest
+dropped, counted in ``inbox_overflow``) and, if the loop is waiting, schedules the wake-up with
+``loop.call_soon_threadsafe``.
+
+**Bounds.** A sample longer than the protocol's largest datagram (``teleop.wire.MAX_DATAGRAM_BYTES``)
+is refused by its length alone, before its bytes are copied or hashed, and counted in ``oversize``;
+``make_config`` also sets Zenoh's ``transport/link/rx/max_message_size`` to ``MAX_MESSAGE_BYTES``
+(Zenoh's default is 1 GiB: six 256 MB samples froze a robot's loop for 1.4 s), so Zenoh itself
+drops a longer message before reassembling it (a file may set a smaller value, not a larger one).
 
 **Processes.** Open the session inside the process that uses it: Zenoh's runtime (Tokio threads)
 does not survive ``fork()``.
@@ -41,11 +48,15 @@ import asyncio
 import contextlib
 import json
 import re
+import threading
 import time
 from collections import deque
 from typing import Any
 
 import zenoh
+
+from teleop.files import MAX_CONFIG_BYTES, read_regular
+from teleop.wire import MAX_DATAGRAM_BYTES
 
 Addr = tuple[str, int]
 ZENOH_PEER: Addr = ("zenoh", 0)
@@ -57,6 +68,11 @@ PROTOCOLS = ("tcp", "udp", "tls", "quic")
 CLIENT_CONNECT_TIMEOUT_MS = 2000
 RT_QUEUE_BATCHES = 16  # Zenoh's maximum; its default of 2 dropped ~0.5 % at 1 kHz on a busy 2-core host
 _RT_QUEUE = "transport/link/tx/queue/size/real_time"
+_MAX_MESSAGE = "transport/link/rx/max_message_size"
+#: Zenoh's largest message: our largest sample plus room for Zenoh's own headers.
+MAX_MESSAGE_BYTES = MAX_DATAGRAM_BYTES + 4096
+#: The inbox's bound in bytes (with the count, ``inbox_size``): a few tens of the largest samples.
+INBOX_BYTES = 32 * MAX_DATAGRAM_BYTES
 
 _ENDPOINT = re.compile(
     r"(?P<proto>[a-z0-9-]+)/(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):(?P<port>\d+)([?#].*)?"
@@ -115,8 +131,11 @@ def make_config(
     if config_file is None:
         config = zenoh.Config()
     else:
-        try:
-            config = zenoh.Config.from_file(config_file)
+        try:  # a regular file of bounded size: a FIFO or a device is refused by its type
+            text = read_regular(config_file, MAX_CONFIG_BYTES, "cannot load Zenoh config").decode()
+            config = zenoh.Config.from_json5(text)
+        except UnicodeDecodeError:
+            raise ValueError(f"Zenoh config {config_file}: not text (JSON5 expected)") from None
         except zenoh.ZError as e:
             raise ValueError(f"cannot load Zenoh config {config_file}: {_reason(e)}") from None
 
@@ -139,6 +158,9 @@ def make_config(
             put(key, [])
     if unset(_RT_QUEUE):
         put(_RT_QUEUE, RT_QUEUE_BATCHES)
+    max_msg = _get(config, _MAX_MESSAGE)
+    if not (isinstance(max_msg, int) and 0 < max_msg <= MAX_MESSAGE_BYTES):
+        put(_MAX_MESSAGE, MAX_MESSAGE_BYTES)
     listen_eps = _get(config, "listen/endpoints")
     connect_eps = _get(config, "connect/endpoints")
     if mode == "client":
@@ -222,6 +244,8 @@ class ZenohTransport:
             raise ValueError(f"inbox_size must be >= 1, got {inbox_size}")
         self._inbox: deque[tuple[bytes, Addr, int]] = deque()
         self._inbox_size = inbox_size
+        self._inbox_bytes = 0
+        self._lock = threading.Lock()  # the inbox and its byte count, between Zenoh's thread and the loop
         self._waiter: asyncio.Future[None] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._session: Any = None
@@ -231,6 +255,7 @@ class ZenohTransport:
         self.tx_key = ""
         self.rx_key = ""
         self.inbox_overflow = 0
+        self.oversize = 0
         self.socket_errors = 0
         self.last_socket_error = ""
 
@@ -265,12 +290,18 @@ class ZenohTransport:
         t_rx = time.monotonic_ns()
         if sample.kind != zenoh.SampleKind.PUT:
             return
+        payload = sample.payload
+        n = len(payload)
+        if n > MAX_DATAGRAM_BYTES:  # by length alone: never copied, hashed or queued
+            self.oversize += 1
+            return
+        data = payload.to_bytes()
         inbox = self._inbox
-        inbox.append((sample.payload.to_bytes(), ZENOH_PEER, t_rx))
-        if len(inbox) > self._inbox_size:
-            # Latest wins. popleft may race with drain() emptying the deque; then nothing is lost.
-            with contextlib.suppress(IndexError):
-                inbox.popleft()
+        with self._lock:  # held for a few list operations only: the loop's drain never waits long
+            inbox.append((data, ZENOH_PEER, t_rx))
+            self._inbox_bytes += n
+            while len(inbox) > self._inbox_size or self._inbox_bytes > INBOX_BYTES:
+                self._inbox_bytes -= len(inbox.popleft()[0])  # latest wins
                 self.inbox_overflow += 1
         w, loop = self._waiter, self._loop
         if w is not None and loop is not None:
@@ -294,12 +325,11 @@ class ZenohTransport:
             self.last_socket_error = f"ZError: {_reason(e)}"
 
     def drain(self) -> list[tuple[bytes, Addr, int]]:
-        """Everything received so far, in arrival order (popleft: safe against the Zenoh thread)."""
-        items = []
-        pop = self._inbox.popleft
-        with contextlib.suppress(IndexError):
-            while True:
-                items.append(pop())
+        """Everything received so far, in arrival order (under the inbox's lock)."""
+        with self._lock:
+            items = list(self._inbox)
+            self._inbox.clear()
+            self._inbox_bytes = 0
         return items
 
     async def wait(self, timeout: float) -> bool:

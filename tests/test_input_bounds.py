@@ -1,0 +1,114 @@
+"""Oversize input is refused by its length alone, before it is queued, hashed or parsed, and
+counted (issue 21, item 1): UDP datagrams and Zenoh samples, and Zenoh's own message bound."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import time
+
+import zenoh
+
+from teleop import auth, limits, wire
+from teleop.codecs import make_codec
+from transport.udp import UdpTransport, _Protocol
+from transport.zenoh import MAX_MESSAGE_BYTES, ZENOH_PEER, ZenohTransport, make_config
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_the_bound_is_the_largest_message() -> None:
+    """The bound holds the largest data packet any session may send (dct at the longest frame,
+    MAX_DOF) and the largest control message, each in its envelope; one byte less would refuse it."""
+    codec = make_codec("dct:1000:1000", limits.MAX_DOF, 1.0)
+    assert codec.payload_bytes == wire.MAX_PAYLOAD_BYTES
+    pkt = wire.Packet(
+        2**32 - 1, 1, 2**32 - 1, 2**64 - 1, 2**64 - 1, codec.codec_id, bytes(codec.payload_bytes)
+    )
+    assert len(wire.encode(pkt)) + auth.OVERHEAD <= wire.MAX_DATAGRAM_BYTES
+    assert limits.MAX_CONTROL_BYTES + auth.OVERHEAD <= wire.MAX_DATAGRAM_BYTES
+    assert wire.MAX_DATAGRAM_BYTES == wire.MAX_PACKET_BYTES + auth.OVERHEAD
+
+
+def test_udp_refuses_an_oversize_datagram_by_length() -> None:
+    """(Over IPv4 no datagram exceeds 65507 bytes, so the callback is fed directly.)"""
+    tr = UdpTransport()
+    proto = _Protocol(tr)
+    proto.datagram_received(bytes(wire.MAX_DATAGRAM_BYTES + 1), ("127.0.0.1", 9))
+    proto.datagram_received(bytes(wire.MAX_DATAGRAM_BYTES), ("127.0.0.1", 9))
+    assert tr.oversize == 1
+    assert [len(d) for d, _, _ in tr.drain()] == [wire.MAX_DATAGRAM_BYTES]
+
+
+async def test_udp_counts_nothing_for_ordinary_datagrams() -> None:
+    a = await UdpTransport.bind(("127.0.0.1", 0))
+    b = await UdpTransport.bind(("127.0.0.1", 0))
+    try:
+        a.send(bytes(60_000), b.local_address)
+        assert await b.wait(1.0)
+        assert len(b.drain()) == 1 and b.oversize == 0
+    finally:
+        a.close()
+        b.close()
+
+
+def test_zenoh_config_bounds_the_message_size() -> None:
+    config = make_config("peer", listen=["tcp/127.0.0.1:0"])
+    assert json.loads(config.get_json("transport/link/rx/max_message_size")) == MAX_MESSAGE_BYTES
+    assert json.loads(zenoh.Config().get_json("transport/link/rx/max_message_size")) > MAX_MESSAGE_BYTES
+
+
+async def test_zenoh_refuses_an_oversize_sample_by_length() -> None:
+    """A sample just over the bound reaches the callback and is counted, not queued; one far over
+    Zenoh's own bound never arrives; the link survives both."""
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    to = await ZenohTransport.open("teleoperator", "t/oversize", make_config("peer", listen=[ep]))
+    try:
+        # The stranger's side lets anything out (Zenoh's default bound, 1 GiB).
+        stranger = make_config("peer", connect=[ep])
+        stranger.insert_json5("transport/link/rx/max_message_size", "1073741824")
+        op = await ZenohTransport.open("operator", "t/oversize", stranger)
+        try:
+            give_up = time.monotonic() + 5
+            while not to.drain() and time.monotonic() < give_up:  # until the link is up
+                op.send(b"hello", ZENOH_PEER)
+                await asyncio.sleep(0.05)
+            await asyncio.sleep(0.1)
+            to.drain()
+            op.send(bytes(wire.MAX_DATAGRAM_BYTES + 1), ZENOH_PEER)
+            op.send(bytes(4 * MAX_MESSAGE_BYTES), ZENOH_PEER)
+            op.send(b"after", ZENOH_PEER)
+            got: list[bytes] = []
+            give_up = time.monotonic() + 5
+            while b"after" not in got and time.monotonic() < give_up:
+                await to.wait(0.1)
+                got += [d for d, _, _ in to.drain()]
+            assert got == [b"after"]
+            assert to.oversize == 1
+        finally:
+            op.close()
+    finally:
+        to.close()
+
+
+def test_zenoh_inbox_is_bounded_in_bytes() -> None:
+    """Samples of the largest size: the inbox keeps at most INBOX_BYTES of them, oldest dropped."""
+    from transport.zenoh import INBOX_BYTES
+
+    class Sample:
+        kind = zenoh.SampleKind.PUT
+
+        def __init__(self, n: int) -> None:
+            self.payload = zenoh.ZBytes(bytes(n))
+
+    tr = ZenohTransport(inbox_size=4096)
+    n = wire.MAX_DATAGRAM_BYTES
+    for _ in range(INBOX_BYTES // n + 5):
+        tr._on_sample(Sample(n))
+    got = tr.drain()
+    assert len(got) == INBOX_BYTES // n and tr.inbox_overflow == 5
