@@ -8,19 +8,34 @@ size, count and tick jump is bounded before it allocates, and any damage is one 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import os
+import stat
 import struct
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 import numpy.typing as npt
 
+from teleop.limits import MAX_DOF
 from teleop.port import fill_value
 
-__all__ = ["PER_TICK_TOPICS", "TOPICS", "LogError", "iter_messages", "iter_ticks", "read_log", "read_summary"]
+__all__ = [
+    "PER_TICK_TOPICS",
+    "TOPICS",
+    "LogError",
+    "find_pair",
+    "iter_messages",
+    "iter_ticks",
+    "log_session",
+    "read_log",
+    "read_session",
+    "read_summary",
+]
 
 PER_TICK_TOPICS = ("signals", "waves", "energy", "wire", "loop")
 TOPICS = (*PER_TICK_TOPICS, "link", "events", "session", "summary")
@@ -55,27 +70,182 @@ class LogError(ValueError):
     """A file that is not a log this stack wrote, or is damaged: what is wrong, where."""
 
 
-def read_summary(path: Path) -> dict[str, Any]:
-    """The ``/ROLE/summary`` message (empty if the process did not finish its log); through the
-    file's index, so only the chunk holding it is read.  A damaged file raises :class:`LogError`."""
-    from mcap.exceptions import McapError
+_MAGIC = b"\x89MCAP0\r\n"
+_OP_FOOTER, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK, _OP_DATA_END = 0x02, 0x04, 0x05, 0x06, 0x0F
+_U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
+_CHUNK_HEAD = struct.Struct("<QQQII")  # start, end, uncompressed size, CRC, compression's length
+MAX_CHUNK_BYTES = 8 << 20  # a chunk's records, uncompressed (the writer's are about 1 MiB)
+MAX_RECORD_BYTES = MAX_CHUNK_BYTES + (1 << 20)  # any record in the data section
+MAX_MESSAGE_BYTES = 1 << 20  # a summary or session message (a few kB)
+MAX_TICK_MESSAGE_BYTES = 16 << 10  # a per-tick message (about 3 kB at teleop.limits.MAX_DOF)
+
+
+class _Walk:
+    """The records of an MCAP file's data section, each length bounded before it is read.
+
+    A record that runs past the end of the file is where a writer was killed (foxglove's writer
+    writes a chunk's length when the chunk is finished): the walk stops there and sets
+    ``truncated``, so every chunk written before stays readable.  A file without the footer
+    (the writer never finished) is read the same way."""
+
+    def __init__(self, f: BinaryIO, path: Path) -> None:
+        self.f, self.path = f, path
+        self.size = os.fstat(f.fileno()).st_size
+        self.truncated = False
+        self.channels: dict[int, str] = {}
+
+    def records(self) -> Iterator[tuple[int, bytes]]:
+        f = self.f
+        if self.size == 0:
+            raise LogError("empty: its writer wrote nothing (killed before the session started?)")
+        if f.read(8) != _MAGIC:
+            raise LogError("not a readable MCAP file (InvalidMagic: it does not start with the MCAP magic)")
+        pos = 8
+        while True:
+            hdr = f.read(9)
+            if len(hdr) < 9:  # the end, without a footer: the writer did not finish the file
+                self.truncated = True
+                return
+            op = hdr[0]
+            (n,) = _U64.unpack_from(hdr, 1)
+            if op in (_OP_FOOTER, _OP_DATA_END):
+                return
+            if pos + 9 + n > self.size:  # unfinished: the writer was killed while writing it
+                self.truncated = True
+                return
+            if n > MAX_RECORD_BYTES:
+                raise LogError(f"a record of {n} bytes at offset {pos} (at most {MAX_RECORD_BYTES})")
+            if op in (_OP_CHUNK, _OP_CHANNEL, _OP_MESSAGE):
+                body = f.read(n)
+                if op == _OP_CHANNEL:
+                    self._channel(body)
+                else:
+                    yield op, body
+            else:
+                f.seek(n, os.SEEK_CUR)
+            pos += 9 + n
+
+    def _channel(self, body: bytes) -> None:
+        (cid,) = _U16.unpack_from(body, 0)
+        (n,) = _U32.unpack_from(body, 4)
+        if 8 + n > len(body):
+            raise LogError("a channel record longer than itself")
+        self.channels[cid] = body[8 : 8 + n].decode()
+
+    def chunk_records(self, body: bytes) -> bytes:
+        """A chunk's records, decompressed to at most :data:`MAX_CHUNK_BYTES` (checked before)."""
+        _, _, size, _, clen = _CHUNK_HEAD.unpack_from(body, 0)
+        off = _CHUNK_HEAD.size
+        compression = body[off : off + clen].decode()
+        (rlen,) = _U64.unpack_from(body, off + clen)
+        start = off + clen + 8
+        if start + rlen > len(body):
+            raise LogError("a chunk longer than its record")
+        if size > MAX_CHUNK_BYTES:
+            raise LogError(f"a chunk of {size} bytes uncompressed (at most {MAX_CHUNK_BYTES})")
+        data = body[start : start + rlen]
+        if compression == "zstd":
+            import zstandard
+
+            # A stream read of at most size + 1 bytes: a frame's own size field is not trusted.
+            with zstandard.ZstdDecompressor().stream_reader(data) as r:
+                out = r.read(size + 1)
+                while len(out) <= size and (more := r.read(size + 1 - len(out))):
+                    out += more
+            data = out
+        elif compression != "":
+            raise LogError(f"chunks compressed with {compression!r} (this stack writes zstd)")
+        if len(data) != size:
+            raise LogError(f"a chunk of {len(data)} bytes that says {size}")
+        return data
+
+    def payloads(self) -> Iterator[dict[str, list[bytes]]]:
+        """Per MCAP chunk in file order: its message payloads by topic (a message outside any
+        chunk comes alone)."""
+        for op, body in self.records():
+            if op == _OP_CHUNK:
+                yield _chunk_payloads(self.chunk_records(body), self.channels)
+            elif op == _OP_MESSAGE:
+                (cid,) = _U16.unpack_from(body, 0)
+                if cid in self.channels:
+                    yield {self.channels[cid]: [body[22:]]}
+
+
+@contextlib.contextmanager
+def _walk(path: Path) -> Iterator[_Walk]:
+    """``path`` open for a walk (a regular file only: never a FIFO or a device); any damage met in
+    the ``with`` block becomes one :class:`LogError` naming the file."""
     from zstandard import ZstdError
 
-    role = path.stem.split("-", 1)[0]
     try:
-        for _, m in iter_messages(path, topics=[f"/{role}/summary"]):
-            if not isinstance(m, dict):
-                raise LogError(f"{path}: its summary is not a JSON object")
-            return m
-    except (McapError, ZstdError, struct.error, UnicodeDecodeError, ValueError) as e:
-        if isinstance(e, LogError):
-            raise
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
+            raise LogError("not a regular file (a log is one)")
+        with open(path, "rb", opener=_nonblocking) as f:
+            yield _Walk(f, path)
+    except LogError as e:
+        raise LogError(f"{path}: {e}") from None
+    except (ZstdError, struct.error, UnicodeDecodeError) as e:  # damaged
         raise LogError(f"{path}: not a readable MCAP file ({type(e).__name__}: {e})") from None
+    except OSError as e:
+        raise LogError(f"{path}: {e.strerror or e}") from None
+
+
+def _nonblocking(path: str, flags: int) -> int:
+    return os.open(path, flags | os.O_NONBLOCK | os.O_NOFOLLOW)
+
+
+def _role(path: Path) -> str:
+    return path.stem.split("-", 1)[0]
+
+
+def _one(topic: str, payloads: list[bytes]) -> dict[str, Any]:
+    if len(payloads[0]) > MAX_MESSAGE_BYTES:
+        raise LogError(f"{topic}: a message of {len(payloads[0])} bytes (at most {MAX_MESSAGE_BYTES})")
+    try:
+        m = json.loads(payloads[0])
+    except ValueError as e:
+        raise LogError(f"{topic} is not JSON ({e})") from None
+    if not isinstance(m, dict):
+        raise LogError(f"{topic} is not a JSON object")
+    return m
+
+
+def read_summary(path: Path) -> dict[str, Any]:
+    """The ``/ROLE/summary`` message (empty if the process did not finish its log: killed).  It is
+    logged last, so the walk decompresses only the chunks that may hold it: the last one, and
+    all of them only if that one does not name the summary's channel.  Damage is :class:`LogError`."""
+    topic = f"/{_role(path)}/summary"
+    with _walk(path) as walk:
+        last = b""
+        for op, body in walk.records():
+            if op == _OP_CHUNK:
+                last = body
+            elif op == _OP_MESSAGE and walk.channels.get(_U16.unpack_from(body, 0)[0]) == topic:
+                return _one(topic, [body[22:]])
+        if last and (got := _chunk_payloads(walk.chunk_records(last), walk.channels).get(topic)):
+            return _one(topic, got)
+        if topic not in walk.channels.values():
+            return {}
+    with _walk(path) as walk:  # the summary's channel was declared in an earlier chunk
+        for chunk in walk.payloads():
+            if got := chunk.get(topic):
+                return _one(topic, got)
     return {}
 
 
-_OP_CHANNEL, _OP_MESSAGE = 0x04, 0x05
-_U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
+def read_session(path: Path) -> dict[str, Any]:
+    """The ``/ROLE/session`` message: the parameters of a log whose process was killed (it has no
+    summary).  It is logged first: a chunk or two are read.  Empty: the file holds none (another
+    role's log, or not ours)."""
+    topic = f"/{_role(path)}/session"
+    with _walk(path) as walk:
+        for chunk in walk.payloads():
+            if got := chunk.get(topic):
+                return _one(topic, got)
+    return {}
+
+
 #: Per-tick topics: (message field, record name, kind): "vec" per DoF, "int" or "num" a scalar.
 _FIELDS: dict[str, tuple[tuple[str, str, str], ...]] = {
     "signals": (("t", "play_time_s", "num"), ("v", "v", "vec"), ("f", "f", "vec")),
@@ -96,6 +266,8 @@ def _chunk_payloads(data: bytes, channels: dict[int, str]) -> dict[str, list[byt
         op = data[off]
         (length,) = _U64.unpack_from(data, off + 1)
         body = off + 9
+        if body + length > end:
+            raise LogError(f"a record inside a chunk runs past the chunk ({length} bytes)")
         if op == _OP_MESSAGE:
             (cid,) = _U16.unpack_from(data, body)
             topic = channels.get(cid)
@@ -109,27 +281,11 @@ def _chunk_payloads(data: bytes, channels: dict[int, str]) -> dict[str, list[byt
     return out
 
 
-def _iter_payloads(path: Path) -> Iterator[dict[str, list[bytes]]]:
-    """Per MCAP chunk in file order: its message payloads by topic (a message outside any chunk
-    comes alone)."""
-    from mcap.records import Channel, Chunk, Message
-    from mcap.stream_reader import StreamReader, get_chunk_data_stream
-
-    channels: dict[int, str] = {}
-    with path.open("rb") as f:
-        for r in StreamReader(f, emit_chunks=True).records:
-            if isinstance(r, Chunk):
-                stream, size = get_chunk_data_stream(r)
-                yield _chunk_payloads(stream.read(size), channels)
-            elif isinstance(r, Channel):
-                channels[r.id] = r.topic
-            elif isinstance(r, Message) and r.channel_id in channels:
-                yield {channels[r.channel_id]: [r.data]}
-
-
 def _columns(topic: str, payloads: list[bytes]) -> dict[str, npt.NDArray[Any]]:
     """One topic's messages as columns: ``k`` and the record's names (JSON null: NaN); a message
     that is not the documented schema raises :class:`LogError`."""
+    if (big := max(map(len, payloads))) > MAX_TICK_MESSAGE_BYTES:
+        raise LogError(f"a /ROLE/{topic} message of {big} bytes (at most {MAX_TICK_MESSAGE_BYTES})")
     try:
         ms = json.loads(b"[" + b",".join(payloads) + b"]")  # one parse, not one per message
         cols: dict[str, npt.NDArray[Any]] = {"k": np.array([m["k"] for m in ms], dtype=np.int64)}
@@ -137,6 +293,8 @@ def _columns(topic: str, payloads: list[bytes]) -> dict[str, npt.NDArray[Any]]:
             cols[name] = np.array([m.get(field) for m in ms], dtype=np.float64)
             if cols[name].ndim != (2 if kind == "vec" else 1):
                 raise ValueError(f"{field} is not a {'list' if kind == 'vec' else 'number'} in every message")
+            if kind == "vec" and cols[name].shape[1] > MAX_DOF:
+                raise ValueError(f"{field} has {cols[name].shape[1]} values (at most {MAX_DOF} DoF)")
     except (ValueError, TypeError, KeyError, OverflowError) as e:
         raise LogError(
             f"a /ROLE/{topic} message does not follow its schema: {type(e).__name__}: {e}"
@@ -150,7 +308,7 @@ def _columns(topic: str, payloads: list[bytes]) -> dict[str, npt.NDArray[Any]]:
 
 
 def iter_ticks(
-    path: Path, topics: tuple[str, ...] = PER_TICK_TOPICS
+    path: Path, topics: tuple[str, ...] = PER_TICK_TOPICS, max_tick: int | None = None
 ) -> Iterator[tuple[int, dict[str, npt.NDArray[Any]]]]:
     """``ROLE.mcap`` as consecutive blocks of whole-session per-tick arrays: ``(k0, arrays)`` for
     ticks ``k0, k0 + 1, ...`` from tick 0 to the last tick run, by the record's names, plus ``ran``
@@ -160,10 +318,12 @@ def iter_ticks(
     Streamed: a tick is handed on once every topic's messages have passed it (the writer logs a
     chunk of ticks a topic at a time), so memory holds a few MCAP chunks, not the session.  A topic
     more than ``LAG_TICKS`` behind the signals (a log cut off mid-chunk) counts as missing those
-    ticks, as does a message for a tick whose signals are not in the log."""
-    from mcap.exceptions import McapError
-    from zstandard import ZstdError
+    ticks, as does a message for a tick whose signals are not in the log.
 
+    Bounds, checked before anything is allocated: a tick beyond ``max_tick`` (the session's own
+    length, when the caller knows it), a jump over more than :data:`MAX_GAP_TICKS` ticks, or more
+    than :data:`MAX_GAP_TICKS` ticks skipped in all, are :class:`LogError`; so are a per-tick
+    message over :data:`MAX_TICK_MESSAGE_BYTES` and a vector over ``teleop.limits.MAX_DOF``."""
     wanted = ("signals", *(t for t in topics if t != "signals"))
     role = path.stem.split("-", 1)[0]
     names = {f"/{role}/{t}": t for t in wanted}
@@ -218,8 +378,9 @@ def iter_ticks(
         while (out := emit(min(upto, next_k + BLOCK_TICKS - 1))) is not None:
             yield out
 
-    try:
-        for chunk in _iter_payloads(path):
+    skipped = 0  # ticks the signals jump over after the first (the first may come late: a rejoin)
+    with _walk(path) as walk:
+        for chunk in walk.payloads():
             for topic, payloads in chunk.items():
                 t = names.get(topic)
                 if t is None:
@@ -228,7 +389,13 @@ def iter_ticks(
                 first, end = int(cols["k"][0]), int(cols["k"][-1])
                 if first <= last[t] or first - last[t] > MAX_GAP_TICKS:
                     raise LogError(f"{topic}: tick {first} after tick {last[t]} (ticks are logged in order)")
+                if max_tick is not None and end > max_tick:
+                    raise LogError(f"{topic}: tick {end} beyond the session's {max_tick} ticks")
                 if t == "signals":
+                    k = cols["k"]
+                    skipped += int(k[-1] - k[0]) + 1 - k.size + (first - last[t] - 1 if last[t] >= 0 else 0)
+                    if skipped > MAX_GAP_TICKS:
+                        raise LogError(f"{topic}: more than {MAX_GAP_TICKS} ticks skipped: not a session")
                     dof = dof or cols["v"].shape[1]
                     if cols["v"].shape[1] != dof or cols["f"].shape[1] != dof:
                         raise LogError(f"{topic}: v and f must have {dof} values (DoF) in every message")
@@ -239,10 +406,6 @@ def iter_ticks(
             ready = min(max(last[t], last["signals"] - LAG_TICKS) for t in wanted)
             yield from blocks(min(ready, last["signals"]))
         yield from blocks(last["signals"])
-    except LogError as e:
-        raise LogError(f"{path}: {e}") from None
-    except (McapError, ZstdError, struct.error, UnicodeDecodeError) as e:  # damaged or cut off
-        raise LogError(f"{path}: not a readable MCAP file ({type(e).__name__}: {e})") from None
 
 
 def read_log(path: Path) -> tuple[dict[str, Any], dict[str, npt.NDArray[Any]]]:
@@ -256,3 +419,77 @@ def read_log(path: Path) -> tuple[dict[str, Any], dict[str, npt.NDArray[Any]]]:
     out = {name: np.concatenate([b[name] for b in blocks]) for name in blocks[0]}
     out["lateness_ns"] = out["lateness_ns"][out.pop("ran")]
     return read_summary(path), out
+
+
+ROLES = ("operator", "teleoperator")
+MAX_LOGS = 1000  # log files of one role a folder may hold for find_pair to look at
+
+
+def log_session(path: Path) -> tuple[int, dict[str, Any], dict[str, Any]]:
+    """(session id, summary or {}, parameters) of a log: from its summary, or, for a process that
+    was killed before it wrote one, from its ``/ROLE/session`` message.  :class:`LogError` if it
+    has neither (another role's log, not ours) or the parameters are not a map with a session id."""
+    role = _role(path)
+    summary = read_summary(path)
+    params = summary.get("params") if summary else None
+    if params is None:
+        params = read_session(path).get("params")
+        if params is None:
+            raise LogError(f"{path} has no /{role}/summary or /{role}/session message: not a {role}'s log")
+    sid = params.get("session") if isinstance(params, dict) else None
+    if type(sid) is not int:
+        raise LogError(f"{path}: its parameters name no session id")
+    return sid, summary, params
+
+
+def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, list[str]]:
+    """The operator's and the teleoperator's log of one session in ``log_dir`` (``ROLE.mcap``,
+    ``ROLE-*.mcap``: restarts add files, never replace one), paired by session id: ``session``, or
+    else the session of the newest log that has both.  Where a role has several logs of the session
+    (a restarted process that rejoined), the newest is taken.  Returns the two paths and notes on
+    what else the folder holds; :class:`LogError` when no pair is found."""
+    found: dict[int, dict[str, list[tuple[int, Path]]]] = {}
+    errors: dict[str, str] = {}
+    for role in ROLES:
+        paths = sorted({*log_dir.glob(f"{role}.mcap"), *log_dir.glob(f"{role}-*.mcap")})
+        if not paths:
+            errors[role] = f"{log_dir} holds no {role} log ({role}.mcap): pass the folder it wrote with --log"
+        for path in paths[:MAX_LOGS]:
+            try:
+                st = os.lstat(path)
+                if not stat.S_ISREG(st.st_mode):
+                    raise LogError(f"{path}: not a regular file (a log is one)")
+                sid, _, _ = log_session(path)
+            except LogError as e:
+                errors.setdefault(role, str(e))
+                continue
+            found.setdefault(sid, {}).setdefault(role, []).append((st.st_mtime_ns, path))
+    both = {s: r for s, r in found.items() if all(role in r for role in ROLES)}
+    if session is not None:
+        if session not in both:
+            have = ", ".join(str(s) for s in sorted(both)) or "none"
+            raise LogError(
+                f"{log_dir} holds no pair of logs of session {session} (sessions with both: {have})"
+            )
+        chosen = session
+    elif both:
+        chosen = max(both, key=lambda s: max(t for r in both[s].values() for t, _ in r))
+    else:
+        for r in ROLES:
+            if r in errors and not any(r in got for got in found.values()):
+                raise LogError(errors[r])
+        raise LogError(f"{log_dir}: no session has both an operator and a teleoperator log")
+    notes = (
+        [f"{len(both) - 1} other session(s) in the folder; chose {chosen} (--session)"]
+        if len(both) > 1
+        else []
+    )
+    pick = {}
+    for role in ROLES:
+        logs = sorted(both[chosen][role])
+        pick[role] = logs[-1][1]
+        if len(logs) > 1:
+            notes.append(
+                f"{role}: {len(logs)} logs of session {chosen}, the newest taken ({pick[role].name})"
+            )
+    return pick["operator"], pick["teleoperator"], notes

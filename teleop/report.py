@@ -9,6 +9,7 @@ summary), read with the ``mcap`` library; a session without a fixed end is compa
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections import deque
@@ -20,9 +21,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from . import devices, metrics, plots, scenarios
-from .logfile import LogError, iter_ticks, read_summary
+from . import devices, limits, metrics, plots, scenarios
+from .logfile import LogError, find_pair, iter_ticks, log_session
 from .port import wire_block
+from .protocol import ProtocolError, SessionParams
 from .sim import SimConfig, run_case
 
 Array = npt.NDArray[np.float64]
@@ -41,15 +43,24 @@ BANDWIDTH_WINDOW = 100  # ticks per bandwidth point (100 ms at 1 kHz)
 HIST_US = 100_000  # the lateness histogram's 1 us bins; later ticks are kept one by one
 
 
-def _summary(log_dir: Path, role: str) -> dict[str, Any]:
-    path = log_dir / f"{role}.mcap"
-    summary = read_summary(path)
-    if not summary:
-        raise LogError(
-            f"{path} has no /{role}/summary message: the process did not finish its log, "
-            "or the file is another process's"
-        )
-    return summary
+def _checked_params(path: Path, p: Any) -> dict[str, Any]:
+    """A log's session parameters held to what a peer's hello is held to (``SessionParams.from_msg``:
+    every type, and the ranges of ``teleop.limits``), before any of them sizes an allocation or a
+    loop: an edited ``dof``, ``duration`` or ``dt`` is one :class:`LogError`.  A ``trace FILE`` spec
+    is kept as text; nothing here (or in the report) opens the file it names."""
+    if not isinstance(p, dict):
+        raise LogError(f"{path}: its session parameters are not a map")
+    m = {k: v for k, v in p.items() if k != "full_scale"}
+    m["range"] = p.get("full_scale")
+    own = [v for k in ("netem_forward", "netem_backward") if isinstance(v := p.get(k), str)]
+    try:
+        return dataclasses.asdict(SessionParams.from_msg(m, local_netem=own))
+    except ProtocolError as e:
+        raise LogError(f"{path}: its session parameters: {e}") from None
+
+
+def _uses_trace(p: dict[str, Any]) -> bool:
+    return any(str(p.get(k, "")).split()[:1] == ["trace"] for k in ("netem_forward", "netem_backward"))
 
 
 def _paired(
@@ -323,11 +334,18 @@ class _Fold:
 
 
 def fold_logs(
-    op_log: Path, to_log: Path, phases: list[tuple[str, float, float]], dof: int, dt: float
+    op_log: Path,
+    to_log: Path,
+    phases: list[tuple[str, float, float]],
+    dof: int,
+    dt: float,
+    max_tick: int | None = None,
 ) -> _Fold:
-    """One pass over both processes' logs, a block of ticks at a time (teleop.logfile.iter_ticks)."""
+    """One pass over both processes' logs, a block of ticks at a time (teleop.logfile.iter_ticks);
+    ``max_tick``: the session's length in ticks, beyond which a log is refused."""
     fold = _Fold(phases, dof, dt)
-    for k0, a_op, a_to in _paired(iter_ticks(op_log, TOPICS), iter_ticks(to_log, TOPICS)):
+    ops, tos = iter_ticks(op_log, TOPICS, max_tick), iter_ticks(to_log, TOPICS, max_tick)
+    for k0, a_op, a_to in _paired(ops, tos):
         fold.add(k0, a_op, a_to)
     fold.finish()
     if fold.n == 0:
@@ -335,21 +353,38 @@ def fold_logs(
     return fold
 
 
+@dataclass
+class _Logs:
+    """Both logs of one session: their paths, summaries (``{}``: the process was killed before
+    it wrote one), the checked parameters, notes on the folder, and the fold of their ticks."""
+
+    paths: dict[str, Path]
+    summaries: dict[str, dict[str, Any]]
+    params: dict[str, Any]
+    notes: list[str]
+    fold: _Fold
+
+
 @functools.lru_cache(maxsize=2)
-def _fold_of(log_dir: str, mtimes: tuple[int, int]) -> tuple[dict[str, Any], dict[str, Any], _Fold]:
-    """Both summaries and the fold of both logs, once per version of the files (the report and the
-    plots both need it)."""
-    d = Path(log_dir)
-    op, to = _summary(d, "operator"), _summary(d, "teleoperator")
-    p = op["params"]
+def _fold_of(op_path: str, to_path: str, mtimes: tuple[int, int]) -> _Logs:
+    """Both logs read and folded once per version of the files (the report and the plots both
+    need it)."""
+    paths = {"operator": Path(op_path), "teleoperator": Path(to_path)}
+    summaries, params = {}, {}
+    for role, path in paths.items():
+        _, summaries[role], params[role] = log_session(path)
+    p = _checked_params(paths["operator"], params["operator"])
+    ticks = round((p["duration"] or limits.MAX_DURATION_S) / p["dt"])
     # A session without a fixed end: its last phase lasts until the end of the log.
     phases = _phases(p, p["duration"] or 1e9)
-    return op, to, fold_logs(d / "operator.mcap", d / "teleoperator.mcap", phases, p["dof"], p["dt"])
+    fold = fold_logs(paths["operator"], paths["teleoperator"], phases, p["dof"], p["dt"], ticks + 1)
+    return _Logs(paths, summaries, p, [], fold)
 
 
-def _load(log_dir: Path) -> tuple[dict[str, Any], dict[str, Any], _Fold]:
-    paths = [log_dir / f"{r}.mcap" for r in ("operator", "teleoperator")]
-    return _fold_of(str(log_dir), (paths[0].stat().st_mtime_ns, paths[1].stat().st_mtime_ns))
+def _load(log_dir: Path, session: int | None = None) -> _Logs:
+    op, to, notes = find_pair(log_dir, session)
+    logs = _fold_of(str(op), str(to), (op.stat().st_mtime_ns, to.stat().st_mtime_ns))
+    return dataclasses.replace(logs, notes=notes)
 
 
 def _wire(sender: dict[str, Any], receiver: dict[str, Any]) -> dict[str, Any]:
@@ -386,10 +421,34 @@ def _phases(p: dict[str, Any], duration: float) -> list[tuple[str, float, float]
     return scenarios.get(p["scenario"]).phases(p["seed"], p.get("variation", 0.0), duration)
 
 
-def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, Any]:
-    """The report of the session whose two logs are in ``log_dir`` (one streamed pass over both)."""
-    op, to, fold = _load(log_dir)
-    p = op["params"]
+def _process(s: dict[str, Any]) -> dict[str, Any] | None:
+    if not s:
+        return None
+    return {
+        "pid": s["pid"],
+        "completed": s["completed"],
+        "event_loop": s.get("event_loop"),
+        "warnings": s.get("warnings", []),
+        "loop": s["loop"],
+        "inbound": s["node"],
+        "grace": s["grace"],
+    }
+
+
+def build(
+    log_dir: Path, transport: str, compare_sim: bool = True, session: int | None = None
+) -> dict[str, Any]:
+    """The report of one session whose two logs are in ``log_dir`` (``session``, or the newest
+    with both logs: ``teleop.logfile.find_pair``), from one streamed pass over both.
+
+    Nothing a log says is trusted: the parameters are checked as a hello's are, no path a log names
+    is opened (a session over a ``trace FILE`` link is not re-simulated: the report says so), and a
+    log whose process was killed (no summary) is reported from its ticks, the summary's figures
+    left out (``summary_missing``)."""
+    logs = _load(log_dir, session)
+    fold, p = logs.fold, logs.params
+    op, to = logs.summaries["operator"], logs.summaries["teleoperator"]
+    both = bool(op) and bool(to)
     dt = p["dt"]
     ticks = fold.n  # the ticks both logs cover: the session's, or those run until stopped
     phases = fold.phase_summary()
@@ -405,29 +464,19 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
         "b": p["b"],
         "range": p["full_scale"],
         "phase": p["phase"],
-        "processes": {
-            role: {
-                "pid": s["pid"],
-                "completed": s["completed"],
-                "event_loop": s.get("event_loop"),
-                "warnings": s.get("warnings", []),
-                "loop": s["loop"],
-                "inbound": s["node"],
-                "grace": s["grace"],
-            }
-            for role, s in (("operator", op), ("teleoperator", to))
-        },
+        "logs": {role: path.name for role, path in logs.paths.items()},
+        "processes": {role: _process(s) for role, s in (("operator", op), ("teleoperator", to))},
         "handshake": {"rtt_us": op.get("handshake_rtt_us"), "clock_offset_ns": op.get("clock_offset_ns")},
-        "wire": {"forward": _wire(op, to), "backward": _wire(to, op)},
+        "wire": {"forward": _wire(op, to), "backward": _wire(to, op)} if both else None,
         "transparency": {"I": i_real, "ticks_compared": phases["all"]["ticks"]},
         # Per phase of the scenario (free, foam, wall; ``all``: the run): I per DoF and wire rates.
         "phases": phases,
         # Watchdog figures of each direction, measured by its receiver.
-        "passivity": {"forward": _passivity(to), "backward": _passivity(op)},
+        "passivity": {"forward": _passivity(to), "backward": _passivity(op)} if both else None,
         # What each receiver refused (teleop.auth, the watchdog's physical bound), per direction.
         "security": _security(op, to),
         # What each link did, measured at its receiver from sequence numbers and timestamps.
-        "link": {"forward": to["link_received"], "backward": op["link_received"]},
+        "link": {"forward": to.get("link_received"), "backward": op.get("link_received")},
         # Each direction's playout buffer, at its receiver: the delay it played at, late payloads.
         "playout": {"forward": to.get("playout"), "backward": op.get("playout")},
         # The data-rate cap of each direction, at its sender, and whether it held on the wire.
@@ -436,17 +485,27 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
         "two_port_min_energy": fold.min_two_port(),
         "energy": {
             "forward": {
-                "sent": op["energy"]["sent"],
-                "played": to["energy"]["played"],
+                "sent": (op.get("energy") or {}).get("sent"),
+                "played": (to.get("energy") or {}).get("played"),
                 "min_margin": fold.fwd.minimum() if fold.any_valid else None,
             },
             "backward": {
-                "sent": to["energy"]["sent"],
-                "played": op["energy"]["played"],
+                "sent": (to.get("energy") or {}).get("sent"),
+                "played": (op.get("energy") or {}).get("played"),
                 "min_margin": fold.bwd.minimum() if fold.any_valid else None,
             },
         },
     }
+    missing = [role for role, s in logs.summaries.items() if not s]
+    if missing:
+        rep["summary_missing"] = missing  # killed before it finished its log: its ticks are reported
+    if logs.notes:
+        rep["notes"] = logs.notes
+    if _uses_trace(p) and compare_sim:
+        compare_sim = False
+        rep["sim_skipped"] = (
+            "the session ran a trace link (netem 'trace FILE'): a report never opens a file a log names"
+        )
     # Each side's device as its own log says (a local choice, see teleop.devices).
     rep["devices"] = {"hsi": op.get("device"), "robot": to.get("device")}
     specs = {r: (rep["devices"][r] or {}).get("spec") for r in ("hsi", "robot")}
@@ -500,7 +559,7 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
 def write_plots(log_dir: Path, out: Path, rep: dict[str, Any]) -> list[Path]:
     """signals.png, bandwidth.png, energy.png and loop_timing.png, from the fold's thinned series
     (every tick of a session up to about two minutes; a longer one's every 2nd, 4th, ... tick)."""
-    _, _, fold = _load(log_dir)
+    fold = _load(log_dir, rep["session"]).fold
     dt = fold.dt
     files = []
     k, sig = fold.signals.get()
@@ -544,6 +603,12 @@ def summary_text(rep: dict[str, Any]) -> str:
         f"{rep['duration_s']:g} s over {rep['transport']}"
     ]
     for role, pr in rep["processes"].items():
+        if pr is None:
+            lines.append(
+                f"  {role:<12} SUMMARY MISSING: the process did not finish its log (killed?); "
+                "the figures below are from the ticks it logged"
+            )
+            continue
         lp = pr["loop"]
         pe = lp["period_error_us"]
         lines.append(
@@ -552,7 +617,7 @@ def summary_text(rep: dict[str, Any]) -> str:
             f"p99.9 {pe['p999']:7.1f}  max {pe['max']:7.0f} us  CPU {100 * lp['cpu_fraction']:4.1f}%  "
             f"late packets waited for {pr['grace']['waits']}, missed {pr['grace']['missed']}"
         )
-    for d, w in rep["wire"].items():
+    for d, w in (rep["wire"] or {}).items():
         lines.append(
             f"  {d:<9} {w['packets']:>6} packets  {w['wire_bytes']:>8} B on the wire "
             f"(baseline {w['baseline_wire_bytes']} B)  compression payload {w['compression_payload']:.2f}:1 "
@@ -576,7 +641,7 @@ def summary_text(rep: dict[str, Any]) -> str:
         lines.append(
             "  per phase: " + "  ".join(ran) + (f"  (not reached: {', '.join(missed)})" if missed else "")
         )
-    for d, pv in rep["passivity"].items():
+    for d, pv in (rep["passivity"] or {}).items():
         lk = rep["link"][d]
         delay = lk["delay_ms"]["mean"]
         lines.append(
@@ -618,7 +683,14 @@ def summary_text(rep: dict[str, Any]) -> str:
         lines.append(f"  {line}")
     e = rep["energy"]
     lines.append(
-        f"  energy margin (sent - played) min: forward {e['forward']['min_margin']:.3e} J, "
-        f"backward {e['backward']['min_margin']:.3e} J; two-port (eq. 4) {rep['two_port_min_energy']:.3e} J"
+        f"  energy margin (sent - played) min: forward {_e(e['forward']['min_margin'])} J, "
+        f"backward {_e(e['backward']['min_margin'])} J; two-port (eq. 4) {_e(rep['two_port_min_energy'])} J"
     )
+    if "sim_skipped" in rep:
+        lines.append(f"  teleop sim not re-run: {rep['sim_skipped']}")
+    lines += [f"  note: {n}" for n in rep.get("notes", [])]
     return "\n".join(lines)
+
+
+def _e(x: float | None) -> str:
+    return "-" if x is None else f"{x:.3e}"

@@ -532,7 +532,7 @@ def test_teleop_report_refuses_what_is_not_a_log_in_one_line(tmp_path: Path, kin
         "directory": "operator.mcap: not a regular file",
         "fifo": "operator.mcap: not a regular file",
         "device": "operator.mcap: not a regular file",
-        "swapped": "has no /operator/summary message",
+        "swapped": "has no /operator/summary or /operator/session message",
         "transport": "invalid choice: 'nan'",
     }[kind]
     assert want in lines[0], lines[0]

@@ -4,46 +4,79 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 from typing import Any
 
-from .args import CliError, Subcommands
+from .args import CliError, Subcommands, session_id
 from .settings import writable_dir
 
-LOG_FILES = [f"{role}.mcap" for role in ("operator", "teleoperator")]
+#: What a log whose summary was edited or damaged can raise while the report reads it: one line.
+_DAMAGE = (KeyError, TypeError, ValueError, ArithmeticError, IndexError, AttributeError)
 
 
 def write_report(
-    logs: Path, out: Path, args: argparse.Namespace, transport: str, extra: dict[str, Any] | None = None
+    logs: Path,
+    out: Path,
+    args: argparse.Namespace,
+    transport: str,
+    extra: dict[str, Any] | None = None,
+    session: int | None = None,
 ) -> None:
-    """Build the report from LOGS, add ``extra``, write OUT/report.json and the plots, print a summary."""
+    """Build the report of ``session`` (default: the newest pair) from LOGS, add ``extra``, write
+    OUT/report.json (a new file, never over one) and the plots, print a summary.  Any damage in
+    the logs, or a report.json already there, is a :class:`CliError` (one line)."""
     from .. import report as session_report
+    from ..logfile import LogError
 
-    rep = session_report.build(logs, transport, compare_sim=not args.no_sim)
-    rep.update(extra or {})
-    (out / "report.json").write_text(json.dumps(rep, indent=2) + "\n")
+    try:
+        rep = session_report.build(logs, transport, compare_sim=not args.no_sim, session=session)
+        rep.update(extra or {})
+        text = session_report.summary_text(rep)
+    except LogError as e:
+        raise CliError(f"cannot build the report: {e}") from None
+    except _DAMAGE as e:  # a summary that is not what this stack writes (edited, another version)
+        raise CliError(
+            "cannot build the report: a log's summary is not what this stack writes "
+            f"({type(e).__name__}: {e})"
+        ) from None
+    path = _write_new(out, ["report.json", f"report-{rep['session']}.json"], json.dumps(rep, indent=2) + "\n")
     files = [] if args.no_plots else session_report.write_plots(logs, out, rep)
-    print(session_report.summary_text(rep))
-    print(f"wrote {out / 'report.json'}" + (f" and {', '.join(f.name for f in files)}" if files else ""))
+    print(text)
+    print(f"wrote {path}" + (f" and {', '.join(f.name for f in files)}" if files else ""))
+
+
+def _write_new(out: Path, names: list[str], text: str) -> Path:
+    """``text`` in the first of ``names`` that is free in ``out`` (created with O_EXCL|O_NOFOLLOW:
+    an earlier report is never overwritten, a planted symlink never followed)."""
+    from ..files import create_new, is_exists
+
+    for name in names:
+        path = out / name
+        try:
+            fd = create_new(path)
+        except OSError as e:
+            if is_exists(e):
+                continue
+            raise CliError(f"cannot write {path}: {e.strerror or e}") from None
+        try:
+            with os.fdopen(fd, "w") as f:
+                f.write(text)
+        except OSError as e:
+            raise CliError(f"cannot write {path}: {e.strerror or e}") from None
+        return path
+    raise CliError(
+        f"{out} already holds {' and '.join(names)}: a report is never overwritten (another --out)"
+    )
 
 
 def cmd_report(args: argparse.Namespace) -> int:
     """Build the report of a session from both processes' logs (for example copied from two hosts)."""
     logs = Path(args.logs)
-    missing = [name for name in LOG_FILES if not (logs / name).exists()]
-    if missing:
-        raise CliError(f"{logs} lacks {', '.join(missing)}: pass the folder both processes wrote with --log")
-    # Not a directory, a FIFO (which would block the read) or a device: only files are opened.
-    odd = [name for name in LOG_FILES if not (logs / name).is_file()]
-    if odd:
-        raise CliError(f"{', '.join(str(logs / n) for n in odd)}: not a regular file (a log is one)")
+    if not logs.is_dir():
+        raise CliError(f"{logs}: not a folder: pass the folder both processes wrote with --log")
     out = writable_dir(Path(args.out) if args.out else logs.parent, "--out")
-    from teleop.logfile import LogError
-
-    try:
-        write_report(logs, out, args, args.transport)
-    except LogError as e:
-        raise CliError(f"cannot build the report: {e}") from None
+    write_report(logs, out, args, args.transport, session=args.session)
     return 0
 
 
@@ -61,6 +94,13 @@ def add_parser(sub: Subcommands) -> None:
         default="udp",
         choices=("udp", "zenoh"),
         help="the transport the session ran over, recorded in the report (default udp)",
+    )
+    rp.add_argument(
+        "--session",
+        type=session_id,
+        default=None,
+        metavar="ID",
+        help="the session to report when LOGDIR holds several (default: the newest with both logs)",
     )
     rp.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     rp.add_argument("--no-sim", action="store_true", help="skip the teleop sim comparison")
