@@ -364,7 +364,10 @@ def test_teleoperator_restarted_mid_session_and_the_operator_recovers(tmp_path: 
     )
     assert op.wait(timeout=30) == 0 and to2.wait(timeout=30) == 0
     o = json.loads((logs / "operator.json").read_text())
-    t = json.loads((logs / "teleoperator.json").read_text())
+    # The restarted teleoperator's log is a new file: the killed one's record stays (no summary).
+    session = o["params"]["session"]
+    t = json.loads((logs / f"teleoperator-{session}.json").read_text())
+    assert (logs / "teleoperator.mcap").stat().st_size > 0 and not (logs / "teleoperator.json").exists()
     assert o["completed"] and t["completed"] and t["joined_late"]
     assert o["passivity"]["link_lost_events"] == 1 and o["rejoin"]["rejoins"] == 1
     assert 2000 < t["first_tick"] < 4500  # it joined the running session on its clock
@@ -378,7 +381,8 @@ def test_teleoperator_restarted_mid_session_and_the_operator_recovers(tmp_path: 
     # The streamed report's figures are their whole-session definitions on real logs (one starts late).
     from tests.report_oracle import assert_fold_matches, figures
 
-    paths = (logs / "operator.mcap", logs / "teleoperator.mcap")
+    assert rep["logs"] == {"operator": "operator.mcap", "teleoperator": f"teleoperator-{session}.mcap"}
+    paths = (logs / "operator.mcap", logs / f"teleoperator-{session}.mcap")
     phases = report._phases(o["params"], 5.0)
     assert_fold_matches(report.fold_logs(*paths, phases, 2, 1e-3), figures(*paths, phases, 1e-3))
 
@@ -428,12 +432,13 @@ def test_operator_restarted_mid_session_and_the_teleoperator_serves_the_new_one(
         "--quiet",
     )
     assert op2.wait(timeout=30) == 0 and to.wait(timeout=30) == 0
-    old = list(logs.glob("teleoperator-*.json"))
-    assert len(old) == 1  # the replaced session's logs are kept under its id
-    first = json.loads(old[0].read_text())
+    # The replaced session's logs keep their names; the new session's are files of its own.
+    first = json.loads((logs / "teleoperator.json").read_text())
     assert first["replaced_by_new_session"] and not first["completed"]
     assert first["passivity"]["link_lost_events"] == 1  # it went to its safe state first
-    new = json.loads((logs / "teleoperator.json").read_text())
+    later = list(logs.glob("teleoperator-*.json"))
+    assert len(later) == 1
+    new = json.loads(later[0].read_text())
     assert new["completed"] and new["params"]["session"] != first["params"]["session"]
     op2_loop = json.loads((logs / "operator.json").read_text())["loop"]
     assert new["received"]["packets"] == 2000 - op2_loop["skipped"]  # every tick it ran sent one

@@ -73,6 +73,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from teleop.files import create_new, open_reserved
 from teleop.logfile import (
     ENERGY_FIELDS,
     PER_TICK_TOPICS,
@@ -184,8 +185,17 @@ class _Writer:
     """The writer process's side: foxglove contexts, channels, the MCAP file and the live server."""
 
     def __init__(
-        self, path: str | None, role: str, wall0_ns: int, live_port: int | None, live_host: str
+        self,
+        path: str | None,
+        role: str,
+        wall0_ns: int,
+        live_port: int | None,
+        live_host: str,
+        file_id: tuple[int, int] | None = None,
     ) -> None:
+        """``file_id``: (device, inode) of the empty file the parent created at ``path``
+        (``transport.logdir.reserve``): only that file is opened, never a name swapped in since;
+        without it the file is created here, exclusively."""
         import foxglove
         from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 
@@ -195,11 +205,14 @@ class _Writer:
         self._ctx = foxglove.Context() if path is not None else None
         self._live_ctx = foxglove.Context() if live_port is not None else None
         self._file = None
+        self._fh: Any = None
         if self._ctx is not None and path is not None:
             opts = MCAPWriteOptions(compression=MCAPCompression.Zstd)
-            self._file = foxglove.open_mcap(
-                path, allow_overwrite=True, context=self._ctx, writer_options=opts
-            )
+            fd = open_reserved(Path(path), *file_id) if file_id is not None else create_new(Path(path))
+            # Unbuffered: what foxglove's writer hands over is in the file at once (a kill -9 of
+            # this process loses no more than the chunk being built).
+            self._fh = os.fdopen(fd, "wb", buffering=0)
+            self._file = foxglove.open_mcap(self._fh, context=self._ctx, writer_options=opts)
         self.server = None
         if self._live_ctx is not None:
             self.server = foxglove.start_server(
@@ -275,20 +288,28 @@ class _Writer:
         self.messages += 5 * len(rows)
 
     def close(self) -> None:
-        if self._file is not None:
-            self._file.close()
-        if self.server is not None:
-            self.server.stop()
+        try:
+            if self._file is not None:
+                self._file.close()
+                self._fh.close()
+        finally:
+            if self.server is not None:
+                self.server.stop()
 
 
 def spawn_writer() -> subprocess.Popen[bytes]:
     """A writer process, started ahead of its session: it imports (numpy, foxglove: about a second
     of CPU) while the handshake waits, not while the 1 kHz loop starts, then waits for its
     :class:`McapLog`.  Closing its stdin unused makes it exit."""
-    # The writer ignores SIGINT/SIGTERM (a terminal's Ctrl-C reaches the whole group): it ends when
-    # told, or when its stdin closes (its parent died), finishing the file either way.
+    # The writer ends when told, or when its stdin closes (its parent died), finishing the file
+    # either way.  Its own process group: a terminal's Ctrl-C (sent to the whole group) must not
+    # reach it; it also ignores SIGINT/SIGTERM, but only once it has imported, and a Ctrl-C during
+    # its first second (a busy host: several) killed it and left the log empty.
     return subprocess.Popen(
-        [sys.executable, "-m", "transport.mcaplog"], stdin=subprocess.PIPE, stdout=subprocess.PIPE
+        [sys.executable, "-m", "transport.mcaplog"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        process_group=0,
     )
 
 
@@ -311,8 +332,10 @@ class McapLog:
         live_every: int = 20,
         live_host: str = "127.0.0.1",
         process: subprocess.Popen[bytes] | None = None,
+        file_id: tuple[int, int] | None = None,
     ) -> None:
-        """``process``: a writer from :func:`spawn_writer` (default: one started now)."""
+        """``process``: a writer from :func:`spawn_writer` (default: one started now); ``file_id``:
+        (device, inode) of the empty file at ``path`` that ``transport.logdir.reserve`` created."""
         self.role = role
         self.path = path
         self.live_every = live_every
@@ -327,6 +350,7 @@ class McapLog:
             "wall0_ns": wall0_ns,
             "live_port": live_port,
             "live_host": live_host,
+            "file_id": file_id,
         }
         self._proc = process if process is not None else spawn_writer()
         self._q: queue.Queue[tuple[str, Any]] = queue.Queue(QUEUE_ITEMS)
@@ -384,10 +408,25 @@ class McapLog:
             try:
                 out.write(len(data).to_bytes(4, "little") + data)
                 out.flush()
-            except (BrokenPipeError, OSError):  # the writer died: the loop goes on without a log
+            except OSError:  # the writer died: say so once; the loop goes on without a log
+                self._writer_died()
                 return
             if item[0] == "stop":
                 return
+
+    def _writer_died(self) -> None:
+        """The writer process is gone (killed, crashed): the summary's ``log.error`` and one line."""
+        try:  # (the sender thread, not the loop, waits here: the pipe may close a moment before)
+            code: int | None = self._proc.wait(timeout=1.0)
+        except subprocess.TimeoutExpired:
+            code = None
+        if code is None:
+            how = "its pipe closed"
+        else:
+            how = f"killed by signal {-code}" if code < 0 else f"exit status {code}"
+        if self.error is None:
+            self.error = f"the log writer process died ({how}); later chunks are not in the log"
+            print(f"teleop {self.role}: error: {self.error}", file=sys.stderr, flush=True)
 
     def close(self, summary: dict[str, Any] | None = None, timeout: float = 120.0) -> None:
         """Write what is queued and the summary, finish the file, wait for the writer."""
@@ -406,10 +445,12 @@ class McapLog:
         for line in out.decode(errors="replace").splitlines():
             with contextlib.suppress(ValueError):
                 d = json.loads(line)
-                self.error = d.get("error", self.error)
+                self.error = d.get("error") or self.error
                 self.messages = int(d.get("messages", self.messages))
                 if d.get("live_port"):
                     self._live_port = int(d["live_port"])
+        if self._proc.returncode != 0:  # died before it could say why (kill -9, a crash)
+            self._writer_died()
 
 
 def _read(stdin: Any) -> tuple[str, Any] | None:
@@ -441,7 +482,9 @@ def _writer_main() -> None:
         return
     cfg = first[1]
     try:
-        w = _Writer(cfg["path"], cfg["role"], cfg["wall0_ns"], cfg["live_port"], cfg["live_host"])
+        w = _Writer(
+            cfg["path"], cfg["role"], cfg["wall0_ns"], cfg["live_port"], cfg["live_host"], cfg.get("file_id")
+        )
     except Exception as e:  # a file that cannot be made, a port taken: say so; the session goes on
         print(f"teleop {cfg['role']}: error: no log and no live view: {e}", file=sys.stderr, flush=True)
         print(json.dumps({"error": str(e)}), flush=True)
@@ -456,12 +499,21 @@ def _writer_main() -> None:
             flush=True,
         )
     port = w.live_port  # (the server says 0 once stopped)
+    error = None
     try:
         while (got := _read(stdin)) is not None and got[0] != "stop":
             w.handle(*got)
+    except Exception as e:  # a full disk, an I/O error: say so; the parent's session goes on
+        error = f"writing the log failed: {e}"
+        print(f"teleop {cfg['role']}: error: {error}", file=sys.stderr, flush=True)
+        while _read(stdin) is not None:  # let the parent's sender finish
+            pass
     finally:
-        w.close()
-    print(json.dumps({"messages": w.messages, "live_port": port}), flush=True)
+        try:
+            w.close()
+        except Exception as e:
+            error = error or f"finishing the log failed: {e}"
+    print(json.dumps({"messages": w.messages, "live_port": port, "error": error}), flush=True)
 
 
 def wall_clock_of(t_common_ns: int) -> int:

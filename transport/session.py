@@ -29,7 +29,6 @@ stays flat however long the session lasts and the loop never encodes or writes a
 from __future__ import annotations
 
 import asyncio
-import json
 import os
 import random
 import secrets
@@ -46,6 +45,7 @@ from teleop.devices import DeviceError
 from teleop.port import Chunk, Port, PortKeys, make_node, make_shim
 from teleop.protocol import PROTOCOL_VERSION, SessionParams
 
+from . import logdir
 from .base import Addr, Transport
 from .mcaplog import McapLog, spawn_writer, wall_clock_of
 from .realtime import LoopStats, Ticker, setup_realtime
@@ -599,8 +599,6 @@ async def _run_loop(
     if log is not None:  # the file is finished by _session, once the summary is complete
         why = f"signal {stop.signal}" if stop.requested else ("peer said bye" if runner.peer_bye else "end")
         log.event(runner.now(), "session_end", f"{why}; {stats.ticks} ticks run")
-    if opts.log_dir is not None:
-        (opts.log_dir / f"{opts.role}.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary, runner.handover
 
 
@@ -637,16 +635,12 @@ async def _endpoint(
             writer = spawn_writer() if wants_log else None
             summary, handover = await _session(opts, tr, params, expect, stop, handover, writer)
             writer = None  # the session's log owns it now
-            if opts.log_dir is not None:
-                (opts.log_dir / f"{opts.role}.json").write_text(json.dumps(summary, indent=2) + "\n")
+            if opts.log_dir is not None:  # beside its MCAP log, never over a file (transport.logdir)
+                logdir.save_summary(opts.log_dir, opts.role, summary)
             if not summary.get("replaced_by_new_session"):
                 return summary
-            # The teleoperator's operator was replaced mid-session (restarted): keep the old
-            # session's logs under its id and serve the new operator.
-            if opts.log_dir is not None:
-                old = summary["params"]["session"]
-                for ext in ("json", "mcap"):
-                    (opts.log_dir / f"{opts.role}.{ext}").replace(opts.log_dir / f"{opts.role}-{old}.{ext}")
+            # The teleoperator's operator was replaced mid-session (restarted): the old session's
+            # logs keep their names, the new session gets files of its own; serve the new operator.
             if not opts.quiet:
                 print(
                     f"teleop {opts.role}: session {summary['params']['session']} replaced by a new operator",
@@ -699,7 +693,7 @@ async def _session(
     warnings = setup_realtime(opts.rt_priority)
     for w in warnings:
         print(f"teleop {opts.role}: warning: {w}", file=sys.stderr)
-    log = _open_log(opts, start, writer)
+    log = _open_log(opts, start, writer, params.session)
     port = _make_port(opts, tr, params, k0, keys, log)
     try:
         summary, replaced_by = await _run_loop(opts, tr, peer, params, port, t0, start, stop, k0, expect, log)
@@ -714,7 +708,7 @@ async def _session(
     if log is not None:  # the complete summary goes into the file: teleop report reads it there
         log.close({**summary, "end_t": (time.monotonic_ns() - start) / 1e9})
         summary["log"] = {
-            "mcap": f"{opts.role}.mcap" if opts.log_dir is not None else None,
+            "mcap": log.path.name if log.path is not None else None,
             "messages": log.messages,
             "dropped_chunks": log.dropped_chunks,
             "live_view_port": log.live_port,
@@ -729,25 +723,24 @@ def _auth_name(opts: EndpointOptions) -> str:
 
 
 def _open_log(
-    opts: EndpointOptions, t_common_ns: int, writer: subprocess.Popen[bytes] | None
+    opts: EndpointOptions, t_common_ns: int, writer: subprocess.Popen[bytes] | None, session: int
 ) -> McapLog | None:
-    """``ROLE.mcap`` in the log folder and/or the live view, or None (no log, no view)."""
+    """A new MCAP file in the log folder (``transport.logdir.reserve``: ``ROLE.mcap`` or, if an
+    earlier run holds it, ``ROLE-SESSION[-N].mcap``) and/or the live view, or None (neither)."""
     if opts.log_dir is None and opts.live_view is None:
         return None
-    path = None
-    if opts.log_dir is not None:
-        opts.log_dir.mkdir(parents=True, exist_ok=True)
-        path = opts.log_dir / f"{opts.role}.mcap"
     try:
+        files = logdir.reserve(opts.log_dir, opts.role, session) if opts.log_dir is not None else None
         return McapLog(
-            path,
+            files.mcap if files is not None else None,
             opts.role,
             wall_clock_of(t_common_ns),
             live_port=opts.live_view,
             live_host=opts.live_view_host,
             process=writer,
+            file_id=(files.dev, files.ino) if files is not None else None,
         )
-    except (OSError, RuntimeError) as e:  # the file cannot be made, the port is taken
+    except (OSError, RuntimeError, ValueError) as e:  # a folder others can write, the port is taken
         raise SessionError(f"cannot open the log or the live view: {e}") from None
 
 

@@ -46,7 +46,6 @@ from .report import write_report
 from .settings import check_robot, read_key, session_params, writable_dir
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
-LOG_FILES = ("operator.json", "teleoperator.json", "operator.mcap", "teleoperator.mcap")
 
 
 @dataclass
@@ -293,8 +292,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     check_robot(args.robot, params.dof)
     out = writable_dir(Path(args.out), "--out")
     logs = writable_dir(out / "logs", "--out")
-    for stale in LOG_FILES:
-        (logs / stale).unlink(missing_ok=True)
+    # Logs of earlier runs stay: this run's files get names of their own (transport.logdir), and
+    # the report pairs them by this session's id.
     with run_key(args) as key:
         cmds = build_commands(args, params, logs, key)
         net = cmds.net
@@ -321,12 +320,16 @@ def cmd_run(args: argparse.Namespace) -> int:
         finally:
             if router is not None:
                 _stop([router])
-    if not all((logs / f"{r}.json").exists() for r in codes):
-        raise CliError(f"no report: a process failed before its loop ran (exit codes {codes})")
+    from teleop.logfile import LogError, find_pair
+
+    try:
+        find_pair(logs, params.session)
+    except LogError:
+        raise CliError(f"no report: a process failed before its loop ran (exit codes {codes})") from None
     extra: dict[str, Any] = {"exit_codes": codes, "auth": {"key": key.source, "key_id": key.key_id}}
     if net.zenoh is not None:
         extra["zenoh"] = net.zenoh
-    write_report(logs, out, args, args.transport, extra)
+    write_report(logs, out, args, args.transport, extra, session=params.session)
     if interrupted and not params.until_stopped:  # an open session ends with Ctrl-C: that is no error
         return 130
     return 0 if all(c == 0 for c in codes.values()) else 1

@@ -1,0 +1,340 @@
+"""Logs never lost, and never trusted (issue 21, items 3-5).
+
+A run's files are new files (``transport.logdir``): a restart keeps the earlier record, a planted
+symlink is never written through, two processes of a role never share a file, a full disk is one
+line.  A killed writer is reported and the chunks it wrote stay readable; ``teleop report`` pairs
+logs by session, reports a killed process's log from its ticks, never opens a path a log names,
+and gives one ``teleop: error:`` line for a hostile log.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from teleop import files
+from teleop.logfile import LogError, iter_ticks, read_session, read_summary
+from transport import logdir
+
+TELEOP = [sys.executable, "-m", "teleop.cli"]
+
+
+# --- files in the log folder --------------------------------------------------------------------
+def test_a_symlink_planted_in_the_log_folder_is_never_written_through(tmp_path: Path) -> None:
+    victim = tmp_path / "victim"
+    victim.write_text("precious")
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    for name in ("operator.mcap", "operator.json", "operator-7.json"):
+        (logs / name).symlink_to(victim)
+    got = logdir.reserve(logs, "operator", 7)
+    assert got.mcap.name == "operator-7-2.mcap" and got.summary.name == "operator-7-2.json"
+    assert not got.mcap.is_symlink() and got.mcap.stat().st_size == 0
+    # The summary's name taken by a symlink since: refused, not followed.
+    (logs / "operator-7-2.json").symlink_to(victim)
+    err = logdir.write_summary(got.summary, {"x": 1})
+    assert err is not None and "File exists" in err
+    assert victim.read_text() == "precious"
+    assert not [p for p in logs.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_a_restart_with_the_same_folder_keeps_both_records(tmp_path: Path) -> None:
+    first = logdir.reserve(tmp_path, "teleoperator", 9)
+    first.mcap.write_bytes(b"5000 ticks")
+    assert logdir.write_summary(first.summary, {"ticks": 5000}) is None
+    second = logdir.reserve(tmp_path, "teleoperator", 9)  # the same session, rejoined
+    third = logdir.reserve(tmp_path, "teleoperator", 10)
+    assert [f.mcap.name for f in (first, second, third)] == [
+        "teleoperator.mcap",
+        "teleoperator-9.mcap",
+        "teleoperator-10.mcap",
+    ]
+    assert first.mcap.read_bytes() == b"5000 ticks"
+    assert json.loads(first.summary.read_text()) == {"ticks": 5000}
+    assert logdir.write_summary(first.summary, {"ticks": 192}) is not None  # never over a record
+    assert json.loads(first.summary.read_text()) == {"ticks": 5000}
+
+
+def test_two_processes_of_a_role_never_share_a_file(tmp_path: Path) -> None:
+    """Two robots with one --log and the same session id: each gets its own file (O_EXCL)."""
+    a, b = logdir.reserve(tmp_path, "teleoperator", 5), logdir.reserve(tmp_path, "teleoperator", 5)
+    assert a.mcap != b.mcap and (a.dev, a.ino) != (b.dev, b.ino)
+    fd = files.open_reserved(a.mcap, a.dev, a.ino)
+    os.close(fd)
+    with pytest.raises(files.FileRefused, match="not the file this process created"):
+        files.open_reserved(a.mcap, b.dev, b.ino)
+
+
+def test_a_log_folder_others_can_write_is_refused_in_one_line(tmp_path: Path) -> None:
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    logs.chmod(0o777)
+    with pytest.raises(files.FileRefused, match="writable by other users"):
+        logdir.reserve(logs, "operator", 1)
+    assert list(logs.iterdir()) == []
+
+
+def test_a_full_disk_is_one_line_and_leaves_no_partial_summary(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def full(fd: int) -> None:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "fsync", full)
+    err = logdir.save_summary(tmp_path, "teleoperator", {"log": {"mcap": "teleoperator-3.mcap"}})
+    assert err is not None and "No space left on device" in err
+    line = capsys.readouterr().err
+    assert line == f"teleop teleoperator: error: {err}\n"
+    assert list(tmp_path.iterdir()) == []  # no empty teleoperator-3.json, no temporary file
+
+
+# --- a killed writer ------------------------------------------------------------------------------
+def test_a_killed_writer_is_reported_and_its_chunks_stay_readable(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    from tests.test_logs import _pair, _run
+    from transport.mcaplog import McapLog
+
+    f = logdir.reserve(tmp_path, "operator", 7)
+    log = McapLog(f.mcap, "operator", 1_700_000_000 * 10**9, file_id=(f.dev, f.ino))
+    op, to = _pair((log, None))
+    log.status("session", 0.0, {"role": "operator", "params": {"session": 7}})
+    _run(op, to, range(3500))
+    give_up = time.monotonic() + 30
+    while f.mcap.stat().st_size < 200_000 and time.monotonic() < give_up:  # three chunks written
+        time.sleep(0.05)
+    os.kill(log._proc.pid, signal.SIGKILL)
+    log._proc.wait()
+    _run(op, to, range(3500, 5000))  # the loop goes on
+    log.close(op.summary())
+    assert log.error is not None and "log writer process died (killed by signal 9)" in log.error
+    assert "teleop operator: error: the log writer process died" in capfd.readouterr().err
+    assert read_summary(f.mcap) == {}  # it never got the summary
+    assert read_session(f.mcap)["params"]["session"] == 7
+    ran = sum(int(b["ran"].sum()) for _, b in iter_ticks(f.mcap))
+    assert ran >= 2000 and ran % 1000 == 0  # every chunk finished before the kill
+
+
+# --- teleop report ------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def genuine(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One real session's two logs (`teleop run`, 3 s: three MCAP chunks a log)."""
+    out = tmp_path_factory.mktemp("genuine")
+    r = subprocess.run(
+        [*TELEOP, "run", "--out", str(out), "--no-plots", "--no-sim", "--no-live", "--duration", "3"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    return out / "logs"
+
+
+def _rewrite(src: Path, dst: Path, edit: Callable[[str, dict[str, Any]], dict[str, Any] | None]) -> None:
+    """``src`` copied to ``dst`` with the reference writer, each message through ``edit``
+    (None: dropped)."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with src.open("rb") as f, dst.open("wb") as g:
+        w = Writer(g)
+        w.start()
+        ids: dict[str, int] = {}
+        for _, channel, message in make_reader(f).iter_messages():
+            m = edit(channel.topic, json.loads(message.data))
+            if m is None:
+                continue
+            if channel.topic not in ids:
+                schema = w.register_schema(name=channel.topic, encoding="jsonschema", data=b"{}")
+                ids[channel.topic] = w.register_channel(channel.topic, "json", schema)
+            w.add_message(ids[channel.topic], message.log_time, json.dumps(m).encode(), message.publish_time)
+        w.finish()  # type: ignore[no-untyped-call]
+
+
+def _copy(
+    genuine: Path, tmp: Path, role: str, edit: Callable[[str, dict[str, Any]], dict[str, Any] | None]
+) -> Path:
+    """The genuine pair in a new folder, ``role``'s log rewritten through ``edit``."""
+    logs = tmp / "logs"
+    logs.mkdir()
+    for r in ("operator", "teleoperator"):
+        dst = logs / f"{r}.mcap"
+        if r == role:
+            _rewrite(genuine / f"{r}.mcap", dst, edit)
+        else:
+            dst.write_bytes((genuine / f"{r}.mcap").read_bytes())
+    return logs
+
+
+def _report(logs: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """``teleop report`` in this process (its exit status, stdout and stderr): the imports once."""
+    import contextlib
+    import io
+
+    from teleop.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = main(["report", str(logs), "--no-plots", "--out", str(logs.parent), *args])
+        except SystemExit as e:
+            code = int(e.code or 0)
+    return subprocess.CompletedProcess([], code, out.getvalue(), err.getvalue())
+
+
+def _one_line(r: subprocess.CompletedProcess[str], says: str) -> None:
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and "Traceback" not in r.stderr and len(lines) == 1, r.stderr
+    assert lines[0].startswith("teleop: error: ") and says in lines[0], lines[0]
+
+
+def _params(**change: Any) -> Callable[[str, dict[str, Any]], dict[str, Any] | None]:
+    def edit(topic: str, m: dict[str, Any]) -> dict[str, Any]:
+        if topic.endswith(("/summary", "/session")):
+            m["params"].update(change)
+        return m
+
+    return edit
+
+
+@pytest.mark.integration
+def test_a_killed_process_log_is_reported_from_its_ticks(genuine: Path, tmp_path: Path) -> None:
+    """No /teleoperator/summary (the process was killed, its writer finished the file)."""
+    logs = _copy(genuine, tmp_path, "teleoperator", lambda t, m: None if t.endswith("/summary") else m)
+    r = _report(logs, "--no-sim")
+    assert r.returncode == 0, r.stderr
+    assert "teleoperator SUMMARY MISSING" in r.stdout
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert rep["summary_missing"] == ["teleoperator"] and rep["transparency"]["ticks_compared"] > 500
+
+
+@pytest.mark.integration
+def test_a_log_cut_off_by_a_killed_writer_is_reported(genuine: Path, tmp_path: Path) -> None:
+    """A teleoperator log cut mid-chunk (no footer, no summary): the chunks before are reported."""
+    logs = _copy(genuine, tmp_path, "none", lambda t, m: m)
+    whole = (genuine / "teleoperator.mcap").read_bytes()
+    chunks, pos = [], 8
+    while pos < len(whole) and whole[pos] != 0x0F:  # the data section's records, up to DataEnd
+        if whole[pos] == 0x06:
+            chunks.append(pos)
+        pos += 9 + int.from_bytes(whole[pos + 1 : pos + 9], "little")
+    assert len(chunks) >= 2
+    (logs / "teleoperator.mcap").write_bytes(whole[: chunks[-1] + 100])  # the last chunk cut off
+    r = _report(logs, "--no-sim")
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "report.json").read_text())["summary_missing"] == ["teleoperator"]
+
+
+@pytest.mark.integration
+def test_the_report_never_opens_a_path_a_log_names(genuine: Path, tmp_path: Path) -> None:
+    """A summary naming a trace (a FIFO here: opening it would hang) is reported; no sim re-run."""
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    logs = _copy(genuine, tmp_path, "operator", _params(netem_forward=f"trace {fifo}"))
+    r = _report(logs)
+    assert r.returncode == 0, r.stderr
+    assert "a report never opens a file a log names" in r.stdout
+
+
+@pytest.mark.integration
+def test_restarts_keep_every_record_and_the_report_pairs_by_session(genuine: Path, tmp_path: Path) -> None:
+    """A second pair of another session beside the first: reported by --session, newest by default."""
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    for role in ("operator", "teleoperator"):
+        (logs / f"{role}.mcap").write_bytes((genuine / f"{role}.mcap").read_bytes())
+        _rewrite(genuine / f"{role}.mcap", logs / f"{role}-99.mcap", _params(session=99))
+    first = read_summary(logs / "operator.mcap")["params"]["session"]
+    r = _report(logs, "--no-sim", "--session", str(first))
+    assert r.returncode == 0, r.stderr
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert rep["session"] == first and rep["logs"]["operator"] == "operator.mcap"
+    r = _report(logs, "--no-sim")  # the newest pair; report.json is kept, a new name is used
+    assert r.returncode == 0, r.stderr
+    rep = json.loads((tmp_path / "report-99.json").read_text())
+    assert rep["session"] == 99 and rep["logs"]["teleoperator"] == "teleoperator-99.mcap"
+    assert json.loads((tmp_path / "report.json").read_text())["session"] == first
+
+
+def _dof_bomb(n: int, only: int | None = None) -> Callable[[str, dict[str, Any]], dict[str, Any]]:
+    """Every signals message (or tick ``only``'s) with ``n`` values per vector."""
+
+    def edit(topic: str, m: dict[str, Any]) -> dict[str, Any]:
+        if topic.endswith("/signals") and only in (None, m["k"]):
+            m["v"] = m["f"] = [0.0] * n
+        return m
+
+    return edit
+
+
+def _drop_key(key: str) -> Callable[[str, dict[str, Any]], dict[str, Any]]:
+    def edit(topic: str, m: dict[str, Any]) -> dict[str, Any]:
+        if topic.endswith("/summary"):
+            m.pop(key)
+        return m
+
+    return edit
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize(
+    ("edit", "says"),
+    [
+        (_dof_bomb(1000), "v has 1000 values (at most 64 DoF)"),
+        (_dof_bomb(100_000, only=5), "a /ROLE/signals message of 1000"),  # bytes: before parsing
+        (_params(dof=10**9), "dof must be"),
+        (_params(duration=1e30), "duration must be"),
+        (_params(dt=0.0), "dt must be"),  # was ZeroDivisionError
+        (_params(codec="dct:5"), "codec"),  # was CodecError
+        (_params(b="20"), "b must be"),  # was TypeError
+        (_drop_key("loop"), "KeyError: 'loop'"),  # was a KeyError traceback
+        (_params(session="x"), "name no session id"),
+    ],
+)
+def test_a_hostile_log_is_one_line(
+    genuine: Path, tmp_path: Path, edit: Callable[[str, dict[str, Any]], dict[str, Any] | None], says: str
+) -> None:
+    _one_line(_report(_copy(genuine, tmp_path, "operator", edit)), says)
+
+
+def test_a_chunk_that_asks_for_too_much_memory_is_refused(tmp_path: Path) -> None:
+    """A chunk header claiming 1.5 GB uncompressed: refused before anything is decompressed."""
+    from mcap.writer import Writer
+
+    path = tmp_path / "operator.mcap"
+    with path.open("wb") as f:
+        w = Writer(f)
+        w.start()
+        schema = w.register_schema(name="s", encoding="jsonschema", data=b"{}")
+        ch = w.register_channel("/operator/signals", "json", schema)
+        w.add_message(ch, 0, b'{"k":0,"t":0,"v":[0],"f":[0]}', 0)
+        w.finish()  # type: ignore[no-untyped-call]
+    data = bytearray(path.read_bytes())
+    at = data.index(b"\x06", 8)  # the chunk record: opcode, length, start, end, uncompressed size
+    data[at + 25 : at + 33] = (1_500_000_000).to_bytes(8, "little")
+    path.write_bytes(bytes(data))
+    with pytest.raises(LogError, match="a chunk of 1500000000 bytes uncompressed"):
+        list(iter_ticks(path))
+
+
+def test_tick_jumps_are_bounded_in_all(tmp_path: Path) -> None:
+    """Many jumps each under MAX_GAP_TICKS add up to hours of work: refused by their sum."""
+    from teleop import logfile
+    from tests.test_logs import _mcap, _sig
+
+    jump = logfile.MAX_GAP_TICKS // 4
+    path = _mcap(tmp_path / "operator.mcap", [_sig(i * jump) for i in range(6)])
+    with pytest.raises(LogError, match="ticks skipped: not a session"):
+        list(iter_ticks(path))
+    with pytest.raises(LogError, match="beyond the session's 1000 ticks"):
+        list(iter_ticks(_mcap(tmp_path / "operator-2.mcap", [_sig(0), _sig(5000)]), max_tick=1000))
