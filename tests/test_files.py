@@ -149,3 +149,14 @@ def test_create_new_never_follows_or_overwrites(tmp_path: Path) -> None:
             files.create_new(tmp_path / name)
         assert files.is_exists(e.value)
     assert victim.read_text() == "precious" and not (tmp_path / "nowhere").exists()
+
+
+@pytest.mark.parametrize("cmd", [["operator", *PEER], ["teleoperator", "--listen", "127.0.0.1:0"]])
+def test_the_commands_refuse_a_log_folder_others_can_write(
+    cmd: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    logs.chmod(0o777)
+    err = _one_line([*cmd, "--insecure", "--log", str(logs)], capsys)
+    assert f"--log {logs}: writable by other users (mode 777)" in err

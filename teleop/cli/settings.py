@@ -165,6 +165,13 @@ def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int
     from transport.session import EndpointOptions
 
     log_dir = writable_dir(Path(args.log), "--log") if args.log else None
+    if log_dir is not None:  # checked again when the log is made (transport.logdir.reserve)
+        from ..files import FileRefused, check_private_dir
+
+        try:
+            check_private_dir(log_dir, "--log")
+        except FileRefused as e:
+            raise CliError(str(e)) from None
     psk, insecure = endpoint_key(args)
     return EndpointOptions(
         role=role,
