@@ -125,6 +125,38 @@ def test_a_killed_writer_is_reported_and_its_chunks_stay_readable(
     assert ran >= 2000 and ran % 1000 == 0  # every chunk finished before the kill
 
 
+def test_a_full_disk_under_the_writer_is_one_line_and_the_log_stays_readable(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """The writer's file limited to 400 kB (RLIMIT_FSIZE, SIGXFSZ ignored: writes fail with EFBIG,
+    as on a full disk): one console line, ``log.error``, and the chunks written before readable."""
+    import resource
+
+    from tests.test_logs import _pair, _run
+    from transport.mcaplog import McapLog
+
+    def limit() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (400_000, 400_000))
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "transport.mcaplog"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        preexec_fn=limit,
+    )
+    f = logdir.reserve(tmp_path, "operator", 7)
+    log = McapLog(f.mcap, "operator", 1_700_000_000 * 10**9, process=proc, file_id=(f.dev, f.ino))
+    op, to = _pair((log, None))
+    _run(op, to, range(6000))
+    log.close(op.summary())
+    assert log.error is not None and "writing the log failed: File too large" in log.error
+    err = capfd.readouterr().err
+    assert err.count("error") == 1 and "teleop operator: error: writing the log failed" in err, err
+    ran = sum(int(b["ran"].sum()) for _, b in iter_ticks(f.mcap))
+    assert 1000 <= ran < 6000 and ran % 1000 == 0
+
+
 # --- teleop report ------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def genuine(tmp_path_factory: pytest.TempPathFactory) -> Path:

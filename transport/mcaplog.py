@@ -181,6 +181,50 @@ def _template(fields: dict[str, str]) -> str:
     return "{" + ",".join(parts) + "}"
 
 
+class _GuardedFile:
+    """The log file as foxglove's writer sees it.  The first failed write (a full disk, a quota)
+    is kept in ``error`` and said in one line, and every later write is dropped: foxglove itself
+    prints a line for every message it cannot log (18 590 lines for a 5 s session, measured with
+    RLIMIT_FSIZE), and the session must go on.  What was written before stays readable: the
+    chunk being written is cut off, which ``teleop.logfile`` reads as the file's end."""
+
+    def __init__(self, fd: int, role: str) -> None:
+        self._f = os.fdopen(fd, "wb", buffering=0)  # unbuffered: a kill -9 loses no written chunk
+        self.role = role
+        self.error: str | None = None
+        # The position foxglove expects (it checks it): real until a write fails, then virtual.
+        self._pos = self._end = 0
+
+    def write(self, data: bytes | bytearray) -> int:
+        if self.error is None:
+            try:
+                view, done = memoryview(data), 0
+                while done < len(view):
+                    done += self._f.write(view[done:]) or 0
+            except OSError as e:
+                self.error = f"writing the log failed: {e.strerror or e}; later chunks are not in the log"
+                print(f"teleop {self.role}: error: {self.error}", file=sys.stderr, flush=True)
+        self._pos += len(data)
+        self._end = max(self._end, self._pos)
+        return len(data)
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        base = {os.SEEK_SET: 0, os.SEEK_CUR: self._pos, os.SEEK_END: self._end}[whence]
+        self._pos = base + offset
+        if self.error is None:
+            self._f.seek(self._pos)
+        return self._pos
+
+    def tell(self) -> int:
+        return self._pos
+
+    def flush(self) -> None:
+        pass  # unbuffered
+
+    def close(self) -> None:
+        self._f.close()
+
+
 class _Writer:
     """The writer process's side: foxglove contexts, channels, the MCAP file and the live server."""
 
@@ -205,13 +249,11 @@ class _Writer:
         self._ctx = foxglove.Context() if path is not None else None
         self._live_ctx = foxglove.Context() if live_port is not None else None
         self._file = None
-        self._fh: Any = None
+        self._fh: _GuardedFile | None = None
         if self._ctx is not None and path is not None:
             opts = MCAPWriteOptions(compression=MCAPCompression.Zstd)
             fd = open_reserved(Path(path), *file_id) if file_id is not None else create_new(Path(path))
-            # Unbuffered: what foxglove's writer hands over is in the file at once (a kill -9 of
-            # this process loses no more than the chunk being built).
-            self._fh = os.fdopen(fd, "wb", buffering=0)
+            self._fh = _GuardedFile(fd, role)
             self._file = foxglove.open_mcap(self._fh, context=self._ctx, writer_options=opts)
         self.server = None
         if self._live_ctx is not None:
@@ -287,9 +329,14 @@ class _Writer:
                 log(data, log_time=lt)
         self.messages += 5 * len(rows)
 
+    @property
+    def error(self) -> str | None:
+        """Why the file is incomplete (its first failed write), or None."""
+        return None if self._fh is None else self._fh.error
+
     def close(self) -> None:
         try:
-            if self._file is not None:
+            if self._file is not None and self._fh is not None:
                 self._file.close()
                 self._fh.close()
         finally:
@@ -513,6 +560,7 @@ def _writer_main() -> None:
             w.close()
         except Exception as e:
             error = error or f"finishing the log failed: {e}"
+    error = w.error or error  # a failed write: the first failure, said once already
     print(json.dumps({"messages": w.messages, "live_port": port, "error": error}), flush=True)
 
 
