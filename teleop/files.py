@@ -30,6 +30,7 @@ __all__ = [
     "create_new",
     "open_reserved",
     "read_regular",
+    "write_new",
 ]
 
 MAX_TRACE_BYTES = 8 << 20  # a Mahimahi trace: about a million delivery opportunities
@@ -139,3 +140,22 @@ def is_exists(e: OSError) -> bool:
     """Whether an ``O_EXCL | O_NOFOLLOW`` create failed because the name is taken (a file, or a
     symlink: Linux says EEXIST for both with O_EXCL, ELOOP for a symlink without it)."""
     return e.errno in (errno.EEXIST, errno.ELOOP)
+
+
+def write_new(path: Path, data: bytes) -> None:
+    """``data`` in a new file at ``path`` (:func:`create_new`); :class:`FileRefused` if the name is
+    taken (an earlier output is never overwritten, a planted symlink never followed) or the write
+    fails (a full disk)."""
+    try:
+        fd = create_new(path)
+    except OSError as e:
+        if is_exists(e):
+            raise FileRefused(
+                f"{path} exists: outputs are never overwritten (another --out, or remove it)"
+            ) from None
+        raise FileRefused(f"cannot write {path}: {e.strerror or e}") from None
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+    except OSError as e:
+        raise FileRefused(f"cannot write {path}: {e.strerror or e}") from None

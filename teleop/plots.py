@@ -20,6 +20,18 @@ def _plt() -> Any:
     return plt
 
 
+def _save(fig: Any, path: Path, dpi: int) -> None:
+    """The figure as a PNG in a new file (``teleop.files.write_new``: never over a file, never
+    through a symlink)."""
+    import io
+
+    from .files import write_new
+
+    buf = io.BytesIO()
+    fig.savefig(buf, dpi=dpi, format="png")
+    write_new(path, buf.getvalue())
+
+
 def safe_name(spec: str) -> str:
     return spec.replace(":", "_").replace("/", "_").replace(".", "p")
 
@@ -45,7 +57,7 @@ def velocity_force(
         ax.legend(loc="best", fontsize=8)
     axes[0].set_title(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    _save(fig, path, 110)
     plt.close(fig)
 
 
@@ -70,7 +82,7 @@ def bandwidth(
         ax.grid(alpha=0.3)
         ax.legend(loc="best", fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    _save(fig, path, 110)
     plt.close(fig)
 
 
@@ -89,7 +101,7 @@ def timing_histogram(path: Path, lateness_us: dict[str, tuple[Array, Array]]) ->
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    _save(fig, path, 110)
     plt.close(fig)
 
 
@@ -109,7 +121,7 @@ def energy(path: Path, t: Array, series: dict[str, tuple[Array, Array, Array]]) 
         ax.grid(alpha=0.3)
         ax.legend(loc="best", fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    _save(fig, path, 110)
     plt.close(fig)
 
 
@@ -146,7 +158,7 @@ def pareto(path: Path, cases: list[dict[str, Any]], title: str) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    _save(fig, path, 110)
     plt.close(fig)
 
 
@@ -179,5 +191,5 @@ def experiment_bars(path: Path, doc: dict[str, Any], title: str) -> None:
     ax.grid(axis="y", alpha=0.3, which="both")
     ax.legend(fontsize=8, ncol=min(7, len(bars) + 1), loc="upper center", bbox_to_anchor=(0.5, -0.09))
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    _save(fig, path, 90)
     plt.close(fig)

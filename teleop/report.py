@@ -556,19 +556,20 @@ def build(
     return rep
 
 
-def write_plots(log_dir: Path, out: Path, rep: dict[str, Any]) -> list[Path]:
-    """signals.png, bandwidth.png, energy.png and loop_timing.png, from the fold's thinned series
-    (every tick of a session up to about two minutes; a longer one's every 2nd, 4th, ... tick)."""
+def write_plots(log_dir: Path, out: Path, rep: dict[str, Any], suffix: str = "") -> list[Path]:
+    """signals.png, bandwidth.png, energy.png and loop_timing.png (``signals-SUFFIX.png`` ... with
+    a suffix), new files, from the fold's thinned series (every tick of a session up to about two
+    minutes; a longer one's every 2nd, 4th, ... tick)."""
     fold = _load(log_dir, rep["session"]).fold
     dt = fold.dt
     files = []
     k, sig = fold.signals.get()
     t = k.astype(np.float64) * dt
-    f1 = out / "signals.png"
+    f1 = out / f"signals{suffix}.png"
     title = f"{rep['codec']} over {rep['transport']}: I = {rep['transparency']['I']:.3e}"
     plots.velocity_force(f1, t, sig["v_op"], sig["v_to"], sig["f_op"], sig["f_to"], title)
     files.append(f1)
-    f2 = out / "bandwidth.png"
+    f2 = out / f"bandwidth{suffix}.png"
     k, bw = fold.bandwidth.get()
     t = (k + 1).astype(np.float64) * dt  # a window is plotted at its end
     plots.bandwidth(
@@ -580,7 +581,7 @@ def write_plots(log_dir: Path, out: Path, rep: dict[str, Any]) -> list[Path]:
         },
     )
     files.append(f2)
-    f4 = out / "energy.png"
+    f4 = out / f"energy{suffix}.png"
     k, en = fold.energy.get()
     plots.energy(
         f4,
@@ -591,7 +592,7 @@ def write_plots(log_dir: Path, out: Path, rep: dict[str, Any]) -> list[Path]:
         },
     )
     files.append(f4)
-    f3 = out / "loop_timing.png"
+    f3 = out / f"loop_timing{suffix}.png"
     plots.timing_histogram(f3, {r: late.values() for r, late in fold.lateness.items()})
     files.append(f3)
     return files

@@ -160,3 +160,39 @@ def test_the_commands_refuse_a_log_folder_others_can_write(
     logs.chmod(0o777)
     err = _one_line([*cmd, "--insecure", "--log", str(logs)], capsys)
     assert f"--log {logs}: writable by other users (mode 777)" in err
+
+
+@pytest.mark.parametrize(
+    ("cmd", "name"),
+    [
+        (["sim", "--duration", "0.2", "--codec", "none"], "results.json"),
+        (["sweep", "--duration", "0.2", "--codec", "none"], "sweep.json"),
+        (["experiment", "--duration", "0.2", "--codec", "none", "--runs", "1"], "experiment.json"),
+    ],
+)
+def test_an_output_is_never_overwritten_nor_written_through_a_symlink(
+    cmd: list[str], name: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    victim = tmp_path / "victim"
+    victim.write_text("precious")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / name).symlink_to(victim)
+    err = _one_line([*cmd, "--out", str(out)], capsys)
+    assert f"already holds {name}: outputs are never overwritten" in err
+    assert victim.read_text() == "precious"
+
+
+def test_a_plot_is_never_written_through_a_symlink(tmp_path: Path) -> None:
+    import numpy as np
+
+    from teleop import plots
+
+    victim = tmp_path / "victim"
+    victim.write_text("precious")
+    (tmp_path / "signals.png").symlink_to(victim)
+    t = np.zeros(2)
+    v = np.zeros((2, 1))
+    with pytest.raises(files.FileRefused, match="outputs are never overwritten"):
+        plots.velocity_force(tmp_path / "signals.png", t, v, v, v, v, "x")
+    assert victim.read_text() == "precious"

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from ..codecs import ACCEPTED
+from ..files import write_new
 from ..limits import MAX_SEED
 from ..scenarios import SCENARIOS
 from .args import (
@@ -32,7 +33,7 @@ from .args import (
     int_range,
     nonneg_float,
 )
-from .settings import channel_kwargs, check_duration, sim_config, writable_dir
+from .settings import channel_kwargs, check_duration, fresh_out, sim_config, writable_dir
 
 MAX_RUNS = 1000
 
@@ -110,7 +111,7 @@ def _real_run(args: argparse.Namespace, spec: str, seed: int, out: Path) -> Any:
     except CliError as e:
         return RunResult(spec, seed, False, error=str(e)), 1
     finally:
-        (out / "run.log").write_text(buf.getvalue())
+        write_new(out / "run.log", buf.getvalue().encode())
         if not args.keep_logs:
             shutil.rmtree(out / "logs", ignore_errors=True)
     rep = json.loads((out / "report.json").read_text())
@@ -151,6 +152,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     if args.real and args.delay:
         raise CliError("--delay is for the simulation; real sessions take --netem 'delay N ms'")
     out = writable_dir(Path(args.out), "--out")
+    fresh_out(out, ["experiment.json", "runs"])  # a run's report.json is read back: none stale
     codecs = list(dict.fromkeys(args.codec or SECTION_V_CODECS))
     where = f"real sessions over {args.transport}" if args.real else "simulation"
     print(
@@ -162,7 +164,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     progress = Progress(len(codecs) * args.runs, sys.stderr)
     runs = _real_runs(args, codecs, out, progress) if args.real else _sim_runs(args, codecs, progress)
     doc = aggregate(runs, codecs, args.runs, args.real, _settings(args, dof, duration))
-    (out / "experiment.json").write_text(json.dumps(doc, indent=2) + "\n")
+    write_new(out / "experiment.json", (json.dumps(doc, indent=2) + "\n").encode())
     from .. import plots
 
     title = (

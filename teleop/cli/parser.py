@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 
+from ..files import FileRefused
 from . import endpoints, experiment, keygen, report, run, sim, sweep
 from .args import CliError, Parser
 
@@ -30,6 +31,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         rc: int = args.func(args)
     except CliError as e:
+        parser.exit(2, f"teleop: error: {e}\n")
+    except FileRefused as e:  # an output already there, a full disk: teleop.files
         parser.exit(2, f"teleop: error: {e}\n")
     except KeyboardInterrupt:
         return 130

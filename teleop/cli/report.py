@@ -41,7 +41,8 @@ def write_report(
             f"({type(e).__name__}: {e})"
         ) from None
     path = _write_new(out, ["report.json", f"report-{rep['session']}.json"], json.dumps(rep, indent=2) + "\n")
-    files = [] if args.no_plots else session_report.write_plots(logs, out, rep)
+    suffix = "" if path.name == "report.json" else f"-{rep['session']}"
+    files = [] if args.no_plots else session_report.write_plots(logs, out, rep, suffix)
     print(text)
     print(f"wrote {path}" + (f" and {', '.join(f.name for f in files)}" if files else ""))
 

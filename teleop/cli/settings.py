@@ -63,6 +63,14 @@ def writable_dir(path: Path, option: str) -> Path:
     return path
 
 
+def fresh_out(out: Path, names: list[str]) -> None:
+    """CliError, before any work, if OUT already holds one of ``names``: outputs are never
+    overwritten (``teleop.files.write_new`` would refuse them only once the work is done)."""
+    taken = [n for n in names if os.path.lexists(out / n)]
+    if taken:
+        raise CliError(f"--out {out} already holds {', '.join(taken)}: outputs are never overwritten")
+
+
 def netem(args: argparse.Namespace, direction: str) -> str:
     """The impairment spec of one direction: --netem-DIRECTION, else --netem, else none."""
     specific = getattr(args, f"netem_{direction}", None)

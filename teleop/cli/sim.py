@@ -9,6 +9,7 @@ from typing import Any
 
 from ..codecs import ACCEPTED, CodecError
 from ..devices import describe
+from ..files import write_new
 from ..scenarios import SCENARIOS
 from .args import (
     CliError,
@@ -20,7 +21,7 @@ from .args import (
     codec,
     nonneg_float,
 )
-from .settings import check_duration, sim_config, writable_dir
+from .settings import check_duration, fresh_out, sim_config, writable_dir
 
 
 def format_table(cases: list[dict[str, Any]]) -> str:
@@ -72,7 +73,7 @@ def _write_results(out: Path, doc: dict[str, Any], cases: list[Any]) -> None:
     """OUT/results.json and one PNG of velocities and forces per case."""
     from .. import plots
 
-    (out / "results.json").write_text(json.dumps(doc, indent=2) + "\n")
+    write_new(out / "results.json", (json.dumps(doc, indent=2) + "\n").encode())
     for c in cases:
         tr = c.trace
         plots.velocity_force(
@@ -94,6 +95,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
     duration = args.duration if args.duration is not None else sc.duration
     check_duration(duration, args.dof if args.dof is not None else sc.dof, in_memory=True)
     out = writable_dir(Path(args.out), "--out") if args.out is not None else None
+    if out is not None:
+        fresh_out(out, ["results.json"])
     codecs = args.codec or list(SECTION_V_CODECS)
     base = sim_config(args)
     try:

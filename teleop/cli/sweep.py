@@ -9,9 +9,10 @@ import sys
 from pathlib import Path
 
 from ..codecs import ACCEPTED, CodecError
+from ..files import write_new
 from ..scenarios import SCENARIOS
 from .args import CliError, Subcommands, add_model_args, add_netem_args, add_passivity_args, codec, int_range
-from .settings import check_duration, sim_config, writable_dir
+from .settings import check_duration, fresh_out, sim_config, writable_dir
 
 
 def _progress(done: int, total: int, spec: str) -> None:
@@ -34,6 +35,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     duration = args.duration if args.duration is not None else sc.duration
     check_duration(duration, args.dof if args.dof is not None else sc.dof)
     out = writable_dir(Path(args.out), "--out")
+    fresh_out(out, ["sweep.json", "pareto.png"])
     codecs = args.codec or list(DEFAULT_GRID)
     workers = args.jobs or min(len(codecs), os.cpu_count() or 1)
     base = sim_config(args)
@@ -47,7 +49,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     except (ValueError, CodecError, OSError) as e:
         raise CliError(str(e)) from None
     print(format_table(doc))
-    (out / "sweep.json").write_text(json.dumps(doc, indent=2) + "\n")
+    write_new(out / "sweep.json", (json.dumps(doc, indent=2) + "\n").encode())
     net = doc["netem"]["forward"] or "no impairment"
     plots.pareto(out / "pareto.png", doc["cases"], f"teleop sweep: {doc['scenario']}, {net}")
     print(f"wrote {out / 'sweep.json'} and {out / 'pareto.png'}")
