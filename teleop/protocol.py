@@ -278,8 +278,10 @@ class SessionParams:
             if text:
                 try:
                     make_link(text, self.seed)  # NetemError (a ValueError) names the bad token
-                except OSError as e:  # a trace file that cannot be read: say which, no traceback
-                    raise ValueError(f"{name}: cannot read the trace {e.filename}: {e.strerror}") from None
+                except NetemError as e:  # a trace file refused (teleop.files): say for which direction
+                    if text.split()[:1] == ["trace"]:
+                        raise ValueError(f"{name}: {e}") from None
+                    raise
                 toks = text.split()
                 if toks and toks[0] != "trace":
                     _check_netem_numbers(name, parse_netem(text))
