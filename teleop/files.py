@@ -18,6 +18,7 @@ Every refusal is a :class:`FileRefused` (a ValueError) whose text is one line na
 from __future__ import annotations
 
 import errno
+import hashlib
 import os
 import stat
 from pathlib import Path
@@ -30,6 +31,7 @@ __all__ = [
     "create_new",
     "open_reserved",
     "read_regular",
+    "trace_digests",
     "write_new",
 ]
 
@@ -159,3 +161,21 @@ def write_new(path: Path, data: bytes) -> None:
             f.write(data)
     except OSError as e:
         raise FileRefused(f"cannot write {path}: {e.strerror or e}") from None
+
+
+def trace_digests(params: dict[str, object]) -> dict[str, dict[str, object]]:
+    """For each direction whose netem spec is ``trace FILE``: the file's SHA-256 and size (or why it
+    could not be read), so that a log carries what identifies the trace, and ``teleop report``
+    can re-run the simulation with a file the user names and the digest confirms, never the
+    path a log names."""
+    out: dict[str, dict[str, object]] = {}
+    for direction in ("forward", "backward"):
+        toks = str(params.get(f"netem_{direction}") or "").split()
+        if len(toks) == 2 and toks[0] == "trace":
+            try:
+                data = read_regular(toks[1], MAX_TRACE_BYTES, "trace")
+            except FileRefused as e:
+                out[direction] = {"error": str(e)}
+                continue
+            out[direction] = {"sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data)}
+    return out

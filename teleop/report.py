@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import math
 from collections import deque
 from collections.abc import Iterator
@@ -22,7 +23,8 @@ import numpy as np
 import numpy.typing as npt
 
 from . import devices, limits, metrics, plots, scenarios
-from .logfile import LogError, find_pair, iter_ticks, log_session
+from .files import MAX_TRACE_BYTES, read_regular
+from .logfile import LogError, find_pair, iter_ticks, log_session, read_session
 from .port import wire_block
 from .protocol import ProtocolError, SessionParams
 from .sim import SimConfig, run_case
@@ -59,8 +61,39 @@ def _checked_params(path: Path, p: Any) -> dict[str, Any]:
         raise LogError(f"{path}: its session parameters: {e}") from None
 
 
-def _uses_trace(p: dict[str, Any]) -> bool:
-    return any(str(p.get(k, "")).split()[:1] == ["trace"] for k in ("netem_forward", "netem_backward"))
+def _trace_specs(
+    paths: dict[str, Path], p: dict[str, Any], traces: tuple[Path, ...]
+) -> tuple[dict[str, str], str | None]:
+    """The netem specs the sim re-runs with: a ``trace FILE`` spec's path (what the log names) is
+    replaced by a file the user gave (``--trace``) whose SHA-256 is the one the log recorded
+    (``/ROLE/session``'s ``traces``, teleop.files.trace_digests); returns (specs, None), or
+    (specs, why the sim cannot be re-run)."""
+    specs = {d: str(p[f"netem_{d}"]) for d in ("forward", "backward")}
+    used = [d for d, spec in specs.items() if spec.split()[:1] == ["trace"]]
+    if not used:
+        return specs, None
+    recorded: dict[str, dict[str, Any]] = {}
+    for path in paths.values():
+        got = read_session(path).get("traces")
+        for d, entry in (got if isinstance(got, dict) else {}).items():
+            if isinstance(entry, dict) and isinstance(entry.get("sha256"), str):
+                recorded[d] = entry
+    given = {hashlib.sha256(read_regular(f, MAX_TRACE_BYTES, "--trace")).hexdigest(): f for f in traces}
+    missing = []
+    for d in used:
+        entry = recorded.get(d)
+        if entry is None:
+            missing.append(f"{d}: no digest in the logs")
+        elif entry["sha256"] in given:
+            specs[d] = f"trace {given[entry['sha256']]}"
+        else:
+            missing.append(f"{d}: sha256 {entry['sha256'][:16]}..., {entry.get('bytes')} bytes")
+    if missing:
+        return specs, (
+            f"the session ran a trace link ({'; '.join(missing)}): a report never opens a file a log "
+            "names; pass the same trace file with --trace FILE to re-run the simulation"
+        )
+    return specs, None
 
 
 def _paired(
@@ -436,7 +469,11 @@ def _process(s: dict[str, Any]) -> dict[str, Any] | None:
 
 
 def build(
-    log_dir: Path, transport: str, compare_sim: bool = True, session: int | None = None
+    log_dir: Path,
+    transport: str,
+    compare_sim: bool = True,
+    session: int | None = None,
+    traces: tuple[Path, ...] = (),
 ) -> dict[str, Any]:
     """The report of one session whose two logs are in ``log_dir`` (``session``, or the newest
     with both logs: ``teleop.logfile.find_pair``), from one streamed pass over both.
@@ -444,7 +481,8 @@ def build(
     Nothing a log says is trusted: the parameters are checked as a hello's are, no path a log names
     is opened (a session over a ``trace FILE`` link is not re-simulated: the report says so), and a
     log whose process was killed (no summary) is reported from its ticks, the summary's figures
-    left out (``summary_missing``)."""
+    left out (``summary_missing``).  ``traces``: trace files the user names, used by the sim only
+    where their SHA-256 is the one a log recorded."""
     logs = _load(log_dir, session)
     fold, p = logs.fold, logs.params
     op, to = logs.summaries["operator"], logs.summaries["teleoperator"]
@@ -501,11 +539,12 @@ def build(
         rep["summary_missing"] = missing  # killed before it finished its log: its ticks are reported
     if logs.notes:
         rep["notes"] = logs.notes
-    if _uses_trace(p) and compare_sim:
-        compare_sim = False
-        rep["sim_skipped"] = (
-            "the session ran a trace link (netem 'trace FILE'): a report never opens a file a log names"
-        )
+    netem = {"forward": p["netem_forward"], "backward": p["netem_backward"]}
+    if compare_sim:
+        netem, why = _trace_specs(logs.paths, p, traces)
+        if why is not None:
+            compare_sim = False
+            rep["sim_skipped"] = why
     # Each side's device as its own log says (a local choice, see teleop.devices).
     rep["devices"] = {"hsi": op.get("device"), "robot": to.get("device")}
     specs = {r: (rep["devices"][r] or {}).get("spec") for r in ("hsi", "robot")}
@@ -525,8 +564,8 @@ def build(
                 b=p["b"],
                 full_scale=p["full_scale"],
                 dt=dt,
-                netem_forward=p["netem_forward"],
-                netem_backward=p["netem_backward"],
+                netem_forward=netem["forward"],
+                netem_backward=netem["backward"],
                 seed=p["seed"],
                 on_loss=p["on_loss"],
                 controller=p["controller"],

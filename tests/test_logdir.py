@@ -27,6 +27,7 @@ from teleop.logfile import LogError, iter_ticks, read_session, read_summary
 from transport import logdir
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
+LINK = ["--duration", "1", "--netem-forward"]
 
 
 # --- files in the log folder --------------------------------------------------------------------
@@ -218,7 +219,8 @@ def _report(logs: Path, *args: str) -> subprocess.CompletedProcess[str]:
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         try:
-            code = main(["report", str(logs), "--no-plots", "--out", str(logs.parent), *args])
+            out_dir = [] if "--out" in args else ["--out", str(logs.parent)]
+            code = main(["report", str(logs), "--no-plots", *out_dir, *args])
         except SystemExit as e:
             code = int(e.code or 0)
     return subprocess.CompletedProcess([], code, out.getvalue(), err.getvalue())
@@ -370,3 +372,46 @@ def test_tick_jumps_are_bounded_in_all(tmp_path: Path) -> None:
         list(iter_ticks(path))
     with pytest.raises(LogError, match="beyond the session's 1000 ticks"):
         list(iter_ticks(_mcap(tmp_path / "operator-2.mcap", [_sig(0), _sig(5000)]), max_tick=1000))
+
+
+@pytest.fixture(scope="module")
+def traced(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A real session over a trace link (`teleop run --netem-forward 'trace FILE'`): its logs, and
+    the trace, moved away afterwards (the logs copied to another host)."""
+    out = tmp_path_factory.mktemp("traced")
+    trace = out / "link.trace"
+    trace.write_text("".join(f"{i}\n" for i in range(1, 101)))
+    r = subprocess.run(
+        [*TELEOP, "run", "--out", str(out), "--no-plots", "--no-sim", "--no-live", *LINK, f"trace {trace}"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    kept = out / "kept.trace"
+    trace.rename(kept)
+    return out / "logs", kept
+
+
+@pytest.mark.integration
+def test_a_trace_run_is_reported_on_another_host_and_re_simulated_with_the_named_file(
+    traced: tuple[Path, Path], tmp_path: Path
+) -> None:
+    logs, trace = traced
+    src = read_session(logs / "operator.mcap")["traces"]["forward"]
+    assert src["bytes"] == trace.stat().st_size and len(src["sha256"]) == 64
+    r = _report(logs, "--out", str(tmp_path / "a"))  # the trace's path is gone: no traceback
+    assert r.returncode == 0, r.stderr
+    assert "pass the same trace file with --trace FILE" in r.stdout and src["sha256"][:16] in r.stdout
+    other = tmp_path / "other.trace"
+    other.write_text("1\n2\n")
+    r = _report(logs, "--out", str(tmp_path / "b"), "--trace", str(other))  # not the same file
+    assert (
+        r.returncode == 0
+        and "I_sim" not in json.loads((tmp_path / "b" / "report.json").read_text())["transparency"]
+    )
+    r = _report(logs, "--out", str(tmp_path / "c"), "--trace", str(trace))
+    assert r.returncode == 0, r.stderr
+    rep = json.loads((tmp_path / "c" / "report.json").read_text())
+    assert "sim_skipped" not in rep and rep["transparency"]["I_sim"] > 0
+    _one_line(_report(logs, "--out", str(tmp_path / "d"), "--trace", "/dev/zero"), "a character device")

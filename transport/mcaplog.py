@@ -46,7 +46,8 @@ topic                       rate       fields
 ``/ROLE/events``            as they    ``t``, ``event`` (``session_start``, ``link_lost``,
                             happen     ``link_restored``, ``peer_restarted``, ``auth_rejected``,
                                        ``replayed``, ``overrun``, ``session_end``), ``detail``
-``/ROLE/session``           once       the session's parameters, role, pid, start time
+``/ROLE/session``           once       the session's parameters, role, pid, start time; ``traces``:
+                                       SHA-256 and size of a ``trace FILE`` link's file
 ``/ROLE/summary``           once       the process's summary (what ``ROLE.json`` holds)
 ==========================  =========  ==================================================================
 
@@ -73,7 +74,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from teleop.files import create_new, open_reserved
+from teleop.files import create_new, open_reserved, trace_digests
 from teleop.logfile import (
     ENERGY_FIELDS,
     PER_TICK_TOPICS,
@@ -286,6 +287,10 @@ class _Writer:
                         self._log(self._live, name, t, m)
         else:
             name, t, msg = item
+            if name == "session" and isinstance(msg.get("params"), dict):
+                # What identifies a trace link (its digest: a log names no file to open), read here,
+                # in the writer process, not in the loop's.
+                msg = {**msg, "traces": trace_digests(msg["params"])}
             for chans in (self._ch, self._live):
                 if chans:
                     self._log(chans, name, t, msg)

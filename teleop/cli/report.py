@@ -27,14 +27,20 @@ def write_report(
     OUT/report.json (a new file, never over one) and the plots, print a summary.  Any damage in
     the logs, or a report.json already there, is a :class:`CliError` (one line)."""
     from .. import report as session_report
+    from ..files import FileRefused
     from ..logfile import LogError
 
     try:
-        rep = session_report.build(logs, transport, compare_sim=not args.no_sim, session=session)
+        traces = tuple(Path(t) for t in getattr(args, "trace", None) or ())
+        rep = session_report.build(
+            logs, transport, compare_sim=not args.no_sim, session=session, traces=traces
+        )
         rep.update(extra or {})
         text = session_report.summary_text(rep)
     except LogError as e:
         raise CliError(f"cannot build the report: {e}") from None
+    except FileRefused as e:  # a --trace file that is not a regular file of bounded size
+        raise CliError(str(e)) from None
     except _DAMAGE as e:  # a summary that is not what this stack writes (edited, another version)
         raise CliError(
             "cannot build the report: a log's summary is not what this stack writes "
@@ -102,6 +108,13 @@ def add_parser(sub: Subcommands) -> None:
         default=None,
         metavar="ID",
         help="the session to report when LOGDIR holds several (default: the newest with both logs)",
+    )
+    rp.add_argument(
+        "--trace",
+        action="append",
+        metavar="FILE",
+        help="a trace file the session's 'trace FILE' link used (repeatable): the sim is re-run with "
+        "it if its SHA-256 is the one the logs recorded (a log's path is never opened)",
     )
     rp.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     rp.add_argument("--no-sim", action="store_true", help="skip the teleop sim comparison")
