@@ -248,6 +248,20 @@ def add_model_args(p: argparse.ArgumentParser, scenario_default: str | None) -> 
     )
 
 
+def robot_name(flag: str) -> Callable[[str], str]:
+    """A robot's name (teleop.auth.check_robot_name): a bad one says what is allowed."""
+
+    def parse(text: str) -> str:
+        from ..auth import check_robot_name
+
+        try:
+            return check_robot_name(text)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(f"{flag}: {e}") from None
+
+    return parse
+
+
 def device_spec(role: str) -> Callable[[str], str]:
     """A ``--hsi``/``--robot`` spec, resolved now (teleop.devices): a bad one lists what is available."""
 
