@@ -444,7 +444,7 @@ def test_a_recorded_hello_during_an_outage_does_not_replace_the_session(tmp_path
     holds the key, but nobody behind it knows our fresh nonce) must not take the session over."""
     from teleop import auth, protocol
 
-    psk = auth.robot_key(auth.read_key_file(key), auth.DEFAULT_ROBOT_NAME)  # what the robot's keys derive from
+    psk = auth.robot_key(auth.read_key_file(key), auth.DEFAULT_ROBOT_NAME)  # the robot keys derive from
     old = protocol.SessionParams(
         session=12345, codec="none", scenario="protocol", dof=2, b=20.0, full_scale=2.0, duration=15.0
     )

@@ -148,6 +148,8 @@ class _Runner:
         self._stats: LoopStats | None = None
         self._finishing: list[threading.Thread] = []  # replaced sessions' logs being finished
         self._starts: dict[int, int] = {}  # session id -> its tick 0 on this clock
+        self._created = self.clock()
+        self._waited: dict[int, float] = {}  # session id -> s from this process's start to its start
         self.summary: dict[str, Any] | None = None
         self.ep = build(self._port)
 
@@ -285,6 +287,7 @@ class _Runner:
             if isinstance(ev, SessionStarted):
                 self.log = self._logs.get(ev.params.session)
                 self._starts[ev.params.session] = ev.start_ns
+                self._waited[ev.params.session] = (self.clock() - self._created) / 1e9
                 self.ticker = Ticker(period_ns=round(ev.params.dt * 1e9), spin_ns=o.spin_us * 1000)
                 self.warnings = setup_realtime(o.rt_priority)
                 for w in self.warnings:
@@ -332,6 +335,7 @@ class _Runner:
             transport=o.transport,
             stopped_by_signal=self.stop.signal,
             robot=o.robot_name,
+            waited_for_session_s=self._waited.get(s["params"]["session"]),
             loop=stats.summary() if stats is not None else None,
             warnings=self.warnings,
             event_loop=type(asyncio.get_running_loop()).__module__.split(".")[0],

@@ -8,6 +8,7 @@ The router takes no key: it forwards opaque bytes, and the endpoints authenticat
 from __future__ import annotations
 
 import argparse
+import os
 from typing import Any
 
 from .. import auth
@@ -48,8 +49,12 @@ def cmd_operator(args: argparse.Namespace) -> int:
 def cmd_teleoperator(args: argparse.Namespace) -> int:
     from transport.session import run_endpoint
 
-    if args.transport == "udp" and args.listen is None:
-        raise CliError("--listen HOST:PORT is required with --transport udp, for example 0.0.0.0:7000")
+    activated = os.environ.get("LISTEN_PID") == str(os.getpid())  # systemd passed the socket
+    if args.transport == "udp" and args.listen is None and not activated:
+        raise CliError(
+            "--listen HOST:PORT is required with --transport udp, for example 0.0.0.0:7000 "
+            "(or start it from a systemd socket unit: deploy/systemd/teleop-teleoperator.socket)"
+        )
     if args.duration is not None:
         # The DoF is the operator's unless given here (or by --scenario): then the widest bound, 1 DoF.
         dof = args.dof
