@@ -557,9 +557,15 @@ def write_all(outdir: Path) -> list[Path]:
     written = []
     for name, make in TABLES.items():
         path = outdir / f"bench-{name}.md"
-        path.write_text(make().markdown())
+        write_if_changed(path, make().markdown())
         written.append(path)
     return written
+
+
+def write_if_changed(path: Path, text: str) -> None:
+    """Leave an up-to-date file untouched (``mkdocs serve`` would rebuild on every write)."""
+    if not path.is_file() or path.read_text() != text:
+        path.write_text(text)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -123,15 +123,17 @@ def write_all(outdir: Path) -> list[Path]:
     outdir.mkdir(parents=True, exist_ok=True)
     written = tables.write_all(outdir)
     cli = outdir / "cli.md"
-    cli.write_text(cli_reference())
+    tables.write_if_changed(cli, cli_reference())
     written.append(cli)
     # Images the pages show that live outside docs/ (mkdocs serves only docs/).
     pareto = outdir / "pareto.png"
-    shutil.copyfile(ROOT / "bench" / "results" / "sweep" / "pareto.png", pareto)
+    source = ROOT / "bench" / "results" / "sweep" / "pareto.png"
+    if not pareto.is_file() or pareto.read_bytes() != source.read_bytes():
+        shutil.copyfile(source, pareto)
     written.append(pareto)
     for folder in EXPERIMENTS:
         path = outdir / f"experiment-{folder}.md"
-        path.write_text(experiment_snippet(folder))
+        tables.write_if_changed(path, experiment_snippet(folder))
         written.append(path)
     return written
 
