@@ -101,7 +101,7 @@ class EndpointOptions:
 
 @dataclass
 class ZenohOptions:
-    """How a process joins Zenoh (see transport.zenoh.make_config and README, Zenoh)."""
+    """How a process joins Zenoh (see transport.zenoh.make_config and docs/guides/zenoh.md)."""
 
     mode: str = "peer"  # peer | client
     listen: list[str] = field(default_factory=list)
