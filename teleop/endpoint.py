@@ -232,6 +232,8 @@ class Endpoint:
         self.peer_bye: protocol.Bye | None = None
         self.foreign = 0
         self._handshake_info: dict[str, Any] = {}
+        self.peer_nonce: bytes | None = None  # operator: the teleoperator's, from the welcome it took
+        self.offset_ns = 0  # operator: the teleoperator's clock minus ours
         self._link_lost = False
         # operator
         self._op_hs: protocol.OperatorHandshake | None = None
@@ -471,6 +473,7 @@ class Endpoint:
             assert hs.tx_sealer is not None and hs.rx_opener is not None and self.params and self.peer
             keys = PortKeys(hs.tx_sealer, hs.rx_opener, hs.hs_sealer, hs.hs_opener, self.psk, hs.nonce)
             self._handshake_info = {"clock_offset_ns": hs.offset_ns, "handshake_rtt_us": hs.rtt_ns / 1e3}
+            self.peer_nonce, self.offset_ns = hs.peer_nonce, hs.offset_ns
             self._begin(
                 self.params, self.peer, hs.start_ns, hs.start_ns, 0, False, keys, hs.offset_ns, hs.rtt_ns
             )

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 
-from . import endpoints, experiment, keygen, report, run, sim, sweep
+from . import conformance, endpoints, experiment, keygen, report, run, sim, sweep
 from .args import CliError, Parser
 
 
@@ -21,6 +21,7 @@ def build_parser() -> argparse.ArgumentParser:
     endpoints.add_router_parser(sub)
     report.add_parser(sub)
     keygen.add_parser(sub)
+    conformance.add_parser(sub)
     return p
 
 
