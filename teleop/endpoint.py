@@ -227,6 +227,9 @@ class Endpoint:
         self.t0_ns = 0
         self.k0 = 0
         self.k = 0  # the last tick run (or k0 before the first)
+        # The tick a datagram received now belongs to: the one about to run (what the playout
+        # buffer measures transit against; counting it against the last one run plays a tick early).
+        self._rx_k = 0
         self._stopped = False
         self._ended: EndReason | None = None
         self.peer_bye: protocol.Bye | None = None
@@ -417,7 +420,7 @@ class Endpoint:
         # Stamped once the sample exists and before it leaves: the peer cannot play it earlier,
         # so the true margin (teleop.report) never counts a sample as played before it was sent.
         port.sent(k, t)
-        self.k = k
+        self.k, self._rx_k = k, k + 1
         lost = port.node.link_lost
         if lost != self._link_lost:
             self._link_lost = lost
@@ -511,6 +514,7 @@ class Endpoint:
             k0,
             k0,
         )
+        self._rx_k = k0
         self.port = self._make_port(params, k0, keys, start_ns)
         if k0:
             self.port.node.joined_late()
@@ -539,7 +543,8 @@ class Endpoint:
             self._handshake_datagram(data, addr, now_ns)
             return
         t = self.session_time(now_ns)
-        k, play = self.k, self.state == State.RUNNING
+        k = self.k if self.state == State.LINGER else self._rx_k
+        play = self.state != State.LINGER  # STARTING too: the peer's first payload may come first
         if addr != self.peer:
             port.receive(data, t, k, play, from_peer=False)  # counted as a rejection
             self.foreign += 1

@@ -344,3 +344,25 @@ def test_every_event_is_typed_and_failures_are_enums() -> None:
     (f,) = op.of(Failed)
     assert isinstance(f.reason, Failure) and f.reason == Failure.NO_ANSWER
     assert not op.of(SessionStarted)
+
+
+def test_a_session_of_two_endpoints_is_teleop_sim_to_the_bit() -> None:
+    """One code path: two endpoints on a 0.1 ms virtual link play exactly what ``teleop sim`` plays
+    with the real runner's one tick of playout floor at both receivers (eq. 7's I equal to the bit).
+    A receive counted against the wrong tick, or a first payload dropped before tick 0, breaks it."""
+    from teleop import metrics
+    from teleop.port import MemorySink
+    from teleop.sim import SimConfig, run_case
+
+    net = VirtualNet(0.1)
+    op, to = start(net, duration=3.0)
+    net.seconds(4.0)
+    assert op.ep.port is not None and to.ep.port is not None
+    pa, pt = op.ep.port, to.ep.port
+    assert isinstance(pa.sink, MemorySink) and isinstance(pt.sink, MemorySink) and pa.ticks == 3000
+    ao, at = pa.sink.arrays(pa.ticks), pt.sink.arrays(pa.ticks)
+    i_endpoints = metrics.transparency(ao["v"], at["v"], ao["f"], at["f"], 1e-3)
+    sim = run_case(
+        SimConfig(codec="eds:50", scenario="protocol", duration=3.0, playout="auto", playout_floor=(1, 1))
+    )
+    assert i_endpoints == sim.summary["I"]
