@@ -142,6 +142,33 @@ def read_key_file(path: str | os.PathLike[str]) -> bytes:
     return bytes.fromhex(text.decode("ascii"))
 
 
+#: A robot's name: what an operator names to reach it (``--robot-name``), bound into every key.
+ROBOT_NAME_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789._-")
+MAX_ROBOT_NAME = 64
+DEFAULT_ROBOT_NAME = "robot"
+
+
+def check_robot_name(name: str) -> str:
+    """``name`` if it is 1 to 64 of ``[A-Za-z0-9._-]``; else ValueError saying what is allowed."""
+    if not isinstance(name, str) or not 1 <= len(name) <= MAX_ROBOT_NAME or not set(name) <= ROBOT_NAME_CHARS:
+        raise ValueError(
+            f"a robot name is 1 to {MAX_ROBOT_NAME} of the characters A-Z a-z 0-9 . _ -, got {name!r:.80}"
+        )
+    return name
+
+
+def robot_key(psk: bytes, name: str) -> bytes:
+    """The key of the robot named ``name``, derived from the deployment's pre-shared key.
+
+    Every handshake and session key of a robot derives from this one (not from the deployment key),
+    so an operator that names robot A verifies only what A's key sealed: a relay that hands A's
+    handshake to robot B, which holds the same deployment key, fails at B (silent) and at the
+    operator.  (Each robot holds the deployment key, so a compromised robot could derive another's:
+    names guard against relays and mix-ups, not against a hostile robot.)"""
+    data = b"robot\x00" + check_robot_name(name).encode("ascii")
+    return hashlib.blake2s(data, key=_check_key(psk), person=_PERSON).digest()
+
+
 def handshake_key(psk: bytes) -> bytes:
     """The key of the handshake's envelopes, derived so the pre-shared key itself never keys a MAC."""
     return hashlib.blake2s(b"handshake", key=_check_key(psk), person=_PERSON).digest()

@@ -311,7 +311,7 @@ class ProtocolHuman:
         self._ref[0] = self.push_profile(now)
         p = self.plan
         for j in range(1, self.dof):
-            # Starts from rest: a jump would ring the one-tick wave loop (see README, reflections).
+            # Starts from rest: a jump would ring the one-tick wave loop (docs/results/sim.md, Models).
             self._ref[j] = p.lateral_amp * np.sin(2 * np.pi * p.lateral_freq * j * now)
         return self._ref
 

@@ -487,13 +487,12 @@ class Port:
         """
         sec = self.security
         hdr = auth.peek(data)
+        if hdr is not None and hdr[0] == auth.HANDSHAKE:
+            body = self.open_handshake(data)
+            return None if body is None else self._control(body, auth.HANDSHAKE)
         try:
             if hdr is None:
                 raise auth.AuthError("header", "not a teleop envelope")
-            if hdr[0] == auth.HANDSHAKE:
-                body = self.keys.hs_rx.verify(data)[1]
-                self._seen.check(data)  # a byte-identical copy is a replay: dropped before parsing
-                return self._control(body, auth.HANDSHAKE)
             if not from_peer:
                 raise auth.AuthError("kind", "a session datagram from another address")
             counter, body = self.keys.rx.verify(data)
@@ -521,6 +520,24 @@ class Port:
             for p in self.playout.add(pkt, k) if node.takes(pkt) else [pkt]:
                 node.receive_packet(p)
         return None
+
+    def open_handshake(self, data: bytes) -> bytes | None:
+        """The body of an authentic handshake-key datagram not seen before, or None (counted)."""
+        try:
+            body = self.keys.hs_rx.verify(data)[1]
+            self._seen.check(data)  # a byte-identical copy is a replay: dropped before parsing
+        except auth.AuthError as e:
+            if e.reason == "replay":
+                self.security.replayed += 1
+            else:
+                self.security.rejected += 1
+                self.security.last_rejection = str(e)
+            return None
+        return body
+
+    def control(self, body: bytes) -> protocol.Message | None:
+        """An authentic handshake-key body parsed (:meth:`open_handshake`'s), or None (counted)."""
+        return self._control(body, auth.HANDSHAKE)
 
     def verifies(self, data: bytes) -> bool:
         """Whether ``data`` is an authentic session datagram of this session's peer (no state change)."""
@@ -550,7 +567,7 @@ class Port:
             self.control_rejected += 1
             self.last_control_error = str(e)
             return None
-        handshake_msg = isinstance(msg, protocol.Hello | protocol.Welcome | protocol.Reject)
+        handshake_msg = isinstance(msg, protocol.HANDSHAKE_KINDS)
         if handshake_msg != (key_kind == auth.HANDSHAKE):
             self.control_rejected += 1
             self.last_control_error = f"a {msg.kind} under the wrong key"
@@ -559,7 +576,7 @@ class Port:
 
     def seal(self, msg: protocol.Message) -> bytes:
         """A control message as a datagram, under the key its kind travels with."""
-        handshake_msg = isinstance(msg, protocol.Hello | protocol.Welcome | protocol.Reject)
+        handshake_msg = isinstance(msg, protocol.HANDSHAKE_KINDS)
         return (self.keys.hs_tx if handshake_msg else self.keys.tx).seal(protocol.encode(msg))
 
     def peer_restarted(self, peer_nonce: bytes) -> None:

@@ -31,6 +31,8 @@ captured in one session verifies in no other.  A datagram whose tag does not ver
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import hmac
 import math
 from collections import deque
 from collections.abc import Callable, Collection, Mapping
@@ -62,6 +64,7 @@ __all__ = [
     "OperatorHandshake",
     "ProtocolError",
     "Reject",
+    "Retry",
     "SessionParams",
     "Start",
     "Started",
@@ -408,6 +411,7 @@ class Hello:
     t_ns: int
     rejoin: bool = False  # offered mid-session to a teleoperator that restarted
     nonce: bytes = bytes(auth.NONCE_BYTES)  # the operator's: with the TO's, it keys the session
+    cookie: bytes | None = None  # the teleoperator's address-bound cookie (a Retry's), once it sent one
 
 
 @dataclass(frozen=True)
@@ -430,6 +434,20 @@ class Reject:
     session: int | None
     why: str
     t_ns: int = 0  # the refused hello's, echoed: a recorded reject cannot end a later handshake
+
+
+@dataclass(frozen=True)
+class Retry:
+    """TO -> operator: "say hello again with this cookie" (QUIC's Retry, DTLS's HelloVerifyRequest).
+
+    The cookie is a MAC of the hello's source address, its nonce and a coarse time under a secret
+    only the teleoperator holds: it keeps no state for the hello, and a recorded hello replayed from
+    another address (or later than :data:`COOKIE_LIFETIME_NS`) never gets past it."""
+
+    kind: ClassVar[str] = "retry"
+    session: int | None
+    t_ns: int  # the hello's, echoed: the operator takes only a retry that answers its own hello
+    cookie: bytes
 
 
 @dataclass(frozen=True)
@@ -460,8 +478,10 @@ class Bye:
     dropped_by_limit: int
 
 
-Message: TypeAlias = Hello | Welcome | Reject | Start | Started | Bye
-KINDS = ("hello", "welcome", "reject", "start", "started", "bye")
+Message: TypeAlias = Hello | Welcome | Reject | Retry | Start | Started | Bye
+KINDS = ("hello", "welcome", "reject", "retry", "start", "started", "bye")
+#: Kinds that travel under the handshake key (the rest under the session keys).
+HANDSHAKE_KINDS = (Hello, Welcome, Reject, Retry)
 
 
 def encode(msg: Message) -> bytes:
@@ -472,12 +492,15 @@ def encode(msg: Message) -> bytes:
             "t_ns": msg.t_ns,
             "nonce": msg.nonce,
             **({"rejoin": True} if msg.rejoin else {}),
+            **({"cookie": msg.cookie} if msg.cookie is not None else {}),
             **msg.params.to_msg(),
         }
     elif isinstance(msg, Welcome):
         fields = {"session": msg.session, "t_ns": msg.t_ns, "t2": msg.t2, "t3": msg.t3, "nonce": msg.nonce}
     elif isinstance(msg, Reject):
         fields = {"session": msg.session, "why": msg.why[: limits.MAX_REASON_LEN], "t_ns": msg.t_ns}
+    elif isinstance(msg, Retry):
+        fields = {"session": msg.session, "t_ns": msg.t_ns, "cookie": msg.cookie}
     elif isinstance(msg, Start):
         fields = {
             "session": msg.session,
@@ -515,10 +538,46 @@ def _nonce(m: Mapping[str, object]) -> bytes:
     return v
 
 
+def _cookie(m: Mapping[str, object]) -> bytes:
+    v = _field(m, "cookie")
+    if type(v) is not bytes or len(v) != COOKIE_BYTES:
+        raise ProtocolError(f"cookie must be {COOKIE_BYTES} bytes (msgpack bin), {_got(v)}")
+    return v
+
+
+# --------------------------------------------------------------------------------------------
+# cookies: no per-operator state before the operator proved it can receive at its address
+# --------------------------------------------------------------------------------------------
+COOKIE_BYTES = 16
+#: A cookie's time bucket: 2**33 ns (8.6 s); the current and the previous bucket are accepted, so a
+#: cookie lives 8.6 to 17.2 s, long enough for a handshake at any round trip the protocol serves.
+COOKIE_BUCKET_SHIFT = 33
+COOKIE_LIFETIME_NS = 2 << COOKIE_BUCKET_SHIFT
+_COOKIE_PERSON = b"tlpcook1"
+
+
+def make_cookie(secret: bytes, addr: Addr, nonce: bytes, now_ns: int, bucket_delta: int = 0) -> bytes:
+    """The cookie of a hello with ``nonce`` from ``addr`` at ``now_ns``: a MAC under ``secret``."""
+    bucket = (now_ns >> COOKIE_BUCKET_SHIFT) - bucket_delta
+    data = f"{addr[0]}|{addr[1]}|{bucket}".encode() + bytes(nonce)
+    return hashlib.blake2s(data, key=secret, digest_size=COOKIE_BYTES, person=_COOKIE_PERSON).digest()
+
+
+def cookie_ok(secret: bytes, cookie: object, addr: Addr, nonce: object, now_ns: int) -> bool:
+    """Whether ``cookie`` is ours for this address and nonce, made in this time bucket or the last."""
+    if type(cookie) is not bytes or type(nonce) is not bytes or len(nonce) != auth.NONCE_BYTES:
+        return False
+    return any(hmac.compare_digest(cookie, make_cookie(secret, addr, nonce, now_ns, d)) for d in (0, 1))
+
+
 def _parse_fields(kind: str, m: Mapping[str, object], local_netem: Collection[str]) -> Message:
     if kind == "hello":
         params = SessionParams.from_msg(m, local_netem=local_netem)
-        return Hello(params, _timestamp(m, "t_ns"), _bool(m, "rejoin", False), _nonce(m))
+        cookie = _cookie(m) if "cookie" in m else None
+        return Hello(params, _timestamp(m, "t_ns"), _bool(m, "rejoin", False), _nonce(m), cookie)
+    if kind == "retry":
+        session = None if m.get("session") is None else _int(m, "session", 1, limits.MAX_SESSION)
+        return Retry(session, _timestamp(m, "t_ns"), _cookie(m))
     if kind == "reject":
         session = None if m.get("session") is None else _int(m, "session", 1, limits.MAX_SESSION)
         why = _field(m, "why")
@@ -634,7 +693,9 @@ class OperatorHandshake:
         self.start_resend_ns = start_resend_ns
         self.start_margin_ns = start_margin_ns
         self._give_up = now_ns + round(timeout_s * 1e9)
-        self._t1: int | None = None  # t_ns of the hello in flight (None: answered or none sent)
+        # t_ns of the hellos in flight, not yet answered: a welcome may answer any of them, so a
+        # round trip longer than the hello interval still completes (NTP's t1 is the one it echoes).
+        self._in_flight: deque[int] = deque(maxlen=64)
         self._next_hello = now_ns
         self._best: tuple[int, int] | None = None  # (rtt, offset) of the quickest exchange
         self._starting = False
@@ -661,6 +722,8 @@ class OperatorHandshake:
         self.unauthenticated = 0  # datagrams whose tag did not verify: dropped, never answered
         self.last_unauthenticated = ""
         self._hellos: deque[int] = deque(maxlen=64)  # t_ns of our hellos: what a reject must echo
+        self.cookie: bytes | None = None  # the teleoperator's, from its retry
+        self.retries = 0
 
     @property
     def finished(self) -> bool:
@@ -696,7 +759,7 @@ class OperatorHandshake:
         key_kind, body = opened
         try:
             msg = parse(body)
-            if (key_kind == auth.HANDSHAKE) != isinstance(msg, Welcome | Reject):
+            if (key_kind == auth.HANDSHAKE) != isinstance(msg, Welcome | Reject | Retry):
                 raise ProtocolError(f"a {msg.kind} under the wrong key")
         except ProtocolError as e:
             self._refuse(str(e))
@@ -707,19 +770,27 @@ class OperatorHandshake:
                 self._refuse("a reject that answers none of our hellos")
                 return
             self.error = f"rejected the session: {msg.why}"
+        elif isinstance(msg, Retry) and msg.session == session and not self._starting:
+            if msg.t_ns not in self._in_flight:
+                self._refuse("a retry that answers no hello in flight (late or duplicated)")
+                return
+            self._in_flight.clear()  # hellos without the cookie: their answers are retries too
+            self.cookie = msg.cookie  # every later hello carries it
+            self.retries += 1
+            self._next_hello = now_ns  # say hello again at once, with the cookie
         elif isinstance(msg, Welcome) and msg.session == session and not self._starting:
-            if self._t1 is None or msg.t_ns != self._t1:
+            if msg.t_ns not in self._in_flight:
                 self._refuse("a welcome that answers no hello in flight (late or duplicated)")
                 return
-            offset, rtt = ntp_offset(self._t1, msg.t2, msg.t3, now_ns)
+            offset, rtt = ntp_offset(msg.t_ns, msg.t2, msg.t3, now_ns)
             if rtt < 0:
                 self._refuse(f"a welcome whose turnaround t3 - t2 exceeds the round trip (rtt {rtt} ns)")
                 return
+            self._in_flight.remove(msg.t_ns)  # one answer per hello
             if self._best is None or rtt < self._best[0]:
                 self._best = (rtt, offset)
             self.peer_nonce = msg.nonce  # the newest: a teleoperator restarted meanwhile has a new one
             self.answers += 1
-            self._t1 = None
             self._next_hello = now_ns  # the next hello goes out at once
         elif isinstance(msg, Started) and msg.session == session and self._starting:
             self.done = True
@@ -754,11 +825,12 @@ class OperatorHandshake:
                 self.error = f"never answered within {self.timeout_s:g} s"
                 return []
             elif now_ns >= self._next_hello:
-                self._t1 = now_ns
+                self._in_flight.append(now_ns)
                 self._hellos.append(now_ns)
                 self._next_hello = now_ns + self.hello_interval_ns
                 self.hellos_sent += 1
-                return [self.hs_sealer.seal(encode(Hello(self.params, now_ns, nonce=self.nonce)))]
+                hello = Hello(self.params, now_ns, nonce=self.nonce, cookie=self.cookie)
+                return [self.hs_sealer.seal(encode(hello))]
             else:
                 return []
         if now_ns >= self._start_deadline:
@@ -806,6 +878,48 @@ class _Candidate:
         self.addrs.append(addr)
 
 
+@dataclass(frozen=True)
+class LocalLimits:
+    """What this teleoperator affords whatever an operator proposes (the local side's limits win).
+
+    Unpinned fields of ``expect`` are the operator's to choose, but only within these: an operator
+    must not be able to raise the robot's wave range or impedance, which bound the power it may be
+    commanded with (P <= b * range**2 per DoF)."""
+
+    max_range: float = limits.MAX_RANGE
+    max_b: float = limits.MAX_B
+    max_dof: int = limits.MAX_DOF
+
+    def check(self, p: SessionParams) -> str | None:
+        """The first parameter of ``p`` beyond these limits, said as a reject reason, or None."""
+        for name, got, hi, flag in (
+            ("range", p.full_scale, self.max_range, "--max-range"),
+            ("b", p.b, self.max_b, "--max-b"),
+            ("dof", p.dof, self.max_dof, "--dof"),
+        ):
+            if got > hi:
+                return f"{name} {_num(got)} exceeds this teleoperator's limit {_num(hi)} ({flag})"
+        return None
+
+
+def peek_hello(body: bytes) -> tuple[int | None, int, object, object] | None:
+    """(session, t_ns, nonce, cookie) of a body that looks like a hello, else None: read before the
+    full parse (its codec and netem checks cost ~0.2 ms), so a hello without a valid cookie costs
+    an unpack, not a parse.  Values are unchecked except session and t_ns."""
+    if len(body) > MAX_CONTROL_BYTES or not is_control(bytes(body[:1])):
+        return None
+    try:
+        m = msgpack.unpackb(
+            bytes(body), raw=False, strict_map_key=True, max_str_len=MAX_CONTROL_BYTES,
+            max_bin_len=MAX_CONTROL_BYTES, max_array_len=64, max_map_len=64, max_ext_len=0,
+        )  # fmt: skip
+    except Exception:  # msgpack's several error types: the full parse says what is wrong
+        return None
+    if not isinstance(m, dict) or m.get("t") != "hello":
+        return None
+    return _session_of(m), _t_ns_of(m), m.get("nonce"), m.get("cookie")
+
+
 class TeleoperatorHandshake:
     """The teleoperator's handshake: welcome a good hello, confirm that operator's start.
 
@@ -822,8 +936,14 @@ class TeleoperatorHandshake:
     Several operators may be welcomed at once (up to ``MAX_CANDIDATES`` nonces); the first whose start
     verifies under the session key derived from its nonce and ours wins.  A hello alone proves only
     that someone once held the key (it may be a recording), so it commits to nothing; the start
-    proves that its sender saw our fresh nonce.  Once the session runs, the runner answers other
+    proves that its sender saw our fresh nonce.  Once the session runs, the endpoint answers other
     operators "busy".
+
+    ``cookie_secret`` (the endpoint always gives one): a hello without a valid cookie for its source
+    address is answered with a small :class:`Retry` and leaves no state, so hellos recorded and
+    replayed from another address never reach the candidates.  ``limits``: what this side affords
+    (:class:`LocalLimits`).  ``defer_t3``: welcomes wait in :meth:`datagrams_to_send` to be stamped
+    with NTP's reply time t3 as they leave (a sans-I/O caller has no clock to hand in).
     """
 
     def __init__(
@@ -835,6 +955,9 @@ class TeleoperatorHandshake:
         local_netem: Collection[str] = (),
         psk: bytes = auth.INSECURE_KEY,
         nonce: bytes = bytes(auth.NONCE_BYTES),
+        cookie_secret: bytes | None = None,
+        local_limits: LocalLimits | None = None,
+        defer_t3: bool = False,
     ) -> None:
         unknown = set(expect) - set(PARAM_FIELDS)
         if unknown:
@@ -869,10 +992,40 @@ class TeleoperatorHandshake:
         self._seen = auth.SeenTags(SEEN_TAGS)
         self.unauthenticated = 0  # datagrams whose tag did not verify: dropped, never answered
         self.last_unauthenticated = ""
+        self.cookie_secret = cookie_secret
+        self.local_limits = local_limits or LocalLimits()
+        self.retries_sent = 0  # hellos without a valid cookie, answered with a retry, nothing kept
+        self.defer_t3 = defer_t3
+        self._drafts: list[tuple[Welcome, Addr]] = []  # welcomes waiting for their t3 (defer_t3)
 
     @property
     def finished(self) -> bool:
         return self.done or self.error is not None
+
+    def datagrams_to_send(self, now_ns: int) -> list[tuple[bytes, Addr]]:
+        """The welcomes drafted since the last call, stamped ``t3 = now_ns`` (``defer_t3``)."""
+        out = [
+            (self.hs_sealer.seal(encode(dataclasses.replace(w, t3=max(w.t2, now_ns)))), addr)
+            for w, addr in self._drafts
+        ]
+        self._drafts.clear()
+        return out
+
+    def _retry(self, addr: Addr, body: bytes, now_ns: int) -> list[tuple[bytes, Addr]] | None:
+        """A retry for a hello without a valid cookie for ``addr`` (None: it has one, or is no hello)."""
+        if self.cookie_secret is None:
+            return None
+        seen = peek_hello(body)
+        if seen is None:
+            return None
+        session, t_ns, nonce, cookie = seen
+        if cookie_ok(self.cookie_secret, cookie, addr, nonce, now_ns):
+            return None
+        if type(nonce) is not bytes or len(nonce) != auth.NONCE_BYTES:
+            return None  # malformed: the full parse rejects it
+        self.retries_sent += 1
+        retry = Retry(session, t_ns, make_cookie(self.cookie_secret, addr, nonce, now_ns))
+        return [(self.hs_sealer.seal(encode(retry)), addr)]
 
     def _open(self, data: bytes, addr: Addr, now_ns: int) -> tuple[_Candidate | None, bytes] | None:
         """(the candidate whose session key it verifies under, or None for the handshake key; the
@@ -919,7 +1072,7 @@ class TeleoperatorHandshake:
             got = getattr(p, k)
             if want is not None and got != want:
                 return f"{k} {got!r} differs from this teleoperator's {want!r}"
-        return None
+        return self.local_limits.check(p)
 
     def receive(
         self, data: bytes, addr: Addr, now_ns: int, reply_clock: Callable[[], int] | None = None
@@ -935,6 +1088,8 @@ class TeleoperatorHandshake:
         if opened is None:
             return []
         cand, body = opened
+        if cand is None and (retry := self._retry(addr, body, now_ns)) is not None:
+            return retry
         try:
             msg = parse(body, local_netem=self.local_netem)
             if (cand is None) != isinstance(msg, Hello):
@@ -971,6 +1126,9 @@ class TeleoperatorHandshake:
             cand = _Candidate(p, rx, tx, [addr])
         cand.seen_from(addr)
         self._candidates[key] = cand  # newest last
+        if self.defer_t3:
+            self._drafts.append((Welcome(p.session, msg.t_ns, t2=now_ns, t3=now_ns, nonce=self.nonce), addr))
+            return []
         t3 = now_ns if reply_clock is None else max(now_ns, reply_clock())
         welcome = Welcome(p.session, msg.t_ns, t2=now_ns, t3=t3, nonce=self.nonce)
         return [(self.hs_sealer.seal(encode(welcome)), addr)]

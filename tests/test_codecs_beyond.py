@@ -201,7 +201,7 @@ def test_rate_cap_holds_on_the_wire_in_the_sim_and_stays_passive(spec: str) -> N
 
 def test_deadbands_cut_packets_on_the_protocol() -> None:
     """Issue 10's point, measured small: a predictive deadband sends a fraction of the packets of
-    ids:2 at comparable transparency (the README's sweep has the 15 s figures)."""
+    ids:2 at comparable transparency (docs/results/sweep.md has the 15 s figures)."""
     ids = run_case(SimConfig(codec="ids:2", scenario="protocol", duration=6.0)).summary
     pdp = run_case(SimConfig(codec="pdp:0.5", scenario="protocol", duration=6.0)).summary
     for d in ("forward", "backward"):

@@ -449,7 +449,7 @@ def test_a_recorded_hello_during_an_outage_does_not_replace_the_session(tmp_path
     holds the key, but nobody behind it knows our fresh nonce) must not take the session over."""
     from teleop import auth, protocol
 
-    psk = auth.read_key_file(key)
+    psk = auth.robot_key(auth.read_key_file(key), auth.DEFAULT_ROBOT_NAME)  # the robot keys derive from
     old = protocol.SessionParams(
         session=12345, codec="none", scenario="protocol", dof=2, b=20.0, full_scale=2.0, duration=15.0
     )
@@ -470,7 +470,7 @@ def test_a_recorded_hello_during_an_outage_does_not_replace_the_session(tmp_path
         for _ in range(3):
             stranger.sendto(recorded, ("127.0.0.1", port))
             time.sleep(0.05)
-        welcomed = stranger.recv(2048)  # the takeover welcomes it as a candidate ...
+        welcomed = stranger.recv(2048)  # the takeover answers it (a retry: a cookie, no state) ...
     os.kill(op.pid, signal.SIGCONT)
     assert op.wait(timeout=30) == 0
     _, to_err = to.communicate(timeout=30)

@@ -66,7 +66,7 @@ def test_session_over_zenoh(tmp_path: Path, mode: str) -> None:
 
 
 def test_plain_subscriber_decodes_live_packets(tmp_path: Path) -> None:
-    """A subscriber written from the README alone (zenoh + msgpack + zlib) decodes a live session."""
+    """A subscriber written from the docs alone (zenoh + msgpack + zlib) decodes a live session."""
     endpoint = f"tcp/127.0.0.1:{_free_tcp_port()}"
     router = subprocess.Popen([*TELEOP, "router", "--listen", endpoint])
     try:

@@ -37,7 +37,7 @@ DOC = DOC_PATH.read_text(encoding="utf-8")
 _BLOCK = re.compile(r"<!-- (example: [\w-]+|constants) -->\n```[a-z]*\n(.*?)\n```", re.S)
 BLOCKS = {m.group(1).removeprefix("example: "): m.group(2) for m in _BLOCK.finditer(DOC)}
 INPUTS: dict[str, Any] = json.loads(BLOCKS["inputs"])
-PSK = bytes.fromhex(INPUTS["psk"])
+PSK = bytes.fromhex(INPUTS["robot_key"])  # K_r: what every key of section 2.2 derives from
 SESSION: int = INPUTS["session"]
 NONCE_OP = bytes.fromhex(INPUTS["nonce_op"])
 NONCE_TO = bytes.fromhex(INPUTS["nonce_to"])
@@ -67,6 +67,15 @@ def mentioned(name: str) -> bool:
 def test_every_example_is_present() -> None:
     for name in (*DATAGRAMS, "inputs", "constants"):
         assert name in BLOCKS, f"PROTOCOL.md lost the block {name!r}"
+
+
+def test_the_robot_key_example() -> None:
+    """Section 2.2's K_r, written out with hashlib alone, is the code's teleop.auth.robot_key."""
+    ex = INPUTS["robot_key_example"]
+    psk, name = bytes.fromhex(ex["psk"]), ex["name"]
+    by_hand = hashlib.blake2s(b"robot\x00" + name.encode(), key=psk, person=b"teleopv1", digest_size=32)
+    assert by_hand.hexdigest() == auth.robot_key(psk, name).hex() == ex["robot_key"]
+    assert auth.robot_key(psk, name + "x") != auth.robot_key(psk, name)
 
 
 def test_keys_of_the_example() -> None:
@@ -226,9 +235,10 @@ def test_every_control_message_kind_and_field_is_documented() -> None:
         assert mentioned(kind), kind
     params = _params()
     msgs: list[protocol.Message] = [
-        protocol.Hello(params, 1, rejoin=True),
+        protocol.Hello(params, 1, rejoin=True, cookie=bytes(16)),
         protocol.Welcome(1, 1, 2, 3),
         protocol.Reject(1, "why", 1),
+        protocol.Retry(1, 1, bytes(16)),
         protocol.Start(1, 1, rejoin=True),
         protocol.Started(1),
         protocol.Bye(1, 2, 3),

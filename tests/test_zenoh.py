@@ -272,7 +272,7 @@ async def test_listen_port_in_use_fails_clearly() -> None:
             await ZenohTransport.open("teleoperator", "t/busy", make_config("peer", listen=[ep]))
 
 
-# --- a subscriber that knows only the README -------------------------------------------------------
+# --- a subscriber that knows only the docs (Zenoh guide, PROTOCOL.md) -------------------------------
 
 
 def readme_subscriber(

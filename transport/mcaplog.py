@@ -353,10 +353,10 @@ def spawn_writer() -> subprocess.Popen[bytes]:
     """A writer process, started ahead of its session: it imports (numpy, foxglove: about a second
     of CPU) while the handshake waits, not while the 1 kHz loop starts, then waits for its
     :class:`McapLog`.  Closing its stdin unused makes it exit."""
-    # The writer ends when told, or when its stdin closes (its parent died), finishing the file
-    # either way.  Its own process group: a terminal's Ctrl-C (sent to the whole group) must not
-    # reach it; it also ignores SIGINT/SIGTERM, but only once it has imported, and a Ctrl-C during
-    # its first second (a busy host: several) killed it and left the log empty.
+    # The writer runs in a process group of its own, so a terminal's Ctrl-C (sent to the whole group)
+    # never reaches it, not even while it imports (a signal handler installed after the imports left
+    # that second open: a Ctrl-C then killed it and lost the log).  It also ignores SIGINT/SIGTERM,
+    # and ends when told or when its stdin closes (its parent died), finishing the file either way.
     return subprocess.Popen(
         [sys.executable, "-m", "transport.mcaplog"],
         stdin=subprocess.PIPE,

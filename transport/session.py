@@ -1,29 +1,17 @@
-"""The real-time runner: one :class:`teleop.port.Port` between the ``Ticker`` and the transport.
+"""The real-time runner: a :class:`teleop.endpoint.Endpoint` between the ``Ticker`` and a transport.
 
-Everything a side does with datagrams, the node, the shim, counters, link figures, recording and the
-summary, lives in the sans-I/O port (``teleop.port``), and the handshake in the sans-I/O state
-machines of ``teleop.protocol``; this module only owns the clock and the socket:
+The endpoint holds the whole session (handshake, start, rejoin, takeover, busy, bye, linger) and
+the port every tick; it is sans-I/O and tested in virtual time.  This module only does I/O: wait
+for the next tick's deadline or the endpoint's timer, drain the transport with receive times, feed
+the endpoint, send what it returns, hand the record to the log, and turn the endpoint's events into
+log messages, console lines and ``ROLE.json``.  Clocks are ``time.monotonic_ns``; tick ``k`` of a
+session is due at ``t0 + k dt`` (the endpoint's ``SessionStarted`` says ``t0`` and the first tick).
 
-**Handshake.** ``OperatorHandshake``/``TeleoperatorHandshake`` are fed what the socket receives
-(with its receive time) and say what to send and when to call again.  The operator estimates the
-clock offset from NTP's four timestamps and sends the common start in the teleoperator's clock.
-Tick ``k`` of both processes is then due at ``start + k dt`` in its own clock; the TO runs
-``phase`` of a period (default 0.5) behind the operator, so a forward packet reaches the TO within
-the same tick and a backward packet reaches the operator at the next tick, the order ``teleop sim``
-uses.
-
-**Loop.** Each tick: wait for the deadline (``transport.realtime``), drain the transport into the
-port, poll a little for a payload that is due (grace), tick the port, send what it returns.
-
-**End.** Both run the agreed number of ticks (a session of duration 0: until SIGINT/SIGTERM, or the
-peer's ``bye``), linger briefly to count packets still in flight, say ``bye``, and finish
-``<role>.mcap`` and write ``<role>.json`` (summary) in the log folder.  SIGINT/SIGTERM stop the loop at
-the next tick; the logs are still written.
-
-**Log.** The port hands its per-tick record to a sink a chunk (1000 ticks) at a time; here the sink is
-``transport.mcaplog.McapLog``, which has a writer process write ``<role>.mcap`` as the session runs
-(and, with ``live_view``, serve the same channels over the Foxglove WebSocket protocol), so memory
-stays flat however long the session lasts and the loop never encodes or writes a message.
+**Log.** The port hands its per-tick record to a sink a chunk (1000 ticks) at a time; here the sink
+is ``transport.mcaplog.McapLog``, whose writer process writes ``ROLE.mcap`` as the session runs (and,
+with ``live_view``, serves the same channels over the Foxglove WebSocket protocol), so memory stays
+flat however long the session lasts and the loop never encodes or writes a message.  SIGINT/SIGTERM
+stop the loop at the next tick; the logs are still written.
 """
 
 from __future__ import annotations
@@ -31,19 +19,36 @@ from __future__ import annotations
 import asyncio
 import os
 import random
-import secrets
 import signal
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from teleop import auth, protocol
+from teleop import auth
 from teleop.devices import DeviceError
-from teleop.port import Chunk, Port, PortKeys, make_node, make_shim
-from teleop.protocol import PROTOCOL_VERSION, SessionParams
+from teleop.endpoint import (
+    Endpoint,
+    EndReason,
+    Failed,
+    Failure,
+    HelloRejected,
+    LinkLost,
+    LinkRestored,
+    PeerRestarted,
+    PortFactory,
+    Replaced,
+    SessionEnded,
+    SessionStarted,
+    State,
+    session_port,
+)
+from teleop.port import Chunk, Port, PortKeys
+from teleop.protocol import PROTOCOL_VERSION, LocalLimits, SessionParams
 
 from . import logdir
 from .base import Addr, Transport
@@ -62,12 +67,7 @@ __all__ = [
     "run_endpoint",
 ]
 
-# A real loop and transport deliver a payload a fraction of a tick late now and then (a stalled
-# sender, the scheduler, Zenoh's threads): ``--playout auto`` keeps one tick of allowance for that.
-REAL_PLAYOUT_FLOOR_TICKS = 1
-REJOIN_OFFER_INTERVAL_NS = 250_000_000  # operator: how often to offer a rejoin while the link is lost
-REJOIN_ANSWER_WAIT_NS = 600_000  # and how long to poll for the answer (the link is down anyway)
-REJOIN_MAX_RTT_NS = 1_000_000  # a later answer still counts if its round trip fixes the offset to 0.5 ms
+IDLE_WAIT_S = 0.01  # the longest the runner sleeps on the socket outside the ticks
 
 
 class SessionError(Exception):
@@ -95,11 +95,13 @@ class EndpointOptions:
     device: str | None = None  # --hsi/--robot spec (teleop.devices), local only; None: the scenario's
     live_view: int | None = None  # serve the Foxglove WebSocket live view on this port (0: any free)
     live_view_host: str = "127.0.0.1"
+    robot_name: str = auth.DEFAULT_ROBOT_NAME  # the robot this operator names / this robot is
+    local_limits: LocalLimits = field(default_factory=LocalLimits)  # teleoperator: what it affords
 
 
 @dataclass
 class ZenohOptions:
-    """How a process joins Zenoh (see transport.zenoh.make_config and README, Zenoh)."""
+    """How a process joins Zenoh (see transport.zenoh.make_config and docs/guides/zenoh.md)."""
 
     mode: str = "peer"  # peer | client
     listen: list[str] = field(default_factory=list)
@@ -129,477 +131,317 @@ def _addr(a: Addr) -> str:
     return f"{a[0]}:{a[1]}"
 
 
-# --------------------------------------------------------------------------------------------
-# handshake: the state machines of teleop.protocol, fed by the socket
-# --------------------------------------------------------------------------------------------
-async def _operator_handshake(
-    tr: Transport, peer: Addr, params: SessionParams, timeout: float, stop: _Stop, psk: bytes
-) -> tuple[int, int, int, PortKeys]:
-    """Returns (offset_ns, rtt_ns, start_ns in the operator's clock, the port's keys)."""
-    clock = time.monotonic_ns
-    nonce = secrets.token_bytes(auth.NONCE_BYTES)
-    hs = protocol.OperatorHandshake(params, now_ns=clock(), timeout_s=timeout, psk=psk, nonce=nonce)
-    while True:
-        if stop.requested:
-            raise SessionError("interrupted during the handshake")
-        for data in hs.poll(clock()):
-            tr.send(data, peer)
-        if hs.error is not None:
-            hint = ""
-            if "answer" in hs.error:  # a teleoperator with another key stays silent, by design
-                hint = f" (is `teleop teleoperator --listen {_addr(peer)}` running, with the same key?)"
-            raise SessionError(f"peer {_addr(peer)} {hs.error}{hint}")
-        if hs.done:
-            assert hs.tx_sealer is not None and hs.rx_opener is not None
-            keys = PortKeys(hs.tx_sealer, hs.rx_opener, hs.hs_sealer, hs.hs_opener, psk, nonce)
-            return hs.offset_ns, hs.rtt_ns, hs.start_ns, keys
-        await tr.wait(max(0.0, (hs.next_timer() - clock()) / 1e9))
-        for data, addr, t_rx in tr.drain():
-            if addr == peer:
-                hs.receive(data, t_rx)
-
-
-@dataclass
-class _Handover:
-    """A teleoperator handshake that completed: what the session runs with."""
-
-    params: SessionParams
-    peer: Addr
-    start_ns: int  # on this clock
-    rejoin: bool
-    keys: PortKeys
-
-    @classmethod
-    def of(cls, hs: protocol.TeleoperatorHandshake) -> _Handover:
-        assert hs.done and hs.params is not None and hs.peer is not None
-        assert hs.tx_sealer is not None and hs.rx_opener is not None
-        keys = PortKeys(hs.tx_sealer, hs.rx_opener, hs.hs_sealer, hs.hs_opener, hs.psk, hs.nonce)
-        return cls(hs.params, hs.peer, hs.start_ns, hs.rejoin, keys)
-
-
-async def _teleoperator_handshake(
-    tr: Transport, timeout: float, expect: dict[str, Any], stop: _Stop, psk: bytes
-) -> _Handover:
-    """Wait for an operator; returns (params, operator address, start_ns in this clock, rejoin).
-
-    A hello that is malformed or does not match this teleoperator's settings is answered with a
-    reject and counted; the teleoperator keeps waiting for a good one.  ``rejoin`` is set when the
-    operator's session was already running (this process replaces a teleoperator that went away):
-    ``start_ns`` is then in the past and the loop joins late."""
-    clock = time.monotonic_ns
-    nonce = secrets.token_bytes(auth.NONCE_BYTES)
-    hs = protocol.TeleoperatorHandshake(expect, now_ns=clock(), timeout_s=timeout, psk=psk, nonce=nonce)
-    shown = 0
-    while True:
-        if stop.requested:
-            raise SessionError("interrupted during the handshake")
-        hs.poll(clock())
-        if hs.error is not None:
-            raise SessionError(f"{hs.error} on {_addr(tr.local_address)}")
-        await tr.wait(0.1)
-        for data, addr, t_rx in tr.drain():
-            for reply, dest in hs.receive(data, addr, t_rx, reply_clock=clock):
-                tr.send(reply, dest)
-        new = hs.rejected - shown
-        if new:  # say why, but never let a flood of bad hellos flood the terminal
-            reasons = list(hs.rejections)[-min(new, 3) :]
-            for why in reasons:
-                print(f"teleop teleoperator: rejected the operator: {why}", file=sys.stderr, flush=True)
-            if new > len(reasons):
-                print(f"teleop teleoperator: ... and {new - len(reasons)} more", file=sys.stderr, flush=True)
-        shown = hs.rejected
-        if hs.done:
-            return _Handover.of(hs)
-
-
-# --------------------------------------------------------------------------------------------
-# the loop
-# --------------------------------------------------------------------------------------------
 class _Runner:
-    """One session of one process: the clock, the socket and the session control around a port."""
+    """One process: the clock, the socket, the log and the console around an endpoint."""
 
     def __init__(
-        self,
-        opts: EndpointOptions,
-        tr: Transport,
-        peer: Addr,
-        params: SessionParams,
-        port: Port,
-        t_common_ns: int,
-        stop: _Stop,
-        expect: dict[str, Any] | None = None,
-        log: McapLog | None = None,
+        self, opts: EndpointOptions, tr: Transport, stop: _Stop, build: Callable[[PortFactory], Endpoint]
     ) -> None:
-        self.opts, self.tr, self.peer, self.params, self.port = opts, tr, peer, params, port
-        self.expect = expect or {}
-        self.log = log
-        self._watched: tuple[int, ...] = ()  # what the events channel last saw (teleop.port state)
-        # Teleoperator, link lost: the handshake of whoever may replace the silent operator, and
-        # its result once a start proved it (a hello alone may be a recording: teleop.protocol).
-        self.takeover: protocol.TeleoperatorHandshake | None = None
-        self.handover: _Handover | None = None
-        self.node = port.node
-        self.t_common = t_common_ns
-        self.stop = stop
-        self.foreign = 0
-        self.peer_bye: protocol.Bye | None = None
-        self._offer_t1 = -1  # t_ns of the last rejoin offer not yet answered
-        self.replaced = False  # teleoperator: a new operator session replaces the silent one
-        self.rejoin_offers = self.rejoins = 0
-        self.own_hellos_ignored = 0  # teleoperator: our own operator's rejoin offers (see _own_hello)
-        self._local_netem = protocol.configured_netem(self.expect)
-        self._last_offer = 0
-        self.grace = {"limit_us": opts.grace_us, "waits": 0, "missed": 0, "waited_us_total": 0.0}
-        self._grace_streak = self._grace_resume = 0
+        self.opts, self.tr, self.stop = opts, tr, stop
+        self.clock = time.monotonic_ns
+        self.log: McapLog | None = None
+        self._logs: dict[int, McapLog | None] = {}  # session id -> its log (a takeover opens the next)
+        self._writer: subprocess.Popen[bytes] | None = None
+        self._watched: tuple[int, ...] = ()
+        self.warnings: list[str] = []
+        self.ticker: Ticker | None = None
+        self._stats: LoopStats | None = None
+        self._finishing: list[threading.Thread] = []  # replaced sessions' logs being finished
+        self._starts: dict[int, int] = {}  # session id -> its tick 0 on this clock
+        self._created = self.clock()
+        self._waited: dict[int, float] = {}  # session id -> s from this process's start to its start
+        self.summary: dict[str, Any] | None = None
+        self.ep = build(self._port)
 
-    def now(self) -> float:
-        """Seconds on the common session clock (tick 0 of the session is 0)."""
-        return (time.monotonic_ns() - self.t_common) / 1e9
+    # --- the port factory (called by the endpoint when a session starts) ----------------------
+    def _port(self, params: SessionParams, k0: int, keys: PortKeys, start_ns: int) -> Port:
+        log = self._open_log(params.session, start_ns)
+        self._logs[params.session] = log
+        sink = log if log is not None else _Discard()
+        return session_port(
+            self.opts.role,
+            params,
+            k0,
+            keys,
+            header_bytes=self.tr.header_bytes,
+            sink=sink,
+            device=self.opts.device,
+        )
 
-    def send(self, msg: protocol.Message) -> None:
-        self.tr.send(self.port.seal(msg), self.peer)
-
-    # --- inbound ---------------------------------------------------------------------------
-    def drain(self, k: int, play: bool = True) -> None:
-        """Everything the transport received, into the port; control messages to the session logic."""
-        for data, addr, t_rx in self.tr.drain():
-            if self._to_takeover(data, addr, t_rx):
-                continue
-            t = (t_rx - self.t_common) / 1e9
-            if addr != self.peer:
-                msg = self.port.receive(data, t, k, play, from_peer=False)
-                if isinstance(msg, protocol.Hello):
-                    self._other_hello(msg, addr)  # a restarted operator comes from a new port
-                else:
-                    self.foreign += 1
-                continue
-            msg = self.port.receive(data, t, k, play)
-            if msg is not None:
-                self._control(msg, addr, t_rx)
-
-    def _control(self, msg: protocol.Message, addr: Addr, t_rx: int) -> None:
-        ours = getattr(msg, "session", None) == self.params.session
-        if isinstance(msg, protocol.Start) and ours:
-            self.send(protocol.Started(self.params.session))
-        elif isinstance(msg, protocol.Bye) and ours:
-            self.peer_bye = msg
-        elif isinstance(msg, protocol.Hello):
-            self._other_hello(msg, addr)
-        elif isinstance(msg, protocol.Welcome) and ours and msg.t_ns == self._offer_t1:
-            self._rejoin(msg, t_rx)  # a restarted teleoperator answering our rejoin offer
-
-    def _other_hello(self, msg: protocol.Hello, addr: Addr) -> None:
-        """Another operator while ours is alive: we are busy.  (Our own operator's rejoin offer is
-        only for a restarted teleoperator; with the link lost, hellos go to the takeover.)"""
-        if msg.params.session != self.params.session:
-            reject = protocol.Reject(msg.params.session, protocol.BUSY, msg.t_ns)
-            self.tr.send(self.port.seal(reject), addr)
-
-    def _to_takeover(self, data: bytes, addr: Addr, t_rx: int) -> bool:
-        """Teleoperator whose operator went silent (probably restarted): handshake datagrams, and
-        session datagrams that are not our peer's, go to a handshake of their own; the session is
-        replaced only when that handshake completes, i.e. when a start proved the key and our fresh
-        nonce.  Returns whether the datagram was taken."""
-        if self.opts.role != "teleoperator" or not self.node.link_lost or self.handover is not None:
-            self.takeover = None
-            return False
-        hdr = auth.peek(data)
-        if hdr is None or (hdr[0] == auth.SESSION and self.port.verifies(data)):
-            return False
-        if hdr[0] == auth.HANDSHAKE and addr == self.peer and self._own_hello(data):
-            self.own_hellos_ignored += 1
-            return True
-        hs = self.takeover
-        if hs is not None:
-            hs.poll(t_rx)
-        if hs is None or hs.error is not None:
-            if hdr[0] != auth.HANDSHAKE:
-                return False
-            nonce = secrets.token_bytes(auth.NONCE_BYTES)
-            timeout = self.opts.connect_timeout
-            hs = self.takeover = protocol.TeleoperatorHandshake(
-                self.expect, now_ns=t_rx, timeout_s=timeout, psk=self.port.keys.psk, nonce=nonce
-            )
-        for reply, dest in hs.receive(data, addr, t_rx, reply_clock=time.monotonic_ns):
-            self.tr.send(reply, dest)
-        if hs.done:
-            self.handover, self.replaced = _Handover.of(hs), True
-        return True
-
-    def _own_hello(self, data: bytes) -> bool:
-        """Whether ``data`` is an authentic hello of this very session: our own operator offering a
-        rejoin (meant for a restarted teleoperator) across an outage that both sides saw.  This
-        process did not restart, so it must not answer as one: taken as a takeover, the offer split
-        the session in two (a "replaced" log and a late-joined one) although nobody was replaced.
-        Dropped, the session simply goes on when the link comes back."""
+    def _open_log(self, session: int, t_common_ns: int) -> McapLog | None:
+        """A new MCAP file in the log folder (``transport.logdir.reserve``: ``ROLE.mcap`` or, if an
+        earlier run or session holds it, ``ROLE-SESSION[-N].mcap``; nothing is renamed or
+        overwritten) and/or the live view, or None (neither)."""
+        o = self.opts
+        if o.log_dir is None and o.live_view is None:
+            return None
+        writer, self._writer = self._writer, None
         try:
-            body = self.port.keys.hs_rx.verify(data)[1]
-            msg = protocol.parse(body, local_netem=self._local_netem)
-        except (auth.AuthError, protocol.ProtocolError):
-            return False
-        return isinstance(msg, protocol.Hello) and msg.params.session == self.params.session
+            files = logdir.reserve(o.log_dir, o.role, session) if o.log_dir is not None else None
+            return McapLog(
+                files.mcap if files is not None else None,
+                o.role,
+                wall_clock_of(t_common_ns),
+                live_port=o.live_view,
+                live_host=o.live_view_host,
+                process=writer,
+                file_id=(files.dev, files.ino) if files is not None else None,
+            )
+        except (OSError, RuntimeError, ValueError) as e:  # a folder others can write, the port is taken
+            raise SessionError(f"cannot open the log or the live view: {e}") from None
 
-    # --- per tick --------------------------------------------------------------------------
-    async def wait_for_payload(self, ticker: Ticker, k: int) -> None:
-        """Grace: a payload is due and not here yet; poll for it a little rather than play a gap."""
-        node, g, port = self.node, self.grace, self.port
-        if not (g["limit_us"] and not port.payload_ready(k) and node.counters.accepted):
+    # --- I/O ------------------------------------------------------------------------------------
+    def drain(self) -> None:
+        for data, addr, t_rx in self.tr.drain():
+            self.ep.receive_datagram(data, addr, t_rx)
+
+    def send(self) -> None:
+        for data, addr in self.ep.datagrams_to_send(self.clock()):
+            self.tr.send(data, addr)
+
+    async def idle(self, until_ns: int | None = None) -> None:
+        """Outside the ticks: sleep on the socket until a datagram, the endpoint's timer or
+        ``until_ns``; feed, fire the timer, send, handle events."""
+        timer = self.ep.get_timer()
+        wake = min(t for t in (timer, until_ns, self.clock() + int(IDLE_WAIT_S * 1e9)) if t is not None)
+        await self.tr.wait(max(0.0, (wake - self.clock()) / 1e9))
+        self.drain()
+        if (timer := self.ep.get_timer()) is not None and self.clock() >= timer:
+            self.ep.handle_timer(self.clock())
+        self.send()
+        self.events()
+
+    async def run(self) -> dict[str, Any]:
+        """Until the endpoint is finished: handshake, each session (a takeover starts the next)."""
+        self.send()
+        while not self.ep.finished:
+            if self.stop.requested and self.ep.state == State.HANDSHAKE:
+                raise SessionError("interrupted during the handshake")
+            if self.stop.requested:
+                self.ep.stop(self.clock())
+            if self.ep.running and self.ticker is not None:
+                await self.ticks()
+            else:
+                await self.idle()
+        self.events()
+        assert self.summary is not None
+        return self.summary
+
+    async def ticks(self) -> None:
+        """Serve the socket until just before the first tick, then tick until the session ends."""
+        ep, ticker = self.ep, self.ticker
+        assert ticker is not None
+        while ep.state == State.STARTING and not self.stop.requested:
+            left = ticker.deadline(ep.k0) - 2_000_000 - self.clock()
+            if left <= 0:
+                break
+            await self.idle(self.clock() + left)
+        if self.ticker is not ticker:  # replaced while waiting
             return
-        if k < self._grace_resume:
+        ticker.start(ep.t0_ns, ep.k0)
+        session = ep.params
+        while ep.running and not self.stop.requested and self.ticker is ticker:
+            k = ticker.wait()
+            await asyncio.sleep(0)  # one event-loop pass: datagrams received since the last tick
+            self.drain()
+            await self.grace(k, ticker)
+            if not ep.running or ep.params is not session:  # a takeover replaced the session
+                self.send()  # the new operator's started
+                break
+            ep.tick(k, self.clock())
+            self.send()
+            assert ep.port is not None
+            ep.port.loop_timing(k, ticker.last_lateness_ns)
+            if self.log is not None:
+                self.observe(k, ticker)
+            if self.opts.live and k % 1000 == 999:
+                self.status(k, ticker)
+            self.events()
+        if self.ticker is ticker:
+            self._stats = ticker.stats()  # the ticking only, not the linger
+
+    async def grace(self, k: int, ticker: Ticker) -> None:
+        """A payload is due and not here yet: poll for it until the endpoint's limit."""
+        limit = self.ep.grace_until(k, ticker.deadline(k))
+        if limit is None:
             return
-        clock = time.monotonic_ns
-        limit = ticker.deadline(k) + round(g["limit_us"] * 1000)
-        g["waits"] += 1
-        t_wait = clock()
-        while not port.payload_ready(k) and clock() < limit:
+        t_wait = self.clock()
+        while not self.ep.payload_ready(k) and self.clock() < limit:
             await asyncio.sleep(0)
-            self.drain(k)
-            if not port.payload_ready(k):
+            self.drain()
+            if not self.ep.payload_ready(k):
                 # Sleep a little rather than spin: under SCHED_FIFO a spinning loop would starve
                 # the threads that deliver the packet (Zenoh's runtime runs at normal priority).
                 time.sleep(20e-6)
-        g["waited_us_total"] += (clock() - t_wait) / 1e3
-        if port.payload_ready(k):
-            self._grace_streak = 0
-            return
-        g["missed"] += 1
-        self._grace_streak += 1
-        if self._grace_streak >= 3:  # a delayed or jittery link: packets are ms late, not us; rest
-            self._grace_resume = k + 200
-            self._grace_streak = 0
+        self.ep.grace_result(k, self.clock() - t_wait)
 
-    async def offer_rejoin(self, k: int) -> None:
-        """Operator, link lost: offer a rejoin to whoever restarts at the teleoperator's address.
+    # --- events ---------------------------------------------------------------------------------
+    def events(self) -> None:
+        ep, o = self.ep, self.opts
+        while (ev := ep.next_event()) is not None:
+            if isinstance(ev, SessionStarted):
+                self.log = self._logs.get(ev.params.session)
+                self._starts[ev.params.session] = ev.start_ns
+                self._waited[ev.params.session] = (self.clock() - self._created) / 1e9
+                self.ticker = Ticker(period_ns=round(ev.params.dt * 1e9), spin_ns=o.spin_us * 1000)
+                self.warnings = setup_realtime(o.rt_priority)
+                for w in self.warnings:
+                    print(f"teleop {o.role}: warning: {w}", file=sys.stderr)
+                if self.log is not None:
+                    info = {"role": o.role, "pid": os.getpid(), "params": asdict(ev.params)}
+                    self.log.status("session", 0.0, info)
+                    self.log.event(0.0, "session_start", f"session {ev.params.session}, first tick {ev.k0}")
+            elif isinstance(ev, Failed):
+                raise SessionError(self._failure(ev))
+            elif isinstance(ev, HelloRejected):
+                print(f"teleop {o.role}: rejected the operator: {ev.why}", file=sys.stderr, flush=True)
+            elif isinstance(ev, Replaced) and not o.quiet:
+                print(
+                    f"teleop {o.role}: session {ev.old_session} replaced by a new operator", file=sys.stderr
+                )
+            elif isinstance(ev, PeerRestarted | LinkLost | LinkRestored) and self.log is not None:
+                name = {PeerRestarted: "peer_rejoined", LinkLost: "link_lost", LinkRestored: "link_restored"}
+                self.log.event(ep.session_time(self.clock()), name[type(ev)], f"tick {ev.k}")
+            elif isinstance(ev, SessionEnded):
+                self.ended(ev)
 
-        Poll for the answer right away (the link is down anyway) so that its receive time, and
-        with it the clock offset (NTP's four timestamps), is exact to a few microseconds.  A
-        welcome that comes later is still taken (:meth:`_rejoin`) if its round trip is short
-        enough to place the start within half a tick."""
-        clock = time.monotonic_ns
-        if clock() - self._last_offer < REJOIN_OFFER_INTERVAL_NS:
-            return
-        t1 = self._offer_t1 = self._last_offer = clock()
-        self.send(protocol.Hello(self.params, t_ns=t1, rejoin=True, nonce=self.port.keys.nonce))
-        self.rejoin_offers += 1
-        rejoins = self.rejoins
-        while self.rejoins == rejoins and clock() - t1 < REJOIN_ANSWER_WAIT_NS:
-            await asyncio.sleep(0)
-            self.drain(k)
-            time.sleep(10e-6)  # let the transport's threads run (see the grace wait)
+    def _failure(self, ev: Failed) -> str:
+        o = self.opts
+        if o.role == "teleoperator":
+            return f"{ev.detail} on {_addr(self.tr.local_address)}"
+        peer = _addr(o.peer) if o.peer is not None else "zenoh"
+        hint = ""
+        if ev.reason == Failure.NO_ANSWER:  # a teleoperator with another key or name stays silent
+            hint = (
+                f" (is `teleop teleoperator --listen {peer} --name {o.robot_name}` running, with the"
+                " same key? A robot of another name, or another key, never answers)"
+            )
+        return f"peer {peer} {ev.detail}{hint}"
 
-    def _rejoin(self, m: protocol.Welcome, t4: int) -> None:
-        """A restarted teleoperator welcomed our rejoin offer: re-key with its nonce, send the start."""
-        t1 = self._offer_t1
-        offset, rtt = protocol.ntp_offset(t1, m.t2, m.t3, t4)
-        if rtt > REJOIN_MAX_RTT_NS:  # too slow to place the start precisely: wait for the next offer
-            return
-        self._offer_t1 = -1  # one start per offer
-        self.port.peer_restarted(m.nonce)  # its new nonce keys the rest of the session
-        self.send(protocol.Start(self.params.session, start_ns=self.t_common + offset, rejoin=True))
-        self.rejoins += 1
+    def ended(self, ev: SessionEnded) -> None:
+        """One session is over: the process's figures join the endpoint's; ROLE.json and the log."""
+        o, s = self.opts, dict(ev.summary)
+        stats = self._stats or (self.ticker.stats() if self.ticker is not None else None)
+        self._stats = None
+        s["received"].update(inbox_overflow=self.tr.inbox_overflow, socket_errors=self.tr.socket_errors)
+        s["received"]["oversize"] = self.tr.oversize  # refused by length (teleop.wire.MAX_DATAGRAM_BYTES)
+        s.update(
+            pid=os.getpid(),
+            local=_addr(self.tr.local_address),
+            transport=o.transport,
+            stopped_by_signal=self.stop.signal,
+            robot=o.robot_name,
+            waited_for_session_s=self._waited.get(s["params"]["session"]),
+            loop=stats.summary() if stats is not None else None,
+            warnings=self.warnings,
+            event_loop=type(asyncio.get_running_loop()).__module__.split(".")[0],
+        )
+        s["security"].update(
+            auth="insecure" if o.insecure else "blake2s-128", key_id=auth.key_id(o.psk or b"")
+        )
+        session = s["params"]["session"]
+        log = self._logs.pop(session, None)
+        replaced = ev.reason == EndReason.REPLACED
+        t_end = (self.clock() - self._starts.pop(session, self.ep.start_ns)) / 1e9
+        if log is not None:
+            why = {EndReason.PEER_BYE: "peer said bye", EndReason.STOPPED: f"signal {self.stop.signal}"}
+            log.event(t_end, "session_end", why.get(ev.reason, ev.reason.value))
+        name = f"{o.role}-{session}" if replaced else o.role
+        if replaced:  # the next session already runs: finish this one's files beside it, not in its way
+            done = threading.Thread(target=self._finish, args=(s, log, name, t_end), name="finish-log")
+            done.start()
+            self._finishing.append(done)
+        else:
+            self._finish(s, log, name, t_end)
+            self.ticker = None
+        if self.log is log:
+            self.log = None
+        self.summary = s
+
+    def _finish(self, s: dict[str, Any], log: McapLog | None, name: str, t_end: float) -> None:
+        """Close the session's log (it waits for the writer) and write its JSON summary beside it
+        (``transport.logdir.save_summary``: the MCAP file's stem, never over a file; a full disk
+        is one line)."""
+        o = self.opts
+        if log is not None:
+            log.close({**s, "end_t": t_end})
+            s["log"] = {
+                "mcap": log.path.name if log.path is not None else None,
+                "messages": log.messages,
+                "dropped_chunks": log.dropped_chunks,
+                "live_view_port": log.live_port,
+                "error": log.error,
+            }
+        if o.log_dir is not None:
+            logdir.save_summary(o.log_dir, o.role, s)
+
+    # --- the log's low-rate channels and the console ----------------------------------------------
+    def observe(self, k: int, ticker: Ticker) -> None:
+        """Events as they happen, the live view's decimated ticks, and the link figures once a
+        second.  A few integer comparisons a tick; messages are queued."""
+        log, port = self.log, self.ep.port
+        assert log is not None and port is not None
+        node, sec = port.node, port.security
+        watched = (node.peer_restarts, sec.rejected, sec.replayed, ticker.overruns)
+        t = self.ep.session_time(self.clock())
+        if watched != self._watched:
+            if self._watched:
+                old = self._watched
+                if watched[0] != old[0]:
+                    log.event(t, "peer_restarted", f"energy epoch {watched[0]}")
+                if watched[1] != old[1]:
+                    log.event(t, "auth_rejected", f"{watched[1]} so far: {sec.last_rejection}")
+                if watched[2] != old[2]:
+                    log.event(t, "replayed", f"{watched[2]} so far")
+                if watched[3] != old[3]:
+                    log.event(t, "overrun", f"tick {k}: {ticker.overruns} so far")
+            self._watched = watched
+        if k % log.live_every == 0:
+            log.live(k, t, _live_messages(port, k, t))
+        if k % 1000 == 999:
+            pv = node.passivity
+            link = {"link": port.observer.quick(), "sent": port.tx.summary(), "received": port.rx.summary()}
+            watchdog = {
+                "violations": pv.violations,
+                "controller_active_ticks": pv.controller_active_ticks,
+                "energy_dissipated": pv.energy_dissipated,
+                "margin": node.guard.margin,
+                "link_lost": node.link_lost,
+            }
+            log.status("link", t, {"t": t, **link, "watchdog": watchdog})
 
     def status(self, k: int, ticker: Ticker) -> None:
-        pv, port = self.node.passivity, self.port
+        port = self.ep.port
+        assert port is not None and self.ep.params is not None
+        node = port.node
+        pv = node.passivity
         print(
-            f"  [{self.opts.role} {(k + 1) * self.params.dt:5.1f} s] sent {port.tx.packets} "
-            f"recv {port.rx.packets}  {'LINK LOST' if self.node.link_lost else 'link ok'}  watchdog: "
+            f"  [{self.opts.role} {(k + 1) * self.ep.params.dt:5.1f} s] sent {port.tx.packets} "
+            f"recv {port.rx.packets}  {'LINK LOST' if node.link_lost else 'link ok'}  watchdog: "
             f"violations {pv.violations}, controller {pv.controller_active_ticks} ticks, "
-            f"margin {self.node.guard.margin:.3e} J, overruns {ticker.overruns}"
+            f"margin {node.guard.margin:.3e} J, overruns {ticker.overruns}"
             f"{'  INSECURE (no key)' if self.opts.insecure else ''}",
             file=sys.stderr,
             flush=True,
         )
 
-    async def until(self, t_ns: int, k0: int) -> None:
-        """Before tick 0: keep serving the socket, so a start resent because our started was lost
-        is answered (the operator gives up 50 ms before tick 0), and nothing piles up unread."""
-        while not self.stop.requested and (left := t_ns - time.monotonic_ns()) > 0:
-            await self.tr.wait(min(left / 1e9, 0.01))
-            self.drain(k0, play=False)
 
-    async def run(self, ticker: Ticker) -> None:
-        """Tick until the session's end, a signal, or (teleoperator) a new operator's session."""
-        n, port, opts = self.params.ticks, self.port, self.opts
-        open_ended = self.params.until_stopped
-        while not self.stop.requested and ticker.k < n:
-            if open_ended and self.peer_bye is not None:  # the peer was stopped: so is the session
-                break
-            k = ticker.wait()
-            if k >= n:  # a stall skipped past the end
-                break
-            await asyncio.sleep(0)  # one event-loop pass: datagrams received since the last tick
-            self.drain(k)
-            await self.wait_for_payload(ticker, k)
-            if self.replaced:
-                break
-            if opts.role == "operator" and self.node.link_lost:
-                await self.offer_rejoin(k)
-            datagrams = port.tick(k, self.now())
-            # Stamped once the sample exists and before it leaves: the peer cannot play it earlier,
-            # so the true margin (teleop.report) never counts a sample as played before it was sent.
-            port.sent(k, self.now())
-            for data in datagrams:
-                self.tr.send(data, self.peer)
-            port.loop_timing(k, ticker.last_lateness_ns)
-            if self.log is not None:
-                self.observe(k, ticker)
-            if opts.live and k % 1000 == 999:
-                self.status(k, ticker)
-
-    def observe(self, k: int, ticker: Ticker) -> None:
-        """The log's low-rate channels: events as they happen, the live view's decimated ticks, and
-        the link figures once a second.  A few integer comparisons a tick; messages are queued."""
-        log, node, port = self.log, self.node, self.port
-        assert log is not None
-        sec = port.security
-        watched = (int(node.link_lost), node.peer_restarts, sec.rejected, sec.replayed, ticker.overruns)
-        if watched != self._watched:
-            t = self.now()
-            if self._watched:
-                old = self._watched
-                if watched[0] != old[0]:
-                    log.event(t, "link_lost" if watched[0] else "link_restored", f"tick {k}")
-                if watched[1] != old[1]:
-                    log.event(t, "peer_restarted", f"energy epoch {watched[1]}")
-                if watched[2] != old[2]:
-                    log.event(t, "auth_rejected", f"{watched[2]} so far: {sec.last_rejection}")
-                if watched[3] != old[3]:
-                    log.event(t, "replayed", f"{watched[3]} so far")
-                if watched[4] != old[4]:
-                    log.event(t, "overrun", f"tick {k}: {ticker.overruns} so far")
-            self._watched = watched
-        if k % log.live_every == 0:
-            log.live(k, self.now(), self._live_messages(k))
-        if k % 1000 == 999:
-            pv = node.passivity
-            log.status(
-                "link",
-                self.now(),
-                {
-                    "t": self.now(),
-                    "link": port.observer.quick(),
-                    "sent": port.tx.summary(),
-                    "received": port.rx.summary(),
-                    "watchdog": {
-                        "violations": pv.violations,
-                        "controller_active_ticks": pv.controller_active_ticks,
-                        "energy_dissipated": pv.energy_dissipated,
-                        "margin": node.guard.margin,
-                        "link_lost": node.link_lost,
-                    },
-                },
-            )
-
-    def _live_messages(self, k: int) -> dict[str, dict[str, Any]]:
-        """This tick's per-tick messages, built from the node (the record's chunk is not sealed yet)."""
-        node, t = self.node, self.now()
-        return {
-            "signals": {"k": k, "t": t, "v": node.v.tolist(), "f": node.f.tolist()},
-            "waves": {"k": k, "t": t, "wave_out": node.wave_out.tolist(), "wave_in": node.wave_in.tolist()},
-            "energy": {
-                "k": k,
-                "t": t,
-                "sent": node.energy_sent,
-                "played": node.energy_played,
-                "margin_observed": node.guard.margin,
-                "played_epoch": node.guard.played_in_epoch,
-                "peer_epoch": node.peer_restarts,
-            },
-        }
-
-    async def linger(self) -> None:
-        """Deliver what the shim still holds, say bye, and count what is still in flight, so that
-        sender and receiver counts can be compared; the bye tells the receiver how many packets
-        there were."""
-        port, last = self.port, max(self.port.rec.last, 0)
-        clock = time.monotonic_ns
-        t_end = clock() + int(self.opts.linger * 1e9)
-        while (due := port.next_due()) is not None and clock() < t_end + 2_000_000_000:
-            await asyncio.sleep(max(0.0, min(0.005, due - self.now())))
-            for data in port.flush(self.now(), last):
-                self.tr.send(data, self.peer)
-            self.drain(last, play=False)
-        shim = port.shim_stats()
-        bye = protocol.Bye(self.params.session, port.produced(), shim["dropped_by_limit"] if shim else 0)
-        for _ in range(3):
-            self.send(bye)
-        while clock() < t_end:
-            await asyncio.sleep(0.005)
-            self.drain(last, play=False)
-
-    def summary(self, stats: LoopStats, completed: bool, k0: int) -> dict[str, Any]:
-        bye = self.peer_bye
-        s = self.port.summary(
-            peer_produced=bye.produced if bye else None,
-            peer_dropped_by_limit=bye.dropped_by_limit if bye else 0,
-        )
-        s["received"].update(
-            foreign=self.foreign, inbox_overflow=self.tr.inbox_overflow, socket_errors=self.tr.socket_errors
-        )
-        s["received"]["oversize"] = self.tr.oversize  # refused by length (teleop.wire.MAX_DATAGRAM_BYTES)
-        shim = self.port.shim_stats()
-        spec_tx = self.params.netem_forward if self.opts.role == "operator" else self.params.netem_backward
-        return {
-            "role": self.opts.role,
-            "pid": os.getpid(),
-            "local": _addr(self.tr.local_address),
-            "peer": _addr(self.peer),
-            "transport": self.opts.transport,
-            "completed": completed,
-            "stopped_by_signal": self.stop.signal,
-            "peer_said_bye": bye is not None,
-            "first_tick": k0,
-            "replaced_by_new_session": self.replaced,
-            "rejoin": {
-                "offers": self.rejoin_offers,
-                "rejoins": self.rejoins,
-                "own_offers_ignored": self.own_hellos_ignored,
-            },
-            "shim": {"spec": spec_tx, **shim} if shim else None,
-            "grace": self.grace,
-            "params": asdict(self.params),
-            "loop": stats.summary(),
-            **s,
-        }
-
-
-async def _run_loop(
-    opts: EndpointOptions,
-    tr: Transport,
-    peer: Addr,
-    params: SessionParams,
-    port: Port,
-    t0_ns: int,
-    t_common_ns: int,
-    stop: _Stop,
-    k0: int = 0,
-    expect: dict[str, Any] | None = None,
-    log: McapLog | None = None,
-) -> tuple[dict[str, Any], _Handover | None]:
-    """Tick from ``k0`` to the session's end; tick ``k`` is due at ``t0_ns + k dt``, and
-    ``t_common_ns`` is the session's tick 0 on this clock.  Returns the summary and, when a new
-    operator replaced a silent one, its completed handshake."""
-    runner = _Runner(opts, tr, peer, params, port, t_common_ns, stop, expect, log)
-    if log is not None:
-        log.status("session", 0.0, {"role": opts.role, "pid": os.getpid(), "params": asdict(params)})
-        log.event(0.0, "session_start", f"session {params.session}, first tick {k0}")
-    await runner.until(t0_ns + k0 * round(params.dt * 1e9) - 2_000_000, k0)
-    # No per-tick arrays in the ticker: the loop's timing goes to the port's record, a chunk at a time.
-    ticker = Ticker(period_ns=round(params.dt * 1e9), spin_ns=opts.spin_us * 1000)
-    ticker.start(t0_ns, k0)
-    await runner.run(ticker)
-    stats = ticker.stats()  # the ticking only, not the linger
-    ended = ticker.k >= params.ticks or (
-        params.until_stopped and (stop.requested or runner.peer_bye is not None)
-    )
-    completed = ended and not runner.replaced and (params.until_stopped or not stop.requested)
-    if not runner.replaced:  # a replaced session's operator is gone: nothing is in flight to count
-        await runner.linger()
-    summary = runner.summary(stats, completed, k0)
-    if log is not None:  # the file is finished by _session, once the summary is complete
-        why = f"signal {stop.signal}" if stop.requested else ("peer said bye" if runner.peer_bye else "end")
-        log.event(runner.now(), "session_end", f"{why}; {stats.ticks} ticks run")
-    return summary, runner.handover
+def _live_messages(port: Port, k: int, t: float) -> dict[str, dict[str, Any]]:
+    """This tick's per-tick messages, built from the node (the record's chunk is not sealed yet)."""
+    node = port.node
+    return {
+        "signals": {"k": k, "t": t, "v": node.v.tolist(), "f": node.f.tolist()},
+        "waves": {"k": k, "t": t, "wave_out": node.wave_out.tolist(), "wave_in": node.wave_in.tolist()},
+        "energy": {
+            "k": k,
+            "t": t,
+            "sent": node.energy_sent,
+            "played": node.energy_played,
+            "margin_observed": node.guard.margin,
+            "played_epoch": node.guard.played_in_epoch,
+            "peer_epoch": node.peer_restarts,
+        },
+    }
 
 
 # --------------------------------------------------------------------------------------------
@@ -621,164 +463,54 @@ async def _open_transport(opts: EndpointOptions) -> Transport:
 async def _endpoint(
     opts: EndpointOptions, params: SessionParams | None, expect: dict[str, Any]
 ) -> dict[str, Any]:
+    if opts.psk is None:
+        raise SessionError("no key: give the pre-shared key (teleop keygen) or choose insecure")
+    try:
+        key = auth.robot_key(opts.psk, opts.robot_name)
+    except ValueError as e:
+        raise SessionError(str(e)) from None
     loop = asyncio.get_running_loop()
     stop = _Stop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop, sig)
     tr = await _open_transport(opts)
-    handover: _Handover | None = None
-    writer = None
+    kw: dict[str, Any] = {
+        "now_ns": time.monotonic_ns(),
+        "psk": key,
+        "connect_timeout_s": opts.connect_timeout,
+        "linger_s": opts.linger,
+        "grace_us": opts.grace_us,
+    }
+
+    def build(make_port: PortFactory) -> Endpoint:
+        if opts.role == "operator":
+            peer = ZENOH_PEER if opts.transport == "zenoh" else opts.peer
+            assert params is not None and peer is not None
+            return Endpoint.operator(params, peer, make_port, **kw)
+        return Endpoint.teleoperator(expect, make_port, local_limits=opts.local_limits, **kw)
+
+    runner: _Runner | None = None
     try:
-        while True:
-            # The log's writer process starts now, so that it has imported before the loop starts.
-            wants_log = opts.log_dir is not None or opts.live_view is not None
-            writer = spawn_writer() if wants_log else None
-            summary, handover = await _session(opts, tr, params, expect, stop, handover, writer)
-            writer = None  # the session's log owns it now
-            if opts.log_dir is not None:  # beside its MCAP log, never over a file (transport.logdir)
-                logdir.save_summary(opts.log_dir, opts.role, summary)
-            if not summary.get("replaced_by_new_session"):
-                return summary
-            # The teleoperator's operator was replaced mid-session (restarted): the old session's
-            # logs keep their names, the new session gets files of its own; serve the new operator.
-            if not opts.quiet:
-                print(
-                    f"teleop {opts.role}: session {summary['params']['session']} replaced by a new operator",
-                    file=sys.stderr,
-                )
+        runner = _Runner(opts, tr, stop, build)
+        # The log's writer process starts now, so that it has imported before the loop starts.
+        if opts.log_dir is not None or opts.live_view is not None:
+            runner._writer = spawn_writer()
+        summary = await runner.run()
+        for t in runner._finishing:
+            await asyncio.to_thread(t.join)
+        return summary
     finally:
         tr.close()
+        writer = runner._writer if runner is not None else None
         if writer is not None and writer.poll() is None:  # unused (no session): it exits at end of input
             try:
                 writer.communicate(timeout=10)
             except subprocess.TimeoutExpired:
                 writer.kill()
                 writer.wait()
-
-
-async def _session(
-    opts: EndpointOptions,
-    tr: Transport,
-    params: SessionParams | None,
-    expect: dict[str, Any],
-    stop: _Stop,
-    handover: _Handover | None = None,
-    writer: subprocess.Popen[bytes] | None = None,
-) -> tuple[dict[str, Any], _Handover | None]:
-    """Handshake (unless a running session's takeover already completed one), build the port, run
-    the loop: one session of this process."""
-    psk = opts.psk
-    if psk is None:
-        raise SessionError("no key: give the pre-shared key (teleop keygen) or choose insecure")
-    if opts.role == "operator":
-        assert params is not None
-        peer = ZENOH_PEER if opts.transport == "zenoh" else opts.peer
-        assert peer is not None
-        offset, rtt, start, keys = await _operator_handshake(
-            tr, peer, params, opts.connect_timeout, stop, psk
-        )
-        t0 = start
-        k0 = 0
-        extra: dict[str, Any] = {"clock_offset_ns": offset, "handshake_rtt_us": rtt / 1e3}
-    else:
-        h = handover or await _teleoperator_handshake(tr, opts.connect_timeout, expect, stop, psk)
-        params, peer, start, rejoin, keys = h.params, h.peer, h.start_ns, h.rejoin, h.keys
-        t0 = start + round(params.phase * params.dt * 1e9)
-        # A takeover's start may have passed while the replaced session wrote its logs: join late.
-        rejoin = rejoin or time.monotonic_ns() > t0 - 2_000_000
-        period = round(params.dt * 1e9)
-        # Joining a running session: start at a tick a little in the future, on the session's clock.
-        k0 = max(0, -(-(time.monotonic_ns() - t0) // period) + 20) if rejoin else 0
-        extra = {"joined_late": rejoin}
-    warnings = setup_realtime(opts.rt_priority)
-    for w in warnings:
-        print(f"teleop {opts.role}: warning: {w}", file=sys.stderr)
-    log = _open_log(opts, start, writer, params.session)
-    port = _make_port(opts, tr, params, k0, keys, log)
-    try:
-        summary, replaced_by = await _run_loop(opts, tr, peer, params, port, t0, start, stop, k0, expect, log)
-    except BaseException:
-        if log is not None:
-            log.close()
-        raise
-    summary.update(
-        extra, warnings=warnings, event_loop=type(asyncio.get_running_loop()).__module__.split(".")[0]
-    )
-    summary["security"].update(auth=_auth_name(opts), key_id=auth.key_id(psk))
-    if log is not None:  # the complete summary goes into the file: teleop report reads it there
-        log.close({**summary, "end_t": (time.monotonic_ns() - start) / 1e9})
-        summary["log"] = {
-            "mcap": log.path.name if log.path is not None else None,
-            "messages": log.messages,
-            "dropped_chunks": log.dropped_chunks,
-            "live_view_port": log.live_port,
-            "error": log.error,
-        }
-    return summary, replaced_by
-
-
-def _auth_name(opts: EndpointOptions) -> str:
-    """What protects the datagrams: a keyed MAC, or the insecure key (integrity against accidents only)."""
-    return "insecure" if opts.insecure else "blake2s-128"
-
-
-def _open_log(
-    opts: EndpointOptions, t_common_ns: int, writer: subprocess.Popen[bytes] | None, session: int
-) -> McapLog | None:
-    """A new MCAP file in the log folder (``transport.logdir.reserve``: ``ROLE.mcap`` or, if an
-    earlier run holds it, ``ROLE-SESSION[-N].mcap``) and/or the live view, or None (neither)."""
-    if opts.log_dir is None and opts.live_view is None:
-        return None
-    try:
-        files = logdir.reserve(opts.log_dir, opts.role, session) if opts.log_dir is not None else None
-        return McapLog(
-            files.mcap if files is not None else None,
-            opts.role,
-            wall_clock_of(t_common_ns),
-            live_port=opts.live_view,
-            live_host=opts.live_view_host,
-            process=writer,
-            file_id=(files.dev, files.ino) if files is not None else None,
-        )
-    except (OSError, RuntimeError, ValueError) as e:  # a folder others can write, the port is taken
-        raise SessionError(f"cannot open the log or the live view: {e}") from None
-
-
-def _make_port(
-    opts: EndpointOptions, tr: Transport, params: SessionParams, k0: int, keys: PortKeys, log: McapLog | None
-) -> Port:
-    """This side's port: its node, its outgoing shim (seeded as in ``teleop sim``), counters."""
-    node = make_node(
-        opts.role,
-        scenario=params.scenario,
-        dof=params.dof,
-        dt=params.dt,
-        b=params.b,
-        codec=params.codec,
-        full_scale=params.full_scale,
-        session=params.session,
-        options=params.port_options(),
-        device=opts.device,
-        seed=params.seed,
-        variation=params.variation,
-    )
-    if k0:
-        node.joined_late()
-    fwd, bwd = params.netem_forward, params.netem_backward
-    spec_tx, spec_rx = (fwd, bwd) if opts.role == "operator" else (bwd, fwd)
-    shim = make_shim(spec_tx, params.seed, node.tx_direction)
-    return Port(
-        node,
-        ticks=params.ticks,
-        shim=shim,
-        peer_spec=spec_rx,
-        header_bytes=tr.header_bytes,
-        first_tick=k0,
-        keys=keys,
-        playout_floor=REAL_PLAYOUT_FLOOR_TICKS,
-        sink=log if log is not None else _Discard(),
-        window_ticks=max(1, round(0.1 / params.dt)),
-    )
+        for log in runner._logs.values() if runner is not None else ():
+            if log is not None:
+                log.close()
 
 
 def run_endpoint(
@@ -788,10 +520,7 @@ def run_endpoint(
     loop, loop_name = new_event_loop(opts.use_uvloop)
     try:
         summary = loop.run_until_complete(_endpoint(opts, params, expect or {}))
-    except SessionError as e:
-        print(f"teleop {opts.role}: error: {e}", file=sys.stderr)
-        return 1
-    except DeviceError as e:  # this side's device cannot run the agreed session (more DoF than it drives)
+    except (SessionError, DeviceError) as e:  # DeviceError: this side's device cannot run the session
         print(f"teleop {opts.role}: error: {e}", file=sys.stderr)
         return 1
     except OSError as e:
@@ -799,7 +528,7 @@ def run_endpoint(
         return 1
     finally:
         loop.close()
-    if not opts.quiet:
+    if not opts.quiet and summary.get("loop"):
         lp = summary["loop"]
         pe = lp["period_error_us"]
         print(

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import os
+import socket
 import time
 from collections import deque
 
@@ -66,6 +68,31 @@ class _Protocol(asyncio.DatagramProtocol):
         self.owner.last_socket_error = f"{type(exc).__name__}: {exc}"
 
 
+SD_LISTEN_FDS_START = 3  # sd_listen_fds(3): the first socket systemd passes
+
+
+def inherited_socket() -> socket.socket | None:
+    """The datagram socket systemd bound for this process (socket activation), or None.
+
+    With ``deploy/systemd/teleop-teleoperator.socket`` the socket belongs to systemd and outlives the
+    process: across a crash and restart nobody else can bind the robot's port in between (a squatter
+    that did could relay the operator elsewhere), and the service needs no privilege to bind it."""
+    if os.environ.get("LISTEN_PID") != str(os.getpid()):
+        return None
+    n = os.environ.get("LISTEN_FDS", "0")
+    if n != "1":
+        why = f"socket activation passed {n} sockets; teleop takes exactly one (ListenDatagram=)"
+        raise OSError(errno.EINVAL, why)
+    sock = socket.socket(fileno=SD_LISTEN_FDS_START)
+    if sock.type != socket.SOCK_DGRAM:
+        sock.detach()
+        raise OSError(errno.EINVAL, "the socket systemd passed is not a datagram socket (ListenDatagram=)")
+    sock.setblocking(False)
+    for name in ("LISTEN_PID", "LISTEN_FDS", "LISTEN_FDNAMES"):  # not for our children
+        os.environ.pop(name, None)
+    return sock
+
+
 class UdpTransport:
     """A bound UDP socket: ``send(data, addr)``, ``drain() -> [(data, addr, t_rx_ns)]``.
 
@@ -89,7 +116,11 @@ class UdpTransport:
         self = cls(inbox_size)
         loop = asyncio.get_running_loop()
         try:
-            transport, _ = await loop.create_datagram_endpoint(lambda: _Protocol(self), local_addr=local)
+            sock = inherited_socket()
+            if sock is not None:  # socket activation: systemd bound it (``local`` is not used)
+                transport, _ = await loop.create_datagram_endpoint(lambda: _Protocol(self), sock=sock)
+            else:
+                transport, _ = await loop.create_datagram_endpoint(lambda: _Protocol(self), local_addr=local)
         except OSError as e:
             # uvloop wraps the reason (EADDRINUSE: "Address already in use") as the cause.
             root = e.__cause__ if isinstance(e.__cause__, OSError) else e

@@ -261,6 +261,20 @@ def add_model_args(p: argparse.ArgumentParser, scenario_default: str | None) -> 
     )
 
 
+def robot_name(flag: str) -> Callable[[str], str]:
+    """A robot's name (teleop.auth.check_robot_name): a bad one says what is allowed."""
+
+    def parse(text: str) -> str:
+        from ..auth import check_robot_name
+
+        try:
+            return check_robot_name(text)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(f"{flag}: {e}") from None
+
+    return parse
+
+
 def device_spec(role: str) -> Callable[[str], str]:
     """A ``--hsi``/``--robot`` spec, resolved now (teleop.devices): a bad one lists what is available."""
 
@@ -292,7 +306,7 @@ def add_device_args(p: argparse.ArgumentParser, roles: tuple[str, ...]) -> None:
             metavar="SPEC",
             help=f"{what[role]} (default: the scenario's model). Accepted: "
             f"{', '.join(b.usage for b in BUILTIN[role].values())}, a {ENTRY_POINT_GROUP} entry point, "
-            "or package.module:Class[:ARG] (see README, Devices)",
+            "or package.module:Class[:ARG] (see docs/guides/devices.md)",
         )
 
 
@@ -321,7 +335,7 @@ def add_netem_specs(p: argparse.ArgumentParser, teleoperator: bool = False) -> N
         type=netem_spec,
         metavar="SPEC",
         help=f'{what} both directions, netem grammar, e.g. "delay 50ms 5ms '
-        'loss 2%%" (see README); "trace FILE" for a Mahimahi-style trace',
+        'loss 2%%" (see docs/guides/netem.md); "trace FILE" for a Mahimahi-style trace',
     )
     p.add_argument(
         "--netem-forward",
@@ -450,7 +464,9 @@ def add_live_view_arg(p: argparse.ArgumentParser, help_text: str) -> None:
 
 def add_key_args(p: argparse.ArgumentParser, default: str) -> None:
     """--key-file FILE or --insecure (not both): the pre-shared key that authenticates every datagram."""
-    g = p.add_argument_group("authentication (every datagram carries a counter and a MAC tag; see README)")
+    g = p.add_argument_group(
+        "authentication (every datagram carries a counter and a MAC tag; see docs/guides/security.md)"
+    )
     k = g.add_mutually_exclusive_group()
     k.add_argument(
         "--key-file",
@@ -467,7 +483,7 @@ def add_key_args(p: argparse.ArgumentParser, default: str) -> None:
 
 def add_transport_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--transport", choices=["udp", "zenoh"], default="udp", help="udp (default) or zenoh")
-    z = p.add_argument_group("Zenoh (with --transport zenoh; see README)")
+    z = p.add_argument_group("Zenoh (with --transport zenoh; see docs/guides/zenoh.md)")
     z.add_argument(
         "--zenoh-mode",
         choices=["peer", "client"],

@@ -8,7 +8,11 @@ The router takes no key: it forwards opaque bytes, and the endpoints authenticat
 from __future__ import annotations
 
 import argparse
+import os
+from typing import Any
 
+from .. import auth
+from ..limits import MAX_B, MAX_RANGE
 from ..scenarios import SCENARIOS
 from .args import (
     CliError,
@@ -21,11 +25,17 @@ from .args import (
     add_passivity_args,
     add_session_args,
     add_transport_args,
+    positive_float,
+    robot_name,
     session_id,
     udp_addr,
     zenoh_config_file,
 )
 from .settings import check_duration, check_robot, endpoint_options, netem, session_params
+
+#: What a teleoperator affords by default: the largest range and impedance of a built-in scenario.
+DEFAULT_MAX_RANGE = max(sc.full_scale for sc in SCENARIOS.values())
+DEFAULT_MAX_B = max(sc.b for sc in SCENARIOS.values())
 
 
 def cmd_operator(args: argparse.Namespace) -> int:
@@ -40,8 +50,12 @@ def cmd_operator(args: argparse.Namespace) -> int:
 def cmd_teleoperator(args: argparse.Namespace) -> int:
     from transport.session import run_endpoint
 
-    if args.transport == "udp" and args.listen is None:
-        raise CliError("--listen HOST:PORT is required with --transport udp, for example 0.0.0.0:7000")
+    activated = os.environ.get("LISTEN_PID") == str(os.getpid())  # systemd passed the socket
+    if args.transport == "udp" and args.listen is None and not activated:
+        raise CliError(
+            "--listen HOST:PORT is required with --transport udp, for example 0.0.0.0:7000 "
+            "(or start it from a systemd socket unit: deploy/systemd/teleop-teleoperator.socket)"
+        )
     if args.duration is not None:
         # The DoF is the operator's unless given here (or by --scenario): then the widest bound, 1 DoF.
         dof = args.dof
@@ -60,7 +74,22 @@ def cmd_teleoperator(args: argparse.Namespace) -> int:
         **{f"netem_{d}": netem(args, d) or None for d in ("forward", "backward")},
     }
     opts = endpoint_options(args, "teleoperator", args.listen or ("127.0.0.1", 0))
+    opts.local_limits = local_limits(args)
     return run_endpoint(opts, None, expect)
+
+
+def local_limits(args: argparse.Namespace) -> Any:
+    """What this robot affords whatever an operator proposes: --max-range/--max-b (a pinned --range
+    or --b is its own limit), and --dof if given."""
+    from ..protocol import LocalLimits
+
+    max_range = args.max_range if args.max_range is not None else max(DEFAULT_MAX_RANGE, args.range or 0.0)
+    max_b = args.max_b if args.max_b is not None else max(DEFAULT_MAX_B, args.b or 0.0)
+    if args.range is not None and args.range > max_range:
+        raise CliError(f"--range {args.range:g} exceeds --max-range {max_range:g}")
+    if args.b is not None and args.b > max_b:
+        raise CliError(f"--b {args.b:g} exceeds --max-b {max_b:g}")
+    return LocalLimits(max_range=max_range, max_b=max_b)
 
 
 def cmd_router(args: argparse.Namespace) -> int:
@@ -106,6 +135,14 @@ def add_operator_parser(sub: Subcommands) -> None:
         help="local address to bind (default 0.0.0.0:0, any free port)",
     )
     o.add_argument("--session", type=session_id, default=0, help="session id (default: random)")
+    o.add_argument(
+        "--robot-name",
+        type=robot_name("--robot-name"),
+        default=auth.DEFAULT_ROBOT_NAME,
+        metavar="NAME",
+        help=f"the name of the robot to reach (its --name; default {auth.DEFAULT_ROBOT_NAME!r}): bound into "
+        "every key, so a robot of another name never answers, even with the same key",
+    )
     add_session_args(o, "eds:50", "protocol")
     add_device_args(o, ("hsi",))
     add_netem_args(o)
@@ -131,7 +168,31 @@ def add_teleoperator_parser(sub: Subcommands) -> None:
         metavar="HOST:PORT",
         help="UDP address to wait on, for example 0.0.0.0:7000 (required with --transport udp)",
     )
+    t.add_argument(
+        "--name",
+        type=robot_name("--name"),
+        default=auth.DEFAULT_ROBOT_NAME,
+        metavar="NAME",
+        help=f"this robot's name (default {auth.DEFAULT_ROBOT_NAME!r}); operators reach it with "
+        "--robot-name NAME. Give each robot its own",
+    )
     add_session_args(t, None, None)
+    t.add_argument(
+        "--max-range",
+        type=positive_float("max range", MAX_RANGE, "sqrt(W)"),
+        default=None,
+        metavar="R",
+        help="the largest wave range an operator may choose when --range is not given "
+        f"(default {DEFAULT_MAX_RANGE:g}, the built-in scenarios' largest)",
+    )
+    t.add_argument(
+        "--max-b",
+        type=positive_float("max b", MAX_B, "N s/m"),
+        default=None,
+        metavar="B",
+        help="the largest wave impedance an operator may choose when --b is not given "
+        f"(default {DEFAULT_MAX_B:g})",
+    )
     add_device_args(t, ("robot",))
     add_netem_specs(t, teleoperator=True)
     add_endpoint_args(t)

@@ -6,7 +6,7 @@ import argparse
 from collections.abc import Sequence
 
 from ..files import FileRefused
-from . import endpoints, experiment, keygen, report, run, sim, sweep
+from . import conformance, endpoints, experiment, keygen, report, run, sim, sweep
 from .args import CliError, Parser
 
 
@@ -22,6 +22,7 @@ def build_parser() -> argparse.ArgumentParser:
     endpoints.add_router_parser(sub)
     report.add_parser(sub)
     keygen.add_parser(sub)
+    conformance.add_parser(sub)
     return p
 
 

@@ -198,6 +198,7 @@ def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int
         insecure=insecure,
         device=getattr(args, "hsi" if role == "operator" else "robot", None),
         live_view=args.live_view,
+        robot_name=getattr(args, "robot_name" if role == "operator" else "name", "robot"),
     )
 
 

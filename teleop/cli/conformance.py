@@ -1,0 +1,82 @@
+"""``teleop conformance operator|teleoperator``: check another implementation against PROTOCOL.md.
+
+The suite (``transport.conformance``) plays the other side with this project's endpoint over UDP and
+prints one line per rule (PASS/FAIL/SKIP, section, MUST/SHOULD); the exit status is 1 when a MUST
+failed, 0 otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from .. import auth
+from .args import CliError, Subcommands, add_key_args, robot_name, udp_addr
+from .settings import endpoint_key
+
+
+def cmd_conformance(args: argparse.Namespace) -> int:
+    from transport.conformance import check_operator, check_teleoperator, write_json
+
+    psk, _ = endpoint_key(args)
+    if args.role == "teleoperator":
+        if args.peer is None:
+            raise CliError("--peer HOST:PORT is required: the teleoperator to check")
+        result = check_teleoperator(args.peer, psk, args.robot_name, args.codec, args.duration)
+    else:
+        listen = args.listen or ("127.0.0.1", 7000)
+        result = check_operator(listen, psk, args.robot_name, args.timeout)
+    print(result.text())
+    if args.json is not None:
+        write_json(result, Path(args.json))
+    return 1 if result.must_failed else 0
+
+
+def add_parser(sub: Subcommands) -> None:
+    c = sub.add_parser(
+        "conformance",
+        help="check another implementation's endpoint against PROTOCOL.md",
+        description="Check an operator or a teleoperator written from PROTOCOL.md, section by section "
+        "(the way h2spec checks HTTP/2): this command plays the other side over UDP with the project's own "
+        "endpoint, adds probes (garbage, a wrong key, a cookie from another address, a malformed hello, a "
+        "rejoin offer of the running session, a second operator), prints one line per rule and exits 1 when "
+        "a MUST failed.",
+    )
+    c.add_argument(
+        "role", choices=["operator", "teleoperator"], help="the role of the implementation to check"
+    )
+    c.add_argument(
+        "--peer", type=udp_addr("--peer"), default=None, metavar="HOST:PORT", help="the teleoperator to check"
+    )
+    c.add_argument(
+        "--listen",
+        type=udp_addr("--listen"),
+        default=None,
+        metavar="HOST:PORT",
+        help="where to wait for the operator to check (default 127.0.0.1:7000; point its --peer here)",
+    )
+    c.add_argument(
+        "--robot-name",
+        type=robot_name("--robot-name"),
+        default=auth.DEFAULT_ROBOT_NAME,
+        metavar="NAME",
+        help=f"the robot name both sides' keys derive from (default {auth.DEFAULT_ROBOT_NAME!r})",
+    )
+    c.add_argument(
+        "--codec", default="none", help="codec of the session proposed to a teleoperator (default none)"
+    )
+    c.add_argument(
+        "--duration",
+        type=float,
+        default=1.5,
+        help="seconds of the session run with a teleoperator (default 1.5)",
+    )
+    c.add_argument(
+        "--timeout",
+        type=float,
+        default=30.0,
+        help="seconds to wait for the operator to say hello (default 30)",
+    )
+    c.add_argument("--json", metavar="FILE", default=None, help="also write the results as JSON to FILE")
+    add_key_args(c, "required unless --insecure")
+    c.set_defaults(func=cmd_conformance)

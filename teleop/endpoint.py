@@ -1,0 +1,845 @@
+"""One side's whole session, sans I/O: handshake, start, ticks, rejoin, takeover, busy, bye, linger.
+
+An :class:`Endpoint` has aioquic's ``QuicConnection`` surface, the same for both roles::
+
+    ep.receive_datagram(data, addr, now_ns)      # every datagram, with its receive time
+    for data, addr in ep.datagrams_to_send(now_ns): sock.sendto(data, addr)
+    ep.get_timer()  /  ep.handle_timer(now_ns)   # when to come back even if nothing arrives
+    ep.tick(k, now_ns)                           # the 1 kHz tick, once the session runs
+    ep.next_event()                              # SessionStarted, PeerRestarted, Replaced, ...
+
+It never reads a clock, opens a socket or a file, or sleeps: ``now_ns`` is the caller's monotonic
+clock, so the same object runs live in ``transport.session`` and in virtual time in the tests
+(two endpoints joined by the seeded link model, with faults and an adversary).  Every protocol
+decision and constant of the session lives here; the runner only waits, drains, feeds and sends.
+
+**The session's life.** ``HANDSHAKE`` (``teleop.protocol``'s state machines: the operator's hellos,
+the teleoperator's cookie, welcome and start) -> ``STARTING`` (agreed; tick ``k0`` is due at
+``t0_ns``; a start resent because our started was lost is still answered) -> ``RUNNING`` ->
+``LINGER`` (the shim's last datagrams, ``bye``, packets still in flight counted) -> ``CLOSED``; or
+``FAILED`` with a :class:`Failure`.  A teleoperator whose operator was replaced goes from
+``RUNNING`` straight to ``STARTING`` of the new session (event :class:`Replaced`).
+
+**Rejoin** (operator, link lost): an offer (a hello of the running session, ``rejoin``) every
+:data:`REJOIN_OFFER_INTERVAL_NS`, so that a restarted teleoperator can take the session over.  A
+retry's cookie is taken and the offer resent at once; so is the next offer after each welcome,
+until :data:`REJOIN_SAMPLES` welcomes of one teleoperator nonce (or :data:`REJOIN_COLLECT_NS`).  The
+exchange with the smallest round trip places the start on the teleoperator's clock: its error is
+at most half that round trip (NTP: the one-way delays differ by at most the round trip), which
+PROTOCOL.md states as the rejoin's bound; slow answers are used, not refused.
+
+**Takeover** (teleoperator, link lost): handshake datagrams, and session datagrams that are not
+our operator's, go to a handshake of their own; the session is replaced only when that handshake
+completes, i.e. when a start proved the key and our fresh nonce.  Our own operator's rejoin offers
+(an outage both sides saw) are dropped and counted: this process did not restart.
+
+**Busy** (teleoperator, link up): another operator's hello gets a retry until it carries a valid
+cookie for its address, then ``reject`` "busy"; no reply is ever larger than what was received.
+"""
+
+from __future__ import annotations
+
+import enum
+import secrets
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass
+from typing import Any, TypeAlias
+
+from . import auth, protocol
+from .link import Addr
+from .port import Port, PortKeys
+from .protocol import SessionParams
+
+__all__ = [
+    "GRACE_RESUME_TICKS",
+    "JOIN_AHEAD_TICKS",
+    "REJOIN_COLLECT_NS",
+    "REJOIN_OFFER_INTERVAL_NS",
+    "REJOIN_SAMPLES",
+    "EndReason",
+    "Endpoint",
+    "Event",
+    "Failed",
+    "Failure",
+    "HelloRejected",
+    "LinkLost",
+    "LinkRestored",
+    "PeerBye",
+    "PeerRestarted",
+    "PortFactory",
+    "Replaced",
+    "SessionEnded",
+    "SessionStarted",
+    "State",
+]
+
+REJOIN_OFFER_INTERVAL_NS = 250_000_000  # operator, link lost: an offer this often
+REJOIN_SAMPLES = 4  # welcomes of one restarted teleoperator before the start is placed
+REJOIN_COLLECT_NS = 2_000_000_000  # or this long after the first of them
+START_RESEND_NS = 20_000_000  # a rejoin's start, until started (or the new peer's data) arrives
+START_RESENDS = 50
+JOIN_AHEAD_TICKS = 20  # a late joiner starts this many ticks ahead of now (it still has to set up)
+START_GUARD_NS = 2_000_000  # a start closer than this (or past) is joined late
+BYE_COPIES = 3
+LINGER_SHIM_GRACE_NS = 2_000_000_000  # how long after the linger the shim's backlog may still go out
+GRACE_STREAK = 3  # grace waits missed in a row before grace rests
+GRACE_RESUME_TICKS = 200  # ... for this many ticks (the link is late by ms, not us)
+EVENTS_KEPT = 1024  # a flood of rejected hellos cannot grow the event queue
+
+
+class State(enum.Enum):
+    HANDSHAKE = "handshake"
+    STARTING = "starting"
+    RUNNING = "running"
+    LINGER = "linger"
+    CLOSED = "closed"
+    FAILED = "failed"
+
+
+class Failure(enum.Enum):
+    """Why a session never started (the text of :class:`Failed` says the details)."""
+
+    NO_ANSWER = "no_answer"  # operator: no welcome within the timeout (absent robot, other key or name)
+    REJECTED = "rejected"  # operator: the teleoperator refused the session
+    START_UNCONFIRMED = "start_unconfirmed"  # operator: no started before tick 0
+    PEER_CLOCK = "peer_clock"  # operator: the peer's clock is out of range
+    NO_OPERATOR = "no_operator"  # teleoperator: no start within the timeout
+
+
+class EndReason(enum.Enum):
+    COMPLETED = "completed"  # the agreed ticks ran
+    STOPPED = "stopped"  # stopped locally (a signal)
+    PEER_BYE = "peer_bye"  # an open session whose peer said bye
+    REPLACED = "replaced"  # teleoperator: a new operator took the silent one's place
+
+
+@dataclass(frozen=True)
+class SessionStarted:
+    params: SessionParams
+    peer: Addr
+    start_ns: int  # the session's tick 0 on this clock
+    t0_ns: int  # when tick 0 is due on this clock (the teleoperator runs ``phase`` behind)
+    k0: int  # the first tick this process runs (> 0: it joined a running session)
+    joined_late: bool
+    offset_ns: int = 0  # operator: teleoperator's clock - ours, and the exchange's round trip
+    rtt_ns: int = 0
+
+
+@dataclass(frozen=True)
+class PeerRestarted:
+    """Operator: a restarted teleoperator took the session over (re-keyed, new energy epoch)."""
+
+    k: int
+    rtt_ns: int  # of the exchange that placed its start: the start's error is at most half this
+
+
+@dataclass(frozen=True)
+class Replaced:
+    old_session: int
+    new_session: int
+
+
+@dataclass(frozen=True)
+class PeerBye:
+    produced: int
+
+
+@dataclass(frozen=True)
+class LinkLost:
+    k: int
+
+
+@dataclass(frozen=True)
+class LinkRestored:
+    k: int
+
+
+@dataclass(frozen=True)
+class HelloRejected:
+    why: str
+
+
+@dataclass(frozen=True)
+class SessionEnded:
+    reason: EndReason
+    summary: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Failed:
+    reason: Failure
+    detail: str
+
+
+Event: TypeAlias = (
+    SessionStarted
+    | PeerRestarted
+    | Replaced
+    | PeerBye
+    | LinkLost
+    | LinkRestored
+    | HelloRejected
+    | SessionEnded
+    | Failed
+)
+#: Makes a session's port: (params, first tick, keys, tick 0 on this clock) -> Port.  The shell's
+#: factory adds its log sink and device; tests give one with an in-memory record.
+PortFactory: TypeAlias = Callable[[SessionParams, int, PortKeys, int], Port]
+
+
+def _addr(a: Addr) -> str:
+    return f"{a[0]}:{a[1]}"
+
+
+class Endpoint:
+    """One side of a session (see the module docstring).  Build it with :meth:`operator` or
+    :meth:`teleoperator`."""
+
+    def __init__(
+        self,
+        role: str,
+        make_port: PortFactory,
+        *,
+        now_ns: int,
+        psk: bytes,
+        connect_timeout_s: float = 10.0,
+        linger_s: float = 0.2,
+        grace_us: float = 400.0,
+        rng: Callable[[int], bytes] = secrets.token_bytes,
+    ) -> None:
+        if role not in ("operator", "teleoperator"):
+            raise ValueError(f"role must be operator or teleoperator, got {role!r}")
+        self.role = role
+        self._make_port = make_port
+        self.psk = psk
+        self.connect_timeout_s = connect_timeout_s
+        self.linger_ns = round(linger_s * 1e9)
+        self.grace_limit_ns = round(grace_us * 1e3)
+        self._rng = rng
+        self.state = State.HANDSHAKE
+        self._events: deque[Event] = deque(maxlen=EVENTS_KEPT)
+        self._out: list[tuple[bytes, Addr]] = []
+        self.port: Port | None = None
+        self.params: SessionParams | None = None
+        self.peer: Addr | None = None
+        self.start_ns = 0
+        self.t0_ns = 0
+        self.k0 = 0
+        self.k = 0  # the last tick run (or k0 before the first)
+        # The tick a datagram received now belongs to: the one about to run (what the playout
+        # buffer measures transit against; counting it against the last one run plays a tick early).
+        self._rx_k = 0
+        self._stopped = False
+        self._ended: EndReason | None = None
+        self.peer_bye: protocol.Bye | None = None
+        self.foreign = 0
+        self._handshake_info: dict[str, Any] = {}
+        self.peer_nonce: bytes | None = None  # operator: the teleoperator's, from the welcome it took
+        self.offset_ns = 0  # operator: the teleoperator's clock minus ours
+        self._link_lost = False
+        # operator
+        self._op_hs: protocol.OperatorHandshake | None = None
+        self._offers: deque[int] = deque(maxlen=16)  # t_ns of rejoin offers not yet answered
+        self._next_offer = 0
+        self._rj_cookie: bytes | None = None
+        self._rj_nonce: bytes | None = None
+        self._rj_samples: list[tuple[int, int]] = []  # (rtt, offset) of one teleoperator nonce
+        self._rj_first = 0
+        self._rj_start: bytes | None = None  # a rejoin's start, resent until confirmed
+        self._rj_resends = 0
+        self._rj_next = 0
+        self.rejoin_offers = self.rejoins = self.rejoin_retries = 0
+        # teleoperator
+        self._to_hs: protocol.TeleoperatorHandshake | None = None
+        self._takeover: protocol.TeleoperatorHandshake | None = None
+        self._expect: dict[str, Any] = {}
+        self._limits = protocol.LocalLimits()
+        self._cookie_secret = rng(32)
+        self._rejections_seen = 0
+        self.own_offers_ignored = 0
+        self.busy_rejects = 0
+        self.retries_sent = 0
+        self.replaced = False
+        # grace
+        self.grace = {"limit_us": grace_us, "waits": 0, "missed": 0, "waited_us_total": 0.0}
+        self._grace_streak = self._grace_resume = 0
+        # linger
+        self._linger_end = 0
+        self._bye_sent = False
+
+    # --- construction -----------------------------------------------------------------------
+    @classmethod
+    def operator(
+        cls, params: SessionParams, peer: Addr, make_port: PortFactory, *, now_ns: int, psk: bytes, **kw: Any
+    ) -> Endpoint:
+        """The operator's endpoint: it says hello to ``peer`` at once (``datagrams_to_send``)."""
+        ep = cls("operator", make_port, now_ns=now_ns, psk=psk, **kw)
+        ep.params, ep.peer = params, peer
+        ep._op_hs = protocol.OperatorHandshake(
+            params, now_ns=now_ns, timeout_s=ep.connect_timeout_s, psk=psk, nonce=ep._rng(auth.NONCE_BYTES)
+        )
+        return ep
+
+    @classmethod
+    def teleoperator(
+        cls,
+        expect: Mapping[str, object],
+        make_port: PortFactory,
+        *,
+        now_ns: int,
+        psk: bytes,
+        local_limits: protocol.LocalLimits | None = None,
+        **kw: Any,
+    ) -> Endpoint:
+        """The teleoperator's endpoint: it waits for an operator whose hello suits ``expect`` (fields
+        of :class:`SessionParams`; None: the operator's choice, within ``local_limits``)."""
+        ep = cls("teleoperator", make_port, now_ns=now_ns, psk=psk, **kw)
+        ep._expect = dict(expect)
+        ep._limits = local_limits or protocol.LocalLimits()
+        ep._to_hs = ep._new_to_handshake(now_ns)
+        return ep
+
+    def _new_to_handshake(self, now_ns: int) -> protocol.TeleoperatorHandshake:
+        return protocol.TeleoperatorHandshake(
+            self._expect,
+            now_ns=now_ns,
+            timeout_s=self.connect_timeout_s,
+            psk=self.psk,
+            nonce=self._rng(auth.NONCE_BYTES),
+            cookie_secret=self._cookie_secret,
+            local_limits=self._limits,
+            defer_t3=True,
+        )
+
+    # --- the surface ------------------------------------------------------------------------
+    def next_event(self) -> Event | None:
+        return self._events.popleft() if self._events else None
+
+    @property
+    def running(self) -> bool:
+        """Ticks are due (``STARTING`` or ``RUNNING``)."""
+        return self.state in (State.STARTING, State.RUNNING)
+
+    @property
+    def finished(self) -> bool:
+        return self.state in (State.CLOSED, State.FAILED)
+
+    def receive_datagram(self, data: bytes, addr: Addr, now_ns: int) -> None:
+        """A datagram from ``addr`` received at ``now_ns``.  Never raises: whatever it is, it is
+        taken, or counted and dropped."""
+        if self.state == State.HANDSHAKE:
+            if self._op_hs is not None:
+                if addr == self.peer:
+                    self._op_hs.receive(data, now_ns)
+                else:
+                    self.foreign += 1
+                self._check_operator_handshake(now_ns)
+            elif self._to_hs is not None:
+                self._out += self._to_hs.receive(data, addr, now_ns)
+                self._report_rejections(self._to_hs)
+                if self._to_hs.done:
+                    self._from_to_handshake(self._to_hs, now_ns)
+        elif self.state in (State.STARTING, State.RUNNING, State.LINGER):
+            self._session_datagram(data, addr, now_ns)
+
+    def datagrams_to_send(self, now_ns: int) -> list[tuple[bytes, Addr]]:
+        """What to send now (a welcome is stamped with ``now_ns`` as it leaves: NTP's t3)."""
+        if self.state == State.HANDSHAKE and self._op_hs is not None:
+            assert self.peer is not None
+            self._out += [(d, self.peer) for d in self._op_hs.poll(now_ns)]
+            self._check_operator_handshake(now_ns)
+        if self.role == "teleoperator":
+            for hs in (self._to_hs, self._takeover):
+                if hs is not None:
+                    self._out += hs.datagrams_to_send(now_ns)
+        if self.state == State.LINGER:
+            self._linger(now_ns)
+        out, self._out = self._out, []
+        return out
+
+    def get_timer(self) -> int | None:
+        """When :meth:`handle_timer` must be called next (ns on the caller's clock), None: never.
+        Ticks are not timers: :meth:`tick` is called at each tick's deadline."""
+        if self.state == State.HANDSHAKE:
+            hs = self._op_hs or self._to_hs
+            assert hs is not None
+            return hs.next_timer()
+        if self.state == State.RUNNING and self.role == "operator":
+            timers = [t for t in (self._rj_next if self._rj_start else None,) if t is not None]
+            if self._link_lost:
+                timers.append(self._next_offer)
+            return min(timers) if timers else None
+        if self.state == State.LINGER:
+            if not self._bye_sent:
+                due = self._shim_due_ns()
+                return min(due, self._linger_end + LINGER_SHIM_GRACE_NS) if due is not None else 0
+            return self._linger_end
+        return None
+
+    def handle_timer(self, now_ns: int) -> None:
+        if self.state == State.HANDSHAKE and self._to_hs is not None:
+            self._to_hs.poll(now_ns)
+            if self._to_hs.error is not None:
+                self._fail(Failure.NO_OPERATOR, self._to_hs.error)
+        elif self.state == State.HANDSHAKE:
+            self._check_operator_handshake(now_ns)  # datagrams_to_send polls it
+        elif self.state == State.RUNNING and self.role == "operator":
+            self._operator_timers(now_ns)
+        elif self.state == State.LINGER:
+            self._linger(now_ns)
+
+    def stop(self, now_ns: int) -> None:
+        """Stop locally (a signal): the session lingers and ends (:class:`SessionEnded`)."""
+        self._stopped = True
+        if self.state in (State.STARTING, State.RUNNING):
+            self._end(EndReason.STOPPED, now_ns)
+        elif self.state == State.HANDSHAKE:
+            self.state = State.CLOSED
+
+    # --- ticks --------------------------------------------------------------------------------
+    def session_time(self, now_ns: int) -> float:
+        """Seconds on the common session clock (tick 0 of the session is 0)."""
+        return (now_ns - self.start_ns) / 1e9
+
+    def tick(self, k: int, now_ns: int) -> None:
+        """Run tick ``k`` at ``now_ns``; its datagrams go out with :meth:`datagrams_to_send`.  A
+        ``k`` at or past the session's end (a stall skipped over it) ends the session instead."""
+        assert self.port is not None and self.params is not None and self.peer is not None
+        if not self.running:
+            return
+        if k >= self.params.ticks:
+            self._end(EndReason.COMPLETED, now_ns)
+            return
+        self.state = State.RUNNING
+        port, t = self.port, self.session_time(now_ns)
+        if self.role == "operator":
+            self._operator_timers(now_ns)
+        for data in port.tick(k, t):
+            self._out.append((data, self.peer))
+        # Stamped once the sample exists and before it leaves: the peer cannot play it earlier,
+        # so the true margin (teleop.report) never counts a sample as played before it was sent.
+        port.sent(k, t)
+        self.k, self._rx_k = k, k + 1
+        lost = port.node.link_lost
+        if lost != self._link_lost:
+            self._link_lost = lost
+            self._events.append(LinkLost(k) if lost else LinkRestored(k))
+            if lost:
+                self._next_offer = now_ns
+        if k + 1 >= self.params.ticks:
+            self._end(EndReason.COMPLETED, now_ns)
+        elif self.params.until_stopped and self.peer_bye is not None:
+            self._end(EndReason.PEER_BYE, now_ns)
+
+    def grace_until(self, k: int, deadline_ns: int) -> int | None:
+        """Grace: tick ``k``'s payload is due and not here yet; poll for it until the returned time
+        rather than play a gap (None: do not wait).  Report the outcome with :meth:`grace_result`."""
+        port = self.port
+        if port is None or not self.grace_limit_ns or k < self._grace_resume:
+            return None
+        if port.payload_ready(k) or not port.node.counters.accepted:
+            return None
+        self.grace["waits"] += 1
+        return deadline_ns + self.grace_limit_ns
+
+    def payload_ready(self, k: int) -> bool:
+        return self.port is not None and self.port.payload_ready(k)
+
+    def grace_result(self, k: int, waited_ns: int) -> None:
+        self.grace["waited_us_total"] += waited_ns / 1e3
+        if self.payload_ready(k):
+            self._grace_streak = 0
+            return
+        self.grace["missed"] += 1
+        self._grace_streak += 1
+        if self._grace_streak >= GRACE_STREAK:  # a delayed or jittery link: packets are ms late; rest
+            self._grace_resume = k + GRACE_RESUME_TICKS
+            self._grace_streak = 0
+
+    # --- handshake outcomes ------------------------------------------------------------------
+    def _check_operator_handshake(self, now_ns: int) -> None:
+        hs = self._op_hs
+        if hs is None or self.state != State.HANDSHAKE:
+            return
+        if hs.error is not None:
+            if hs.error.startswith("rejected"):
+                reason = Failure.REJECTED
+            elif "clock" in hs.error:
+                reason = Failure.PEER_CLOCK
+            elif hs.error.startswith("did not confirm"):
+                reason = Failure.START_UNCONFIRMED
+            else:
+                reason = Failure.NO_ANSWER
+            self._fail(reason, hs.error)
+        elif hs.done:
+            assert hs.tx_sealer is not None and hs.rx_opener is not None and self.params and self.peer
+            keys = PortKeys(hs.tx_sealer, hs.rx_opener, hs.hs_sealer, hs.hs_opener, self.psk, hs.nonce)
+            self._handshake_info = {"clock_offset_ns": hs.offset_ns, "handshake_rtt_us": hs.rtt_ns / 1e3}
+            self.peer_nonce, self.offset_ns = hs.peer_nonce, hs.offset_ns
+            self._begin(
+                self.params, self.peer, hs.start_ns, hs.start_ns, 0, False, keys, hs.offset_ns, hs.rtt_ns
+            )
+
+    def _from_to_handshake(self, hs: protocol.TeleoperatorHandshake, now_ns: int) -> None:
+        """A teleoperator handshake completed: run its session (late, if it already runs)."""
+        assert hs.done and hs.params is not None and hs.peer is not None
+        assert hs.tx_sealer is not None and hs.rx_opener is not None
+        keys = PortKeys(hs.tx_sealer, hs.rx_opener, hs.hs_sealer, hs.hs_opener, self.psk, hs.nonce)
+        p = hs.params
+        period = round(p.dt * 1e9)
+        t0 = hs.start_ns + round(p.phase * p.dt * 1e9)
+        late = hs.rejoin or now_ns > t0 - START_GUARD_NS
+        k0 = max(0, -(-(now_ns - t0) // period) + JOIN_AHEAD_TICKS) if late else 0
+        self._handshake_info = {"joined_late": late}
+        self._begin(p, hs.peer, hs.start_ns, t0, k0, late, keys)
+
+    def _begin(
+        self,
+        params: SessionParams,
+        peer: Addr,
+        start_ns: int,
+        t0_ns: int,
+        k0: int,
+        late: bool,
+        keys: PortKeys,
+        offset_ns: int = 0,
+        rtt_ns: int = 0,
+    ) -> None:
+        self.params, self.peer, self.start_ns, self.t0_ns, self.k0, self.k = (
+            params,
+            peer,
+            start_ns,
+            t0_ns,
+            k0,
+            k0,
+        )
+        self._rx_k = k0
+        self.port = self._make_port(params, k0, keys, start_ns)
+        if k0:
+            self.port.node.joined_late()
+        self.state = State.STARTING
+        self._link_lost = False
+        self._events.append(SessionStarted(params, peer, start_ns, t0_ns, k0, late, offset_ns, rtt_ns))
+
+    def _fail(self, reason: Failure, detail: str) -> None:
+        self.state = State.FAILED
+        self._events.append(Failed(reason, detail))
+
+    def _report_rejections(self, hs: protocol.TeleoperatorHandshake) -> None:
+        new = hs.rejected - self._rejections_seen
+        self._rejections_seen = hs.rejected
+        for why in list(hs.rejections)[-min(new, 3) :] if new > 0 else ():
+            self._events.append(HelloRejected(why))
+
+    # --- during the session -------------------------------------------------------------------
+    def _session_datagram(self, data: bytes, addr: Addr, now_ns: int) -> None:
+        port = self.port
+        assert port is not None
+        hdr = auth.peek(data)
+        if self._to_takeover(data, hdr, addr, now_ns):
+            return
+        if hdr is not None and hdr[0] == auth.HANDSHAKE:
+            self._handshake_datagram(data, addr, now_ns)
+            return
+        t = self.session_time(now_ns)
+        k = self.k if self.state == State.LINGER else self._rx_k
+        play = self.state != State.LINGER  # STARTING too: the peer's first payload may come first
+        if addr != self.peer:
+            port.receive(data, t, k, play, from_peer=False)  # counted as a rejection
+            self.foreign += 1
+            return
+        msg = port.receive(data, t, k, play)
+        if msg is not None:
+            self._control(msg, now_ns)
+
+    def _control(self, msg: protocol.Message, now_ns: int) -> None:
+        """An in-session control message from the peer (session key)."""
+        assert self.params is not None and self.port is not None
+        if getattr(msg, "session", None) != self.params.session:
+            return
+        if isinstance(msg, protocol.Start) and self.role == "teleoperator":
+            self._out.append((self.port.seal(protocol.Started(self.params.session)), self._peer()))
+        elif isinstance(msg, protocol.Started) and self._rj_start is not None:
+            self._rj_start = None  # the restarted teleoperator confirmed our rejoin's start
+        elif isinstance(msg, protocol.Bye) and self.peer_bye is None:
+            self.peer_bye = msg
+            self._events.append(PeerBye(msg.produced))
+
+    def _handshake_datagram(self, data: bytes, addr: Addr, now_ns: int) -> None:
+        """A handshake-key datagram mid-session: a rejoin's retry or welcome (operator), another
+        operator's hello or our own operator's rejoin offer (teleoperator)."""
+        port, params = self.port, self.params
+        assert port is not None and params is not None
+        body = port.open_handshake(data)
+        if body is None:
+            return
+        if self.role == "teleoperator":
+            seen = protocol.peek_hello(body)
+            if seen is None:
+                return
+            session, t_ns, nonce, cookie = seen
+            if session == params.session:
+                self.own_offers_ignored += 1  # our operator offering a rejoin: we did not restart
+                return
+            if type(nonce) is not bytes or len(nonce) != auth.NONCE_BYTES:
+                return
+            if not protocol.cookie_ok(self._cookie_secret, cookie, addr, nonce, now_ns):
+                self.retries_sent += 1
+                retry = protocol.Retry(
+                    session, t_ns, protocol.make_cookie(self._cookie_secret, addr, nonce, now_ns)
+                )
+                self._out.append((port.seal(retry), addr))
+                return
+            self.busy_rejects += 1
+            self._out.append((port.seal(protocol.Reject(session, protocol.BUSY, t_ns)), addr))
+            return
+        if addr != self.peer:
+            self.foreign += 1
+            return
+        msg = port.control(body)
+        if isinstance(msg, protocol.Retry) and msg.session == params.session and msg.t_ns in self._offers:
+            self._offers.remove(msg.t_ns)
+            self._rj_cookie = msg.cookie
+            self.rejoin_retries += 1
+            self._next_offer = now_ns  # offer again at once, with the cookie
+            self._operator_timers(now_ns)
+        elif isinstance(msg, protocol.Welcome) and msg.session == params.session and msg.t_ns in self._offers:
+            self._offers.remove(msg.t_ns)
+            self._rejoin_sample(msg, now_ns)
+
+    def _peer(self) -> Addr:
+        assert self.peer is not None
+        return self.peer
+
+    # --- operator: rejoin a restarted teleoperator ----------------------------------------------
+    def _operator_timers(self, now_ns: int) -> None:
+        port, params = self.port, self.params
+        assert port is not None and params is not None
+        if self._rj_start is not None and now_ns >= self._rj_next:
+            if self._rj_resends >= START_RESENDS:
+                self._rj_start = None
+            else:
+                self._out.append((self._rj_start, self._peer()))
+                self._rj_resends += 1
+                self._rj_next = now_ns + START_RESEND_NS
+        if not port.node.link_lost or now_ns < self._next_offer:
+            return
+        self._next_offer = now_ns + REJOIN_OFFER_INTERVAL_NS
+        self._offers.append(now_ns)
+        hello = protocol.Hello(
+            params, t_ns=now_ns, rejoin=True, nonce=port.keys.nonce, cookie=self._rj_cookie
+        )
+        self._out.append((port.seal(hello), self._peer()))
+        self.rejoin_offers += 1
+
+    def _rejoin_sample(self, m: protocol.Welcome, t4: int) -> None:
+        """A restarted teleoperator welcomed an offer: one NTP exchange; with enough, the start."""
+        port, params = self.port, self.params
+        assert port is not None and params is not None
+        t1 = m.t_ns
+        offset, rtt = protocol.ntp_offset(t1, m.t2, m.t3, t4)
+        if rtt < 0:
+            return
+        if m.nonce != self._rj_nonce:  # another (newer) teleoperator process: start over
+            self._rj_nonce, self._rj_samples, self._rj_first = m.nonce, [], t4
+        self._rj_samples.append((rtt, offset))
+        if len(self._rj_samples) < REJOIN_SAMPLES and t4 - self._rj_first < REJOIN_COLLECT_NS:
+            self._next_offer = t4  # the next offer at once: the handshake's cadence
+            self._operator_timers(t4)
+            return
+        rtt, offset = min(self._rj_samples)
+        port.peer_restarted(m.nonce)  # its new nonce keys the rest of the session
+        start = protocol.Start(params.session, start_ns=self.start_ns + offset, rejoin=True)
+        self._rj_start, self._rj_resends, self._rj_next = port.seal(start), 0, t4
+        self._rj_nonce, self._rj_samples = None, []
+        self._offers.clear()
+        self.rejoins += 1
+        self._events.append(PeerRestarted(self.k, rtt))
+        self._operator_timers(t4)
+
+    # --- teleoperator: takeover by a new operator --------------------------------------------
+    def _to_takeover(self, data: bytes, hdr: tuple[int, int, int] | None, addr: Addr, now_ns: int) -> bool:
+        """Teleoperator whose operator went silent: handshake datagrams, and session datagrams that
+        are not our peer's, go to a handshake of their own.  Returns whether ``data`` was taken."""
+        port, params = self.port, self.params
+        assert port is not None and params is not None
+        if self.role != "teleoperator" or self.state != State.RUNNING or not port.node.link_lost:
+            self._takeover = None
+            return False
+        if hdr is None or (hdr[0] == auth.SESSION and port.verifies(data)):
+            return False
+        if hdr[0] == auth.HANDSHAKE and addr == self.peer and self._own_offer(data):
+            self.own_offers_ignored += 1
+            return True
+        hs = self._takeover
+        if hs is not None:
+            hs.poll(now_ns)
+        if hs is None or hs.error is not None:
+            if hdr[0] != auth.HANDSHAKE:
+                return False
+            hs = self._takeover = self._new_to_handshake(now_ns)
+        self._out += hs.receive(data, addr, now_ns)
+        if hs.done:
+            old = params.session
+            self.replaced = True
+            self._end(EndReason.REPLACED, now_ns)
+            self._takeover = None
+            self._out += hs.datagrams_to_send(now_ns)
+            self._reset_session_state()
+            self._from_to_handshake(hs, now_ns)
+            assert self.params is not None
+            self._events.append(Replaced(old, self.params.session))
+        return True
+
+    def _own_offer(self, data: bytes) -> bool:
+        """Whether ``data`` is an authentic hello of this very session (our operator's rejoin offer)."""
+        assert self.port is not None and self.params is not None
+        try:
+            body = self.port.keys.hs_rx.verify(data)[1]
+        except auth.AuthError:
+            return False
+        seen = protocol.peek_hello(body)
+        return seen is not None and seen[0] == self.params.session
+
+    def _reset_session_state(self) -> None:
+        self._stopped = False
+        self._ended = None
+        self.peer_bye = None
+        self.replaced = False
+        self.foreign = 0
+        self.own_offers_ignored = self.busy_rejects = self.retries_sent = 0
+        self.grace = {"limit_us": self.grace["limit_us"], "waits": 0, "missed": 0, "waited_us_total": 0.0}
+        self._grace_streak = self._grace_resume = 0
+        self._bye_sent = False
+
+    # --- the end ------------------------------------------------------------------------------
+    def _end(self, reason: EndReason, now_ns: int) -> None:
+        """The ticks are over: linger (unless replaced: its operator is gone), then close."""
+        self._ended = reason
+        if reason == EndReason.REPLACED:
+            self._close()
+            return
+        self.state = State.LINGER
+        self._linger_end = now_ns + self.linger_ns
+        self._bye_sent = False
+        self._linger(now_ns)
+
+    def _shim_due_ns(self) -> int | None:
+        assert self.port is not None
+        due = self.port.next_due()
+        return None if due is None else self.start_ns + round(due * 1e9)
+
+    def _linger(self, now_ns: int) -> None:
+        """Deliver what the shim still holds, say bye, and count what is still in flight, so that
+        sender and receiver counts can be compared; the bye tells the receiver how many packets
+        there were."""
+        port, params = self.port, self.params
+        assert port is not None and params is not None
+        if not self._bye_sent:
+            for data in port.flush(self.session_time(now_ns), max(port.rec.last, 0)):
+                self._out.append((data, self._peer()))
+            if port.next_due() is None or now_ns >= self._linger_end + LINGER_SHIM_GRACE_NS:
+                shim = port.shim_stats()
+                bye = protocol.Bye(params.session, port.produced(), shim["dropped_by_limit"] if shim else 0)
+                # Sealed one by one: each copy its own counter (a byte-identical copy is a replay).
+                self._out += [(port.seal(bye), self._peer()) for _ in range(BYE_COPIES)]
+                self._bye_sent = True
+        if self._bye_sent and now_ns >= self._linger_end:
+            self._close()
+
+    def _close(self) -> None:
+        assert self._ended is not None
+        summary = self.summary()
+        self.state = State.CLOSED
+        self._events.append(SessionEnded(self._ended, summary))
+
+    def summary(self) -> dict[str, Any]:
+        """This session's figures: the port's, and the session's around it (the runner adds the
+        loop's, the process's and the transport's)."""
+        port, params = self.port, self.params
+        assert port is not None and params is not None
+        bye = self.peer_bye
+        s = port.summary(
+            peer_produced=bye.produced if bye else None,
+            peer_dropped_by_limit=bye.dropped_by_limit if bye else 0,
+        )
+        s["received"]["foreign"] = self.foreign
+        shim = port.shim_stats()
+        spec_tx = params.netem_forward if self.role == "operator" else params.netem_backward
+        ended = self._ended
+        completed = ended == EndReason.COMPLETED or (
+            params.until_stopped and ended in (EndReason.STOPPED, EndReason.PEER_BYE)
+        )
+        return {
+            "role": self.role,
+            "peer": _addr(self._peer()),
+            "completed": bool(completed),
+            "end": ended.value if ended else None,
+            "peer_said_bye": bye is not None,
+            "first_tick": self.k0,
+            "replaced_by_new_session": ended == EndReason.REPLACED,
+            "rejoin": {
+                "offers": self.rejoin_offers,
+                "retries": self.rejoin_retries,
+                "rejoins": self.rejoins,
+                "own_offers_ignored": self.own_offers_ignored,
+            },
+            "busy_rejects": self.busy_rejects,
+            "retries_sent": self.retries_sent,
+            "shim": {"spec": spec_tx, **shim} if shim else None,
+            "grace": dict(self.grace),
+            "params": asdict(params),
+            **self._handshake_info,
+            **s,
+        }
+
+
+# A real loop and transport deliver a payload a fraction of a tick late now and then (a stalled
+# sender, the scheduler, Zenoh's threads): ``--playout auto`` keeps one tick of allowance for that.
+REAL_PLAYOUT_FLOOR_TICKS = 1
+
+
+def session_port(
+    role: str,
+    params: SessionParams,
+    k0: int,
+    keys: PortKeys,
+    *,
+    header_bytes: int,
+    sink: Any = None,
+    device: str | None = None,
+    playout_floor: int = REAL_PLAYOUT_FLOOR_TICKS,
+) -> Port:
+    """A session's port as a real process runs it: its node (``device`` or the scenario's), its
+    outgoing shim (seeded as in ``teleop sim``), its counters, and ``sink`` for the record."""
+    from .port import make_node, make_shim
+
+    node = make_node(
+        role,
+        scenario=params.scenario,
+        dof=params.dof,
+        dt=params.dt,
+        b=params.b,
+        codec=params.codec,
+        full_scale=params.full_scale,
+        session=params.session,
+        options=params.port_options(),
+        device=device,
+        seed=params.seed,
+        variation=params.variation,
+    )
+    fwd, bwd = params.netem_forward, params.netem_backward
+    spec_tx, spec_rx = (fwd, bwd) if role == "operator" else (bwd, fwd)
+    return Port(
+        node,
+        ticks=params.ticks,
+        shim=make_shim(spec_tx, params.seed, node.tx_direction),
+        peer_spec=spec_rx,
+        header_bytes=header_bytes,
+        first_tick=k0,
+        keys=keys,
+        playout_floor=playout_floor,
+        sink=sink,
+        window_ticks=max(1, round(0.1 / params.dt)),
+    )

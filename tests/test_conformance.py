@@ -1,0 +1,122 @@
+"""``teleop conformance`` against this project's endpoints (every rule passes) and against
+deliberately broken ones (tests/broken_peer.py: each break is caught by the rule it violates).
+
+Real processes over loopback UDP; each run is a few seconds.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from teleop import auth
+
+pytestmark = pytest.mark.integration
+TELEOP = [sys.executable, "-m", "teleop.cli"]
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture
+def key(tmp_path: Path) -> str:
+    path = tmp_path / "teleop.key"
+    auth.write_key_file(path, auth.generate_key())
+    return str(path)
+
+
+def _peer(brk: str | None, *args: str) -> subprocess.Popen[str]:
+    cmd = [sys.executable, "-m", "tests.broken_peer", brk, *args] if brk else [*TELEOP, *args]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _check_teleoperator(tmp_path: Path, key: str, brk: str | None) -> tuple[int, dict[str, object], str]:
+    port = _free_port()
+    to = _peer(brk, "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--quiet")
+    try:
+        time.sleep(1.0)
+        out = tmp_path / "conf.json"
+        r = subprocess.run(
+            [*TELEOP, "conformance", "teleoperator", "--peer", f"127.0.0.1:{port}", "--key-file", key,
+             "--json", str(out)],
+            capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+    finally:
+        to.kill()
+        to.wait()
+    return r.returncode, json.loads(out.read_text()), r.stdout
+
+
+def _check_operator(tmp_path: Path, key: str, brk: str | None) -> tuple[int, dict[str, object], str]:
+    port = _free_port()
+    out = tmp_path / "conf.json"
+    conf = subprocess.Popen(
+        [*TELEOP, "conformance", "operator", "--listen", f"127.0.0.1:{port}", "--key-file", key,
+         "--timeout", "20", "--json", str(out)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    time.sleep(1.0)
+    op = _peer(brk, "operator", "--key-file", key, "--peer", f"127.0.0.1:{port}", "--listen", "127.0.0.1:0",
+               "--codec", "eds:50", "--duration", "1.5", "--connect-timeout", "4", "--quiet")  # fmt: skip
+    try:
+        stdout, _ = conf.communicate(timeout=120)
+    finally:
+        op.kill()
+        op.wait()
+    return conf.returncode, json.loads(out.read_text()), stdout
+
+
+def _failed(result: dict[str, object]) -> list[str]:
+    checks = result["checks"]
+    assert isinstance(checks, list)
+    return [c["rule"] for c in checks if c["passed"] is False]
+
+
+def test_the_projects_teleoperator_conforms(tmp_path: Path, key: str) -> None:
+    rc, result, out = _check_teleoperator(tmp_path, key, None)
+    assert rc == 0 and not _failed(result), out
+    assert result["passed"] == len(result["checks"]) >= 18, out  # type: ignore[arg-type]
+    assert "0 failed" in out
+
+
+def test_the_projects_operator_conforms(tmp_path: Path, key: str) -> None:
+    rc, result, out = _check_operator(tmp_path, key, None)
+    assert rc == 0 and not _failed(result), out
+    assert result["passed"] == len(result["checks"]) >= 10, out  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    "brk,rule",
+    [
+        ("no-cookie", "a hello without a cookie gets a retry"),
+        ("answers-own-offers", "a running teleoperator answers a hello of its own session"),
+        ("no-bye", "bye is sent at the end"),
+        ("seq-from-5", "seq starts at 0"),
+    ],
+)
+def test_a_broken_teleoperator_is_caught(tmp_path: Path, key: str, brk: str, rule: str) -> None:
+    rc, result, out = _check_teleoperator(tmp_path, key, brk)
+    assert rc == 1, out
+    assert any(rule in f for f in _failed(result)), out
+
+
+@pytest.mark.parametrize(
+    "brk,rule",
+    [
+        ("ignores-retry", "after a retry it says hello again with the cookie"),
+        ("no-bye", "bye is sent at the end"),
+    ],
+)
+def test_a_broken_operator_is_caught(tmp_path: Path, key: str, brk: str, rule: str) -> None:
+    rc, result, out = _check_operator(tmp_path, key, brk)
+    assert rc == 1, out
+    assert any(rule in f for f in _failed(result)), out

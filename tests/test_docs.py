@@ -1,0 +1,176 @@
+"""The docs against their sources: every figure of a generated benchmark table equals the JSON value it
+came from, the generated experiment tables are what ``teleop experiment`` prints for the committed
+JSON, the CLI reference covers every option, and the README stays short and quotes the two
+quick-start commands exactly as ``.ci/run`` runs them."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import re
+import statistics
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from bench import tables
+from tools import docgen
+
+ROOT = Path(__file__).resolve().parent.parent
+README = ROOT / "README.md"
+CI = ROOT / ".ci" / "run"
+
+# A number as printed in a cell: not part of a word (codec names such as eds:50 are labels).
+NUMBER = re.compile(r"(?<!\w)(?<!\d\.)-?\d+(?:\.\d+)?(?:e[+-]?\d+)?")
+
+
+def _lookup(doc: Any, path: str) -> Any:
+    """The test's own reading of ``a.b[2].c`` (independent of bench.tables.resolve)."""
+    node = doc
+    for token in re.findall(r"[^.\[\]]+|\[\d+\]", path):
+        node = node[int(token[1:-1])] if token.startswith("[") else node[token]
+    return node
+
+
+def _combine(op: str, values: list[float]) -> float:
+    if op == "value":
+        assert len(values) == 1
+        return values[0]
+    if op == "sum":
+        return math.fsum(values)
+    if op == "median":
+        return float(statistics.median(values))
+    if op == "min":
+        return min(values)
+    if op == "max":
+        return max(values)
+    raise AssertionError(f"unknown op {op!r}")
+
+
+def _resolution(text: str) -> float:
+    """Half a unit of the last digit printed in ``text``: what rounding may have cost."""
+    mantissa, _, exp = text.lower().partition("e")
+    decimals = len(mantissa.split(".")[1]) if "." in mantissa else 0
+    return 0.5 * 10.0 ** (int(exp or 0) - decimals)
+
+
+def _rows(markdown: str) -> list[list[str]]:
+    lines = [ln for ln in markdown.splitlines() if ln.startswith("|")]
+    return [[c.strip() for c in ln.strip("|").split("|")] for ln in lines[2:]]  # past header and rule
+
+
+def _check(table: tables.Table, doc: Any) -> tuple[int, list[str]]:
+    """Read ``table``'s markdown back; return how many figures it has and those that are not the
+    JSON's value (recomputed here from the paths each figure names)."""
+    printed = _rows(table.markdown())
+    assert len(printed) == len(table.rows) and printed, table.name
+    figures, wrong = 0, []
+    for row_text, row in zip(printed, table.rows, strict=True):
+        assert len(row_text) == len(row) == len(table.header)
+        for cell_text, cell in zip(row_text, row, strict=True):
+            if isinstance(cell, str):
+                assert cell_text == cell
+                continue
+            _, figs = cell
+            numbers = NUMBER.findall(cell_text)
+            assert len(numbers) == len(figs), f"{table.name}: {cell_text!r}"
+            for text, fig in zip(numbers, figs, strict=True):
+                values = [float(_lookup(doc, p)) for p in fig.paths]
+                expected = _combine(fig.op, values) * fig.scale
+                figures += 1
+                if not abs(float(text) - expected) <= _resolution(text) * (1 + 1e-9):
+                    source = f"{fig.op}({', '.join(fig.paths)}) x {fig.scale}"
+                    wrong.append(f"printed {text} for {source} = {expected}")
+    return figures, wrong
+
+
+@pytest.mark.parametrize("name", sorted(tables.TABLES))
+def test_every_table_figure_is_its_json_value(name: str) -> None:
+    table = tables.TABLES[name]()
+    doc = json.loads((tables.RESULTS / table.source).read_text())
+    figures, wrong = _check(table, doc)
+    assert figures > 0
+    assert not wrong, f"{name}: {wrong}"
+
+
+def test_a_figure_that_is_not_the_json_value_is_caught() -> None:
+    """The check fails on a table whose figure does not match its JSON path."""
+    table = tables.sweep()
+    doc = json.loads((tables.RESULTS / table.source).read_text())
+    first = table.rows[0]
+    cell = first[1]
+    assert not isinstance(cell, str)
+    template, figs = cell
+    off = dataclasses.replace(figs[0], value=figs[0].value * 1.01)
+    tampered_row = (first[0], (template, (off, *figs[1:])), *first[2:])
+    tampered = dataclasses.replace(table, rows=(tampered_row, *table.rows[1:]))
+    _, wrong = _check(tampered, doc)
+    assert len(wrong) == 1
+
+
+def test_the_sweep_table_has_every_case() -> None:
+    doc = json.loads((tables.RESULTS / "sweep" / "sweep.json").read_text())
+    rows = _rows(tables.sweep().markdown())
+    assert sorted(r[0].strip("`") for r in rows) == sorted(c["codec"] for c in doc["cases"])
+
+
+def test_experiment_tables_are_what_teleop_experiment_prints() -> None:
+    from teleop.experiment import format_paired, format_table
+
+    for folder in docgen.EXPERIMENTS:
+        doc = json.loads((ROOT / "docs" / "experiment" / folder / "experiment.json").read_text())
+        snippet = docgen.experiment_snippet(folder)
+        assert format_table(doc) in snippet
+        assert format_paired(doc) in snippet
+
+
+def test_cli_reference_lists_every_command_and_option() -> None:
+    import argparse
+
+    from teleop.cli.parser import build_parser
+
+    text = docgen.cli_reference()
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    for name, parser in sub.choices.items():
+        assert f"## `teleop {name}`" in text
+        for action in parser._actions:
+            if action.help != argparse.SUPPRESS:
+                for opt in action.option_strings:
+                    assert f"`{opt}`" in text, f"teleop {name} {opt}"
+
+
+def test_generated_snippets_cover_every_include(tmp_path: Path) -> None:
+    """Every ``--8<-- "NAME"`` in a page is a file the generator writes (or PROTOCOL.md)."""
+    written = {p.name for p in docgen.write_all(tmp_path)}
+    for page in (ROOT / "docs").rglob("*.md"):
+        if "_generated" in page.parts:
+            continue
+        for name in re.findall(r'^--8<-- "([^"]+)"', page.read_text(), flags=re.M):
+            assert name in written or (ROOT / name).is_file(), f"{page}: {name}"
+
+
+def _quick_start_commands(text: str) -> list[str]:
+    return [ln.strip() for ln in text.splitlines() if ln.strip().startswith("python3 -m venv .venv")]
+
+
+def test_readme_is_short_and_quotes_ci_commands() -> None:
+    readme = README.read_text()
+    assert len(readme.splitlines()) <= 200
+    ci = _quick_start_commands(CI.read_text())
+    ours = _quick_start_commands(readme)
+    assert ci, ".ci/run lost its copy of the README's test command"
+    assert len(ours) == 2
+    # The first runs the main job, the second the tests; .ci/run runs the second verbatim.
+    assert ours[1] in ci
+    assert ours[0].endswith(".venv/bin/teleop run")
+    assert ours[0].rsplit(" && ", 1)[0] == ours[1].rsplit(" && ", 1)[0]
+
+
+def test_readme_links_resolve() -> None:
+    readme = README.read_text()
+    for target in re.findall(r"\]\(([^)#]+)(?:#[^)]*)?\)", readme):
+        if "://" in target:
+            continue
+        assert (ROOT / target).exists(), target

@@ -1,0 +1,209 @@
+"""A virtual-time network for endpoints: seeded, deterministic, milliseconds of wall time a second.
+
+Hosts are :class:`teleop.endpoint.Endpoint`\\ s at addresses, each with its own clock (an offset from
+the network's), joined by links with a one-way delay per direction and seeded loss.  The loop jumps
+from one instant to the next: a datagram's arrival, an endpoint's timer, a tick's deadline.  An
+adversary sees every datagram (``tap``) and may drop, copy, redirect or inject; a host can be killed
+and another started at its address (a restart), and the link can go dark for a while (an outage).
+"""
+
+from __future__ import annotations
+
+import heapq
+import random
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from teleop import auth
+from teleop.endpoint import Endpoint, Event, SessionStarted, session_port
+from teleop.link import Addr
+from teleop.port import Port, PortKeys
+from teleop.protocol import LocalLimits, SessionParams
+
+PSK = bytes(range(32))
+OP, TO, TO_B, EVE = ("10.0.0.1", 5000), ("10.0.0.2", 7000), ("10.0.0.3", 7000), ("10.0.0.66", 6666)
+MS = 1_000_000
+
+#: An adversary: (now, src, dst, data) -> the datagrams to deliver instead, as (src, dst, data).
+Tap = Callable[[int, Addr, Addr, bytes], list[tuple[Addr, Addr, bytes]]]
+
+
+def params(session: int = 7, duration: float = 3.0, **kw: Any) -> SessionParams:
+    base: dict[str, Any] = {
+        "session": session,
+        "codec": "eds:50",
+        "scenario": "protocol",
+        "dof": 2,
+        "b": 20.0,
+        "full_scale": 2.0,
+        "duration": duration,
+        "playout": "auto",
+    }
+    return SessionParams(**{**base, **kw}).validate()
+
+
+def port_factory(role: str) -> Callable[[SessionParams, int, PortKeys, int], Port]:
+    def make(p: SessionParams, k0: int, keys: PortKeys, start_ns: int) -> Port:
+        return session_port(role, p, k0, keys, header_bytes=28, playout_floor=1)
+
+    return make
+
+
+@dataclass
+class Host:
+    addr: Addr
+    ep: Endpoint
+    offset_ns: int  # this host's clock minus the network's
+    events: list[Event] = field(default_factory=list)
+    next_k: int | None = None  # the next tick to run (None: no session running)
+    sent: int = 0
+
+    def clock(self, t: int) -> int:
+        return t + self.offset_ns
+
+    def started(self) -> list[SessionStarted]:
+        return [e for e in self.events if isinstance(e, SessionStarted)]
+
+    def of(self, kind: type) -> list[Any]:
+        return [e for e in self.events if isinstance(e, kind)]
+
+
+class VirtualNet:
+    def __init__(
+        self, one_way_ms: float | tuple[float, float] = 0.1, loss: float = 0.0, seed: int = 0
+    ) -> None:
+        fwd, bwd = one_way_ms if isinstance(one_way_ms, tuple) else (one_way_ms, one_way_ms)
+        self.delay_ns = {"fwd": round(fwd * MS), "bwd": round(bwd * MS)}
+        self.loss = loss
+        self.rng = random.Random(seed)
+        self.now = 0
+        self.hosts: dict[Addr, Host] = {}
+        self._q: list[tuple[int, int, Addr, Addr, bytes]] = []
+        self._seq = 0
+        self.dark: list[tuple[int, int]] = []  # outages: [start, end) of the network's time
+        self.tap: Tap | None = None
+        self.delivered = self.dropped = 0
+
+    def rand(self) -> Callable[[int], bytes]:
+        return self.rng.randbytes
+
+    # --- hosts --------------------------------------------------------------------------------
+    def operator(
+        self,
+        p: SessionParams,
+        *,
+        addr: Addr = OP,
+        peer: Addr = TO,
+        name: str = "robot",
+        offset_ns: int = 0,
+        **kw: Any,
+    ) -> Host:
+        ep = Endpoint.operator(
+            p,
+            peer,
+            port_factory("operator"),
+            now_ns=self.now + offset_ns,
+            psk=auth.robot_key(PSK, name),
+            rng=self.rand(),
+            **kw,
+        )
+        return self._add(addr, ep, offset_ns)
+
+    def teleoperator(
+        self,
+        *,
+        addr: Addr = TO,
+        name: str = "robot",
+        offset_ns: int = 5_000_000_000,
+        expect: dict[str, Any] | None = None,
+        limits: LocalLimits | None = None,
+        **kw: Any,
+    ) -> Host:
+        ep = Endpoint.teleoperator(
+            expect or {},
+            port_factory("teleoperator"),
+            now_ns=self.now + offset_ns,
+            psk=auth.robot_key(PSK, name),
+            local_limits=limits,
+            rng=self.rand(),
+            **kw,
+        )
+        return self._add(addr, ep, offset_ns)
+
+    def _add(self, addr: Addr, ep: Endpoint, offset_ns: int) -> Host:
+        h = self.hosts[addr] = Host(addr, ep, offset_ns)
+        self._flush(h)
+        return h
+
+    def kill(self, addr: Addr) -> Host:
+        """The process at ``addr`` dies: it sends nothing more, and what reaches it is lost."""
+        return self.hosts.pop(addr)
+
+    # --- datagrams ----------------------------------------------------------------------------
+    def inject(self, src: Addr, dst: Addr, data: bytes, delay_ns: int = 0) -> None:
+        self._seq += 1
+        heapq.heappush(self._q, (self.now + delay_ns, self._seq, src, dst, data))
+
+    def _send(self, src: Addr, dst: Addr, data: bytes) -> None:
+        out = [(src, dst, data)] if self.tap is None else self.tap(self.now, src, dst, data)
+        for s, d, b in out:
+            if any(a <= self.now < z for a, z in self.dark) or (self.loss and self.rng.random() < self.loss):
+                self.dropped += 1
+                continue
+            to_operator = (h := self.hosts.get(d)) is not None and h.ep.role == "operator"
+            self.inject(s, d, b, self.delay_ns["bwd" if to_operator else "fwd"])
+
+    def _flush(self, h: Host) -> None:
+        for data, dst in h.ep.datagrams_to_send(h.clock(self.now)):
+            h.sent += 1
+            self._send(h.addr, dst, data)
+        while (ev := h.ep.next_event()) is not None:
+            h.events.append(ev)
+            if isinstance(ev, SessionStarted):
+                h.next_k = ev.k0
+        if not h.ep.running:
+            h.next_k = None
+
+    # --- time ---------------------------------------------------------------------------------
+    def _deadline(self, h: Host) -> int | None:
+        """The network time of the host's next tick, or of its timer."""
+        times = []
+        if h.next_k is not None and h.ep.params is not None:
+            times.append(h.ep.t0_ns + h.next_k * round(h.ep.params.dt * 1e9) - h.offset_ns)
+        if (t := h.ep.get_timer()) is not None:
+            times.append(max(t - h.offset_ns, self.now))
+        return min(times) if times else None
+
+    def run(self, until_ns: int, stop: Callable[[], bool] | None = None) -> None:
+        """Advance the network's clock to ``until_ns`` (or until ``stop()``)."""
+        while self.now < until_ns and not (stop and stop()):
+            nxt = [t for h in self.hosts.values() if (t := self._deadline(h)) is not None]
+            if self._q:
+                nxt.append(self._q[0][0])
+            t = min([until_ns, *nxt])
+            self.now = max(self.now, t)
+            while self._q and self._q[0][0] <= self.now:
+                _, _, src, dst, data = heapq.heappop(self._q)
+                h = self.hosts.get(dst)
+                if h is None:
+                    self.dropped += 1
+                    continue
+                self.delivered += 1
+                h.ep.receive_datagram(data, src, h.clock(self.now))
+                self._flush(h)
+            for h in list(self.hosts.values()):
+                timer = h.ep.get_timer()
+                if timer is not None and h.clock(self.now) >= timer:
+                    h.ep.handle_timer(h.clock(self.now))
+                    self._flush(h)
+                if h.next_k is not None and h.ep.params is not None:
+                    due = h.ep.t0_ns + h.next_k * round(h.ep.params.dt * 1e9)
+                    if h.clock(self.now) >= due:
+                        k = h.next_k
+                        h.next_k += 1
+                        h.ep.tick(k, h.clock(self.now))
+                        self._flush(h)
+
+    def seconds(self, s: float, stop: Callable[[], bool] | None = None) -> None:
+        self.run(self.now + round(s * 1e9), stop)

@@ -1,0 +1,677 @@
+"""``teleop conformance``: checks another implementation's endpoint against PROTOCOL.md, section by
+section, the way h2spec checks HTTP/2 and the Autobahn suite WebSocket.
+
+It plays the other side with the project's own endpoint (``teleop.endpoint``, the reference) over
+UDP, records every datagram, and adds probes the reference never sends (garbage, a wrong key, a
+cookie from another address, a malformed hello, a rejoin offer of the running session, a second
+operator).  Each check names the rule it tests (section, MUST/SHOULD) and passes, fails, or is
+skipped with the reason; any failed MUST makes the exit status non-zero.  Only the address given is
+ever sent to.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import secrets
+import socket
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgpack
+
+from teleop import auth, protocol, wire
+from teleop.codecs import make_codec
+from teleop.endpoint import Endpoint, SessionEnded, SessionStarted, State, session_port
+from teleop.link import Addr
+from teleop.port import Port, PortKeys
+from teleop.protocol import SessionParams
+
+QUIET_S = 0.3  # how long "no answer" is waited for
+PROBE_TIMEOUT_S = 2.0
+
+
+@dataclass
+class Check:
+    section: str
+    rule: str
+    level: str  # MUST, MUST NOT, SHOULD
+    passed: bool | None = None  # None: not run (``detail`` says why)
+    detail: str = ""
+
+
+@dataclass
+class Result:
+    role: str  # the role of the implementation checked
+    peer: str
+    checks: list[Check] = field(default_factory=list)
+
+    def check(self, section: str, level: str, rule: str, ok: bool | None, detail: str = "") -> bool:
+        self.checks.append(Check(section, rule, level, ok, detail))
+        return bool(ok)
+
+    @property
+    def must_failed(self) -> list[Check]:
+        return [c for c in self.checks if c.level.startswith("MUST") and c.passed is False]
+
+    def as_dict(self) -> dict[str, Any]:
+        counts = {
+            "passed": sum(c.passed is True for c in self.checks),
+            "failed": sum(c.passed is False for c in self.checks),
+            "skipped": sum(c.passed is None for c in self.checks),
+        }
+        return {"role": self.role, "peer": self.peer, **counts, "checks": [asdict(c) for c in self.checks]}
+
+    def text(self) -> str:
+        lines = [f"teleop conformance {self.role} {self.peer}"]
+        for c in self.checks:
+            mark = {True: "PASS", False: "FAIL", None: "SKIP"}[c.passed]
+            lines.append(
+                f"  {mark}  §{c.section:<10} {c.level:<8} {c.rule}{f'  ({c.detail})' if c.detail else ''}"
+            )
+        d = self.as_dict()
+        lines.append(f"{d['passed']} passed, {d['failed']} failed, {d['skipped']} skipped")
+        return "\n".join(lines)
+
+
+def params_for(session: int, codec: str, duration: float) -> SessionParams:
+    """The session proposed to a teleoperator: 2 DoF, the protocol scenario, and a link timeout of 1 s
+    (a loaded host's stall must not put the peer into link loss, where a hello means a takeover and
+    the busy rule no longer applies)."""
+    return SessionParams(
+        session=session, codec=codec, scenario="protocol", dof=2, b=20.0, full_scale=2.0, duration=duration,
+        link_timeout=1.0,
+    ).validate()  # fmt: skip
+
+
+def _open(key: bytes, kind: int, direction: int, data: bytes) -> tuple[int, bytes] | None:
+    try:
+        return auth.Opener(key, kind, direction).verify(data)
+    except auth.AuthError:
+        return None
+
+
+def _parse(body: bytes) -> protocol.Message | None:
+    try:
+        return protocol.parse(body)
+    except protocol.ProtocolError:
+        return None
+
+
+class _Socket:
+    """A UDP socket with receive times (monotonic ns)."""
+
+    def __init__(self, bind: Addr = ("0.0.0.0", 0)) -> None:
+        self.s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.s.bind(bind)
+        self.s.setblocking(False)
+
+    @property
+    def addr(self) -> Addr:
+        host, port = self.s.getsockname()[:2]
+        return str(host), int(port)
+
+    def send(self, data: bytes, to: Addr) -> None:
+        self.s.sendto(data, to)
+
+    def recv_all(self) -> list[tuple[bytes, Addr, int]]:
+        out: list[tuple[bytes, Addr, int]] = []
+        while True:
+            try:
+                data, src = self.s.recvfrom(65536)
+            except BlockingIOError:
+                return out
+            out.append((data, (str(src[0]), int(src[1])), time.monotonic_ns()))
+
+    def wait_for(self, pred: Callable[[bytes], bool], timeout_s: float) -> tuple[bytes, int] | None:
+        """The first datagram satisfying ``pred`` within ``timeout_s`` (others are dropped)."""
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            for data, _, t in self.recv_all():
+                if pred(data):
+                    return data, t
+            time.sleep(0.0005)
+        return None
+
+    def close(self) -> None:
+        self.s.close()
+
+
+def _hello_bytes(
+    sealer: auth.Sealer,
+    params: SessionParams,
+    t_ns: int,
+    nonce: bytes,
+    cookie: bytes | None = None,
+    **raw: Any,
+) -> bytes:
+    """A sealed hello; ``raw`` overrides fields of the encoded map (to make it malformed on purpose)."""
+    m = msgpack.unpackb(protocol.encode(protocol.Hello(params, t_ns, nonce=nonce, cookie=cookie)), raw=False)
+    m.update(raw)
+    return sealer.seal(msgpack.packb(m, use_bin_type=True))
+
+
+class _Driver:
+    """Runs the reference endpoint in real time: feeds what ``sock`` receives (shown to ``tap``
+    first), fires its timer, runs its ticks when due (caught up every ~0.3 ms), sends, keeps events."""
+
+    def __init__(self, sock: _Socket, ep: Endpoint, tap: Callable[[bytes, int], None]) -> None:
+        self.sock, self.ep, self.tap = sock, ep, tap
+        self.next_k: int | None = None
+        self.events: list[Any] = []
+
+    def run(self, until: Callable[[], bool], timeout_s: float) -> None:
+        ep, sock = self.ep, self.sock
+        end = time.monotonic() + timeout_s
+        while not until() and time.monotonic() < end:
+            now = time.monotonic_ns()
+            for data, src, t in sock.recv_all():
+                self.tap(data, t)
+                ep.receive_datagram(data, src, t)
+            timer = ep.get_timer()
+            if timer is not None and time.monotonic_ns() >= timer:
+                ep.handle_timer(time.monotonic_ns())
+            while (ev := ep.next_event()) is not None:
+                self.events.append(ev)
+                if isinstance(ev, SessionStarted):
+                    self.next_k = ev.k0
+            if ep.running and self.next_k is not None and ep.params is not None:
+                period = round(ep.params.dt * 1e9)
+                while ep.running and time.monotonic_ns() >= ep.t0_ns + self.next_k * period:
+                    ep.tick(self.next_k, time.monotonic_ns())
+                    self.next_k += 1
+            for data, dst in ep.datagrams_to_send(time.monotonic_ns()):
+                sock.send(data, dst)
+            if time.monotonic_ns() - now < 300_000:
+                time.sleep(0.0003)
+        while (ev := ep.next_event()) is not None:
+            self.events.append(ev)
+
+
+def _factory(role: str) -> Callable[[SessionParams, int, PortKeys, int], Port]:
+    def make(p: SessionParams, k0: int, keys: PortKeys, start_ns: int) -> Port:
+        return session_port(role, p, k0, keys, header_bytes=28)
+
+    return make
+
+
+class _DataCheck:
+    """Every data datagram of the peer's direction: envelope, counters, body, seq, energy."""
+
+    def __init__(self, key: bytes, direction: int, session: int, codec_id: int) -> None:
+        self.key, self.direction, self.session, self.codec_id = key, direction, session, codec_id
+        self.packets = self.bad_envelope = self.bad_body = self.seq_gaps = 0
+        self.counter_reused = self.energy_bad = 0
+        self.last_counter = 0
+        self.first_seq: int | None = None
+        self.last_seq = -1
+        self.last_energy = 0.0
+        self.byes: list[tuple[int, protocol.Bye]] = []
+        self.starts = 0
+        self.started = 0
+        self.first_error = ""
+
+    def __call__(self, data: bytes, t: int) -> None:
+        hdr = auth.peek(data)
+        if hdr is None or hdr[0] != auth.SESSION:
+            return
+        opened = _open(self.key, auth.SESSION, self.direction, data)
+        if opened is None:
+            return  # another key (a probe's, the handshake's): not ours to judge here
+        counter, body = opened
+        if counter <= self.last_counter:
+            self.counter_reused += 1
+            self.first_error = self.first_error or f"counter {counter} after {self.last_counter}"
+        self.last_counter = max(self.last_counter, counter)
+        if body[:1] != b"\x9a":
+            msg = _parse(body)
+            if isinstance(msg, protocol.Bye):
+                self.byes.append((counter, msg))
+            elif isinstance(msg, protocol.Started):
+                self.started += 1
+            elif isinstance(msg, protocol.Start):
+                self.starts += 1
+            return
+        try:
+            pkt = wire.decode(body)
+        except wire.WireError as e:
+            self.bad_body += 1
+            self.first_error = self.first_error or f"body: {e}"
+            return
+        self.packets += 1
+        if pkt.session != self.session or pkt.direction != self.direction or pkt.codec_id != self.codec_id:
+            self.bad_body += 1
+            self.first_error = self.first_error or (
+                f"session {pkt.session}, direction {pkt.direction}, codec id {pkt.codec_id}"
+            )
+        if self.first_seq is None:
+            self.first_seq = pkt.seq
+        elif pkt.seq != self.last_seq + 1:
+            self.seq_gaps += 1
+        self.last_seq = pkt.seq
+        if not math.isfinite(pkt.energy) or pkt.energy < self.last_energy - 1e-12:
+            self.energy_bad += 1
+        self.last_energy = pkt.energy
+
+
+def _data_checks(r: Result, d: _DataCheck, codec: str, ticks: int) -> None:
+    r.check(
+        "3.1",
+        "MUST",
+        "every data body decodes with the session, direction and codec agreed",
+        d.packets > 0 and d.bad_body == 0,
+        f"{d.packets} packets, {d.bad_body} bad; {d.first_error}",
+    )
+    r.check(
+        "2.3",
+        "MUST",
+        "counters strictly increase per key and direction",
+        d.counter_reused == 0,
+        d.first_error if d.counter_reused else "",
+    )
+    r.check(
+        "3.1",
+        "MUST",
+        "seq starts at 0 and grows by one per packet",
+        d.first_seq == 0 and d.seq_gaps == 0,
+        f"first {d.first_seq}, gaps {d.seq_gaps}",
+    )
+    r.check("3.6", "MUST", "energy is finite and never decreases", d.energy_bad == 0, f"{d.energy_bad} bad")
+    if codec == "none":
+        r.check(
+            "3.5",
+            "SHOULD",
+            "codec none sends every tick (>= 90% arrive on loopback)",
+            d.packets >= 0.9 * ticks,
+            f"{d.packets} of {ticks}",
+        )
+    byes = d.byes
+    r.check(
+        "4.6",
+        "MUST",
+        "bye is sent at the end (up to 3 copies, each its own counter)",
+        bool(byes) and len({c for c, _ in byes}) == len(byes) <= 3,
+        f"{len(byes)} bye(s)",
+    )
+    if byes:
+        r.check(
+            "4.6",
+            "MUST",
+            "bye's produced counts at least the packets that arrived",
+            byes[0][1].produced >= d.packets,
+            f"produced {byes[0][1].produced}, arrived {d.packets}",
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# checking a teleoperator (we are the operator)
+# --------------------------------------------------------------------------------------------
+def check_teleoperator(
+    peer: Addr, psk: bytes, robot: str = auth.DEFAULT_ROBOT_NAME, codec: str = "none", duration: float = 1.5
+) -> Result:
+    """Check the teleoperator at ``peer`` (it must accept ``codec``, scenario protocol, 2 DoF)."""
+    r = Result("teleoperator", f"{peer[0]}:{peer[1]}")
+    k_r = auth.robot_key(psk, robot)
+    k_hs = auth.handshake_key(k_r)
+    sealer = auth.Sealer(k_hs, auth.HANDSHAKE, wire.FORWARD)
+    a, b = _Socket(), _Socket()
+    try:
+        _probe_envelope(r, a, peer, k_r)
+        cookie = _probe_cookie(r, a, b, peer, sealer, k_hs)
+        _probe_malformed(r, a, peer, sealer, k_hs, cookie)
+        _session_as_operator(r, a, b, peer, k_r, sealer, k_hs, codec, duration)
+    finally:
+        a.close()
+        b.close()
+    return r
+
+
+def _nonce(n: bytes | None) -> bytes:
+    assert n is not None
+    return n
+
+
+def _from_to(k_hs: bytes, data: bytes) -> protocol.Message | None:
+    opened = _open(k_hs, auth.HANDSHAKE, wire.BACKWARD, data)
+    return _parse(opened[1]) if opened else None
+
+
+def _probe_envelope(r: Result, a: _Socket, peer: Addr, k_r: bytes) -> None:
+    a.send(secrets.token_bytes(64), peer)
+    a.send(b"T\x10" + bytes(8) + secrets.token_bytes(40), peer)
+    got = a.wait_for(lambda d: True, QUIET_S)
+    r.check("2.1", "MUST NOT", "answer a datagram that is not an authentic envelope", got is None)
+    wrong = auth.Sealer(auth.handshake_key(auth.generate_key()), auth.HANDSHAKE, wire.FORWARD)
+    a.send(
+        _hello_bytes(wrong, params_for(1, "none", 1.0), time.monotonic_ns(), secrets.token_bytes(16)), peer
+    )
+    got = a.wait_for(lambda d: True, QUIET_S)
+    r.check("2.2", "MUST NOT", "answer a hello sealed under another key (or another robot's)", got is None)
+
+
+def _probe_cookie(
+    r: Result, a: _Socket, b: _Socket, peer: Addr, sealer: auth.Sealer, k_hs: bytes
+) -> bytes | None:
+    p = params_for(11, "none", 1.0)
+    nonce, t1 = secrets.token_bytes(16), time.monotonic_ns()
+    hello = _hello_bytes(sealer, p, t1, nonce)
+    a.send(hello, peer)
+    got = a.wait_for(lambda d: _from_to(k_hs, d) is not None, PROBE_TIMEOUT_S)
+    msg = _from_to(k_hs, got[0]) if got else None
+    ok = isinstance(msg, protocol.Retry) and msg.t_ns == t1 and msg.session == p.session
+    r.check(
+        "4.3 step 2",
+        "MUST",
+        "a hello without a cookie gets a retry echoing its session and t_ns",
+        ok,
+        f"got {type(msg).__name__ if msg else 'nothing'}",
+    )
+    if not isinstance(msg, protocol.Retry) or got is None:
+        return None
+    r.check(
+        "4.3 step 2",
+        "MUST",
+        "a retry is smaller than the hello it answers",
+        len(got[0]) < len(hello),
+        f"{len(got[0])} < {len(hello)} bytes",
+    )
+    t2 = time.monotonic_ns()
+    b.send(_hello_bytes(sealer, p, t2, nonce, msg.cookie), peer)
+    other = b.wait_for(lambda d: _from_to(k_hs, d) is not None, PROBE_TIMEOUT_S)
+    m2 = _from_to(k_hs, other[0]) if other else None
+    r.check(
+        "4.3 step 2",
+        "MUST NOT",
+        "welcome a cookie presented from another source address",
+        not isinstance(m2, protocol.Welcome),
+        f"got {type(m2).__name__ if m2 else 'nothing'}",
+    )
+    t3 = time.monotonic_ns()
+    a.send(_hello_bytes(sealer, p, t3, nonce, msg.cookie), peer)
+    got = a.wait_for(lambda d: isinstance(_from_to(k_hs, d), protocol.Welcome), PROBE_TIMEOUT_S)
+    w = _from_to(k_hs, got[0]) if got else None
+    ok = isinstance(w, protocol.Welcome) and w.t_ns == t3 and w.session == p.session and w.t3 >= w.t2
+    r.check(
+        "4.3 step 3",
+        "MUST",
+        "a hello with a valid cookie gets a welcome: t_ns echoed, t3 >= t2, a nonce",
+        ok,
+        f"got {type(w).__name__ if w else 'nothing'}",
+    )
+    return msg.cookie
+
+
+def _probe_malformed(
+    r: Result, a: _Socket, peer: Addr, sealer: auth.Sealer, k_hs: bytes, cookie: bytes | None
+) -> None:
+    """A hello that passes the cookie but has a bad field (dof 0) must get a reject, not silence."""
+    rule = "a malformed hello (dof 0) with a valid cookie gets a reject echoing its session and t_ns"
+    if cookie is None:
+        r.check("4.2", "MUST", rule, None, "the peer sent no retry to take a cookie from")
+        return
+    p = params_for(11, "none", 1.0)
+    nonce, t1 = secrets.token_bytes(16), time.monotonic_ns()
+    a.send(_hello_bytes(sealer, p, t1, nonce), peer)  # a cookie for this nonce first
+    got = a.wait_for(lambda d: isinstance(_from_to(k_hs, d), protocol.Retry), PROBE_TIMEOUT_S)
+    retry = _from_to(k_hs, got[0]) if got else None
+    if not isinstance(retry, protocol.Retry):
+        r.check("4.2", "MUST", rule, None, "no retry for the probe's nonce")
+        return
+    t1 = time.monotonic_ns()
+    a.send(_hello_bytes(sealer, p, t1, nonce, retry.cookie, dof=0), peer)
+    got = a.wait_for(lambda d: isinstance(_from_to(k_hs, d), protocol.Reject), PROBE_TIMEOUT_S)
+    rej = _from_to(k_hs, got[0]) if got else None
+    ok = isinstance(rej, protocol.Reject) and rej.t_ns == t1 and rej.session == p.session
+    r.check("4.2", "MUST", rule, ok, rej.why if isinstance(rej, protocol.Reject) else "no reject")
+
+
+def _session_as_operator(
+    r: Result,
+    a: _Socket,
+    b: _Socket,
+    peer: Addr,
+    k_r: bytes,
+    sealer: auth.Sealer,
+    k_hs: bytes,
+    codec: str,
+    duration: float,
+) -> None:
+    session = secrets.randbelow(2**32 - 2) + 1
+    p = params_for(session, codec, duration)
+    ep = Endpoint.operator(p, peer, _factory("operator"), now_ns=time.monotonic_ns(), psk=k_r)
+    data: _DataCheck | None = None
+
+    def tap(d: bytes, t: int) -> None:
+        if data is not None:
+            data(d, t)
+
+    drv = _Driver(a, ep, tap)
+    drv.run(lambda: ep.state in (State.RUNNING, State.FAILED, State.CLOSED), 15.0)
+    r.check(
+        "4.3",
+        "MUST",
+        "the reference operator's handshake completes (retry, welcome, start, started)",
+        ep.state == State.RUNNING,
+        ep.state.value,
+    )
+    if ep.state != State.RUNNING or ep.port is None:
+        return
+    _, bwd = auth.session_keys(k_r, session, ep.port.keys.nonce, _nonce(ep.peer_nonce))
+    data = _DataCheck(bwd, wire.BACKWARD, session, make_codec(codec, 2, 2.0).codec_id)
+    # A resent start (under the reference's own sealer: its counter goes on) gets another started.
+    a.send(ep.port.seal(protocol.Start(session, ep.start_ns + ep.offset_ns)), peer)
+    # A rejoin offer of the running session, from the operator's address: MUST NOT be answered (4.4).
+    offer = protocol.Hello(p, time.monotonic_ns(), rejoin=True, nonce=ep.port.keys.nonce)
+    a.send(ep.port.keys.hs_tx.seal(protocol.encode(offer)), peer)
+    answered_offer: list[protocol.Message] = []
+
+    def tap2(d: bytes, t: int) -> None:
+        tap(d, t)
+        m = _from_to(k_hs, d)
+        if m is not None:
+            answered_offer.append(m)
+
+    t_busy = time.monotonic() + 0.3
+    busy_done = [False]
+    busy: list[protocol.Message] = []
+
+    def until() -> bool:
+        if not busy_done[0] and time.monotonic() >= t_busy:
+            busy_done[0] = True
+            busy.extend(_probe_busy(b, peer, sealer, k_hs))
+        return ep.finished
+
+    drv.tap = tap2
+    drv.run(until, duration + 10.0)
+    events = drv.events
+    r.check(
+        "4.3 step 6",
+        "MUST",
+        "a resent start is answered with another started",
+        data.started >= 1,
+        f"{data.started} started",
+    )
+    r.check(
+        "4.4 step 2",
+        "MUST NOT",
+        "a running teleoperator answers a hello of its own session",
+        not answered_offer,
+        f"answered with {[m.kind for m in answered_offer]}",
+    )
+    ok = any(isinstance(m, protocol.Reject) and m.why == protocol.BUSY for m in busy)
+    r.check(
+        "4.5",
+        "MUST",
+        "another operator's hello (with its cookie) gets a reject 'busy'",
+        ok,
+        f"got {[m.kind for m in busy]}",
+    )
+    _data_checks(r, data, codec, p.ticks)
+    ended = [e for e in events if isinstance(e, SessionEnded)]
+    if ended:
+        pv = ended[0].summary["passivity"]
+        sec = ended[0].summary["security"]
+        r.check(
+            "3.6",
+            "MUST",
+            "the energy reported never exceeds what the wire can carry (no clamp)",
+            sec["energy_reports_clamped"] == 0,
+            f"{sec['energy_reports_clamped']} clamped",
+        )
+        r.check(
+            "5",
+            "MUST",
+            "what the operator played never exceeded the teleoperator's reports",
+            pv["min_margin"] >= -1e-9,
+            f"min margin {pv['min_margin']:.3g} J",
+        )
+
+
+def _probe_busy(b: _Socket, peer: Addr, sealer: auth.Sealer, k_hs: bytes) -> list[protocol.Message]:
+    p = params_for(99, "none", 1.0)
+    nonce, t1 = secrets.token_bytes(16), time.monotonic_ns()
+    b.send(_hello_bytes(sealer, p, t1, nonce), peer)
+    got = b.wait_for(lambda d: _from_to(k_hs, d) is not None, 0.5)
+    first = _from_to(k_hs, got[0]) if got else None
+    out = [first] if first is not None else []
+    if isinstance(first, protocol.Retry):
+        b.send(_hello_bytes(sealer, p, time.monotonic_ns(), nonce, first.cookie), peer)
+        got = b.wait_for(lambda d: _from_to(k_hs, d) is not None, 0.5)
+        if got and (m := _from_to(k_hs, got[0])) is not None:
+            out.append(m)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# checking an operator (we are the teleoperator)
+# --------------------------------------------------------------------------------------------
+def check_operator(
+    listen: Addr, psk: bytes, robot: str = auth.DEFAULT_ROBOT_NAME, timeout_s: float = 30.0
+) -> Result:
+    """Wait on ``listen`` for the operator to check, and play the teleoperator for its session."""
+    sock = _Socket(listen)
+    r = Result("operator", f"listening on {sock.addr[0]}:{sock.addr[1]}")
+    k_r = auth.robot_key(psk, robot)
+    k_hs = auth.handshake_key(k_r)
+    try:
+        got = sock.wait_for(lambda d: _open(k_hs, auth.HANDSHAKE, wire.FORWARD, d) is not None, timeout_s)
+        if got is None:
+            r.check(
+                "4.3 step 1",
+                "MUST",
+                "the operator says hello",
+                False,
+                f"nothing authentic in {timeout_s:g} s",
+            )
+            return r
+        # (the address is learnt from the next datagram: wait_for drops the source)
+        first = got[0]
+        opened = _open(k_hs, auth.HANDSHAKE, wire.FORWARD, first)
+        assert opened is not None
+        hello = _parse(opened[1])
+        r.check(
+            "4.2",
+            "MUST",
+            "its hello parses, with a 16-byte nonce and valid parameters",
+            isinstance(hello, protocol.Hello),
+            "" if isinstance(hello, protocol.Hello) else "did not parse",
+        )
+        r.check(
+            "2.1",
+            "MUST",
+            "the hello is sealed under K_hs with flags 0x10",
+            first[1] == 0x10,
+            f"0x{first[1]:02x}",
+        )
+        if not isinstance(hello, protocol.Hello):
+            return r
+        expect: dict[str, Any] = {}
+        ep = Endpoint.teleoperator(
+            expect, _factory("teleoperator"), now_ns=time.monotonic_ns(), psk=k_r, connect_timeout_s=timeout_s
+        )
+        hellos: list[tuple[protocol.Hello, int]] = []
+        peer_addr: list[Addr] = []
+        bogus_sent = [False]
+        data: list[_DataCheck] = []
+        starts: list[tuple[int, int]] = []
+
+        def tap(d: bytes, t: int) -> None:
+            o = _open(k_hs, auth.HANDSHAKE, wire.FORWARD, d)
+            if o is not None and isinstance(m := _parse(o[1]), protocol.Hello):
+                hellos.append((m, t))
+            if data:
+                data[0](d, t)
+
+        # Feed the first hello (no cookie yet: a retry goes back), then drive the reference.
+        end = time.monotonic() + timeout_s
+        while not hellos and time.monotonic() < end:
+            for d, src, t in sock.recv_all():
+                if _open(k_hs, auth.HANDSHAKE, wire.FORWARD, d) is not None:
+                    peer_addr.append(src)
+                    if not bogus_sent[0]:  # a stale reject (t_ns of no hello) must not end its handshake
+                        stale = protocol.Reject(hello.params.session, "stale", t_ns=1)
+                        sock.send(
+                            auth.Sealer(k_hs, auth.HANDSHAKE, wire.BACKWARD, 99).seal(protocol.encode(stale)),
+                            src,
+                        )
+                        bogus_sent[0] = True
+                tap(d, t)
+                ep.receive_datagram(d, src, t)
+            for d, dst in ep.datagrams_to_send(time.monotonic_ns()):
+                sock.send(d, dst)
+            time.sleep(0.0005)
+        t_retry = time.monotonic_ns()
+        drv = _Driver(sock, ep, tap)
+        drv.run(lambda: ep.state != State.HANDSHAKE, timeout_s)
+        with_cookie = [(h, t) for h, t in hellos if h.cookie is not None]
+        r.check(
+            "4.3 step 2",
+            "MUST",
+            "after a retry it says hello again with the cookie",
+            bool(with_cookie),
+            f"{len(hellos)} hellos, {len(with_cookie)} with the cookie",
+        )
+        if with_cookie:
+            lag_ms = (with_cookie[0][1] - t_retry) / 1e6
+            r.check(
+                "4.3 step 2",
+                "SHOULD",
+                "it says hello again at once after a retry (< 100 ms)",
+                lag_ms < 100.0,
+                f"{lag_ms:.1f} ms",
+            )
+        r.check(
+            "4.3",
+            "MUST NOT",
+            "end its handshake on a reject that echoes none of its hellos",
+            ep.state in (State.STARTING, State.RUNNING),
+            ep.state.value,
+        )
+        if not ep.running or ep.params is None or ep.port is None:
+            return r
+        p = ep.params
+        fwd, _ = auth.session_keys(k_r, p.session, hello.nonce, ep.port.keys.nonce)
+        data.append(
+            _DataCheck(fwd, wire.FORWARD, p.session, make_codec(p.codec, p.dof, p.full_scale).codec_id)
+        )
+        now = time.monotonic_ns()
+        r.check(
+            "4.3 step 5",
+            "MUST",
+            "the start's tick 0 lies within [now - 1 s, now + 10 s] on this clock",
+            now - 1_000_000_000 <= ep.start_ns <= now + 10_000_000_000,
+            f"{(ep.start_ns - now) / 1e6:+.1f} ms",
+        )
+        starts.append((ep.start_ns, now))
+        drv.run(lambda: ep.finished, p.span_s + 10.0)
+        _data_checks(r, data[0], p.codec, p.ticks)
+    finally:
+        sock.close()
+    return r
+
+
+def write_json(result: Result, path: Path) -> None:
+    path.write_text(json.dumps(result.as_dict(), indent=2) + "\n")
