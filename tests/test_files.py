@@ -196,3 +196,26 @@ def test_a_plot_is_never_written_through_a_symlink(tmp_path: Path) -> None:
     with pytest.raises(files.FileRefused, match="outputs are never overwritten"):
         plots.velocity_force(tmp_path / "signals.png", t, v, v, v, v, "x")
     assert victim.read_text() == "precious"
+
+
+def test_a_log_folder_the_stack_makes_is_private_whatever_the_umask(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Under umask 002 a plain mkdir makes a group-writable folder, which would then be refused."""
+    import transport.session
+
+    class Started(Exception):
+        pass
+
+    def trip(*args: object, **kwargs: object) -> int:
+        raise Started
+
+    monkeypatch.setattr(transport.session, "run_endpoint", trip)
+    logs = tmp_path / "new" / "logs"
+    old = os.umask(0o002)
+    try:
+        with pytest.raises(Started):
+            main(["operator", *PEER, "--insecure", "--log", str(logs)])
+    finally:
+        os.umask(old)
+    assert os.stat(logs).st_mode & 0o777 == 0o755

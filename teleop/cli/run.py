@@ -43,7 +43,7 @@ from .args import (
     int_range,
 )
 from .report import write_report
-from .settings import check_robot, read_key, session_params, writable_dir
+from .settings import check_robot, private_dir, read_key, session_params, writable_dir
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
 
@@ -291,7 +291,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     params = session_params(args, new_session_id())
     check_robot(args.robot, params.dof)
     out = writable_dir(Path(args.out), "--out")
-    logs = writable_dir(out / "logs", "--out")
+    logs = private_dir(out / "logs", "--out")
     # Logs of earlier runs stay: this run's files get names of their own (transport.logdir), and
     # the report pairs them by this session's id.
     with run_key(args) as key:

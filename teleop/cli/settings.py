@@ -63,6 +63,24 @@ def writable_dir(path: Path, option: str) -> Path:
     return path
 
 
+def private_dir(path: Path, option: str) -> Path:
+    """A log folder: made 0755 if missing (whatever the umask: a umask of 002 would make it
+    group-writable, and refused), refused if another user can write it (``teleop.files``), and
+    checked writable; CliError says why.  ``transport.logdir.reserve`` checks it again."""
+    from ..files import FileRefused, check_private_dir
+
+    try:
+        if not path.exists():
+            path.mkdir(parents=True, exist_ok=True)
+            path.chmod(0o755)
+        check_private_dir(path, option)
+    except FileRefused as e:
+        raise CliError(str(e)) from None
+    except OSError:
+        pass  # writable_dir says why, naming what is in the way
+    return writable_dir(path, option)
+
+
 def fresh_out(out: Path, names: list[str]) -> None:
     """CliError, before any work, if OUT already holds one of ``names``: outputs are never
     overwritten (``teleop.files.write_new`` would refuse them only once the work is done)."""
@@ -172,14 +190,7 @@ def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int
     """The EndpointOptions of one real process (``operator`` or ``teleoperator``)."""
     from transport.session import EndpointOptions
 
-    log_dir = writable_dir(Path(args.log), "--log") if args.log else None
-    if log_dir is not None:  # checked again when the log is made (transport.logdir.reserve)
-        from ..files import FileRefused, check_private_dir
-
-        try:
-            check_private_dir(log_dir, "--log")
-        except FileRefused as e:
-            raise CliError(str(e)) from None
+    log_dir = private_dir(Path(args.log), "--log") if args.log else None
     psk, insecure = endpoint_key(args)
     return EndpointOptions(
         role=role,
