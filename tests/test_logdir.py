@@ -415,3 +415,46 @@ def test_a_trace_run_is_reported_on_another_host_and_re_simulated_with_the_named
     rep = json.loads((tmp_path / "c" / "report.json").read_text())
     assert "sim_skipped" not in rep and rep["transparency"]["I_sim"] > 0
     _one_line(_report(logs, "--out", str(tmp_path / "d"), "--trace", "/dev/zero"), "a character device")
+
+
+@pytest.mark.integration
+def test_a_process_killed_mid_session_leaves_a_log_the_report_reads(tmp_path: Path) -> None:
+    """kill -9 of the operator: its writer sees its pipe close and finishes the file (no summary);
+    `teleop report` reports the session from the ticks and says the summary is missing."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    logs = tmp_path / "logs"
+    common = ["--insecure", "--no-rt", "--quiet", "--log", str(logs)]
+    to = subprocess.Popen([*TELEOP, "teleoperator", "--listen", f"127.0.0.1:{port}", *common])
+    try:
+        time.sleep(1.0)
+        op = subprocess.Popen(
+            [*TELEOP, "operator", "--peer", f"127.0.0.1:{port}", "--duration", "4", *common]
+        )
+        give_up = time.monotonic() + 30
+        while not (logs / "operator.mcap").exists() and time.monotonic() < give_up:
+            time.sleep(0.1)
+        time.sleep(2.5)
+        op.kill()
+        op.wait()
+        assert to.wait(timeout=30) == 0
+    finally:
+        if to.poll() is None:
+            to.kill()
+    give_up = time.monotonic() + 10  # the writer, in its own group, finishes the file
+    while time.monotonic() < give_up:
+        try:
+            if read_session(logs / "operator.mcap"):
+                break
+        except LogError:  # still being finished
+            pass
+        time.sleep(0.2)
+    assert read_summary(logs / "operator.mcap") == {} and not (logs / "operator.json").exists()
+    r = _report(logs, "--no-sim")
+    assert r.returncode == 0, r.stderr
+    assert "operator     SUMMARY MISSING" in r.stdout
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert rep["summary_missing"] == ["operator"] and rep["transparency"]["ticks_compared"] >= 1000
