@@ -169,7 +169,7 @@ def genuine(tmp_path_factory: pytest.TempPathFactory) -> Path:
         text=True,
         timeout=120,
     )
-    assert r.returncode == 0, r.stderr
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr
     return out / "logs"
 
 
