@@ -62,6 +62,7 @@ __all__ = [
     "Event",
     "Failed",
     "Failure",
+    "HandshakeLimiter",
     "HelloRejected",
     "LinkLost",
     "LinkRestored",
@@ -86,6 +87,44 @@ LINGER_SHIM_GRACE_NS = 2_000_000_000  # how long after the linger the shim's bac
 GRACE_STREAK = 3  # grace waits missed in a row before grace rests
 GRACE_RESUME_TICKS = 200  # ... for this many ticks (the link is late by ms, not us)
 EVENTS_KEPT = 1024  # a flood of rejected hellos cannot grow the event queue
+HANDSHAKE_RATE = 50.0  # handshake datagrams/s one source address may cost us (burst 20) ...
+HANDSHAKE_BURST = 20.0
+HANDSHAKE_RATE_ALL = 1000.0  # ... and all sources together (burst 200): bounds the loop's cost
+HANDSHAKE_BURST_ALL = 200.0
+LIMITER_SOURCES = 4096  # source addresses remembered (oldest forgotten first)
+
+
+class HandshakeLimiter:
+    """Token buckets on handshake work: per source address and for all sources together.
+
+    A handshake datagram costs a MAC check and maybe a parse and a reply; a genuine operator sends a
+    few a second.  Beyond these rates datagrams are dropped before any of that work (counted), so a
+    flood of recorded hellos or handshake-looking junk costs the 1 kHz loop a dictionary lookup each.
+    The running session's peer is never limited; a flood from spoofed addresses can still delay a
+    *new* operator's handshake (the global bucket), which is the price of keeping the robot's loop."""
+
+    def __init__(self) -> None:
+        self._per: dict[Addr, tuple[float, int]] = {}  # tokens, last refill (ns)
+        self._all = (HANDSHAKE_BURST_ALL, 0)
+        self.dropped = 0
+
+    @staticmethod
+    def _take(tokens: float, last: int, now_ns: int, rate: float, burst: float) -> tuple[float, bool]:
+        tokens = min(burst, tokens + max(0, now_ns - last) * rate / 1e9)
+        return (tokens - 1.0, True) if tokens >= 1.0 else (tokens, False)
+
+    def allow(self, addr: Addr, now_ns: int) -> bool:
+        tokens, last = self._per.pop(addr, (HANDSHAKE_BURST, now_ns))
+        tokens, ok = self._take(tokens, last, now_ns, HANDSHAKE_RATE, HANDSHAKE_BURST)
+        self._per[addr] = (tokens, now_ns)  # newest last
+        if len(self._per) > LIMITER_SOURCES:
+            del self._per[next(iter(self._per))]
+        if ok:
+            all_tokens, ok = self._take(*self._all, now_ns, HANDSHAKE_RATE_ALL, HANDSHAKE_BURST_ALL)
+            self._all = (all_tokens, now_ns)
+        if not ok:
+            self.dropped += 1
+        return ok
 
 
 class State(enum.Enum):
@@ -256,6 +295,7 @@ class Endpoint:
         self._expect: dict[str, Any] = {}
         self._limits = protocol.LocalLimits()
         self._cookie_secret = rng(32)
+        self._limiter = HandshakeLimiter()
         self._rejections_seen = 0
         self.own_offers_ignored = 0
         self.busy_rejects = 0
@@ -325,9 +365,17 @@ class Endpoint:
     def finished(self) -> bool:
         return self.state in (State.CLOSED, State.FAILED)
 
+    @property
+    def handshake_throttled(self) -> int:
+        """Handshake datagrams dropped over the per-source or global budget (HandshakeLimiter)."""
+        return self._limiter.dropped
+
     def receive_datagram(self, data: bytes, addr: Addr, now_ns: int) -> None:
         """A datagram from ``addr`` received at ``now_ns``.  Never raises: whatever it is, it is
         taken, or counted and dropped."""
+        hdr = auth.peek(data) if addr != self.peer else None
+        if hdr is not None and hdr[0] == auth.HANDSHAKE and not self._limiter.allow(addr, now_ns):
+            return  # over the handshake budget: dropped before the MAC (HandshakeLimiter)
         if self.state == State.HANDSHAKE:
             if self._op_hs is not None:
                 if addr == self.peer:
@@ -786,6 +834,7 @@ class Endpoint:
                 "own_offers_ignored": self.own_offers_ignored,
             },
             "busy_rejects": self.busy_rejects,
+            "handshake_throttled": self._limiter.dropped,
             "retries_sent": self.retries_sent,
             "shim": {"spec": spec_tx, **shim} if shim else None,
             "grace": dict(self.grace),

@@ -246,7 +246,8 @@ def test_recorded_hellos_replayed_from_elsewhere_cannot_crowd_out_a_start() -> N
     assert op.ep.state == to.ep.state == State.RUNNING
     hs = to.ep._to_hs
     assert hs is not None and not hs._candidates  # committed to the genuine operator; none from EVE
-    assert hs.retries_sent >= 100 and hs.welcomes < 20
+    # EVE's source got its burst of retries; the rest was dropped before any MAC check.
+    assert hs.retries_sent <= 25 and hs.welcomes < 20 and to.ep.handshake_throttled >= 1000
 
 
 def test_a_hello_without_a_cookie_leaves_no_state_and_gets_a_small_retry() -> None:
@@ -320,6 +321,23 @@ def test_timers_at_each_step() -> None:
     assert op.ep.state == State.STARTING and op.ep.get_timer() is None  # ticks are not timers
     net.seconds(2.0)
     assert op.ep.finished and op.ep.get_timer() is None
+
+
+def test_handshake_work_per_source_is_rate_limited() -> None:
+    """A source that sends hellos far faster than any operator gets its burst answered, then is
+    dropped before the MAC; the running session's own peer is never limited."""
+    net = VirtualNet(1.0)
+    to = net.teleoperator()
+    hs = protocol.OperatorHandshake(params(), now_ns=0, timeout_s=1.0, psk=auth.robot_key(PSK, "robot"))
+    hellos = [
+        hs.hs_sealer.seal(protocol.encode(protocol.Hello(params(), t, nonce=bytes(16))))
+        for t in range(1, 501)
+    ]
+    for i, h in enumerate(hellos):
+        net.inject(EVE, TO, h, delay_ns=i * 100_000)  # 10k/s for 50 ms
+    net.seconds(0.1)
+    assert to.ep._to_hs is not None and to.ep._to_hs.retries_sent <= 23  # a burst of 20, then 50/s for 50 ms
+    assert to.ep.handshake_throttled >= 470
 
 
 def test_a_flood_of_garbage_is_counted_and_the_session_completes() -> None:
