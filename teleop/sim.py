@@ -36,7 +36,7 @@ import numpy.typing as npt
 from teleop.link.netem import Link, make_link
 
 from . import devices, metrics, scenarios, wire
-from .codecs import Codec
+from .codecs import Codec, make_codec
 from .node import PortOptions
 from .port import ConstantDelayLink, MemorySink, Port, make_node, make_shim, wire_block
 
@@ -76,6 +76,7 @@ class SimConfig:
     hsi: str | None = None  # --hsi spec (teleop.devices); None: the scenario's human
     robot: str | None = None  # --robot spec; None: the scenario's environment
     variation: float = 0.0  # the human's seeded variation (teleop.models.ProtocolPlan); 0: scripted
+    passivity: str = "wave"  # "wave" (scattering, eq. 3-5) or "tdpa" (power variables + TDPA)
 
     def resolved(self) -> SimConfig:
         """A copy with every default filled in and every value checked (ValueError says what is wrong)."""
@@ -96,6 +97,8 @@ class SimConfig:
         if not c.dof or c.dof < 1:
             raise ValueError(f"dof must be >= 1, got {c.dof}")
         c.port_options()  # checks them
+        if c.passivity == "tdpa" and c.full_scale is not None:
+            make_codec(c.codec, c.dof, c.full_scale, power=True)  # CodecError: not on power variables
         scenarios.get(c.scenario).make(c.dof, c.dt, c.seed, c.variation)  # ModelError says what is wrong
         if not c.window_ms >= c.dt * 1e3:
             raise ValueError(f"window must be at least one tick ({c.dt * 1e3} ms), got {c.window_ms}")

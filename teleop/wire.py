@@ -44,6 +44,8 @@ VERSION = 1
 FORWARD = 0
 BACKWARD = 1
 DIRECTIONS = ("forward", "backward")
+#: Codec ids from here on carry a power variable (TDPA): ``POWER_CODEC_BASE + id`` of the codec.
+POWER_CODEC_BASE = 16
 _U32 = 0xFFFFFFFF
 _U64 = 0xFFFFFFFFFFFFFFFF
 

@@ -12,7 +12,9 @@ NET = "delay 20ms 5ms loss 5%"
 GOLDEN = [
     (SimConfig(codec="eds:50"), (0.03410502322645739, 0.0, 2.2244952090525403, 0.0687562466344082, 0.0, 100)),
     (
-        SimConfig(codec="pdp:1", scenario="protocol", duration=3.0, netem_forward=NET, netem_backward=NET, seed=3),
+        SimConfig(
+            codec="pdp:1", scenario="protocol", duration=3.0, netem_forward=NET, netem_backward=NET, seed=3
+        ),
         (0.18093126756632982, 0.0, 0.20538934909340048, 0.19865449683522865, 0.00176509444982821, 611),
     ),
     (

@@ -85,7 +85,7 @@ class DeadbandEncoder(Encoder):
         self._n = 0
         self._gain = 1.0
         self._undo: tuple[Array, Array, int, bool, float, float] | None = None
-        self.sends = {"band": 0, "heartbeat": 0, "budget": 0}
+        self.sends = {"band": 0, "heartbeat": 0, "budget": 0, "energy": 0}
         self.limited = 0  # sends whose value the budget cut down
 
     def _prediction(self) -> Array:
@@ -117,6 +117,8 @@ class DeadbandEncoder(Encoder):
             reason = "band"
         elif self._i >= self.heartbeat:
             reason = "heartbeat"
+        elif self.power:
+            reason = "energy" if self.urgent else ""
         elif self._e_played + e_pred > self._e_budget:
             reason = "budget"
         if not reason:
@@ -129,6 +131,8 @@ class DeadbandEncoder(Encoder):
         p = x
         self._gain = 1.0
         target = RESERVE_TICKS * float(np.dot(x, x))
+        if self.power:  # rules 2 and 3 are wave energy; on a power variable TDPA guards the channel
+            budget = target = float("inf")
         if budget < target:
             shrink = min(self.k * RESERVE_FRACTION, RESERVE_MAX_SHRINK)
             self._gain = 1.0 - shrink * (1.0 - budget / target)
