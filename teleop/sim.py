@@ -307,8 +307,54 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
         "security": {"forward": t["security"], "backward": o["security"]},
         # Each side's device (teleop.devices): its spec and, if it keeps one, its own port observer.
         "devices": {"hsi": o["device"], "robot": t["device"]},
+        "passivity_architecture": cfg.passivity,
     }
+    summary.update(_delay_and_distortion(cfg, tr, summary))
     return summary
+
+
+def _one_way_ticks(playout: dict[str, Any], link: dict[str, Any], dt: float) -> int:
+    """The one-way delay a direction's samples saw, in ticks: the playout buffer's median release
+    delay when it holds them, else the link's measured mean delay (None: nothing arrived, 0)."""
+    ms = playout["delay_ms"]["p50"] if playout["delay_ms"]["p50"] is not None else link["delay_ms"]["mean"]
+    return 0 if ms is None else round(ms / 1e3 / dt)
+
+
+def _delay_and_distortion(cfg: SimConfig, tr: Trace, summary: dict[str, Any]) -> dict[str, Any]:
+    """Figures next to eq. (7) that separate delay from distortion (issue 23): ``I_dc``, eq. (7)
+    with the measured one-way delays taken out (``teleop.metrics.delay_compensated``), the
+    position drift between HSI and TO, and the energy the passivity controllers dissipated."""
+    dt = cfg.dt
+    shift = {d: _one_way_ticks(summary["playout"][d], summary["link"][d], dt) for d in wire.DIRECTIONS}
+    pv = summary["passivity"]
+    out: dict[str, Any] = {
+        "I_dc": metrics.delay_compensated(
+            tr.v_hsi, tr.v_to, tr.f_hsi, tr.f_to, dt, shift["forward"], shift["backward"]
+        ),
+        "delay_compensation_ms": {d: shift[d] * dt * 1e3 for d in wire.DIRECTIONS},
+        "drift_m": metrics.position_drift(tr.v_hsi, tr.v_to, dt, shift["forward"]),
+        "energy_dissipated": {
+            "forward": pv["forward"]["energy_dissipated"],
+            "backward": pv["backward"]["energy_dissipated"],
+            "total": pv["forward"]["energy_dissipated"] + pv["backward"]["energy_dissipated"],
+        },
+    }
+    if cfg.passivity == "tdpa":
+        # TDPA's watchdog per direction (Artigas et al.'s observer): E_in at the sending port, E_out
+        # at the receiving one, as each counted them; the receiver's view of E_in is the report.
+        en = summary["energy"]
+        out["tdpa"] = {
+            d: {
+                "energy_in": en[d]["sent"],
+                "energy_out": en[d]["played"],
+                "min_margin": en[d]["min_margin"],
+                "controller_active_ticks": pv[d]["controller_active_ticks"],
+                "energy_dissipated": pv[d]["energy_dissipated"],
+                "violations_observed": pv[d]["violations"],
+            }
+            for d in wire.DIRECTIONS
+        }
+    return out
 
 
 def _phases(cfg: SimConfig) -> list[tuple[str, float, float]]:
