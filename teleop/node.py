@@ -428,11 +428,12 @@ class _TdpaPort(_Port):
         g = self.tdpa
         return g.allowed_power() if g.controller else float("inf")
 
-    def _book(self, power_in: float, dissipated: float, acted: bool) -> None:
-        """Book one tick's power into the network at this port; the observer's verdict on it."""
+    def _book(self, power_in: float, removed: float, acted: bool) -> None:
+        """Book one tick's power into the network at this port (``removed``: W the PC took away);
+        the observer's verdict on it."""
         g = self.tdpa
         violation = acted or -power_in * self.dt > g.margin + g.tolerance
-        g.account(power_in, dissipated, violation, acted)
+        g.account(power_in, removed, violation, acted)
         self.energy_sent = g.energy_in
 
     def _send_power(self, now: float, x: Array) -> wire.Packet | None:
@@ -460,10 +461,10 @@ class TdpaOperatorNode(_TdpaPort, OperatorNode):
         self.wave_in = f_r
         v0, y = self.human.affine(now)
         beta0 = self.hsi_damping * c
-        v, f, p, dissipated, acted = parallel_damper(v0, y, c * f_r, self._allowed(), beta0)
+        v, f, p, removed, acted = parallel_damper(v0, y, c * f_r, self._allowed(), beta0)
         self.human.advance(now, v, f)
         self.v, self.f = v, f
-        self._book(p, dissipated, acted)  # eq. (2): v_hsi . F_hsi enters the network here
+        self._book(p, removed, acted)  # eq. (2): v_hsi . F_hsi enters the network here
         return self._send_power(now, c * v)
 
 
@@ -491,10 +492,10 @@ class TdpaTeleoperatorNode(_TdpaPort, TeleoperatorNode):
         k, g = self.to_stiffness, self.to_damping + self.to_stiffness * self.dt
         ke = k * self.coupling_error
         f0, z = (g * f0 + z * ke) / (g + z), g * z / (g + z)
-        v_d, f, p, dissipated, acted = series_damper(c * v_r, f0, z, self._allowed())
+        v_d, f, p, removed, acted = series_damper(c * v_r, f0, z, self._allowed())
         v = v_d - (f - ke) / g
         self.coupling_error += (v_d - v) * self.dt
         self.environment.advance(now, v, f)
         self.v, self.f = v, f
-        self._book(-p, dissipated, acted)  # eq. (2): -v_to . F_to enters the network here
+        self._book(-p, removed, acted)  # eq. (2): -v_to . F_to enters the network here
         return self._send_power(now, c * f)

@@ -173,8 +173,9 @@ class TdpaGuard(EnergyGuard):
         """W the port may let out this tick without making ``E_obs`` negative (>= 0)."""
         return max(self.margin, 0.0) / self.dt
 
-    def account(self, power: float, dissipated: float, violation: bool, active: bool) -> None:
-        """Book one tick: ``power`` W into the network at this port (after the PC)."""
+    def account(self, power: float, removed: float, violation: bool, active: bool) -> None:
+        """Book one tick: ``power`` W into the network at this port (after the PC), ``removed`` W
+        the PC dissipated (the excess over the budget: ``energy_dissipated`` counts it, J)."""
         dt = self.dt
         if power > 0.0:
             self.energy_in += power * dt
@@ -185,7 +186,7 @@ class TdpaGuard(EnergyGuard):
             r.violations += 1
         if active:
             r.controller_active_ticks += 1
-            r.energy_dissipated += dissipated * dt
+            r.energy_dissipated += removed * dt
         m = self.margin
         if m < r.min_margin:
             r.min_margin = m
@@ -203,11 +204,12 @@ def series_damper(
 ) -> tuple[Array, Array, float, float, bool]:
     """The teleoperator's PC: ``v = v_cmd - alpha F`` with the environment ``F = f0 + Z v``.
 
-    Returns ``(v, F, power, dissipated, acted)`` with ``power = v . F <= allowed`` (W out of the network
-    into the robot, exactly ``allowed`` when the damper acts) and ``dissipated = alpha |F|^2``.
-    With one feedthrough ``Z >= 0`` for every DoF (every built-in environment) alpha is the positive
-    root of ``allowed (1 + Z a)^2 + a f0.Fc - v_cmd.Fc = 0``, ``Fc = f0 + Z v_cmd``; otherwise the
-    command is scaled (``v = s v_cmd``, a dissipative series element too: ``F . (v_cmd - v) >= 0``).
+    Returns ``(v, F, power, removed, acted)``: ``power = v . F <= allowed`` (W out of the network
+    into the robot; exactly ``allowed`` when the damper acts) and ``removed``, the excess power the
+    PC took away (what the tick would have let out without it, minus ``power``).  With one
+    feedthrough ``Z >= 0`` for every DoF (every built-in environment) alpha is the positive root of
+    ``allowed (1 + Z a)^2 + a f0.Fc - v_cmd.Fc = 0``, ``Fc = f0 + Z v_cmd``; otherwise the command
+    is scaled, ``v = s v_cmd`` with the largest ``s`` in [0, 1] that fits.
     """
     fc = f0 + z * v_cmd
     p = float(np.dot(v_cmd, fc))
@@ -217,16 +219,15 @@ def series_damper(
     if zs >= 0.0 and bool(np.all(z == zs)):
         alpha = _root(allowed * zs * zs, 2.0 * allowed * zs + float(np.dot(f0, fc)), allowed - p)
         if math.isinf(alpha):  # only with Z > 0 and nothing allowed: the robot yields, F = 0
-            v = -f0 / zs
-            return v, np.zeros_like(fc), 0.0, float(np.dot(v_cmd - v, fc)), True
+            return -f0 / zs, np.zeros_like(fc), 0.0, p, True
         d = 1.0 + zs * alpha
         f = fc / d
         v = (v_cmd - alpha * f0) / d
-        return v, f, float(np.dot(v, f)), alpha * float(np.dot(f, f)), True
-    s = _scale(float(np.dot(v_cmd, z * v_cmd)), float(np.dot(v_cmd, f0)), allowed)
-    v = s * v_cmd
-    f = f0 + z * v
-    return v, f, float(np.dot(v, f)), float(np.dot(v_cmd - v, f)), True
+    else:
+        v = _scale(float(np.dot(v_cmd, z * v_cmd)), float(np.dot(v_cmd, f0)), allowed) * v_cmd
+        f = f0 + z * v
+    out = float(np.dot(v, f))
+    return v, f, out, p - out, True
 
 
 def parallel_damper(
@@ -236,8 +237,8 @@ def parallel_damper(
 
     ``beta0`` is the HSI's own rendered damping (:data:`teleop.node.TDPA_HSI_DAMPING`): the work
     the human does against it enters the network like any other.  Returns
-    ``(v, F, power, dissipated, acted)`` with ``power = v . F >= -allowed`` (W into the network;
-    ``-allowed`` when the damper acts) and ``dissipated = (beta - beta0) |v|^2``.  With one
+    ``(v, F, power, removed, acted)``: ``power = v . F >= -allowed`` (W into the network;
+    ``-allowed`` when the damper acts) and ``removed``, the excess the PC took away.  With one
     feedthrough ``Y >= 0`` per DoF beta is the positive root of
     ``allowed Y^2 b^2 + (p Y + |u|^2 + 2 allowed Y) b + p + allowed = 0`` (``u = v0 - Y f_c``,
     ``p = u . f_c``), which exceeds ``beta0`` when the damper must act; otherwise the received
@@ -254,20 +255,20 @@ def parallel_damper(
         p = float(np.dot(u, f_c))
         beta = _root(allowed * ys * ys, p * ys + float(np.dot(u, u)) + 2.0 * allowed * ys, p + allowed)
         if math.isinf(beta):  # only with Y > 0 and nothing allowed: the hand is held, v = 0
-            f = v0 / ys
-            return np.zeros_like(u), f, 0.0, 0.0, True
+            return np.zeros_like(u), v0 / ys, 0.0, -p0, True
         v = u / (1.0 + ys * beta)
-        vv = float(np.dot(v, v))
-        return v, f_c + beta * v, float(np.dot(v, f_c)) + beta * vv, (beta - beta0) * vv, True
-    # v = A - B s, P(s) = v . (s f_c + beta0 v) >= -allowed: the largest s in [0, 1]
-    a_ = v0 / (1.0 + y * beta0)
-    b_ = y * f_c / (1.0 + y * beta0)
-    a = float(np.dot(b_, f_c)) - beta0 * float(np.dot(b_, b_))
-    b = -float(np.dot(a_, f_c)) + 2.0 * beta0 * float(np.dot(a_, b_))
-    s = _scale(a, b, allowed + beta0 * float(np.dot(a_, a_)))
-    v = a_ - b_ * s
-    f = s * f_c + beta0 * v
-    return v, f, float(np.dot(v, f)), float(np.dot(f_c - s * f_c, v)), True
+        f = f_c + beta * v
+    else:
+        # v = A - B s, P(s) = v . (s f_c + beta0 v) >= -allowed: the largest s in [0, 1]
+        a_ = v0 / (1.0 + y * beta0)
+        b_ = y * f_c / (1.0 + y * beta0)
+        a = float(np.dot(b_, f_c)) - beta0 * float(np.dot(b_, b_))
+        b = -float(np.dot(a_, f_c)) + 2.0 * beta0 * float(np.dot(a_, b_))
+        s = _scale(a, b, allowed + beta0 * float(np.dot(a_, a_)))
+        v = a_ - b_ * s
+        f = s * f_c + beta0 * v
+    into = float(np.dot(v, f))
+    return v, f, into, into - p0, True
 
 
 def _scale(a: float, b: float, c: float) -> float:
