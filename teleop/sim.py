@@ -333,6 +333,12 @@ def _delay_and_distortion(cfg: SimConfig, tr: Trace, summary: dict[str, Any]) ->
         ),
         "delay_compensation_ms": {d: shift[d] * dt * 1e3 for d in wire.DIRECTIONS},
         "drift_m": metrics.position_drift(tr.v_hsi, tr.v_to, dt, shift["forward"]),
+        # How hard the contact felt at each end (N, norm over DoF): eq. (7) compares the two ends
+        # only, so a soft wall rendered alike at both scores well; this shows it.
+        "peak_force_N": {
+            "hsi": float(np.sqrt((tr.f_hsi**2).sum(axis=1)).max(initial=0.0)),
+            "to": float(np.sqrt((tr.f_to**2).sum(axis=1)).max(initial=0.0)),
+        },
         "energy_dissipated": {
             "forward": pv["forward"]["energy_dissipated"],
             "backward": pv["backward"]["energy_dissipated"],

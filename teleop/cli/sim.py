@@ -73,16 +73,17 @@ def format_distortion(cases: list[dict[str, Any]]) -> str:
     passivity controllers dissipated (what separates delay from distortion)."""
     head = (
         f"{'codec':<10} {'I':>11} {'I_dc':>11} {'shift ms':>9} {'drift max mm':>12} "
-        f"{'drift end mm':>12} {'dissipated J':>12}"
+        f"{'drift end mm':>12} {'dissipated J':>12} {'peak F hsi/to N':>15}"
     )
     lines = [head, "-" * len(head)]
     for c in cases:
         sh = c["delay_compensation_ms"]
         shift = f"{sh['forward']:g}/{sh['backward']:g}"
+        peak = f"{c['peak_force_N']['hsi']:.2f}/{c['peak_force_N']['to']:.2f}"
         lines.append(
             f"{c['codec']:<10} {c['I']:>11.4e} {c['I_dc']:>11.4e} {shift:>9} "
             f"{1e3 * c['drift_m']['max']:>12.3f} {1e3 * c['drift_m']['final']:>12.3f} "
-            f"{c['energy_dissipated']['total']:>12.3e}"
+            f"{c['energy_dissipated']['total']:>12.3e} {peak:>15}"
         )
     return "\n".join(lines)
 
