@@ -17,6 +17,16 @@ The received wave (``h_l`` or ``g_r``) is what the decoder plays this tick, afte
 (``teleop.passivity``) has admitted it; the transmitted wave goes through the encoder.  Energies
 are counted in scattering variables per direction (eq. 4-5): ``E = 1/2 sum(wave**2) dt``.
 
+**TDPA** (``--passivity tdpa``, :class:`TdpaOperatorNode`, :class:`TdpaTeleoperatorNode`): power
+variables instead of waves, velocity forward and force back, each packet carrying the sender's
+input energy; the receiving side's adaptive damper keeps ``E_out <= E_in reported`` per direction
+(``teleop.passivity``).  The HSI renders a little damping of its own and the robot follows the
+commanded velocity through a PD position controller (``B = b``, ``K = 5 b``): without them no
+energy enters before contact and no force ever comes back (see :data:`TDPA_HSI_DAMPING`).  The
+controller's stiffness trades wall stiffness against delay: ``teleop sim --scenario protocol``
+with ``none`` measured I_dc 0.083 / 0.32 / 0.59 at 0 / 50 / 200 ms and a 1.7 N wall for K = 5 b,
+against 0.078 / 3.8 / 1.4 and a 4.2 N wall for K = 20 b (wave variables: 7.0 N at 0 ms).
+
 **Safe state.** When nothing has been accepted for the link timeout (plus one payload interval of
 the peer's codec, so a sparse codec is not mistaken for a dead link), the node fades its
 coupling out over ``fade_time``: the HSI stops rendering force and the TO stops commanding
@@ -60,6 +70,9 @@ TDPA_REPORT_QUANTUM_J = 2e-3
 #: against this damper is real input energy, counted in E_in, so the budget starts from it and the
 #: strict bound E_out <= E_in holds unchanged.  Wave variables render ``b v`` in full (eq. 3).
 TDPA_HSI_DAMPING = 0.05
+#: The TDPA robot's position controller: damping and stiffness per unit of ``b`` (N s/m, N/m per
+#: N s/m).  The spring stores what the robot needs to push before the operator has paid for it, and
+#: pulls the robot back to the commanded position (the drift the PC leaves is the command's).
 TDPA_TO_DAMPING = 1.0
 TDPA_TO_BANDWIDTH = 5.0
 

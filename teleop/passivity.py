@@ -15,6 +15,9 @@ At every tick, before a sample is played:
   counting the active tick and the energy it dissipated.  This is the network form of the
   time-domain passivity approach (observer plus controller), applied in scattering variables.
 
+Under ``--passivity tdpa`` the same in-band reports serve the time-domain passivity approach on
+power variables instead (:class:`TdpaGuard`, :func:`series_damper`, :func:`parallel_damper`, below).
+
 Link supervision: when nothing has been accepted for ``link_timeout`` seconds the link is *lost*;
 the node then goes to a safe state (see ``teleop.node``) and resumes when packets return.
 """

@@ -232,3 +232,18 @@ def test_wave_receiver_refuses_tdpa_payloads() -> None:
     assert not wave_to.receive_packet(pkt)
     assert wave_to.counters.wrong_codec == 1
     assert math.isfinite(pkt.energy)
+
+
+def test_energy_triggered_update_of_a_deadband_on_a_power_variable() -> None:
+    """A still signal inside the band sends nothing until its heartbeat, unless the node says its
+    unreported input energy is due (``Encoder.urgent``); on a power variable the wave-energy rules
+    (budget sends, reserve shrink) are off."""
+    enc = make_codec("pd:50:1000", 1, 1.0, power=True).encoder()
+    x = np.array([0.5])
+    assert enc.encode(x) is not None  # the first sample
+    assert all(enc.encode(x) is None for _ in range(200))  # wave rules would send on budget here
+    enc.urgent = True
+    assert enc.encode(x) is not None
+    wave = make_codec("pd:50:1000", 1, 1.0).encoder()
+    wave.encode(x)
+    assert any(wave.encode(x) is not None for _ in range(200))

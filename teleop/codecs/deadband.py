@@ -36,9 +36,22 @@ variables a held sample generates energy (DESIGN.md).  Two rules keep the channe
    value.  Measured on the Section VI protocol (``pdp:1``): budget-triggered sends fall from about
    600/s to 50/s; the reserve costs some transparency, which ``teleop sweep`` shows.
 
-Guarantee: per direction, the energy played never exceeds the energy reported sent, at every tick,
-whatever the signal, the delay or the losses (rule 1; rule 2 only keeps rule 1 from costing
-transparency).  A hypothesis test checks both on arbitrary signals.
+*On power variables (TDPA, ``Encoder.power``).*  Velocity and force are no energies, so rules 2
+and 3 are off: the band, the heartbeat and one more trigger decide, in the manner of IEEE 1918.1.1
+part II and Xu et al. (IEEE ToH 2016), where the deadband's updates carry TDPA's energy reports.
+Between sparse updates the receiver's budget is the last report, so its passivity controller
+damps what the sender has put in but not yet reported.  Xu et al. predict that energy at the
+receiver; a prediction is a claim the sender has not made, and the bound ``E_out <= E_in
+reported`` (PROTOCOL.md section 9) would then hold only approximately.  Here the sender sends
+instead when its unreported input energy exceeds ``TDPA_REPORT_QUANTUM_J`` (``teleop.node`` sets
+``Encoder.urgent``): an *energy-triggered update*, so the budget lags by at most that quantum and the
+bound stays exact.  Measured with ``teleop sim --scenario protocol --passivity tdpa`` (quantum 2 mJ
+against none): ``pd:20:1000`` at 200 ms, I_dc 0.468 against 0.499 for 40/33 against 30/25
+packets/s; ``pdp:10:1000`` at 0 ms, I_dc 0.129 against 0.137.
+
+Guarantee (wave variables): per direction, the energy played never exceeds the energy reported
+sent, at every tick, whatever the signal, the delay or the losses (rule 1; rule 2 only keeps rule 1
+from costing transparency).  A hypothesis test checks both on arbitrary signals.
 """
 
 from __future__ import annotations
