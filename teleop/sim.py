@@ -421,6 +421,7 @@ def run_set(codecs: list[str], base: SimConfig) -> tuple[dict[str, Any], list[Ca
         "hsi": base.hsi or base.scenario,
         "robot": base.robot or base.scenario,
         "variation": base.variation,
+        "passivity": base.passivity,
         "cases": [c.summary for c in cases],
     }
     return doc, cases
