@@ -503,6 +503,8 @@ class TdpaTeleoperatorNode(_TdpaPort, TeleoperatorNode):
         # e' = e + (v_d - v) dt, so F = K e + G (v_d - v), G = K dt + B; seen from the network it is
         # again an impedance F = f0' + Z' v_d (f0' = (G f0 + Z K e) / (G + Z), Z' = G Z / (G + Z)).
         k, g = self.to_stiffness, self.to_damping + self.to_stiffness * self.dt
+        if c < 1.0:  # safe state: the spring lets go with the coupling (only removes its stored energy)
+            self.coupling_error *= c
         ke = k * self.coupling_error
         f0, z = (g * f0 + z * ke) / (g + z), g * z / (g + z)
         v_d, f, p, removed, acted = series_damper(c * v_r, f0, z, self._allowed())

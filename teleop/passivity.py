@@ -219,14 +219,17 @@ def series_damper(
     if p <= allowed:
         return v_cmd, fc, p, 0.0, False
     zs = float(z[0])
-    if zs >= 0.0 and bool(np.all(z == zs)):
-        alpha = _root(allowed * zs * zs, 2.0 * allowed * zs + float(np.dot(f0, fc)), allowed - p)
-        if math.isinf(alpha):  # only with Z > 0 and nothing allowed: the robot yields, F = 0
-            return -f0 / zs, np.zeros_like(fc), 0.0, p, True
+    uniform = zs >= 0.0 and bool(np.all(z == zs))
+    alpha = (
+        _root(allowed * zs * zs, 2.0 * allowed * zs + float(np.dot(f0, fc)), allowed - p) if uniform else 0.0
+    )
+    if uniform and math.isinf(alpha) and zs > 0.0:  # nothing allowed: the robot yields, F = 0
+        return -f0 / zs, np.zeros_like(fc), 0.0, p, True
+    if uniform and not math.isinf(alpha):
         d = 1.0 + zs * alpha
         f = fc / d
         v = (v_cmd - alpha * f0) / d
-    else:
+    else:  # several feedthroughs, or a root lost to underflow with Z = 0
         v = _scale(float(np.dot(v_cmd, z * v_cmd)), float(np.dot(v_cmd, f0)), allowed) * v_cmd
         f = f0 + z * v
     out = float(np.dot(v, f))
@@ -254,14 +257,17 @@ def parallel_damper(
     if p0 >= -allowed:
         return v, f, p0, 0.0, False
     ys = float(y[0])
-    if ys >= 0.0 and bool(np.all(y == ys)):
+    uniform = ys >= 0.0 and bool(np.all(y == ys))
+    beta = math.inf
+    if uniform:
         p = float(np.dot(u, f_c))
         beta = _root(allowed * ys * ys, p * ys + float(np.dot(u, u)) + 2.0 * allowed * ys, p + allowed)
-        if math.isinf(beta):  # only with Y > 0 and nothing allowed: the hand is held, v = 0
+        if math.isinf(beta) and ys > 0.0:  # nothing allowed: the hand is held, v = 0
             return np.zeros_like(u), v0 / ys, 0.0, -p0, True
+    if not math.isinf(beta):
         v = u / (1.0 + ys * beta)
         f = f_c + beta * v
-    else:
+    else:  # several feedthroughs, or a root lost to underflow with Y = 0
         # v = A - B s, P(s) = v . (s f_c + beta0 v) >= -allowed: the largest s in [0, 1]
         a_ = v0 / (1.0 + y * beta0)
         b_ = y * f_c / (1.0 + y * beta0)
