@@ -3,7 +3,9 @@ under random signals, delays, losses and reorderings, the session field, and the
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -247,3 +249,42 @@ def test_energy_triggered_update_of_a_deadband_on_a_power_variable() -> None:
     wave = make_codec("pd:50:1000", 1, 1.0).encoder()
     wave.encode(x)
     assert any(wave.encode(x) is not None for _ in range(200))
+
+
+def test_cli_sim_tdpa_prints_and_writes_its_figures(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from teleop.cli import main
+
+    rc = main(
+        [
+            "sim",
+            "--passivity",
+            "tdpa",
+            "--codec",
+            "pd:5",
+            "--delay",
+            "20",
+            "--duration",
+            "1",
+            "--out",
+            str(tmp_path),
+        ]
+    )
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "passivity tdpa: velocity range +-2.828 m/s forward, force range +-2.828 N back" in out
+    assert "E_in J" in out and "I_dc" in out
+    doc = json.loads((tmp_path / "results.json").read_text())
+    assert doc["passivity"] == "tdpa"
+    case = doc["cases"][0]
+    assert case["passivity_architecture"] == "tdpa" and case["delay_compensation_ms"] == {
+        "forward": 20.0,
+        "backward": 21.0,
+    }
+    for d in ("forward", "backward"):
+        w = case["tdpa"][d]
+        assert w["energy_out"] <= w["energy_in"] + TOL  # the true bound, end of run
+    with pytest.raises(SystemExit):
+        main(["sim", "--passivity", "tdpa", "--codec", "dct:8:2"])
+    assert "not available with --passivity tdpa" in capsys.readouterr().err
