@@ -280,7 +280,7 @@ def test_cli_sim_tdpa_prints_and_writes_its_figures(
     case = doc["cases"][0]
     assert case["passivity_architecture"] == "tdpa" and case["delay_compensation_ms"] == {
         "forward": 20.0,
-        "backward": 21.0,
+        "backward": 20.0,
     }
     for d in ("forward", "backward"):
         w = case["tdpa"][d]
