@@ -75,6 +75,11 @@ TDPA_HSI_DAMPING = 0.05
 #: pulls the robot back to the commanded position (the drift the PC leaves is the command's).
 TDPA_TO_DAMPING = 1.0
 TDPA_TO_BANDWIDTH = 5.0
+#: Drift compensation at the TO: 1/s of the lost commanded position asked back per second, and the
+#: fastest it may be asked back (m/s); both inside the PC's budget (Artigas et al.'s passive drift
+#: compensator in spirit: only surplus energy moves the robot back to where the operator is).
+TDPA_DRIFT_GAIN = 2.0
+TDPA_DRIFT_MAX_V = 0.05
 
 
 @dataclass
@@ -493,6 +498,7 @@ class TdpaTeleoperatorNode(_TdpaPort, TeleoperatorNode):
         b = float(np.mean(self.wave.b))
         self.to_damping = TDPA_TO_DAMPING * b  # N s/m
         self.to_stiffness = TDPA_TO_BANDWIDTH * b  # N/m
+        self.drift = np.zeros(self.wave.dof)  # m: received minus commanded position (the PC's lost motion)
 
     def tick(self, now: float) -> wire.Packet | None:
         c = self._supervise(now)
@@ -507,7 +513,17 @@ class TdpaTeleoperatorNode(_TdpaPort, TeleoperatorNode):
             self.coupling_error *= c
         ke = k * self.coupling_error
         f0, z = (g * f0 + z * ke) / (g + z), g * z / (g + z)
-        v_d, f, p, removed, acted = series_damper(c * v_r, f0, z, self._allowed())
+        v_ref = c * v_r
+        if c < 1.0:
+            self.drift *= c
+        # Passive drift compensation: ask for the motion the PC took away, at a bounded rate; the
+        # PC below lets it through only from the energy budget, so it can never make energy.
+        corr = TDPA_DRIFT_GAIN * self.drift
+        n = float(np.sqrt(np.dot(corr, corr)))
+        if n > TDPA_DRIFT_MAX_V:
+            corr *= TDPA_DRIFT_MAX_V / n
+        v_d, f, p, removed, acted = series_damper(v_ref + corr, f0, z, self._allowed())
+        self.drift += (v_ref - v_d) * self.dt
         v = v_d - (f - ke) / g
         self.coupling_error += (v_d - v) * self.dt
         self.environment.advance(now, v, f)

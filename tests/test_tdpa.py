@@ -288,3 +288,18 @@ def test_cli_sim_tdpa_prints_and_writes_its_figures(
     with pytest.raises(SystemExit):
         main(["sim", "--passivity", "tdpa", "--codec", "dct:8:2"])
     assert "not available with --passivity tdpa" in capsys.readouterr().err
+
+
+def test_drift_compensation_gives_back_the_motion_the_controller_took(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """At 200 ms the TO's PC takes motion away; the compensator asks it back from surplus energy
+    (measured: final drift 33 mm without, 23 mm with), and the run stays passive."""
+    import teleop.node as node
+
+    cfg = SimConfig(codec="none", scenario="protocol", passivity="tdpa", delay_ms=200)
+    with_comp = run_case(cfg).summary
+    monkeypatch.setattr(node, "TDPA_DRIFT_GAIN", 0.0)
+    without = run_case(cfg).summary
+    assert with_comp["passive"] and without["passive"]
+    assert with_comp["drift_m"]["final"] < 0.8 * without["drift_m"]["final"]
