@@ -25,7 +25,8 @@ commanded velocity through a PD position controller (``B = b``, ``K = 5 b``): wi
 energy enters before contact and no force ever comes back (see :data:`TDPA_HSI_DAMPING`).  The
 controller's stiffness trades wall stiffness against delay: ``teleop sim --scenario protocol``
 with ``none`` measured I_dc 0.083 / 0.32 / 0.59 at 0 / 50 / 200 ms and a 1.7 N wall for K = 5 b,
-against 0.078 / 3.8 / 1.4 and a 4.2 N wall for K = 20 b (wave variables: 7.0 N at 0 ms).
+against 0.078 / 3.8 / 1.4 and a 4.2 N wall for K = 20 b (wave variables: 7.0 N at 0 ms), both
+before the drift compensator (:data:`TDPA_DRIFT_GAIN`) existed.
 
 **Safe state.** When nothing has been accepted for the link timeout (plus one payload interval of
 the peer's codec, so a sparse codec is not mistaken for a dead link), the node fades its
