@@ -47,9 +47,10 @@ instead when its unreported input energy exceeds ``TDPA_REPORT_QUANTUM_J`` (``te
 ``Encoder.urgent``): an *energy-triggered update*, so the budget lags by at most that quantum and the
 bound stays exact.  The quantum trades packets for damping.  Measured with ``teleop sim
 --passivity tdpa``, quantum 2 mJ / 10 mJ / none: the step scenario (a steady 0.4 W into the
-network) with ``pd:5`` at 0 ms, I_dc 0.039 / 0.094 / 0.110 at 188 / 42 / 10 packets/s forward, the
-controller removing 0.27 / 0.79 / 4.3 mJ; the protocol scenario, where little energy flows between
-band crossings, barely changes (``pd:20:1000`` at 200 ms: I_dc 0.468 against 0.499 without it).
+network) with ``pd:5`` at 0 ms, I_dc 0.036 / 0.089 / 0.203 at 189 / 42 / 10 packets/s forward, the
+controllers removing 0.28 / 1.7 / 73 mJ; the protocol scenario, where little energy flows between
+band crossings, much less (``pd:20:1000`` at 200 ms: I_dc 0.455 / 0.437 / 0.504 at 31 / 20 / 24
+packets/s forward).
 
 Guarantee (wave variables): per direction, the energy played never exceeds the energy reported
 sent, at every tick, whatever the signal, the delay or the losses (rule 1; rule 2 only keeps rule 1
