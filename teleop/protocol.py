@@ -240,6 +240,7 @@ class SessionParams:
     # Scale of the human's seeded variation (teleop.models.ProtocolPlan, drawn from ``seed``);
     # 0, the scripted run, is left out of the hello, so a hello without it means 0.
     variation: float = 0.0
+    passivity: str = "wave"  # "wave" or "tdpa" (teleop.node.PASSIVITY); optional on the wire like the above
 
     def _check_ranges(self) -> None:
         """ValueError naming the first field outside what this process can afford (teleop.limits).
@@ -287,7 +288,7 @@ class SessionParams:
                 if toks and toks[0] != "trace":
                     _check_netem_numbers(name, parse_netem(text))
         opts = self.port_options()  # ValueError for a bad on_loss, timeout or playout
-        spec = make_codec(self.codec, self.dof, self.full_scale).spec
+        spec = make_codec(self.codec, self.dof, self.full_scale, power=self.passivity == "tdpa").spec
         return dataclasses.replace(self, codec=spec, playout=opts.playout)
 
     def port_options(self) -> PortOptions:
@@ -336,6 +337,7 @@ class SessionParams:
             rate_cap=_float(m, "rate_cap") if "rate_cap" in m else 0.0,
             playout=_str(m, "playout", _MAX_NAME_LEN) if "playout" in m else "off",
             variation=_float(m, "variation") if "variation" in m else 0.0,
+            passivity=_str(m, "passivity", _MAX_NAME_LEN) if "passivity" in m else "wave",
         )
         try:
             p._check_ranges()
@@ -343,7 +345,7 @@ class SessionParams:
                 _check_peer_netem(name, getattr(p, name), local_netem)
             WaveImpedance.of(p.b, p.dof)
             playout = p.port_options().playout
-            spec = make_codec(p.codec, p.dof, p.full_scale).spec
+            spec = make_codec(p.codec, p.dof, p.full_scale, power=p.passivity == "tdpa").spec
         except ProtocolError:
             raise
         except (CodecError, ValueError, ArithmeticError) as e:  # the validators of other modules
@@ -372,6 +374,7 @@ class SessionParams:
             **({"rate_cap": self.rate_cap} if self.rate_cap else {}),
             **({"playout": self.playout} if self.playout != "off" else {}),
             **({"variation": self.variation} if self.variation else {}),
+            **({"passivity": self.passivity} if self.passivity != "wave" else {}),
         }
 
 

@@ -481,6 +481,7 @@ def build(log_dir: Path, transport: str, compare_sim: bool = True) -> dict[str, 
                 hsi=sim_devices["hsi"],
                 robot=sim_devices["robot"],
                 variation=p.get("variation", 0.0),
+                passivity=p.get("passivity", "wave"),
             )
         )
         i_sim = sim.summary["I"]

@@ -25,6 +25,10 @@ payload    bin        the codec's bytes (see ``teleop.codecs``)
 energy     float64    sender's cumulative transmitted wave energy, J (eq. 4-5), for the watchdog
 =========  =========  ==============================================================
 
+Under ``--passivity tdpa`` (PROTOCOL.md section 9) the layout is the same; ``codec_id`` is
+``POWER_CODEC_BASE + id``, the payload carries a power variable (velocity forward, force back) and
+``energy`` the sender's cumulative TDPA input energy ``E_in``, J (``teleop.passivity``).
+
 ``decode`` raises :class:`WireError` (and nothing else) with an exact message for any input that
 is not such a packet; transports catch it, count the packet as malformed and drop it.
 """
@@ -44,6 +48,8 @@ VERSION = 1
 FORWARD = 0
 BACKWARD = 1
 DIRECTIONS = ("forward", "backward")
+#: Codec ids from here on carry a power variable (TDPA): ``POWER_CODEC_BASE + id`` of the codec.
+POWER_CODEC_BASE = 16
 _U32 = 0xFFFFFFFF
 _U64 = 0xFFFFFFFFFFFFFFFF
 

@@ -359,6 +359,15 @@ def add_netem_args(p: argparse.ArgumentParser, variation_default: float = 0.0) -
 
 def add_passivity_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
+        "--passivity",
+        choices=["wave", "tdpa"],
+        default="wave",
+        help="how the channel is kept passive: wave (default) sends scattering waves (eq. 3-5); tdpa "
+        "sends velocity forward and force back with each side's input energy, and an adaptive damper "
+        "at each side dissipates what the channel would generate (time-domain passivity approach). "
+        "tdpa takes the codecs none, cq, ids, eds, pd and pdp",
+    )
+    p.add_argument(
         "--on-loss",
         choices=["conceal", "hold", "zero"],
         default=None,

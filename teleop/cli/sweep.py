@@ -35,6 +35,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     check_duration(duration, args.dof if args.dof is not None else sc.dof)
     out = writable_dir(Path(args.out), "--out")
     codecs = args.codec or list(DEFAULT_GRID)
+    if args.passivity == "tdpa" and not args.codec:  # the grid's codecs that apply to power variables
+        from ..codecs import POWER_CODECS
+
+        codecs = [c for c in codecs if c.split(":")[0] in POWER_CODECS]
     workers = args.jobs or min(len(codecs), os.cpu_count() or 1)
     base = sim_config(args)
     try:
