@@ -49,7 +49,7 @@ from typing import Any, TypeAlias
 from . import auth, protocol
 from .link import Addr
 from .port import Port, PortKeys
-from .protocol import SessionParams
+from .protocol import Failure, SessionParams
 
 __all__ = [
     "GRACE_RESUME_TICKS",
@@ -134,16 +134,6 @@ class State(enum.Enum):
     LINGER = "linger"
     CLOSED = "closed"
     FAILED = "failed"
-
-
-class Failure(enum.Enum):
-    """Why a session never started (the text of :class:`Failed` says the details)."""
-
-    NO_ANSWER = "no_answer"  # operator: no welcome within the timeout (absent robot, other key or name)
-    REJECTED = "rejected"  # operator: the teleoperator refused the session
-    START_UNCONFIRMED = "start_unconfirmed"  # operator: no started before tick 0
-    PEER_CLOCK = "peer_clock"  # operator: the peer's clock is out of range
-    NO_OPERATOR = "no_operator"  # teleoperator: no start within the timeout
 
 
 class EndReason(enum.Enum):
@@ -429,7 +419,7 @@ class Endpoint:
         if self.state == State.HANDSHAKE and self._to_hs is not None:
             self._to_hs.poll(now_ns)
             if self._to_hs.error is not None:
-                self._fail(Failure.NO_OPERATOR, self._to_hs.error)
+                self._fail(self._to_hs.failure or Failure.NO_OPERATOR, self._to_hs.error)
         elif self.state == State.HANDSHAKE:
             self._check_operator_handshake(now_ns)  # datagrams_to_send polls it
         elif self.state == State.RUNNING and self.role == "operator":
@@ -511,15 +501,7 @@ class Endpoint:
         if hs is None or self.state != State.HANDSHAKE:
             return
         if hs.error is not None:
-            if hs.error.startswith("rejected"):
-                reason = Failure.REJECTED
-            elif "clock" in hs.error:
-                reason = Failure.PEER_CLOCK
-            elif hs.error.startswith("did not confirm"):
-                reason = Failure.START_UNCONFIRMED
-            else:
-                reason = Failure.NO_ANSWER
-            self._fail(reason, hs.error)
+            self._fail(hs.failure or Failure.NO_ANSWER, hs.error)
         elif hs.done:
             assert hs.tx_sealer is not None and hs.rx_opener is not None and self.params and self.peer
             keys = PortKeys(hs.tx_sealer, hs.rx_opener, hs.hs_sealer, hs.hs_opener, self.psk, hs.nonce)

@@ -20,6 +20,8 @@ import numpy.typing as npt
 
 from teleop.port import fill_value
 
+from .errors import RemoteError
+
 __all__ = ["PER_TICK_TOPICS", "TOPICS", "LogError", "iter_messages", "iter_ticks", "read_log", "read_summary"]
 
 PER_TICK_TOPICS = ("signals", "waves", "energy", "wire", "loop")
@@ -51,7 +53,7 @@ def iter_messages(path: Path, topics: list[str] | None = None) -> Iterator[tuple
             yield channel.topic, json.loads(message.data)
 
 
-class LogError(ValueError):
+class LogError(RemoteError):
     """A file that is not a log this stack wrote, or is damaged: what is wrong, where."""
 
 

@@ -31,6 +31,7 @@ captured in one session verifies in no other.  A datagram whose tag does not ver
 from __future__ import annotations
 
 import dataclasses
+import enum
 import hashlib
 import hmac
 import math
@@ -51,6 +52,8 @@ from teleop.ratecap import MAX_RATE_BPS, MIN_RATE_BPS
 from teleop.scenarios import SCENARIOS
 from teleop.wave import WaveImpedance
 
+from .errors import RemoteError
+
 FORWARD, BACKWARD = 0, 1  # the directions of teleop.wire: operator -> TO, TO -> operator
 
 __all__ = [
@@ -59,6 +62,7 @@ __all__ = [
     "MAX_TIMESTAMP",
     "PROTOCOL_VERSION",
     "Bye",
+    "Failure",
     "Hello",
     "Message",
     "OperatorHandshake",
@@ -95,7 +99,18 @@ START_SLACK_NS = 1_000_000_000  # or this far behind it (a fresh session: the op
 BUSY = "busy with another operator"
 
 
-class ProtocolError(ValueError):
+class Failure(enum.Enum):
+    """Why a handshake (or the session it was for) never started: what callers branch on, never
+    the error's text (h11's rule)."""
+
+    NO_ANSWER = "no_answer"  # operator: no welcome within the timeout (absent robot, other key or name)
+    REJECTED = "rejected"  # operator: the teleoperator refused the session
+    START_UNCONFIRMED = "start_unconfirmed"  # operator: no started before tick 0
+    PEER_CLOCK = "peer_clock"  # operator: the peer's clock is out of range
+    NO_OPERATOR = "no_operator"  # teleoperator: no start within the timeout
+
+
+class ProtocolError(RemoteError):
     """A message that is not valid; the text names the field and what is allowed.
 
     ``kind`` and ``session`` are what could be read of the message before it failed (None if
@@ -706,6 +721,7 @@ class OperatorHandshake:
         self.hellos_sent = 0
         self.done = False
         self.error: str | None = None
+        self.failure: Failure | None = None  # why, when ``error`` is set
         self.offset_ns = 0  # TO clock - operator clock
         self.rtt_ns = 0
         self.start_ns = 0  # tick 0 on the operator's clock
@@ -770,7 +786,7 @@ class OperatorHandshake:
             if msg.t_ns not in self._hellos:  # a recorded reject of an earlier handshake: stale
                 self._refuse("a reject that answers none of our hellos")
                 return
-            self.error = f"rejected the session: {msg.why}"
+            self.error, self.failure = f"rejected the session: {msg.why}", Failure.REJECTED
         elif isinstance(msg, Retry) and msg.session == session and not self._starting:
             if msg.t_ns not in self._in_flight:
                 self._refuse("a retry that answers no hello in flight (late or duplicated)")
@@ -804,6 +820,7 @@ class OperatorHandshake:
         self.start_ns = now_ns + self.start_lead_ns
         if not 0 <= self.start_ns + self.offset_ns <= MAX_TIMESTAMP:
             self.error = f"the peer's clock is out of range (offset {self.offset_ns} ns)"
+            self.failure = Failure.PEER_CLOCK
             return
         assert self.peer_nonce is not None
         fwd, bwd = auth.session_keys(self.psk, self.params.session, self.nonce, self.peer_nonce)
@@ -823,7 +840,7 @@ class OperatorHandshake:
                 if self.error is not None:
                     return []
             elif now_ns >= self._give_up:
-                self.error = f"never answered within {self.timeout_s:g} s"
+                self.error, self.failure = f"never answered within {self.timeout_s:g} s", Failure.NO_ANSWER
                 return []
             elif now_ns >= self._next_hello:
                 self._in_flight.append(now_ns)
@@ -835,7 +852,7 @@ class OperatorHandshake:
             else:
                 return []
         if now_ns >= self._start_deadline:
-            self.error = "did not confirm the start"
+            self.error, self.failure = "did not confirm the start", Failure.START_UNCONFIRMED
             return []
         if now_ns >= self._next_start:
             self._next_start = now_ns + self.start_resend_ns
@@ -973,6 +990,7 @@ class TeleoperatorHandshake:
         self.rejoin = False
         self.done = False
         self.error: str | None = None
+        self.failure: Failure | None = None  # why, when ``error`` is set
         self.welcomes = 0
         self.rejected = 0
         self.last_rejection = ""
@@ -1152,7 +1170,7 @@ class TeleoperatorHandshake:
         if self.finished or now_ns < self._give_up:
             return
         what = "no operator said hello" if self.params is None else "the operator never sent start"
-        self.error = f"{what} within {self.timeout_s:g} s"
+        self.error, self.failure = f"{what} within {self.timeout_s:g} s", Failure.NO_OPERATOR
         if self.rejected:
             self.error += f" ({self.rejected} hello(s) rejected, the last: {self.last_rejection})"
 

@@ -43,6 +43,8 @@ import msgpack
 import numpy as np
 import numpy.typing as npt
 
+from .errors import RemoteError
+
 MAGIC = b"TW"
 VERSION = 1
 FORWARD = 0
@@ -54,7 +56,7 @@ _U32 = 0xFFFFFFFF
 _U64 = 0xFFFFFFFFFFFFFFFF
 
 
-class WireError(ValueError):
+class WireError(RemoteError):
     """Bytes that are not a valid teleop packet."""
 
 

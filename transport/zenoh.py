@@ -47,6 +47,8 @@ from typing import Any
 
 import zenoh
 
+from teleop.errors import TeleopError
+
 Addr = tuple[str, int]
 ZENOH_PEER: Addr = ("zenoh", 0)
 """The pseudo-address every received sample carries (Zenoh hides the sender's socket address)."""
@@ -65,7 +67,7 @@ _KEY_FORBIDDEN = re.compile(r"[*$?#\s]")
 _RUST_LOCATION = re.compile(r"\s+at /\S+\.rs:\d+\.?")
 
 
-class TransportError(OSError):
+class TransportError(TeleopError, OSError):
     """The Zenoh session could not open or connect (printed as one clear line)."""
 
 

@@ -15,6 +15,7 @@ from collections.abc import Callable
 from typing import NoReturn, TypeAlias
 
 from ..codecs import ACCEPTED, CodecError, make_codec
+from ..errors import TeleopError
 from ..limits import (
     MAX_B,
     MAX_CODEC_SPEC_LEN,
@@ -34,7 +35,7 @@ MAX_CONNECT_TIMEOUT_S = 86400.0  # a day: longer waits overflow the loop's nanos
 MAX_PORT = 65535
 
 
-class CliError(Exception):
+class CliError(TeleopError):
     """A bad argument: printed as ``teleop: error: ...`` with exit status 2."""
 
 

@@ -17,13 +17,15 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from ..errors import LocalError
+
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 RAW_BITS = 16
 
 
-class CodecError(ValueError):
+class CodecError(LocalError):
     """A codec spec is invalid, or a payload does not match its codec."""
 
 

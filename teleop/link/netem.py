@@ -96,6 +96,8 @@ from pathlib import Path
 from statistics import NormalDist
 from typing import Any, Protocol
 
+from ..errors import LocalError
+
 __all__ = [
     "GRAMMAR",
     "PACKET_SIZE",
@@ -136,7 +138,7 @@ Optional values are taken only when the next token starts with a digit, as in tc
 Trace link (make_link only): trace FILE"""
 
 
-class NetemError(ValueError):
+class NetemError(LocalError):
     """A bad spec or trace.  ``token`` and ``position`` (token index) say where, when known."""
 
     def __init__(self, message: str, token: str | None = None, position: int | None = None) -> None:
