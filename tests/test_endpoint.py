@@ -102,6 +102,35 @@ def test_a_restarted_teleoperator_rejoins_at_any_round_trip(rtt_ms: float) -> No
     assert s_op["received"]["packets"] > 0 and s_to["received"]["packets"] > 0
 
 
+def test_a_rejoin_whose_started_is_lost_is_confirmed_by_the_next_resend() -> None:
+    """The restarted teleoperator's first started is lost: the operator's next resend of the start
+    (sealed anew, so not a replay) is answered, and it stops resending (PROTOCOL.md 4.3 step 6)."""
+    net = VirtualNet(1.0)
+    op, _ = start(net, duration=6.0)
+    net.seconds(0.5)
+    net.kill(TO)
+    net.seconds(0.3)
+    starteds: list[int] = []
+
+    def drop_first_started(now: int, src: Any, dst: Any, data: bytes) -> list[Any]:
+        hdr = auth.peek(data)
+        body = data[auth.HEADER_BYTES : -auth.TAG_BYTES]
+        session_control = hdr is not None and hdr[0] == auth.SESSION and protocol.is_control(body)
+        if src == TO and session_control and protocol.parse(body).kind == "started":
+            starteds.append(now)
+            if len(starteds) == 1:
+                return []
+        return [(src, dst, data)]
+
+    net.tap = drop_first_started
+    to2 = net.teleoperator(offset_ns=TO_OFFSET)
+    net.seconds(4.0, stop=lambda: len(starteds) >= 2)
+    assert len(starteds) == 2 and starteds[1] - starteds[0] <= 25 * MS  # one resend interval later
+    net.seconds(0.1)
+    assert op.ep._rj_start is None and op.ep._rj_resends <= 2
+    assert to2.ep.state == State.RUNNING and len(starteds) == 2
+
+
 def test_the_rejoin_start_error_is_within_half_the_round_trip_when_delays_differ() -> None:
     """1 ms forward, 99 ms back: NTP's offset is off by half the difference, the stated bound."""
     net = VirtualNet((1.0, 99.0))
