@@ -275,7 +275,9 @@ class Endpoint:
         self._rj_nonce: bytes | None = None
         self._rj_samples: list[tuple[int, int]] = []  # (rtt, offset) of one teleoperator nonce
         self._rj_first = 0
-        self._rj_start: bytes | None = None  # a rejoin's start, resent until confirmed
+        # A rejoin's start, resent until confirmed: sealed anew each time (a byte-identical copy
+        # would be a replay, refused unanswered by the teleoperator that took the first).
+        self._rj_start: protocol.Start | None = None
         self._rj_resends = 0
         self._rj_next = 0
         self.rejoin_offers = self.rejoins = self.rejoin_retries = 0
@@ -404,7 +406,7 @@ class Endpoint:
             assert hs is not None
             return hs.next_timer()
         if self.state == State.RUNNING and self.role == "operator":
-            timers = [t for t in (self._rj_next if self._rj_start else None,) if t is not None]
+            timers = [t for t in (self._rj_next if self._rj_start is not None else None,) if t is not None]
             if self._link_lost:
                 timers.append(self._next_offer)
             return min(timers) if timers else None
@@ -650,7 +652,7 @@ class Endpoint:
             if self._rj_resends >= START_RESENDS:
                 self._rj_start = None
             else:
-                self._out.append((self._rj_start, self._peer()))
+                self._out.append((port.seal(self._rj_start), self._peer()))
                 self._rj_resends += 1
                 self._rj_next = now_ns + START_RESEND_NS
         if not port.node.link_lost or now_ns < self._next_offer:
@@ -681,7 +683,7 @@ class Endpoint:
         rtt, offset = min(self._rj_samples)
         port.peer_restarted(m.nonce)  # its new nonce keys the rest of the session
         start = protocol.Start(params.session, start_ns=self.start_ns + offset, rejoin=True)
-        self._rj_start, self._rj_resends, self._rj_next = port.seal(start), 0, t4
+        self._rj_start, self._rj_resends, self._rj_next = start, 0, t4
         self._rj_nonce, self._rj_samples = None, []
         self._offers.clear()
         self.rejoins += 1

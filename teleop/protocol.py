@@ -625,16 +625,7 @@ def parse(data: bytes, *, local_netem: Collection[str] = ()) -> Message:
     if not is_control(bytes(data[:1])):
         raise ProtocolError("not a control message (a control message is a msgpack map)")
     try:
-        m = msgpack.unpackb(
-            bytes(data),
-            raw=False,
-            strict_map_key=True,
-            max_str_len=MAX_CONTROL_BYTES,
-            max_bin_len=MAX_CONTROL_BYTES,
-            max_array_len=MAX_CONTROL_BYTES,
-            max_map_len=64,
-            max_ext_len=MAX_CONTROL_BYTES,
-        )
+        m = _unpack_control(data)
     except Exception as e:  # msgpack raises several types (FormatError, StackError, UnicodeDecodeError...)
         raise ProtocolError(f"not valid msgpack: {type(e).__name__}") from None
     if not isinstance(m, dict):
@@ -920,17 +911,31 @@ class LocalLimits:
         return None
 
 
+def _unpack_control(body: bytes) -> object:
+    """The msgpack object of a control body, under the limits of :func:`parse` (raises on garbage)."""
+    return msgpack.unpackb(
+        bytes(body),
+        raw=False,
+        strict_map_key=True,
+        max_str_len=MAX_CONTROL_BYTES,
+        max_bin_len=MAX_CONTROL_BYTES,
+        max_array_len=MAX_CONTROL_BYTES,
+        max_map_len=64,
+        max_ext_len=MAX_CONTROL_BYTES,
+    )
+
+
 def peek_hello(body: bytes) -> tuple[int | None, int, object, object] | None:
     """(session, t_ns, nonce, cookie) of a body that looks like a hello, else None: read before the
     full parse (its codec and netem checks cost ~0.2 ms), so a hello without a valid cookie costs
-    an unpack, not a parse.  Values are unchecked except session and t_ns."""
+    an unpack, not a parse.  Values are unchecked except session and t_ns.
+
+    It unpacks under exactly :func:`parse`'s limits: a body it cannot read is one the full parse
+    refuses too, so no hello reaches a welcome without its cookie checked (PROTOCOL.md 4.3 step 2)."""
     if len(body) > MAX_CONTROL_BYTES or not is_control(bytes(body[:1])):
         return None
     try:
-        m = msgpack.unpackb(
-            bytes(body), raw=False, strict_map_key=True, max_str_len=MAX_CONTROL_BYTES,
-            max_bin_len=MAX_CONTROL_BYTES, max_array_len=64, max_map_len=64, max_ext_len=0,
-        )  # fmt: skip
+        m = _unpack_control(body)
     except Exception:  # msgpack's several error types: the full parse says what is wrong
         return None
     if not isinstance(m, dict) or m.get("t") != "hello":

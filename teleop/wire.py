@@ -17,12 +17,12 @@ magic      bin "TW"   identifies teleop packets
 version    uint       ``VERSION`` (1); another version is rejected
 session    uint32     session id agreed in the handshake; others are dropped
 direction  uint       0 forward (operator -> TO, wave g), 1 backward (TO -> operator, wave h)
-seq        uint32     per-direction sequence number of transmitted packets, from 0
+seq        uint32     packets this sender's node produced before this one, from 0 (the shim may drop some)
 tick       uint64     sender's loop tick at which the payload was produced
 t_us       uint64     the tick's session time, ``round(tick * dt * 1e6)`` microseconds (not a clock)
-codec_id   uint       0 none, 1 ids, 2 eds, 3 cq
+codec_id   uint       0 none, 1 ids, 2 eds, 3 cq, 4 pd, 5 pdp, 6 dct
 payload    bin        the codec's bytes (see ``teleop.codecs``)
-energy     float64    sender's cumulative transmitted wave energy, J (eq. 4-5), for the watchdog
+energy     float      sender's cumulative transmitted wave energy, J (eq. 4-5); float32/64 only
 =========  =========  ==============================================================
 
 Under ``--passivity tdpa`` (PROTOCOL.md section 9) the layout is the same; ``codec_id`` is
