@@ -27,6 +27,8 @@ import secrets
 import stat
 import struct
 
+from .errors import RemoteError
+
 KEY_BYTES = 32
 TAG_BYTES = 16
 NONCE_BYTES = 16
@@ -45,7 +47,7 @@ _RESERVED = 0x0C  # flags bits 2 and 3: zero in version 1
 REASONS = ("short", "header", "kind", "direction", "tag", "replay", "jump")
 
 
-class AuthError(ValueError):
+class AuthError(RemoteError):
     """A datagram that is not accepted; ``reason`` is one of :data:`REASONS` (to count, not to print)."""
 
     def __init__(self, reason: str, message: str | None = None) -> None:

@@ -40,6 +40,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from .errors import LocalError
 from .models import Array, LtiEnvironment, ProtocolEnvironment, ProtocolHuman, ProtocolPlan, StepHuman
 
 ROLES = ("hsi", "robot")
@@ -49,7 +50,7 @@ _MODULE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 _ATTR = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 
 
-class DeviceError(ValueError):
+class DeviceError(LocalError):
     """A device spec cannot be resolved, or its device cannot be built: one line saying why."""
 
 

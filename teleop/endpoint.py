@@ -49,7 +49,7 @@ from typing import Any, TypeAlias
 from . import auth, protocol
 from .link import Addr
 from .port import Port, PortKeys
-from .protocol import SessionParams
+from .protocol import Failure, SessionParams
 
 __all__ = [
     "GRACE_RESUME_TICKS",
@@ -62,6 +62,7 @@ __all__ = [
     "Event",
     "Failed",
     "Failure",
+    "HandshakeLimiter",
     "HelloRejected",
     "LinkLost",
     "LinkRestored",
@@ -86,6 +87,44 @@ LINGER_SHIM_GRACE_NS = 2_000_000_000  # how long after the linger the shim's bac
 GRACE_STREAK = 3  # grace waits missed in a row before grace rests
 GRACE_RESUME_TICKS = 200  # ... for this many ticks (the link is late by ms, not us)
 EVENTS_KEPT = 1024  # a flood of rejected hellos cannot grow the event queue
+HANDSHAKE_RATE = 50.0  # handshake datagrams/s one source address may cost us (burst 20) ...
+HANDSHAKE_BURST = 20.0
+HANDSHAKE_RATE_ALL = 1000.0  # ... and all sources together (burst 200): bounds the loop's cost
+HANDSHAKE_BURST_ALL = 200.0
+LIMITER_SOURCES = 4096  # source addresses remembered (oldest forgotten first)
+
+
+class HandshakeLimiter:
+    """Token buckets on handshake work: per source address and for all sources together.
+
+    A handshake datagram costs a MAC check and maybe a parse and a reply; a genuine operator sends a
+    few a second.  Beyond these rates datagrams are dropped before any of that work (counted), so a
+    flood of recorded hellos or handshake-looking junk costs the 1 kHz loop a dictionary lookup each.
+    The running session's peer is never limited; a flood from spoofed addresses can still delay a
+    *new* operator's handshake (the global bucket), which is the price of keeping the robot's loop."""
+
+    def __init__(self) -> None:
+        self._per: dict[Addr, tuple[float, int]] = {}  # tokens, last refill (ns)
+        self._all = (HANDSHAKE_BURST_ALL, 0)
+        self.dropped = 0
+
+    @staticmethod
+    def _take(tokens: float, last: int, now_ns: int, rate: float, burst: float) -> tuple[float, bool]:
+        tokens = min(burst, tokens + max(0, now_ns - last) * rate / 1e9)
+        return (tokens - 1.0, True) if tokens >= 1.0 else (tokens, False)
+
+    def allow(self, addr: Addr, now_ns: int) -> bool:
+        tokens, last = self._per.pop(addr, (HANDSHAKE_BURST, now_ns))
+        tokens, ok = self._take(tokens, last, now_ns, HANDSHAKE_RATE, HANDSHAKE_BURST)
+        self._per[addr] = (tokens, now_ns)  # newest last
+        if len(self._per) > LIMITER_SOURCES:
+            del self._per[next(iter(self._per))]
+        if ok:
+            all_tokens, ok = self._take(*self._all, now_ns, HANDSHAKE_RATE_ALL, HANDSHAKE_BURST_ALL)
+            self._all = (all_tokens, now_ns)
+        if not ok:
+            self.dropped += 1
+        return ok
 
 
 class State(enum.Enum):
@@ -95,16 +134,6 @@ class State(enum.Enum):
     LINGER = "linger"
     CLOSED = "closed"
     FAILED = "failed"
-
-
-class Failure(enum.Enum):
-    """Why a session never started (the text of :class:`Failed` says the details)."""
-
-    NO_ANSWER = "no_answer"  # operator: no welcome within the timeout (absent robot, other key or name)
-    REJECTED = "rejected"  # operator: the teleoperator refused the session
-    START_UNCONFIRMED = "start_unconfirmed"  # operator: no started before tick 0
-    PEER_CLOCK = "peer_clock"  # operator: the peer's clock is out of range
-    NO_OPERATOR = "no_operator"  # teleoperator: no start within the timeout
 
 
 class EndReason(enum.Enum):
@@ -246,7 +275,9 @@ class Endpoint:
         self._rj_nonce: bytes | None = None
         self._rj_samples: list[tuple[int, int]] = []  # (rtt, offset) of one teleoperator nonce
         self._rj_first = 0
-        self._rj_start: bytes | None = None  # a rejoin's start, resent until confirmed
+        # A rejoin's start, resent until confirmed: sealed anew each time (a byte-identical copy
+        # would be a replay, refused unanswered by the teleoperator that took the first).
+        self._rj_start: protocol.Start | None = None
         self._rj_resends = 0
         self._rj_next = 0
         self.rejoin_offers = self.rejoins = self.rejoin_retries = 0
@@ -256,6 +287,7 @@ class Endpoint:
         self._expect: dict[str, Any] = {}
         self._limits = protocol.LocalLimits()
         self._cookie_secret = rng(32)
+        self._limiter = HandshakeLimiter()
         self._rejections_seen = 0
         self.own_offers_ignored = 0
         self.busy_rejects = 0
@@ -325,9 +357,17 @@ class Endpoint:
     def finished(self) -> bool:
         return self.state in (State.CLOSED, State.FAILED)
 
+    @property
+    def handshake_throttled(self) -> int:
+        """Handshake datagrams dropped over the per-source or global budget (HandshakeLimiter)."""
+        return self._limiter.dropped
+
     def receive_datagram(self, data: bytes, addr: Addr, now_ns: int) -> None:
         """A datagram from ``addr`` received at ``now_ns``.  Never raises: whatever it is, it is
         taken, or counted and dropped."""
+        hdr = auth.peek(data) if addr != self.peer else None
+        if hdr is not None and hdr[0] == auth.HANDSHAKE and not self._limiter.allow(addr, now_ns):
+            return  # over the handshake budget: dropped before the MAC (HandshakeLimiter)
         if self.state == State.HANDSHAKE:
             if self._op_hs is not None:
                 if addr == self.peer:
@@ -366,7 +406,7 @@ class Endpoint:
             assert hs is not None
             return hs.next_timer()
         if self.state == State.RUNNING and self.role == "operator":
-            timers = [t for t in (self._rj_next if self._rj_start else None,) if t is not None]
+            timers = [t for t in (self._rj_next if self._rj_start is not None else None,) if t is not None]
             if self._link_lost:
                 timers.append(self._next_offer)
             return min(timers) if timers else None
@@ -381,7 +421,7 @@ class Endpoint:
         if self.state == State.HANDSHAKE and self._to_hs is not None:
             self._to_hs.poll(now_ns)
             if self._to_hs.error is not None:
-                self._fail(Failure.NO_OPERATOR, self._to_hs.error)
+                self._fail(self._to_hs.failure or Failure.NO_OPERATOR, self._to_hs.error)
         elif self.state == State.HANDSHAKE:
             self._check_operator_handshake(now_ns)  # datagrams_to_send polls it
         elif self.state == State.RUNNING and self.role == "operator":
@@ -463,15 +503,7 @@ class Endpoint:
         if hs is None or self.state != State.HANDSHAKE:
             return
         if hs.error is not None:
-            if hs.error.startswith("rejected"):
-                reason = Failure.REJECTED
-            elif "clock" in hs.error:
-                reason = Failure.PEER_CLOCK
-            elif hs.error.startswith("did not confirm"):
-                reason = Failure.START_UNCONFIRMED
-            else:
-                reason = Failure.NO_ANSWER
-            self._fail(reason, hs.error)
+            self._fail(hs.failure or Failure.NO_ANSWER, hs.error)
         elif hs.done:
             assert hs.tx_sealer is not None and hs.rx_opener is not None and self.params and self.peer
             keys = PortKeys(hs.tx_sealer, hs.rx_opener, hs.hs_sealer, hs.hs_opener, self.psk, hs.nonce)
@@ -620,7 +652,7 @@ class Endpoint:
             if self._rj_resends >= START_RESENDS:
                 self._rj_start = None
             else:
-                self._out.append((self._rj_start, self._peer()))
+                self._out.append((port.seal(self._rj_start), self._peer()))
                 self._rj_resends += 1
                 self._rj_next = now_ns + START_RESEND_NS
         if not port.node.link_lost or now_ns < self._next_offer:
@@ -651,7 +683,7 @@ class Endpoint:
         rtt, offset = min(self._rj_samples)
         port.peer_restarted(m.nonce)  # its new nonce keys the rest of the session
         start = protocol.Start(params.session, start_ns=self.start_ns + offset, rejoin=True)
-        self._rj_start, self._rj_resends, self._rj_next = port.seal(start), 0, t4
+        self._rj_start, self._rj_resends, self._rj_next = start, 0, t4
         self._rj_nonce, self._rj_samples = None, []
         self._offers.clear()
         self.rejoins += 1
@@ -786,6 +818,7 @@ class Endpoint:
                 "own_offers_ignored": self.own_offers_ignored,
             },
             "busy_rejects": self.busy_rejects,
+            "handshake_throttled": self._limiter.dropped,
             "retries_sent": self.retries_sent,
             "shim": {"spec": spec_tx, **shim} if shim else None,
             "grace": dict(self.grace),

@@ -23,6 +23,8 @@ import os
 import stat
 from pathlib import Path
 
+from .errors import LocalError
+
 __all__ = [
     "MAX_CONFIG_BYTES",
     "MAX_TRACE_BYTES",
@@ -48,8 +50,9 @@ _KINDS = (
 )
 
 
-class FileRefused(ValueError):
-    """A file or folder the stack will not use: one line saying which and why."""
+class FileRefused(LocalError):
+    """A file or folder the stack will not use (one the user named, or an output): one line saying
+    which and why."""
 
 
 def _kind(mode: int) -> str:

@@ -24,6 +24,8 @@ import numpy.typing as npt
 from teleop.limits import MAX_DOF
 from teleop.port import fill_value
 
+from .errors import RemoteError
+
 __all__ = [
     "PER_TICK_TOPICS",
     "TOPICS",
@@ -66,7 +68,7 @@ def iter_messages(path: Path, topics: list[str] | None = None) -> Iterator[tuple
             yield channel.topic, json.loads(message.data)
 
 
-class LogError(ValueError):
+class LogError(RemoteError):
     """A file that is not a log this stack wrote, or is damaged: what is wrong, where."""
 
 

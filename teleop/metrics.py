@@ -138,3 +138,37 @@ def phase_summary(
         block["packets_per_s"] = {d: r[name]["packets_per_s"] for d, r in rates.items()}
         block["wire_bps"] = {d: r[name]["bps"] for d, r in rates.items()}
     return out
+
+
+def _shifted(a: Array, b: Array, shift: int) -> tuple[Array, Array]:
+    """``a`` ``shift`` ticks earlier against ``b``: ``(a[:n - shift], b[shift:])``."""
+    shift = max(0, min(int(shift), a.shape[0]))
+    return a[: a.shape[0] - shift], b[shift:]
+
+
+def delay_compensated(
+    v_hsi: Array, v_to: Array, f_hsi: Array, f_to: Array, dt: float, shift_fwd: int, shift_bwd: int
+) -> float:
+    """Eq. (7) with each side's signal against the other's as it left ``shift`` ticks earlier::
+
+        I_dc = sum (v_hsi(t - T_f) - v_to(t))^2 + (F_to(t - T_b) - F_hsi(t))^2 dt
+
+    ``T_f``, ``T_b`` the one-way delays in ticks: what remains is distortion (codec, reconstruction,
+    passivity controller, reflections), not the delay itself, which (7) counts as error."""
+    a, b = _shifted(np.asarray(v_hsi, dtype=np.float64), np.asarray(v_to, dtype=np.float64), shift_fwd)
+    c, d = _shifted(np.asarray(f_to, dtype=np.float64), np.asarray(f_hsi, dtype=np.float64), shift_bwd)
+    dv, df = a - b, c - d
+    return float((np.sum(dv * dv) + np.sum(df * df)) * dt)
+
+
+def position_drift(v_hsi: Array, v_to: Array, dt: float, shift_fwd: int) -> dict[str, float]:
+    """The position mismatch ``|x_hsi(t - T_f) - x_to(t)|`` (norm over DoF, m), positions integrated
+    from the velocities from rest at 0: its maximum and its value at the end.  Wave variables and TDPA
+    both let it grow (a series damper's velocity never comes back); the delay itself is taken out."""
+    x_hsi = np.cumsum(np.asarray(v_hsi, dtype=np.float64), axis=0) * dt
+    x_to = np.cumsum(np.asarray(v_to, dtype=np.float64), axis=0) * dt
+    a, b = _shifted(x_hsi.reshape(x_hsi.shape[0], -1), x_to.reshape(x_to.shape[0], -1), shift_fwd)
+    if a.shape[0] == 0:
+        return {"max": 0.0, "final": 0.0}
+    e = np.sqrt(np.sum((a - b) ** 2, axis=1))
+    return {"max": float(e.max()), "final": float(e[-1])}

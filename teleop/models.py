@@ -28,12 +28,13 @@ import numpy as np
 import numpy.typing as npt
 from numpy.polynomial import polynomial as P
 
+from .errors import LocalError
 from .limits import MAX_VARIATION
 
 Array = npt.NDArray[np.float64]
 
 
-class ModelError(ValueError):
+class ModelError(LocalError):
     """A model's parameters are invalid."""
 
 

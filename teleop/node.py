@@ -17,6 +17,17 @@ The received wave (``h_l`` or ``g_r``) is what the decoder plays this tick, afte
 (``teleop.passivity``) has admitted it; the transmitted wave goes through the encoder.  Energies
 are counted in scattering variables per direction (eq. 4-5): ``E = 1/2 sum(wave**2) dt``.
 
+**TDPA** (``--passivity tdpa``, :class:`TdpaOperatorNode`, :class:`TdpaTeleoperatorNode`): power
+variables instead of waves, velocity forward and force back, each packet carrying the sender's
+input energy; the receiving side's adaptive damper keeps ``E_out <= E_in reported`` per direction
+(``teleop.passivity``).  The HSI renders a little damping of its own and the robot follows the
+commanded velocity through a PD position controller (``B = b``, ``K = 5 b``): without them no
+energy enters before contact and no force ever comes back (see :data:`TDPA_HSI_DAMPING`).  The
+controller's stiffness trades wall stiffness against delay: ``teleop sim --scenario protocol``
+with ``none`` measured I_dc 0.083 / 0.32 / 0.59 at 0 / 50 / 200 ms and a 1.7 N wall for K = 5 b,
+against 0.078 / 3.8 / 1.4 and a 4.2 N wall for K = 20 b (wave variables: 7.0 N at 0 ms), both
+before the drift compensator (:data:`TDPA_DRIFT_GAIN`) existed.
+
 **Safe state.** When nothing has been accepted for the link timeout (plus one payload interval of
 the peer's codec, so a sparse codec is not mistaken for a dead link), the node fades its
 coupling out over ``fade_time``: the HSI stops rendering force and the TO stops commanding
@@ -35,12 +46,41 @@ import numpy as np
 from . import auth, wire
 from .codecs import Array, Codec, CodecError
 from .models import Environment, Human
-from .passivity import DEFAULT_LINK_TIMEOUT, ON_LOSS, EnergyGuard, PassivityReport
+from .passivity import (
+    DEFAULT_LINK_TIMEOUT,
+    ON_LOSS,
+    EnergyGuard,
+    PassivityReport,
+    TdpaGuard,
+    parallel_damper,
+    series_damper,
+)
 from .playout import parse_playout
 from .ratecap import RateCap
 from .wave import WaveImpedance
 
 SPARSE_MARGIN_S = 0.010  # s: how late the payload after a lost one may be before the link is lost
+PASSIVITY = ("wave", "tdpa")  # the two architectures: scattering (eq. 3-5) or TDPA on power variables
+#: J of input energy a TDPA port may leave unreported before an event-based (deadband) encoder must
+#: send: the receiver's budget lags the truth by at most this between sparse updates (teleop.tdpa).
+TDPA_REPORT_QUANTUM_J = 2e-3
+#: The TDPA operator's rendered damping, as a fraction of the session's impedance ``b``.  Why: with
+#: the environment's direct feedthrough (Tustin's D, ``teleop.models``) the robot cannot move into
+#: contact without energy, and no force comes back to make the human put any in: E_in = E_out = 0
+#: for ever (measured: no force at all in the protocol's foam and walls).  The work the human does
+#: against this damper is real input energy, counted in E_in, so the budget starts from it and the
+#: strict bound E_out <= E_in holds unchanged.  Wave variables render ``b v`` in full (eq. 3).
+TDPA_HSI_DAMPING = 0.05
+#: The TDPA robot's position controller: damping and stiffness per unit of ``b`` (N s/m, N/m per
+#: N s/m).  The spring stores what the robot needs to push before the operator has paid for it, and
+#: pulls the robot back to the commanded position (the drift the PC leaves is the command's).
+TDPA_TO_DAMPING = 1.0
+TDPA_TO_BANDWIDTH = 5.0
+#: Drift compensation at the TO: 1/s of the lost commanded position asked back per second, and the
+#: fastest it may be asked back (m/s); both inside the PC's budget (Artigas et al.'s passive drift
+#: compensator in spirit: only surplus energy moves the robot back to where the operator is).
+TDPA_DRIFT_GAIN = 2.0
+TDPA_DRIFT_MAX_V = 0.05
 
 
 @dataclass
@@ -71,6 +111,7 @@ class PortOptions:
     fade_time: float = 0.1  # s to fade the coupling out (and back in)
     rate_cap: float = 0.0  # bit/s on the wire in any 100 ms window (teleop.ratecap); 0: no cap
     playout: str = "off"  # the receiver's playout buffer: "off", "auto" or extra ms (teleop.playout)
+    passivity: str = "wave"  # "wave" (scattering, eq. 3-5) or "tdpa" (power variables, teleop.passivity)
 
     @classmethod
     def of(cls, settings: Any) -> PortOptions:
@@ -81,6 +122,7 @@ class PortOptions:
             link_timeout=settings.link_timeout,
             rate_cap=settings.rate_cap,
             playout=settings.playout,
+            passivity=getattr(settings, "passivity", "wave"),
         )
 
     def __post_init__(self) -> None:
@@ -91,6 +133,8 @@ class PortOptions:
         if self.rate_cap:
             RateCap(self.rate_cap, 1e-3)  # ValueError saying the allowed range
         object.__setattr__(self, "playout", parse_playout(self.playout))  # canonical, or ValueError
+        if self.passivity not in PASSIVITY:
+            raise ValueError(f"passivity must be one of {', '.join(PASSIVITY)}, got {self.passivity!r}")
 
 
 class _Port:
@@ -122,9 +166,7 @@ class _Port:
         # Bytes a datagram carries beyond the packet: the envelope and the transport's header, as
         # the wire counters count them (the port sets it from its transport).
         self.datagram_overhead = auth.OVERHEAD + 28
-        # Saturated waves carry at most 1/2 dof RANGE^2 W: the most any genuine report can grow by.
-        max_power = 0.5 * wave.dof * rx.raw.full_scale**2
-        self.guard = EnergyGuard(dt, controller=opts.controller, max_power=max_power)
+        self.guard = self._make_guard(dt, opts, wave, tx, rx)
         self._now = 0.0  # the last tick's session time: when a packet arrives, as far as this node knows
         self.session = session
         self.dt = dt
@@ -155,6 +197,13 @@ class _Port:
         self.f = np.zeros(dof)
         self.wave_out = np.zeros(dof)
         self.wave_in = np.zeros(dof)
+
+    def _make_guard(
+        self, dt: float, opts: PortOptions, wave: WaveImpedance, tx: Codec, rx: Codec
+    ) -> EnergyGuard:
+        # Saturated waves carry at most 1/2 dof RANGE^2 W: the most any genuine report can grow by.
+        max_power = 0.5 * wave.dof * rx.raw.full_scale**2
+        return EnergyGuard(dt, controller=opts.controller, max_power=max_power)
 
     @property
     def energy_played(self) -> float:
@@ -266,8 +315,12 @@ class _Port:
         return x
 
     def _send(self, now: float, x: Array) -> wire.Packet | None:
-        self.wave_out = x
         self.energy_sent += self.half_dt * float(np.dot(x, x))
+        return self._transmit(now, x)
+
+    def _transmit(self, now: float, x: Array) -> wire.Packet | None:
+        """Encode ``x`` and build its packet, carrying :attr:`energy_sent` (None: nothing sent)."""
+        self.wave_out = x
         payload = self.encoder.encode(x)
         if payload is None:
             return None
@@ -364,3 +417,117 @@ class TeleoperatorNode(_Port):
         self.environment.advance(now, v, f)
         self.v, self.f = v, f
         return self._send(now, c * w.to_wave_out(g_r, f))
+
+
+class _TdpaPort(_Port):
+    """What both TDPA nodes share: the TDPA guard, and the energy report riding every packet.
+
+    The packet's ``energy`` field carries this port's cumulative input energy ``E_in`` (J into the
+    network here, ``teleop.passivity``); its payload is a power variable (``teleop.wire``).
+    """
+
+    _reported = 0.0  # E_in carried by the last packet that left
+
+    def _make_guard(
+        self, dt: float, opts: PortOptions, wave: WaveImpedance, tx: Codec, rx: Codec
+    ) -> EnergyGuard:
+        # The peer's port power is about |v| |F| per DoF, both within their ranges; the factor 4 is
+        # headroom for a device moving beyond the velocity range (its power is real, only not sent).
+        max_power = 4.0 * wave.dof * tx.raw.full_scale * rx.raw.full_scale
+        return TdpaGuard(dt, controller=opts.controller, max_power=max_power)
+
+    @property
+    def tdpa(self) -> TdpaGuard:
+        g = self.guard
+        assert isinstance(g, TdpaGuard)
+        return g
+
+    def _allowed(self) -> float:
+        """W the PC lets out this tick: the budget, or unbounded with the controller off."""
+        g = self.tdpa
+        return g.allowed_power() if g.controller else float("inf")
+
+    def _book(self, power_in: float, removed: float, acted: bool) -> None:
+        """Book one tick's power into the network at this port (``removed``: W the PC took away);
+        the observer's verdict on it."""
+        g = self.tdpa
+        violation = acted or -power_in * self.dt > g.margin + g.tolerance
+        g.account(power_in, removed, violation, acted)
+        self.energy_sent = g.energy_in
+
+    def _send_power(self, now: float, x: Array) -> wire.Packet | None:
+        """Send this tick's power variable; an event-based encoder must send when the input energy
+        it has not reported yet exceeds :data:`TDPA_REPORT_QUANTUM_J` (energy-triggered update)."""
+        self.encoder.urgent = self.energy_sent - self._reported > TDPA_REPORT_QUANTUM_J
+        pkt = self._transmit(now, x)
+        if pkt is not None:
+            self._reported = self.energy_sent
+        return pkt
+
+
+class TdpaOperatorNode(_TdpaPort, OperatorNode):
+    """HSI side under TDPA: sends ``v_hsi``, displays the received ``F_to`` through the adaptive
+    parallel damper (``teleop.passivity.parallel_damper``) over its own rendered damping."""
+
+    @property
+    def hsi_damping(self) -> float:
+        """N s/m the HSI renders under TDPA (:data:`TDPA_HSI_DAMPING` of the mean ``b``)."""
+        return TDPA_HSI_DAMPING * float(np.mean(self.wave.b))
+
+    def tick(self, now: float) -> wire.Packet | None:
+        c = self._supervise(now)
+        f_r = self.decoder.next()
+        self.wave_in = f_r
+        v0, y = self.human.affine(now)
+        beta0 = self.hsi_damping * c
+        v, f, p, removed, acted = parallel_damper(v0, y, c * f_r, self._allowed(), beta0)
+        self.human.advance(now, v, f)
+        self.v, self.f = v, f
+        self._book(p, removed, acted)  # eq. (2): v_hsi . F_hsi enters the network here
+        return self._send_power(now, c * v)
+
+
+class TdpaTeleoperatorNode(_TdpaPort, TeleoperatorNode):
+    """TO side under TDPA: commands the received ``v_hsi`` through the adaptive series damper
+    (``teleop.passivity.series_damper``), sends its force ``F_to``."""
+
+    coupling_error: Array  # m: commanded minus robot position, per DoF (the controller's spring)
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.coupling_error = np.zeros(self.wave.dof)
+        b = float(np.mean(self.wave.b))
+        self.to_damping = TDPA_TO_DAMPING * b  # N s/m
+        self.to_stiffness = TDPA_TO_BANDWIDTH * b  # N/m
+        self.drift = np.zeros(self.wave.dof)  # m: received minus commanded position (the PC's lost motion)
+
+    def tick(self, now: float) -> wire.Packet | None:
+        c = self._supervise(now)
+        v_r = self.decoder.next()
+        self.wave_in = v_r
+        f0, z = self.environment.affine(now)
+        # The robot behind its position controller, massless: F = K e' + B (v_d - v) = f0 + Z v with
+        # e' = e + (v_d - v) dt, so F = K e + G (v_d - v), G = K dt + B; seen from the network it is
+        # again an impedance F = f0' + Z' v_d (f0' = (G f0 + Z K e) / (G + Z), Z' = G Z / (G + Z)).
+        k, g = self.to_stiffness, self.to_damping + self.to_stiffness * self.dt
+        if c < 1.0:  # safe state: the spring lets go with the coupling (only removes its stored energy)
+            self.coupling_error *= c
+        ke = k * self.coupling_error
+        f0, z = (g * f0 + z * ke) / (g + z), g * z / (g + z)
+        v_ref = c * v_r
+        if c < 1.0:
+            self.drift *= c
+        # Passive drift compensation: ask for the motion the PC took away, at a bounded rate; the
+        # PC below lets it through only from the energy budget, so it can never make energy.
+        corr = TDPA_DRIFT_GAIN * self.drift
+        n = float(np.sqrt(np.dot(corr, corr)))
+        if n > TDPA_DRIFT_MAX_V:
+            corr *= TDPA_DRIFT_MAX_V / n
+        v_d, f, p, removed, acted = series_damper(v_ref + corr, f0, z, self._allowed())
+        self.drift += (v_ref - v_d) * self.dt
+        v = v_d - (f - ke) / g
+        self.coupling_error += (v_d - v) * self.dt
+        self.environment.advance(now, v, f)
+        self.v, self.f = v, f
+        self._book(-p, removed, acted)  # eq. (2): -v_to . F_to enters the network here
+        return self._send_power(now, c * f)

@@ -44,7 +44,7 @@ from teleop.link.netem import Link, NetemStats, make_link
 from . import auth, devices, protocol, scenarios, wire
 from .codecs import make_codec
 from .codecs.base import RAW_BITS, packed_size
-from .node import OperatorNode, PortOptions, TeleoperatorNode
+from .node import OperatorNode, PortOptions, TdpaOperatorNode, TdpaTeleoperatorNode, TeleoperatorNode
 from .playout import PlayoutBuffer
 from .wave import WaveImpedance
 
@@ -140,8 +140,20 @@ def make_node(
     side = "hsi" if role == "operator" else "robot"
     dev = devices.make(side, spec, dof, dt, seed=seed, variation=variation)
     wave = WaveImpedance.of(b, dof)
-    c = make_codec(codec, dof, full_scale)
     node: Node
+    if options.passivity == "tdpa":
+        v_codec, f_codec = (make_codec(codec, dof, r, power=True) for r in power_ranges(full_scale, b))
+        if role == "operator":
+            node = TdpaOperatorNode(
+                human=dev, wave=wave, tx=v_codec, rx=f_codec, session=session, dt=dt, options=options
+            )
+        else:
+            node = TdpaTeleoperatorNode(
+                environment=dev, wave=wave, tx=f_codec, rx=v_codec, session=session, dt=dt, options=options
+            )
+        node.device_spec = spec
+        return node
+    c = make_codec(codec, dof, full_scale)
     if role == "operator":
         node = OperatorNode(human=dev, wave=wave, tx=c, rx=c, session=session, dt=dt, options=options)
     else:
@@ -150,6 +162,14 @@ def make_node(
         )
     node.device_spec = spec
     return node
+
+
+def power_ranges(full_scale: float, b: float) -> tuple[float, float]:
+    """The ranges of velocity and force on the wire under TDPA, from the session's wave range ``W``
+    and impedance ``b``: what waves within ``+-W`` carry by eq. (3), ``v = (g + h) / sqrt(2b)`` and
+    ``F = (g - h) sqrt(b / 2)``, so ``|v| <= W sqrt(2 / b)`` and ``|F| <= W sqrt(2 b)``; one
+    ``--range`` sizes both architectures alike."""
+    return full_scale * math.sqrt(2.0 / b), full_scale * math.sqrt(2.0 * b)
 
 
 @dataclass

@@ -31,6 +31,7 @@ captured in one session verifies in no other.  A datagram whose tag does not ver
 from __future__ import annotations
 
 import dataclasses
+import enum
 import hashlib
 import hmac
 import math
@@ -51,6 +52,8 @@ from teleop.ratecap import MAX_RATE_BPS, MIN_RATE_BPS
 from teleop.scenarios import SCENARIOS
 from teleop.wave import WaveImpedance
 
+from .errors import RemoteError
+
 FORWARD, BACKWARD = 0, 1  # the directions of teleop.wire: operator -> TO, TO -> operator
 
 __all__ = [
@@ -59,6 +62,7 @@ __all__ = [
     "MAX_TIMESTAMP",
     "PROTOCOL_VERSION",
     "Bye",
+    "Failure",
     "Hello",
     "Message",
     "OperatorHandshake",
@@ -95,7 +99,18 @@ START_SLACK_NS = 1_000_000_000  # or this far behind it (a fresh session: the op
 BUSY = "busy with another operator"
 
 
-class ProtocolError(ValueError):
+class Failure(enum.Enum):
+    """Why a handshake (or the session it was for) never started: what callers branch on, never
+    the error's text (h11's rule)."""
+
+    NO_ANSWER = "no_answer"  # operator: no welcome within the timeout (absent robot, other key or name)
+    REJECTED = "rejected"  # operator: the teleoperator refused the session
+    START_UNCONFIRMED = "start_unconfirmed"  # operator: no started before tick 0
+    PEER_CLOCK = "peer_clock"  # operator: the peer's clock is out of range
+    NO_OPERATOR = "no_operator"  # teleoperator: no start within the timeout
+
+
+class ProtocolError(RemoteError):
     """A message that is not valid; the text names the field and what is allowed.
 
     ``kind`` and ``session`` are what could be read of the message before it failed (None if
@@ -240,6 +255,7 @@ class SessionParams:
     # Scale of the human's seeded variation (teleop.models.ProtocolPlan, drawn from ``seed``);
     # 0, the scripted run, is left out of the hello, so a hello without it means 0.
     variation: float = 0.0
+    passivity: str = "wave"  # "wave" or "tdpa" (teleop.node.PASSIVITY); optional on the wire like the above
 
     def _check_ranges(self) -> None:
         """ValueError naming the first field outside what this process can afford (teleop.limits).
@@ -289,7 +305,7 @@ class SessionParams:
                 if toks and toks[0] != "trace":
                     _check_netem_numbers(name, parse_netem(text))
         opts = self.port_options()  # ValueError for a bad on_loss, timeout or playout
-        spec = make_codec(self.codec, self.dof, self.full_scale).spec
+        spec = make_codec(self.codec, self.dof, self.full_scale, power=self.passivity == "tdpa").spec
         return dataclasses.replace(self, codec=spec, playout=opts.playout)
 
     def port_options(self) -> PortOptions:
@@ -338,6 +354,7 @@ class SessionParams:
             rate_cap=_float(m, "rate_cap") if "rate_cap" in m else 0.0,
             playout=_str(m, "playout", _MAX_NAME_LEN) if "playout" in m else "off",
             variation=_float(m, "variation") if "variation" in m else 0.0,
+            passivity=_str(m, "passivity", _MAX_NAME_LEN) if "passivity" in m else "wave",
         )
         try:
             p._check_ranges()
@@ -345,7 +362,7 @@ class SessionParams:
                 _check_peer_netem(name, getattr(p, name), local_netem)
             WaveImpedance.of(p.b, p.dof)
             playout = p.port_options().playout
-            spec = make_codec(p.codec, p.dof, p.full_scale).spec
+            spec = make_codec(p.codec, p.dof, p.full_scale, power=p.passivity == "tdpa").spec
         except ProtocolError:
             raise
         except (CodecError, ValueError, ArithmeticError) as e:  # the validators of other modules
@@ -374,6 +391,7 @@ class SessionParams:
             **({"rate_cap": self.rate_cap} if self.rate_cap else {}),
             **({"playout": self.playout} if self.playout != "off" else {}),
             **({"variation": self.variation} if self.variation else {}),
+            **({"passivity": self.passivity} if self.passivity != "wave" else {}),
         }
 
 
@@ -609,16 +627,7 @@ def parse(data: bytes, *, local_netem: Collection[str] = ()) -> Message:
     if not is_control(bytes(data[:1])):
         raise ProtocolError("not a control message (a control message is a msgpack map)")
     try:
-        m = msgpack.unpackb(
-            bytes(data),
-            raw=False,
-            strict_map_key=True,
-            max_str_len=MAX_CONTROL_BYTES,
-            max_bin_len=MAX_CONTROL_BYTES,
-            max_array_len=MAX_CONTROL_BYTES,
-            max_map_len=64,
-            max_ext_len=MAX_CONTROL_BYTES,
-        )
+        m = _unpack_control(data)
     except Exception as e:  # msgpack raises several types (FormatError, StackError, UnicodeDecodeError...)
         raise ProtocolError(f"not valid msgpack: {type(e).__name__}") from None
     if not isinstance(m, dict):
@@ -705,6 +714,7 @@ class OperatorHandshake:
         self.hellos_sent = 0
         self.done = False
         self.error: str | None = None
+        self.failure: Failure | None = None  # why, when ``error`` is set
         self.offset_ns = 0  # TO clock - operator clock
         self.rtt_ns = 0
         self.start_ns = 0  # tick 0 on the operator's clock
@@ -769,7 +779,7 @@ class OperatorHandshake:
             if msg.t_ns not in self._hellos:  # a recorded reject of an earlier handshake: stale
                 self._refuse("a reject that answers none of our hellos")
                 return
-            self.error = f"rejected the session: {msg.why}"
+            self.error, self.failure = f"rejected the session: {msg.why}", Failure.REJECTED
         elif isinstance(msg, Retry) and msg.session == session and not self._starting:
             if msg.t_ns not in self._in_flight:
                 self._refuse("a retry that answers no hello in flight (late or duplicated)")
@@ -803,6 +813,7 @@ class OperatorHandshake:
         self.start_ns = now_ns + self.start_lead_ns
         if not 0 <= self.start_ns + self.offset_ns <= MAX_TIMESTAMP:
             self.error = f"the peer's clock is out of range (offset {self.offset_ns} ns)"
+            self.failure = Failure.PEER_CLOCK
             return
         assert self.peer_nonce is not None
         fwd, bwd = auth.session_keys(self.psk, self.params.session, self.nonce, self.peer_nonce)
@@ -822,7 +833,7 @@ class OperatorHandshake:
                 if self.error is not None:
                     return []
             elif now_ns >= self._give_up:
-                self.error = f"never answered within {self.timeout_s:g} s"
+                self.error, self.failure = f"never answered within {self.timeout_s:g} s", Failure.NO_ANSWER
                 return []
             elif now_ns >= self._next_hello:
                 self._in_flight.append(now_ns)
@@ -834,7 +845,7 @@ class OperatorHandshake:
             else:
                 return []
         if now_ns >= self._start_deadline:
-            self.error = "did not confirm the start"
+            self.error, self.failure = "did not confirm the start", Failure.START_UNCONFIRMED
             return []
         if now_ns >= self._next_start:
             self._next_start = now_ns + self.start_resend_ns
@@ -902,17 +913,31 @@ class LocalLimits:
         return None
 
 
+def _unpack_control(body: bytes) -> object:
+    """The msgpack object of a control body, under the limits of :func:`parse` (raises on garbage)."""
+    return msgpack.unpackb(
+        bytes(body),
+        raw=False,
+        strict_map_key=True,
+        max_str_len=MAX_CONTROL_BYTES,
+        max_bin_len=MAX_CONTROL_BYTES,
+        max_array_len=MAX_CONTROL_BYTES,
+        max_map_len=64,
+        max_ext_len=MAX_CONTROL_BYTES,
+    )
+
+
 def peek_hello(body: bytes) -> tuple[int | None, int, object, object] | None:
     """(session, t_ns, nonce, cookie) of a body that looks like a hello, else None: read before the
     full parse (its codec and netem checks cost ~0.2 ms), so a hello without a valid cookie costs
-    an unpack, not a parse.  Values are unchecked except session and t_ns."""
+    an unpack, not a parse.  Values are unchecked except session and t_ns.
+
+    It unpacks under exactly :func:`parse`'s limits: a body it cannot read is one the full parse
+    refuses too, so no hello reaches a welcome without its cookie checked (PROTOCOL.md 4.3 step 2)."""
     if len(body) > MAX_CONTROL_BYTES or not is_control(bytes(body[:1])):
         return None
     try:
-        m = msgpack.unpackb(
-            bytes(body), raw=False, strict_map_key=True, max_str_len=MAX_CONTROL_BYTES,
-            max_bin_len=MAX_CONTROL_BYTES, max_array_len=64, max_map_len=64, max_ext_len=0,
-        )  # fmt: skip
+        m = _unpack_control(body)
     except Exception:  # msgpack's several error types: the full parse says what is wrong
         return None
     if not isinstance(m, dict) or m.get("t") != "hello":
@@ -972,6 +997,7 @@ class TeleoperatorHandshake:
         self.rejoin = False
         self.done = False
         self.error: str | None = None
+        self.failure: Failure | None = None  # why, when ``error`` is set
         self.welcomes = 0
         self.rejected = 0
         self.last_rejection = ""
@@ -1151,7 +1177,7 @@ class TeleoperatorHandshake:
         if self.finished or now_ns < self._give_up:
             return
         what = "no operator said hello" if self.params is None else "the operator never sent start"
-        self.error = f"{what} within {self.timeout_s:g} s"
+        self.error, self.failure = f"{what} within {self.timeout_s:g} s", Failure.NO_OPERATOR
         if self.rejected:
             self.error += f" ({self.rejected} hello(s) rejected, the last: {self.last_rejection})"
 

@@ -579,6 +579,7 @@ def build(
                 hsi=sim_devices["hsi"],
                 robot=sim_devices["robot"],
                 variation=p.get("variation", 0.0),
+                passivity=p.get("passivity", "wave"),
             )
         )
         i_sim = sim.summary["I"]

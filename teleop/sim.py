@@ -36,7 +36,7 @@ import numpy.typing as npt
 from teleop.link.netem import Link, make_link
 
 from . import devices, metrics, scenarios, wire
-from .codecs import Codec
+from .codecs import Codec, make_codec
 from .node import PortOptions
 from .port import ConstantDelayLink, MemorySink, Port, make_node, make_shim, wire_block
 
@@ -76,6 +76,7 @@ class SimConfig:
     hsi: str | None = None  # --hsi spec (teleop.devices); None: the scenario's human
     robot: str | None = None  # --robot spec; None: the scenario's environment
     variation: float = 0.0  # the human's seeded variation (teleop.models.ProtocolPlan); 0: scripted
+    passivity: str = "wave"  # "wave" (scattering, eq. 3-5) or "tdpa" (power variables + TDPA)
 
     def resolved(self) -> SimConfig:
         """A copy with every default filled in and every value checked (ValueError says what is wrong)."""
@@ -96,6 +97,8 @@ class SimConfig:
         if not c.dof or c.dof < 1:
             raise ValueError(f"dof must be >= 1, got {c.dof}")
         c.port_options()  # checks them
+        if c.passivity == "tdpa" and c.full_scale is not None:
+            make_codec(c.codec, c.dof, c.full_scale, power=True)  # CodecError: not on power variables
         scenarios.get(c.scenario).make(c.dof, c.dt, c.seed, c.variation)  # ModelError says what is wrong
         if not c.window_ms >= c.dt * 1e3:
             raise ValueError(f"window must be at least one tick ({c.dt * 1e3} ms), got {c.window_ms}")
@@ -304,8 +307,60 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
         "security": {"forward": t["security"], "backward": o["security"]},
         # Each side's device (teleop.devices): its spec and, if it keeps one, its own port observer.
         "devices": {"hsi": o["device"], "robot": t["device"]},
+        "passivity_architecture": cfg.passivity,
     }
+    summary.update(_delay_and_distortion(cfg, tr, summary))
     return summary
+
+
+def _one_way_ticks(playout: dict[str, Any], link: dict[str, Any], dt: float) -> int:
+    """The one-way delay a direction's samples saw, in ticks: the playout buffer's median release
+    delay when it holds them, else the link's measured mean delay (None: nothing arrived, 0)."""
+    ms = playout["delay_ms"]["p50"] if playout["delay_ms"]["p50"] is not None else link["delay_ms"]["mean"]
+    return 0 if ms is None else round(ms / 1e3 / dt)
+
+
+def _delay_and_distortion(cfg: SimConfig, tr: Trace, summary: dict[str, Any]) -> dict[str, Any]:
+    """Figures next to eq. (7) that separate delay from distortion (issue 23): ``I_dc``, eq. (7)
+    with the measured one-way delays taken out (``teleop.metrics.delay_compensated``), the
+    position drift between HSI and TO, and the energy the passivity controllers dissipated."""
+    dt = cfg.dt
+    shift = {d: _one_way_ticks(summary["playout"][d], summary["link"][d], dt) for d in wire.DIRECTIONS}
+    pv = summary["passivity"]
+    out: dict[str, Any] = {
+        "I_dc": metrics.delay_compensated(
+            tr.v_hsi, tr.v_to, tr.f_hsi, tr.f_to, dt, shift["forward"], shift["backward"]
+        ),
+        "delay_compensation_ms": {d: shift[d] * dt * 1e3 for d in wire.DIRECTIONS},
+        "drift_m": metrics.position_drift(tr.v_hsi, tr.v_to, dt, shift["forward"]),
+        # How hard the contact felt at each end (N, norm over DoF): eq. (7) compares the two ends
+        # only, so a soft wall rendered alike at both scores well; this shows it.
+        "peak_force_N": {
+            "hsi": float(np.sqrt((tr.f_hsi**2).sum(axis=1)).max(initial=0.0)),
+            "to": float(np.sqrt((tr.f_to**2).sum(axis=1)).max(initial=0.0)),
+        },
+        "energy_dissipated": {
+            "forward": pv["forward"]["energy_dissipated"],
+            "backward": pv["backward"]["energy_dissipated"],
+            "total": pv["forward"]["energy_dissipated"] + pv["backward"]["energy_dissipated"],
+        },
+    }
+    if cfg.passivity == "tdpa":
+        # TDPA's watchdog per direction (Artigas et al.'s observer): E_in at the sending port, E_out
+        # at the receiving one, as each counted them; the receiver's view of E_in is the report.
+        en = summary["energy"]
+        out["tdpa"] = {
+            d: {
+                "energy_in": en[d]["sent"],
+                "energy_out": en[d]["played"],
+                "min_margin": en[d]["min_margin"],
+                "controller_active_ticks": pv[d]["controller_active_ticks"],
+                "energy_dissipated": pv[d]["energy_dissipated"],
+                "violations_observed": pv[d]["violations"],
+            }
+            for d in wire.DIRECTIONS
+        }
+    return out
 
 
 def _phases(cfg: SimConfig) -> list[tuple[str, float, float]]:
@@ -366,6 +421,7 @@ def run_set(codecs: list[str], base: SimConfig) -> tuple[dict[str, Any], list[Ca
         "hsi": base.hsi or base.scenario,
         "robot": base.robot or base.scenario,
         "variation": base.variation,
+        "passivity": base.passivity,
         "cases": [c.summary for c in cases],
     }
     return doc, cases

@@ -56,6 +56,10 @@ def case_row(summary: dict[str, Any], duration: float) -> dict[str, Any]:
         "passive": summary["passive"],
         "min_energy_margin": summary["min_energy_margin"],
         "rate_cap": summary.get("rate_cap"),
+        # Delay against distortion (issue 23): eq. (7) with the one-way delays taken out, drift, PC energy.
+        "I_dc": summary["I_dc"],
+        "drift_m": summary["drift_m"],
+        "energy_dissipated": summary["energy_dissipated"]["total"],
     }
 
 
@@ -109,6 +113,7 @@ def run_sweep(
         "netem": {"forward": base.netem_forward, "backward": base.netem_backward},
         "seed": base.seed,
         "rate_cap": base.rate_cap,
+        "passivity": base.passivity,
         "cases": rows,
     }
 

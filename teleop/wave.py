@@ -19,10 +19,12 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from .errors import LocalError
+
 Array = npt.NDArray[np.float64]
 
 
-class WaveError(ValueError):
+class WaveError(LocalError):
     """A wave impedance or a signal shape is invalid."""
 
 

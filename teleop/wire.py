@@ -17,13 +17,17 @@ magic      bin "TW"   identifies teleop packets
 version    uint       ``VERSION`` (1); another version is rejected
 session    uint32     session id agreed in the handshake; others are dropped
 direction  uint       0 forward (operator -> TO, wave g), 1 backward (TO -> operator, wave h)
-seq        uint32     per-direction sequence number of transmitted packets, from 0
+seq        uint32     packets this sender's node produced before this one, from 0 (the shim may drop some)
 tick       uint64     sender's loop tick at which the payload was produced
 t_us       uint64     the tick's session time, ``round(tick * dt * 1e6)`` microseconds (not a clock)
-codec_id   uint       0 none, 1 ids, 2 eds, 3 cq
+codec_id   uint       0 none, 1 ids, 2 eds, 3 cq, 4 pd, 5 pdp, 6 dct
 payload    bin        the codec's bytes (see ``teleop.codecs``)
-energy     float64    sender's cumulative transmitted wave energy, J (eq. 4-5), for the watchdog
+energy     float      sender's cumulative transmitted wave energy, J (eq. 4-5); float32/64 only
 =========  =========  ==============================================================
+
+Under ``--passivity tdpa`` (PROTOCOL.md section 9) the layout is the same; ``codec_id`` is
+``POWER_CODEC_BASE + id``, the payload carries a power variable (velocity forward, force back) and
+``energy`` the sender's cumulative TDPA input energy ``E_in``, J (``teleop.passivity``).
 
 ``decode`` raises :class:`WireError` (and nothing else) with an exact message for any input that
 is not such a packet; transports catch it, count the packet as malformed and drop it.
@@ -40,19 +44,21 @@ import numpy as np
 import numpy.typing as npt
 
 from teleop import auth, limits
-from teleop.codecs.base import RAW_BITS, packed_size
-from teleop.codecs.frequency import MAX_FRAME
+
+from .errors import RemoteError
 
 MAGIC = b"TW"
 VERSION = 1
 FORWARD = 0
 BACKWARD = 1
 DIRECTIONS = ("forward", "backward")
+#: Codec ids from here on carry a power variable (TDPA): ``POWER_CODEC_BASE + id`` of the codec.
+POWER_CODEC_BASE = 16
 _U32 = 0xFFFFFFFF
 _U64 = 0xFFFFFFFFFFFFFFFF
 
 
-class WireError(ValueError):
+class WireError(RemoteError):
     """Bytes that are not a valid teleop packet."""
 
 
@@ -164,7 +170,11 @@ def decode(data: bytes) -> Packet:
 
 #: The largest codec payload any session can send: ``teleop.limits.MAX_DOF`` DoF of the codec with
 #: the most values per payload (``dct:N:N`` at the longest frame), raw 16-bit values.
-MAX_PAYLOAD_BYTES = packed_size(limits.MAX_DOF * MAX_FRAME, RAW_BITS)
+# (Not imported from teleop.codecs, which imports this module: dct's longest frame,
+# teleop.codecs.frequency.MAX_FRAME, of raw 16-bit values; tests/test_input_bounds.py checks it
+# against the codec itself.)
+_MOST_VALUES_PER_DOF, _RAW_BITS = 1000, 16
+MAX_PAYLOAD_BYTES = (limits.MAX_DOF * _MOST_VALUES_PER_DOF * _RAW_BITS + 7) // 8
 #: The largest data packet: that payload with every header field at its widest.
 MAX_PACKET_BYTES = len(encode(Packet(_U32, BACKWARD, _U32, _U64, _U64, 255, bytes(MAX_PAYLOAD_BYTES))))
 #: The largest datagram (or Zenoh sample) of the protocol, authenticated envelope included: data

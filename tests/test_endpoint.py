@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import msgpack
 import pytest
 
 from teleop import auth, protocol
@@ -99,6 +100,35 @@ def test_a_restarted_teleoperator_rejoins_at_any_round_trip(rtt_ms: float) -> No
     for s in (s_op, s_to):
         assert_passive(s)
     assert s_op["received"]["packets"] > 0 and s_to["received"]["packets"] > 0
+
+
+def test_a_rejoin_whose_started_is_lost_is_confirmed_by_the_next_resend() -> None:
+    """The restarted teleoperator's first started is lost: the operator's next resend of the start
+    (sealed anew, so not a replay) is answered, and it stops resending (PROTOCOL.md 4.3 step 6)."""
+    net = VirtualNet(1.0)
+    op, _ = start(net, duration=6.0)
+    net.seconds(0.5)
+    net.kill(TO)
+    net.seconds(0.3)
+    starteds: list[int] = []
+
+    def drop_first_started(now: int, src: Any, dst: Any, data: bytes) -> list[Any]:
+        hdr = auth.peek(data)
+        body = data[auth.HEADER_BYTES : -auth.TAG_BYTES]
+        session_control = hdr is not None and hdr[0] == auth.SESSION and protocol.is_control(body)
+        if src == TO and session_control and protocol.parse(body).kind == "started":
+            starteds.append(now)
+            if len(starteds) == 1:
+                return []
+        return [(src, dst, data)]
+
+    net.tap = drop_first_started
+    to2 = net.teleoperator(offset_ns=TO_OFFSET)
+    net.seconds(4.0, stop=lambda: len(starteds) >= 2)
+    assert len(starteds) == 2 and starteds[1] - starteds[0] <= 25 * MS  # one resend interval later
+    net.seconds(0.1)
+    assert op.ep._rj_start is None and op.ep._rj_resends <= 2
+    assert to2.ep.state == State.RUNNING and len(starteds) == 2
 
 
 def test_the_rejoin_start_error_is_within_half_the_round_trip_when_delays_differ() -> None:
@@ -246,7 +276,8 @@ def test_recorded_hellos_replayed_from_elsewhere_cannot_crowd_out_a_start() -> N
     assert op.ep.state == to.ep.state == State.RUNNING
     hs = to.ep._to_hs
     assert hs is not None and not hs._candidates  # committed to the genuine operator; none from EVE
-    assert hs.retries_sent >= 100 and hs.welcomes < 20
+    # EVE's source got its burst of retries; the rest was dropped before any MAC check.
+    assert hs.retries_sent <= 25 and hs.welcomes < 20 and to.ep.handshake_throttled >= 1000
 
 
 def test_a_hello_without_a_cookie_leaves_no_state_and_gets_a_small_retry() -> None:
@@ -260,6 +291,28 @@ def test_a_hello_without_a_cookie_leaves_no_state_and_gets_a_small_retry() -> No
     net.seconds(0.01)
     assert to.ep._to_hs is not None and to.ep._to_hs.retries_sent == 1 and not to.ep._to_hs._candidates
     assert len(replies) == 1 and len(replies[0]) < len(hello)
+
+
+@pytest.mark.parametrize("unknown", [list(range(100)), msgpack.ExtType(1, b"ab")], ids=["long array", "ext"])
+def test_an_unknown_field_the_peek_cannot_read_does_not_skip_the_cookie(unknown: object) -> None:
+    """Unknown keys are ignored (4.1), so a hello may carry any msgpack value under one; its cookie
+    is checked all the same (4.3 step 2): a retry, no candidate, never a welcome."""
+    net = VirtualNet(1.0)
+    to = net.teleoperator()
+    k_hs = auth.handshake_key(auth.robot_key(PSK, "robot"))
+    fields = {"t": "hello", "v": 1, "t_ns": 5, "nonce": bytes(range(16)), "x": unknown, **params().to_msg()}
+    hello = auth.Sealer(k_hs, auth.HANDSHAKE, 0).seal(msgpack.packb(fields, use_bin_type=True))
+    replies: list[protocol.Message] = []
+
+    def answers(now: int, src: Any, dst: Any, data: bytes) -> list[Any]:
+        replies.append(protocol.parse(auth.Opener(k_hs, auth.HANDSHAKE, 1).verify(data)[1]))
+        return []
+
+    net.tap = answers
+    net.inject(OP, TO, hello)
+    net.seconds(0.01)
+    assert [m.kind for m in replies] == ["retry"]
+    assert to.ep._to_hs is not None and not to.ep._to_hs._candidates and to.ep._to_hs.welcomes == 0
 
 
 def test_lost_start_and_started_are_resent_and_a_lost_bye_still_ends_the_session() -> None:
@@ -320,6 +373,23 @@ def test_timers_at_each_step() -> None:
     assert op.ep.state == State.STARTING and op.ep.get_timer() is None  # ticks are not timers
     net.seconds(2.0)
     assert op.ep.finished and op.ep.get_timer() is None
+
+
+def test_handshake_work_per_source_is_rate_limited() -> None:
+    """A source that sends hellos far faster than any operator gets its burst answered, then is
+    dropped before the MAC; the running session's own peer is never limited."""
+    net = VirtualNet(1.0)
+    to = net.teleoperator()
+    hs = protocol.OperatorHandshake(params(), now_ns=0, timeout_s=1.0, psk=auth.robot_key(PSK, "robot"))
+    hellos = [
+        hs.hs_sealer.seal(protocol.encode(protocol.Hello(params(), t, nonce=bytes(16))))
+        for t in range(1, 501)
+    ]
+    for i, h in enumerate(hellos):
+        net.inject(EVE, TO, h, delay_ns=i * 100_000)  # 10k/s for 50 ms
+    net.seconds(0.1)
+    assert to.ep._to_hs is not None and to.ep._to_hs.retries_sent <= 23  # a burst of 20, then 50/s for 50 ms
+    assert to.ep.handshake_throttled >= 470
 
 
 def test_a_flood_of_garbage_is_counted_and_the_session_completes() -> None:

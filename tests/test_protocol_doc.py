@@ -374,3 +374,218 @@ def test_send_ticks_tick_t_us_and_energy(codec: str, ticks: list[int], role: str
     assert [p.t_us for p in sent] == [round(k * dt * 1e6) for k in ticks]
     assert [p.seq for p in sent] == list(range(len(ticks)))
     assert {p.direction for p in sent} == {node.tx_direction}
+
+
+# --------------------------------------------------------------------------------------------
+# the rules issue 24's implementer had to guess, as the document now states them
+# --------------------------------------------------------------------------------------------
+def _section(title: str) -> str:
+    """The text of the section whose heading starts with ``title`` (up to the next heading)."""
+    m = re.search(rf"^#+ {re.escape(title)}.*?\n(.*?)(?=^#+ )", DOC, re.S | re.M)
+    assert m, title
+    return m.group(1)
+
+
+def test_the_link_loss_table_is_what_the_node_does() -> None:
+    """Section 5.3: T per codec, and the first tick the link is lost after a packet accepted just
+    before tick j = 0, with dt 1 ms and link_timeout 50 ms."""
+    rows = re.findall(r"^\| (\d+) \| (`.+?`) \| (\d+) ms \| `j \+ (\d+)` \|$", _section("5.3"), re.M)
+    assert len(rows) >= 6
+    for p, codecs, t_ms, lost_at in rows:
+        for codec in re.findall(r"`([^`]+)`", codecs):
+            node = make_node(
+                "teleoperator", scenario="protocol", dof=2, dt=0.001, b=20.0, codec=codec, full_scale=2.0,
+                session=9, options=PortOptions(link_timeout=0.05),
+            )  # fmt: skip
+            assert node.rx_codec.k == int(p), codec
+            assert math.isclose(node.link_timeout, int(t_ms) / 1e3), codec
+            enc = node.rx_codec.encoder()
+            payload = None
+            while payload is None:
+                payload = enc.encode(np.full(2, 0.1))
+            node.receive_packet(wire.Packet(9, 0, 0, 0, 0, node.rx_codec.codec_id, payload, 1.0))
+            k = 0
+            while not node.link_lost:
+                node.tick(k * 0.001)
+                k += 1
+            assert k - 1 == int(lost_at), codec
+
+
+@pytest.mark.parametrize(
+    ("given", "canonical"),
+    [("EDS:050", "eds:50"), ("cq:8:1.50", "cq:8:1.5"), ("pd:5.0", "pd:5"), ("pd:5:100", "pd:5"),
+     ("dct:020:02", "dct:20:2"), ("cq:8:1.2345678", "cq:8:1.23457"), ("eds:+5", "eds:5"),
+     ("eds:5_0", "eds:50")],
+)  # fmt: skip
+def test_canonical_codec_specs(given: str, canonical: str) -> None:
+    """Section 3.5: the canonical form both sides build their codec from."""
+    assert make_codec(given, 2, 2.0).spec == canonical
+    assert mentioned(given) and mentioned(canonical)
+    assert make_codec(canonical, 2, 2.0).spec == canonical
+
+
+def test_an_integer_energy_is_refused() -> None:
+    """Section 3.1: energy is a msgpack float, never an int (not even 0)."""
+    for energy, ok in ((0, False), (3, False), (0.0, True), (True, False)):
+        body = msgpack.packb([b"TW", 1, 9, 0, 0, 0, 0, 0, b"\0\0", energy], use_bin_type=True)
+        body += zlib.crc32(body).to_bytes(4, "little")
+        if ok:
+            assert wire.decode(body).energy == 0.0
+        else:
+            with pytest.raises(wire.WireError, match="energy"):
+                wire.decode(body)
+
+
+def test_optional_fields_with_their_default_values_are_accepted() -> None:
+    """Section 4.1: rejoin false, playout off, variation 0 and rate_cap 0 mean their absence."""
+    m = {"t": "hello", "v": 1, "t_ns": 1, "nonce": bytes(16), **_params().to_msg()}
+    plain = protocol.parse(msgpack.packb(m, use_bin_type=True))
+    m.update(rejoin=False, playout="off", variation=0, rate_cap=0)
+    assert protocol.parse(msgpack.packb(m, use_bin_type=True)) == plain
+
+
+def _answer(hello: dict[str, Any] | bytes, with_cookie: bool) -> str:
+    """What a teleoperator's handshake answers to an authentic hello body (section 4.2's table)."""
+    secret, addr, t = bytes(32), ("10.0.0.1", 5000), 10**12
+    to = protocol.TeleoperatorHandshake({}, now_ns=t, timeout_s=10.0, psk=PSK, cookie_secret=secret)
+    if isinstance(hello, dict) and with_cookie:
+        hello = {**hello, "cookie": protocol.make_cookie(secret, addr, hello["nonce"], t)}
+    body = msgpack.packb(hello, use_bin_type=True) if isinstance(hello, dict) else hello
+    out = to.receive(auth.Sealer(K_HS, auth.HANDSHAKE, wire.FORWARD).seal(body), addr, t)
+    opener = auth.Opener(K_HS, auth.HANDSHAKE, wire.BACKWARD)
+    return ",".join(protocol.parse(opener.verify(d)[1]).kind for d, _ in out) or "nothing"
+
+
+def test_what_a_teleoperator_answers_to_a_bad_hello() -> None:
+    good: dict[str, Any] = {"t": "hello", "v": 1, "t_ns": 7, "nonce": bytes(range(16)), **_params().to_msg()}
+    assert _answer(good, False) == "retry" and _answer(good, True) == "welcome"
+    many = {**good, **{f"x{i}": i for i in range(65 - len(good))}}
+    assert len(many) == 65 and _answer(many, True) == "nothing"
+    assert _answer({**good, "pad": "x" * 4000}, True) == "nothing"  # over 4096 bytes
+    assert _answer({**good, "t": "Hello"}, True) == "nothing"
+    assert _answer({**good, "dof": 0}, False) == "retry"  # the cookie first, whatever else is wrong
+    assert _answer({**good, "dof": 0}, True) == "reject"
+    assert _answer({**good, "v": 2}, True) == "reject"
+    assert _answer({**good, "nonce": b"short"}, False) == "reject"
+    assert _answer({k: v for k, v in good.items() if k != "nonce"}, False) == "reject"
+    table = _section("4.2")
+    for row in ("more than 64 entries", "no valid `cookie`", "not a 16-byte bin", "`v` included"):
+        assert row in table, row
+
+
+def _pd_sender(
+    pct: float, heartbeat: int, predictive: bool, xs: np.ndarray, rng: float
+) -> list[bytes | None]:
+    """The pd/pdp sender exactly as section 3.5 states it, with nothing of teleop but the format."""
+    raw, slope_raw = RawFormat(rng), RawFormat(rng / 64)
+    value, slope, i, gain, e_in, e_budget, played = np.zeros(2), np.zeros(2), 0, 1.0, 0.0, 0.0, 0.0
+    hist: list[np.ndarray] = []
+    out: list[bytes | None] = []
+    for n, x in enumerate(xs):
+        e_in += float(x @ x)
+        hist = [*hist, x][-8:]
+        pred = value + slope * i if predictive else value
+        band = float(np.linalg.norm(x - pred / gain)) > pct / 100 * max(float(np.linalg.norm(pred)), rng / 16)
+        if not (n == 0 or band or i >= heartbeat or played + float(pred @ pred) > e_budget):
+            played += float(pred @ pred)
+            i += 1
+            out.append(None)
+            continue
+        r = max(e_in - played, 0.0)
+        gain = 1 - min(pct / 200, 0.05) * (1 - r / (100 * float(x @ x))) if r < 100 * float(x @ x) else 1.0
+        p = x * math.sqrt(r / float(x @ x)) if float(x @ x) > r else gain * x
+        q = raw.quantize(p)
+        value, i, e_budget = raw.dequantize(q), 1, e_in
+        played += float(value @ value)
+        codes = [q]
+        if predictive:
+            m = len(hist)
+            j = np.arange(m) - (m - 1) / 2
+            fit = (j / float(j @ j)) @ np.array(hist) if m >= 2 else np.zeros(2)
+            qs = slope_raw.quantize(fit)
+            slope = slope_raw.dequantize(qs)
+            codes.append(qs)
+        out.append(pack(np.concatenate(codes), 16))
+    return out
+
+
+@pytest.mark.parametrize("spec", ["pd:5", "pdp:5", "pdp:20:30", "pd:1:7"])
+def test_the_deadband_sender_is_the_documented_one(spec: str) -> None:
+    rng = np.random.default_rng(3)
+    t = np.arange(3000) * 1e-3
+    xs = np.stack([np.sin(2 * np.pi * 1.3 * t), 0.5 * np.cos(2 * np.pi * 0.7 * t)], axis=1)
+    xs += np.cumsum(rng.normal(0, 0.01, xs.shape), axis=0)
+    codec = make_codec(spec, 2, 2.0)
+    enc = codec.encoder()
+    name, pct, *hb = spec.split(":")
+    mine = _pd_sender(float(pct), int(hb[0]) if hb else 100, name == "pdp", xs, 2.0)
+    theirs = [enc.encode(x) for x in xs]
+    assert mine == theirs
+    assert 20 < sum(p is not None for p in theirs) < 3000
+
+
+@pytest.mark.parametrize("name", ["eds", "ids"])
+def test_the_send_phase_is_the_documented_one(name: str) -> None:
+    """Section 3.5: sends on calls c with c - p (eDS) or c - p - (K-1) (iDS) a multiple of K, and a
+    change of p moves only the next send, by the wrapped difference, never before the current call."""
+    k = 10
+    phases = [0] * 25 + [3] * 30 + [9] * 40 + [2] * 30 + [7] * 25
+    enc = make_codec(f"{name}:{k}", 1, 2.0).encoder()
+    sent = []
+    for c, p in enumerate(phases):
+        enc.phase = p
+        if enc.encode(np.array([0.1])) is not None:
+            sent.append(c)
+    want, nxt, p_old = [], 0 if name == "eds" else k - 1, 0
+    for c, p in enumerate(phases):
+        if p != p_old:
+            nxt = max(nxt + ((p - p_old + k // 2) % k) - k // 2, c)
+            p_old = p
+        if c == nxt:
+            want.append(c)
+            nxt = c + k
+    assert sent == want
+    assert [c % k for c in sent[:2]] == [0 if name == "eds" else k - 1] * 2  # before the first change
+
+
+@pytest.mark.parametrize(("spec", "interval"), [("none", 1), ("eds:5", 5), ("ids:4", 4), ("dct:6:2", 6)])
+def test_conceal_holds_one_payload_interval_then_fades(spec: str, interval: int) -> None:
+    """Section 3.7 step 6: `last` while g <= P, then last * 0.95^(g - P)."""
+    codec = make_codec(spec, 1, 2.0)
+    dec = codec.decoder(None, "conceal")
+    payload = None
+    enc = codec.encoder()
+    while payload is None:
+        payload = enc.encode(np.array([0.5]))
+    dec.push(payload)
+    played = [float(dec.next()[0]) for _ in range(codec.k)]
+    last = played[-1]
+    for g in range(1, 3 * interval + 5):
+        want = last if g <= interval else last * 0.95 ** (g - interval)
+        assert float(dec.next()[0]) == pytest.approx(want, rel=1e-12), g
+
+
+def test_the_energy_guard_as_documented() -> None:
+    """Section 3.7 step 7: the bucket starts full at 0.2 s of P_max (the codec's RANGE), a late
+    joiner's first report is its origin (zero budget), and the tolerance is 1e-12 J."""
+    cq = make_codec("cq:8:0.5", 2, 2.0)
+    node = make_node(
+        "operator", scenario="protocol", dof=2, dt=0.001, b=20.0, codec="cq:8:0.5", full_scale=2.0,
+        session=9, options=PortOptions(),
+    )  # fmt: skip
+    p_max = 0.5 * 2 * 0.5**2
+    assert node.guard.max_power == p_max and cq.raw.full_scale == 0.5
+    node.guard.sent(0.2 * p_max * 0.999)
+    assert node.guard.report.energy_reports_clamped == 0
+    node.guard.sent(0.2 * p_max * 1.5)
+    assert node.guard.report.energy_reports_clamped == 1
+    late = make_node(
+        "teleoperator", scenario="protocol", dof=2, dt=0.001, b=20.0, codec="none", full_scale=2.0,
+        session=9, options=PortOptions(),
+    )  # fmt: skip
+    late.joined_late()
+    late.guard.sent(5.0)
+    assert late.guard.margin == 0.0
+    assert late.guard.admit(np.array([0.3, 0.3])).tolist() == [0.0, 0.0]
+    assert late.guard.report.violations == 1 and late.guard.tolerance == 1e-12
+    assert "1e-12" in _section("3.7") and "-1e-9" in _section("3.7")

@@ -47,6 +47,7 @@ from teleop.endpoint import (
     State,
     session_port,
 )
+from teleop.errors import TeleopError
 from teleop.port import Chunk, Port, PortKeys
 from teleop.protocol import PROTOCOL_VERSION, LocalLimits, SessionParams
 
@@ -70,7 +71,7 @@ __all__ = [
 IDLE_WAIT_S = 0.01  # the longest the runner sleeps on the socket outside the ticks
 
 
-class SessionError(Exception):
+class SessionError(TeleopError):
     """The session could not start or run: printed as one clear line, non-zero exit."""
 
 

@@ -55,6 +55,7 @@ from typing import Any
 
 import zenoh
 
+from teleop.errors import TeleopError
 from teleop.files import MAX_CONFIG_BYTES, read_regular
 from teleop.wire import MAX_DATAGRAM_BYTES
 
@@ -81,7 +82,7 @@ _KEY_FORBIDDEN = re.compile(r"[*$?#\s]")
 _RUST_LOCATION = re.compile(r"\s+at /\S+\.rs:\d+\.?")
 
 
-class TransportError(OSError):
+class TransportError(TeleopError, OSError):
     """The Zenoh session could not open or connect (printed as one clear line)."""
 
 

@@ -15,6 +15,7 @@ from collections.abc import Callable
 from typing import NoReturn, TypeAlias
 
 from ..codecs import ACCEPTED, CodecError, make_codec
+from ..errors import TeleopError
 from ..limits import (
     MAX_B,
     MAX_CODEC_SPEC_LEN,
@@ -34,7 +35,7 @@ MAX_CONNECT_TIMEOUT_S = 86400.0  # a day: longer waits overflow the loop's nanos
 MAX_PORT = 65535
 
 
-class CliError(Exception):
+class CliError(TeleopError):
     """A bad argument: printed as ``teleop: error: ...`` with exit status 2."""
 
 
@@ -371,6 +372,15 @@ def add_netem_args(p: argparse.ArgumentParser, variation_default: float = 0.0) -
 
 
 def add_passivity_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--passivity",
+        choices=["wave", "tdpa"],
+        default="wave",
+        help="how the channel is kept passive: wave (default) sends scattering waves (eq. 3-5); tdpa "
+        "sends velocity forward and force back with each side's input energy, and an adaptive damper "
+        "at each side dissipates what the channel would generate (time-domain passivity approach). "
+        "tdpa takes the codecs none, cq, ids, eds, pd and pdp",
+    )
     p.add_argument(
         "--on-loss",
         choices=["conceal", "hold", "zero"],

@@ -64,6 +64,7 @@ def _settings(args: argparse.Namespace, dof: int, duration: float) -> dict[str, 
         "dof": dof,
         "duration": duration,
         "variation": args.variation,
+        "passivity": args.passivity,
         "seeds": [args.seed, args.seed + args.runs - 1],
         "transport": args.transport if args.real else None,
         "netem": {

@@ -218,6 +218,7 @@ def _session_options(params: Any) -> list[str]:
         *("--playout", params.playout),
         *("--variation", repr(params.variation)),
         *([] if params.controller else ["--no-controller"]),
+        *(("--passivity", params.passivity) if params.passivity != "wave" else ()),
     ]
 
 

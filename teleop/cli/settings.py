@@ -108,6 +108,7 @@ def channel_kwargs(args: argparse.Namespace) -> dict[str, Any]:
         "link_timeout": args.link_timeout / 1e3,
         "rate_cap": args.rate_cap,
         "playout": args.playout,
+        "passivity": getattr(args, "passivity", "wave"),
     }
 
 

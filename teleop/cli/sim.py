@@ -69,6 +69,44 @@ def format_watchdog(cases: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def format_distortion(cases: list[dict[str, Any]]) -> str:
+    """Per case: eq. (7) next to its delay-compensated form, the HSI-TO drift and the energy the
+    passivity controllers dissipated (what separates delay from distortion)."""
+    head = (
+        f"{'codec':<10} {'I':>11} {'I_dc':>11} {'shift ms':>9} {'drift max mm':>12} "
+        f"{'drift end mm':>12} {'dissipated J':>12} {'peak F hsi/to N':>15}"
+    )
+    lines = [head, "-" * len(head)]
+    for c in cases:
+        sh = c["delay_compensation_ms"]
+        shift = f"{sh['forward']:g}/{sh['backward']:g}"
+        peak = f"{c['peak_force_N']['hsi']:.2f}/{c['peak_force_N']['to']:.2f}"
+        lines.append(
+            f"{c['codec']:<10} {c['I']:>11.4e} {c['I_dc']:>11.4e} {shift:>9} "
+            f"{1e3 * c['drift_m']['max']:>12.3f} {1e3 * c['drift_m']['final']:>12.3f} "
+            f"{c['energy_dissipated']['total']:>12.3e} {peak:>15}"
+        )
+    return "\n".join(lines)
+
+
+def format_tdpa(cases: list[dict[str, Any]]) -> str:
+    """Per case and direction: TDPA's observer (energy in at the sender, out at the receiver) and
+    its controller (active ticks, dissipated energy)."""
+    head = (
+        f"{'codec':<10} {'dir':<9} {'E_in J':>11} {'E_out J':>11} {'min margin J':>13} "
+        f"{'ctrl ticks':>10} {'dissipated J':>12}"
+    )
+    lines = [head, "-" * len(head)]
+    for c in cases:
+        for d in ("forward", "backward"):
+            w = c["tdpa"][d]
+            lines.append(
+                f"{c['codec']:<10} {d:<9} {w['energy_in']:>11.4e} {w['energy_out']:>11.4e} "
+                f"{w['min_margin']:>13.3e} {w['controller_active_ticks']:>10} {w['energy_dissipated']:>12.3e}"
+            )
+    return "\n".join(lines)
+
+
 def _write_results(out: Path, doc: dict[str, Any], cases: list[Any]) -> None:
     """OUT/results.json and one PNG of velocities and forces per case."""
     from .. import plots
@@ -107,6 +145,11 @@ def cmd_sim(args: argparse.Namespace) -> int:
         f"teleop sim: scenario {base.scenario}, {base.dof} DoF, b = {base.b:g}, delay {base.delay_ms:g} ms, "
         f"{base.duration:g} s at {1 / base.dt:g} Hz, wave range +-{base.full_scale:g}"
     )
+    if base.passivity == "tdpa":
+        from ..port import power_ranges
+
+        v_fs, f_fs = power_ranges(base.full_scale, base.b)
+        print(f"passivity tdpa: velocity range +-{v_fs:.4g} m/s forward, force range +-{f_fs:.4g} N back")
     impaired = bool(base.netem_forward or base.netem_backward)
     if impaired:
         print(
@@ -121,6 +164,9 @@ def cmd_sim(args: argparse.Namespace) -> int:
         print(format_phases(doc["cases"]))
     if impaired or base.on_loss != "conceal" or not base.controller:
         print(format_watchdog(doc["cases"]))
+    print(format_distortion(doc["cases"]))
+    if base.passivity == "tdpa":
+        print(format_tdpa(doc["cases"]))
     if out is not None:
         _write_results(out, doc, cases)
     return 0 if all(c["passive"] for c in doc["cases"]) else 1

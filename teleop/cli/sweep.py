@@ -37,6 +37,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     out = writable_dir(Path(args.out), "--out")
     fresh_out(out, ["sweep.json", "pareto.png"])
     codecs = args.codec or list(DEFAULT_GRID)
+    if args.passivity == "tdpa" and not args.codec:  # the grid's codecs that apply to power variables
+        from ..codecs import POWER_CODECS
+
+        codecs = [c for c in codecs if c.split(":")[0] in POWER_CODECS]
     workers = args.jobs or min(len(codecs), os.cpu_count() or 1)
     base = sim_config(args)
     try:

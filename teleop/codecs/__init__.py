@@ -23,9 +23,11 @@ Neither side reads a clock: an encoder is called once per tick, a decoder yields
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from ..wire import POWER_CODEC_BASE
 from .base import RAW_BITS, Array, CodecError, Encoder, PlayoutDecoder, RawFormat, packed_size
 from .deadband import DEFAULT_HEARTBEAT_MS, DeadbandDecoder, DeadbandEncoder
 from .direct import DirectDecoder, DirectEncoder
@@ -275,8 +277,35 @@ CODECS: dict[str, Callable[[str, list[str], int, float], Codec]] = {
 }
 
 
-def make_codec(spec: str, dof: int = 1, full_scale: float = DEFAULT_FULL_SCALE) -> Codec:
-    """Parse ``spec`` and bind it; raises :class:`CodecError` listing what is accepted."""
+#: The codecs that make sense on power variables (TDPA): a frequency codec's frame of delay and
+#: Parseval bound buy nothing there.
+POWER_CODECS = ("none", "cq", "ids", "eds", "pd", "pdp")
+
+
+def _powered(enc: Encoder) -> Encoder:
+    enc.power = True
+    return enc
+
+
+def on_power_variable(c: Codec) -> Codec:
+    """The same codec on a power variable (TDPA): its wave-energy rules off (``Encoder.power``) and
+    its id moved to ``POWER_CODEC_BASE + id`` (``teleop.wire``), so a wave peer refuses the payload
+    as another codec instead of playing a velocity as a wave."""
+    if c.name not in POWER_CODECS:
+        raise CodecError(
+            f"codec {c.spec!r} is not available with --passivity tdpa (power variables); "
+            f"accepted there: {', '.join(POWER_CODECS)}"
+        )
+    make = c.make_encoder
+    return dataclasses.replace(
+        c, codec_id=POWER_CODEC_BASE + c.codec_id, make_encoder=lambda: _powered(make())
+    )
+
+
+def make_codec(spec: str, dof: int = 1, full_scale: float = DEFAULT_FULL_SCALE, power: bool = False) -> Codec:
+    """Parse ``spec`` and bind it; raises :class:`CodecError` listing what is accepted.
+
+    ``power``: for a power variable under TDPA (:func:`on_power_variable`)."""
     if not isinstance(spec, str) or not spec.strip():
         raise CodecError(f"empty codec spec; accepted: {ACCEPTED}")
     name, *params = spec.strip().split(":")
@@ -285,4 +314,5 @@ def make_codec(spec: str, dof: int = 1, full_scale: float = DEFAULT_FULL_SCALE) 
         raise CodecError(f"unknown codec {name!r} in {spec!r}; accepted: {ACCEPTED}")
     if dof < 1:
         raise CodecError(f"dof must be >= 1, got {dof}")
-    return factory(spec, params, dof, full_scale)
+    c = factory(spec, params, dof, full_scale)
+    return on_power_variable(c) if power else c

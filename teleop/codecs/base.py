@@ -17,13 +17,15 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from ..errors import LocalError
+
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 RAW_BITS = 16
 
 
-class CodecError(ValueError):
+class CodecError(LocalError):
     """A codec spec is invalid, or a payload does not match its codec."""
 
 
@@ -112,6 +114,12 @@ class Encoder:
     """
 
     phase = 0
+    #: On a power variable (TDPA, ``teleop.node``): the wave-energy rules of eq. (8)/(10) do not
+    #: apply (``x . x`` is no energy there); the TDPA controller keeps the channel passive instead.
+    power = False
+    #: Set by a TDPA node before ``encode`` when its unreported input energy is due: an event-based
+    #: encoder sends this tick (an energy-triggered update); periodic ones ignore it.
+    urgent = False
 
     def encode(self, x: Array) -> bytes | None:  # pragma: no cover - interface
         raise NotImplementedError

@@ -98,6 +98,8 @@ from typing import Any, Protocol
 
 from teleop.files import MAX_TRACE_BYTES, FileRefused, read_regular
 
+from ..errors import LocalError
+
 __all__ = [
     "GRAMMAR",
     "PACKET_SIZE",
@@ -138,7 +140,7 @@ Optional values are taken only when the next token starts with a digit, as in tc
 Trace link (make_link only): trace FILE"""
 
 
-class NetemError(ValueError):
+class NetemError(LocalError):
     """A bad spec or trace.  ``token`` and ``position`` (token index) say where, when known."""
 
     def __init__(self, message: str, token: str | None = None, position: int | None = None) -> None:

@@ -1,0 +1,24 @@
+"""One hierarchy for every error this stack raises on purpose, in h11's manner.
+
+``TeleopError`` is the root; ``LocalError`` says this side's own settings or call are wrong (a codec
+spec, a device, a netem spec typed by the user: fix the command), ``RemoteError`` that what a peer or
+a file sent is wrong (a datagram, a log: count it, drop it, say so).  Each concrete error keeps
+``ValueError`` as a base, so existing ``except ValueError`` handlers still hold; callers branch on
+the type (and on enums such as ``teleop.protocol.Failure``), never on an error's text.
+"""
+
+from __future__ import annotations
+
+__all__ = ["LocalError", "RemoteError", "TeleopError"]
+
+
+class TeleopError(Exception):
+    """Every error teleop raises on purpose."""
+
+
+class LocalError(TeleopError, ValueError):
+    """This side's own settings or call are invalid (the text says what is allowed)."""
+
+
+class RemoteError(TeleopError, ValueError):
+    """What a peer or a file sent is invalid (the text says what and where)."""
