@@ -46,7 +46,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 from typing import Any, TypeAlias
 
-from . import auth, protocol
+from . import auth, protocol, wire
 from .link import Addr
 from .port import Port, PortKeys
 from .protocol import Failure, SessionParams
@@ -288,6 +288,10 @@ class Endpoint:
         self._limits = protocol.LocalLimits()
         self._cookie_secret = rng(32)
         self._limiter = HandshakeLimiter()
+        # The longest datagram of each key kind (index: auth.HANDSHAKE, auth.SESSION); the session
+        # bound is narrowed to the agreed DoF once a session starts.
+        self._max_len = [wire.MAX_HANDSHAKE_DATAGRAM_BYTES, wire.MAX_DATAGRAM_BYTES]
+        self.oversize = 0
         self._rejections_seen = 0
         self.own_offers_ignored = 0
         self.busy_rejects = 0
@@ -365,8 +369,12 @@ class Endpoint:
     def receive_datagram(self, data: bytes, addr: Addr, now_ns: int) -> None:
         """A datagram from ``addr`` received at ``now_ns``.  Never raises: whatever it is, it is
         taken, or counted and dropped."""
-        hdr = auth.peek(data) if addr != self.peer else None
-        if hdr is not None and hdr[0] == auth.HANDSHAKE and not self._limiter.allow(addr, now_ns):
+        hdr = auth.peek(data)
+        if hdr is not None and len(data) > self._max_len[hdr[0]]:
+            self.oversize += 1  # longer than any message of its key kind: refused by length alone
+            return
+        handshake = hdr is not None and hdr[0] == auth.HANDSHAKE
+        if handshake and addr != self.peer and not self._limiter.allow(addr, now_ns):
             return  # over the handshake budget: dropped before the MAC (HandshakeLimiter)
         if self.state == State.HANDSHAKE:
             if self._op_hs is not None:
@@ -547,6 +555,7 @@ class Endpoint:
             k0,
         )
         self._rx_k = k0
+        self._max_len[auth.SESSION] = wire.max_session_datagram_bytes(params.dof)
         self.port = self._make_port(params, k0, keys, start_ns)
         if k0:
             self.port.node.joined_late()
@@ -819,6 +828,7 @@ class Endpoint:
             },
             "busy_rejects": self.busy_rejects,
             "handshake_throttled": self._limiter.dropped,
+            "oversize_refused": self.oversize,
             "retries_sent": self.retries_sent,
             "shim": {"spec": spec_tx, **shim} if shim else None,
             "grace": dict(self.grace),

@@ -181,3 +181,14 @@ MAX_PACKET_BYTES = len(encode(Packet(_U32, BACKWARD, _U32, _U64, _U64, 255, byte
 #: packet or control message.  Transports refuse anything longer by its length alone, before any
 #: hashing or parsing (DESIGN.md: the cost of refusing must be small and flat).
 MAX_DATAGRAM_BYTES = max(MAX_PACKET_BYTES, limits.MAX_CONTROL_BYTES) + auth.OVERHEAD
+#: The largest handshake-key datagram: a control message in its envelope (hello, welcome, retry, reject).
+MAX_HANDSHAKE_DATAGRAM_BYTES = limits.MAX_CONTROL_BYTES + auth.OVERHEAD
+
+
+def max_session_datagram_bytes(dof: int) -> int:
+    """The largest session-key datagram of a session of ``dof`` DoF: a control message, or a data
+    packet of the codec with the most values per payload at that DoF.  An endpoint refuses a longer
+    one by its length alone, before the MAC (a 64 kB datagram costs 0.2 ms to hash)."""
+    payload = (dof * _MOST_VALUES_PER_DOF * _RAW_BITS + 7) // 8
+    packet = len(encode(Packet(_U32, BACKWARD, _U32, _U64, _U64, 255, bytes(payload))))
+    return max(packet, limits.MAX_CONTROL_BYTES) + auth.OVERHEAD

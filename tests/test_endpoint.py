@@ -392,6 +392,25 @@ def test_handshake_work_per_source_is_rate_limited() -> None:
     assert to.ep.handshake_throttled >= 470
 
 
+def test_a_datagram_longer_than_any_of_its_kind_is_refused_by_length_alone() -> None:
+    """A 60 kB datagram with a handshake header, or with a session header in a 2-DoF session, is
+    dropped before its MAC is computed (counted); the session goes on."""
+    from teleop import wire
+
+    net = VirtualNet(1.0)
+    _, to = start(net, duration=1.0)
+    hs_junk = b"T\x10" + (1).to_bytes(8, "big") + bytes(60_000)  # flags 0x10: handshake key, forward
+    ss_junk = b"T\x12" + (5).to_bytes(8, "big") + bytes(wire.max_session_datagram_bytes(2))
+    for i in range(50):
+        net.inject(EVE, TO, hs_junk, delay_ns=i * MS)
+        net.inject(OP, TO, ss_junk, delay_ns=i * MS)  # even from the peer's own address
+    net.seconds(3.0)
+    s = ended(to)
+    assert s["oversize_refused"] == 100 and s["completed"]
+    assert s["security"]["rejected"] == 0  # never reached the MAC check
+    assert wire.max_session_datagram_bytes(2) < 5000 < wire.MAX_DATAGRAM_BYTES
+
+
 def test_a_flood_of_garbage_is_counted_and_the_session_completes() -> None:
     net = VirtualNet(1.0, seed=3)
     op, to = start(net, duration=1.0)
