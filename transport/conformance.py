@@ -449,15 +449,17 @@ def _session_as_operator(
             data(d, t)
 
     drv = _Driver(a, ep, tap)
-    drv.run(lambda: ep.state in (State.RUNNING, State.FAILED, State.CLOSED), 15.0)
+    # Stop as soon as the session is agreed (STARTING), before either side's first tick, so the
+    # data check sees the teleoperator's very first packet (seq 0).
+    drv.run(lambda: ep.state != State.HANDSHAKE, 15.0)
     r.check(
         "4.3",
         "MUST",
         "the reference operator's handshake completes (retry, welcome, start, started)",
-        ep.state == State.RUNNING,
+        ep.running,
         ep.state.value,
     )
-    if ep.state != State.RUNNING or ep.port is None:
+    if not ep.running or ep.port is None:
         return
     _, bwd = auth.session_keys(k_r, session, ep.port.keys.nonce, _nonce(ep.peer_nonce))
     data = _DataCheck(bwd, wire.BACKWARD, session, make_codec(codec, 2, 2.0).codec_id)

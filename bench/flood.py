@@ -1,0 +1,227 @@
+"""Floods during a session: what a stranger's datagrams cost the teleoperator's 1 kHz loop.
+
+A teleoperator and an operator run as two real processes on 127.0.0.1 (UDP, ``eds:50``, 2 DoF) and a
+flood process sends the teleoperator ``rate`` datagrams a second of one class for the session's
+length; a baseline session without a flood runs first in the same invocation.  Classes:
+
+* ``random``: 100 random bytes;
+* ``big_handshake``: 60 000 bytes behind a valid handshake-key header (refused by length);
+* ``big_session``: 60 000 bytes behind a valid session-key header (refused by length);
+* ``recorded_hello``: authentic hellos recorded from 200 earlier handshakes (they hold the key),
+  replayed from the flood's own address (rate-limited, then retries or nothing).
+
+Per case, from the teleoperator's ROLE.json: the loop's lateness p99 (and its ratio to the
+baseline's), overruns, link-lost events, the energy margins, the log's dropped chunks, what the
+endpoint refused (oversize, throttled); and what the kernel dropped at the socket (``/proc/net/udp``)
+and the rate the flood reached.  Every datagram goes to 127.0.0.1 only; each flood is bounded in
+count and time.
+
+    python -m bench.flood [--rates 10000 50000 100000] [--duration 8] [--out bench/results/flood.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import multiprocessing as mp
+import os
+import platform
+import secrets
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from teleop import auth, protocol
+
+LOOPBACK = "127.0.0.1"
+TELEOP = [sys.executable, "-m", "teleop.cli"]
+CLASSES = ("random", "big_handshake", "big_session", "recorded_hello")
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind((LOOPBACK, 0))
+        return int(s.getsockname()[1])
+
+
+def _kernel_drops(port: int) -> int:
+    want = f"0100007F:{port:04X}"
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/net/udp").read_text().splitlines()[1:]:
+            f = line.split()
+            if len(f) >= 13 and f[1] == want:
+                return int(f[12])
+    return 0
+
+
+def recorded_hellos(psk: bytes, n: int = 200) -> list[bytes]:
+    """Authentic hellos of ``n`` handshakes, as an eavesdropper would have recorded them."""
+    key = auth.robot_key(psk, auth.DEFAULT_ROBOT_NAME)
+    out = []
+    for i in range(n):
+        p = protocol.SessionParams(
+            session=1000 + i,
+            codec="eds:50",
+            scenario="protocol",
+            dof=2,
+            b=20.0,
+            full_scale=2.0,
+            duration=15.0,
+        )
+        hs = protocol.OperatorHandshake(
+            p, now_ns=1 + i, timeout_s=1.0, psk=key, nonce=secrets.token_bytes(16)
+        )
+        out += hs.poll(1 + i)
+    return out
+
+
+def payloads(kind: str, psk: bytes) -> list[bytes]:
+    if kind == "random":
+        return [secrets.token_bytes(100) for _ in range(64)]
+    if kind == "big_handshake":
+        return [b"T\x10" + (i + 1).to_bytes(8, "big") + secrets.token_bytes(60_000) for i in range(8)]
+    if kind == "big_session":
+        return [b"T\x12" + (i + 1).to_bytes(8, "big") + secrets.token_bytes(60_000) for i in range(8)]
+    return recorded_hellos(psk)
+
+
+def flood(port: int, kind: str, psk: bytes, rate: float, seconds: float, sent: Any) -> None:
+    """The flood process: ``rate`` datagrams a second of ``kind`` to 127.0.0.1:``port``, paced in
+    1 ms batches, for ``seconds``; the count it reached goes to ``sent``."""
+    data = payloads(kind, psk)
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    n, t0 = 0, time.monotonic()
+    end = t0 + seconds
+    while (now := time.monotonic()) < end:
+        due = int((now - t0) * rate)
+        while n < due:
+            with contextlib.suppress(OSError):  # a full socket buffer: the kernel drops, we go on
+                s.sendto(data[n % len(data)], (LOOPBACK, port))
+            n += 1
+        time.sleep(0.0005)
+    sent.value = n
+    s.close()
+
+
+def session(key_file: str, psk: bytes, kind: str | None, rate: float, duration: float) -> dict[str, Any]:
+    """One session of ``duration`` s, flooded (``kind``) from 1 s after its start, or not."""
+    port = _free_port()
+    with tempfile.TemporaryDirectory(prefix="teleop-flood-") as tmp:
+        logs = Path(tmp) / "logs"
+        to = subprocess.Popen(
+            [*TELEOP, "teleoperator", "--key-file", key_file, "--listen", f"{LOOPBACK}:{port}",
+             "--log", str(logs), "--quiet"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        time.sleep(1.5)
+        op = subprocess.Popen(
+            [*TELEOP, "operator", "--key-file", key_file, "--peer", f"{LOOPBACK}:{port}", "--listen",
+             f"{LOOPBACK}:0", "--codec", "eds:50", "--duration", str(duration), "--quiet"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        drops0 = _kernel_drops(port)
+        sent = mp.Value("q", 0)
+        proc = None
+        if kind is not None:
+            time.sleep(1.5)  # the session runs (handshake and start: well under 1.5 s)
+            proc = mp.get_context("spawn").Process(
+                target=flood, args=(port, kind, psk, rate, duration - 2.0, sent), daemon=True
+            )
+            proc.start()
+        rc_op = op.wait(timeout=duration + 60)
+        if proc is not None:
+            proc.join(10)
+        drops = _kernel_drops(port) - drops0
+        rc_to = to.wait(timeout=60)
+        summary = (
+            json.loads((logs / "teleoperator.json").read_text())
+            if (logs / "teleoperator.json").exists()
+            else {}
+        )
+    loop = summary.get("loop") or {}
+    pv = summary.get("passivity") or {}
+    log = summary.get("log") or {}
+    return {
+        "class": kind or "baseline",
+        "rate": rate if kind else 0,
+        "sent": int(sent.value),
+        "exit_codes": {"operator": rc_op, "teleoperator": rc_to},
+        "completed": summary.get("completed"),
+        "lateness_p99_us": (loop.get("lateness_us") or {}).get("p99"),
+        "period_error_p99_us": (loop.get("period_error_us") or {}).get("p99"),
+        "overruns": loop.get("overruns"),
+        "link_lost_events": pv.get("link_lost_events"),
+        "min_margin_J": pv.get("min_margin"),
+        "log_dropped_chunks": log.get("dropped_chunks"),
+        "oversize_refused": summary.get("oversize_refused"),
+        "handshake_throttled": summary.get("handshake_throttled"),
+        "transport_oversize": (summary.get("received") or {}).get("oversize"),
+        "foreign": (summary.get("received") or {}).get("foreign"),
+        "kernel_drops": drops,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m bench.flood", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--rates", type=float, nargs="+", default=[10_000.0, 50_000.0, 100_000.0])
+    ap.add_argument("--classes", nargs="+", choices=CLASSES, default=list(CLASSES))
+    ap.add_argument("--duration", type=float, default=8.0, help="seconds of each session (>= 4)")
+    ap.add_argument("--out", default="bench/results/flood.json")
+    a = ap.parse_args(argv)
+    if a.duration < 4:
+        ap.error("--duration must be at least 4 s")
+    psk = auth.generate_key()
+    with tempfile.TemporaryDirectory(prefix="teleop-flood-key-") as kd:
+        key_file = str(Path(kd) / "k")
+        auth.write_key_file(key_file, psk)
+        base = session(key_file, psk, None, 0, a.duration)
+        print(f"baseline: lateness p99 {base['lateness_p99_us']} us, overruns {base['overruns']}", flush=True)
+        cases = []
+        for kind in a.classes:
+            for rate in a.rates:
+                c = session(key_file, psk, kind, rate, a.duration)
+                b = base["lateness_p99_us"]
+                c["p99_ratio"] = c["lateness_p99_us"] / b if b and c["lateness_p99_us"] is not None else None
+                c["within_2x"] = c["p99_ratio"] is not None and c["p99_ratio"] <= 2.0
+                c["ok"] = bool(
+                    c["within_2x"] and c["link_lost_events"] == 0 and (c["min_margin_J"] or 0) >= -1e-9
+                    and c["log_dropped_chunks"] == 0 and c["completed"]
+                )  # fmt: skip
+                cases.append(c)
+                ratio = "-" if c["p99_ratio"] is None else f"{c['p99_ratio']:.2f}"
+                reached = c["sent"] / max(a.duration - 2, 1)
+                print(
+                    f"{kind:15s} {rate:8.0f}/s reached {reached:8.0f}/s"
+                    f"  p99 {c['lateness_p99_us']} us (x{ratio})"
+                    f"  link lost {c['link_lost_events']}  dropped chunks {c['log_dropped_chunks']}"
+                    f"  kernel drops {c['kernel_drops']}  oversize {c['oversize_refused']}"
+                    f"  throttled {c['handshake_throttled']}",
+                    flush=True,
+                )
+    out = {
+        "host": {
+            "platform": platform.platform(),
+            "cpus": os.cpu_count(),
+            "python": platform.python_version(),
+        },
+        "command": "python -m bench.flood " + " ".join(argv or sys.argv[1:]),
+        "duration_s": a.duration,
+        "baseline": base,
+        "cases": cases,
+        "targets_met": sum(c["ok"] for c in cases),
+        "cases_run": len(cases),
+    }
+    path = Path(a.out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(out, indent=2) + "\n")
+    print(f"{out['targets_met']} of {out['cases_run']} cases within the targets; wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
