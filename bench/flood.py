@@ -125,11 +125,12 @@ def session(key_file: str, psk: bytes, kind: str | None, rate: float, duration: 
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
         drops0 = _kernel_drops(port)
-        sent = mp.Value("q", 0)
+        ctx = mp.get_context("spawn")  # a fresh interpreter: no copy of this one's threads or locks
+        sent = ctx.Value("q", 0)
         proc = None
         if kind is not None:
             time.sleep(1.5)  # the session runs (handshake and start: well under 1.5 s)
-            proc = mp.get_context("spawn").Process(
+            proc = ctx.Process(
                 target=flood, args=(port, kind, psk, rate, duration - 2.0, sent), daemon=True
             )
             proc.start()
