@@ -162,6 +162,40 @@ def pareto(path: Path, cases: list[dict[str, Any]], title: str) -> None:
     plt.close(fig)
 
 
+def pareto_fronts(path: Path, docs: list[dict[str, Any]], title: str) -> None:
+    """One panel per impairment: each architecture's cases and its Pareto front (I against the wire
+    rate of both directions), and I_dc (eq. 7 with the measured one-way delays taken out) as hollow
+    markers: what is left of the error once the delay is removed."""
+    plt = _plt()
+    nets = list(dict.fromkeys(d["netem"]["forward"] for d in docs))
+    fig, axes = plt.subplots(1, len(nets), figsize=(4.6 * len(nets), 4.4), squeeze=False)
+    colors = {"wave": "tab:blue", "tdpa": "tab:red"}
+    for ax, net in zip(axes[0], nets, strict=True):
+        for d in (d for d in docs if d["netem"]["forward"] == net):
+            arch, color = d["passivity"], colors.get(d["passivity"], "k")
+            cs = d["cases"]
+            x = [sum(c["wire_bps"].values()) / 1e3 for c in cs]
+            ax.scatter(x, [max(c["I"], 1e-12) for c in cs], s=14, color=color, alpha=0.6, label=f"{arch}: I")
+            ax.scatter(x, [max(c["I_dc"], 1e-12) for c in cs], s=14, facecolors="none", edgecolors=color,
+                       alpha=0.6, label=f"{arch}: I_dc")  # fmt: skip
+            front = sorted((c for c in cs if c.get("pareto")), key=lambda c: sum(c["wire_bps"].values()))
+            if front:
+                fx = [sum(c["wire_bps"].values()) / 1e3 for c in front]
+                fy = [max(c["I"], 1e-12) for c in front]
+                ax.step(fx, fy, where="post", color=color, lw=1.2, label=f"{arch}: front (I)")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("wire rate, both directions [kbit/s]")
+        ax.set_title(net or "no impairment", fontsize=10)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0][0].set_ylabel("I (eq. 7) / I_dc, lower is better")
+    axes[0][-1].legend(fontsize=7, loc="best")
+    fig.suptitle(title)
+    fig.tight_layout()
+    _save(fig, path, 110)
+    plt.close(fig)
+
+
 def experiment_bars(path: Path, doc: dict[str, Any], title: str) -> None:
     """Fig. 15: per phase, one bar per codec (mean I over the runs, +-1 std), log scale; the
     no-LDR reference (``none``) drawn as a dashed line across each group instead of a bar."""

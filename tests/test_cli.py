@@ -11,6 +11,8 @@ import pytest
 
 from teleop.cli import main
 
+TELEOP = [sys.executable, "-m", "teleop.cli"]
+
 
 def test_sim_writes_contract(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     rc = main(["sim", "--codec", "ids:2", "--codec", "eds:2", "--duration", "1", "--out", str(tmp_path)])
@@ -47,3 +49,22 @@ def test_bad_arguments(args: list[str], msg: str) -> None:
     r = subprocess.run([sys.executable, "-m", "teleop.cli", *args], capture_output=True, text=True)
     assert r.returncode == 2
     assert msg in r.stderr
+
+
+def test_sweep_draws_one_front_per_impairment_and_architecture(tmp_path: Path) -> None:
+    """--netem and --passivity repeat: sweep.json holds one document per (impairment, architecture)
+    and fronts.png one panel per impairment with both architectures."""
+    out = tmp_path / "sw"
+    r = subprocess.run(
+        [*TELEOP, "sweep", "--codec", "none", "--codec", "pdp:1", "--netem", "", "--netem", "delay 20ms",
+         "--passivity", "wave", "--passivity", "tdpa", "--duration", "1", "--jobs", "1", "--out", str(out)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((out / "sweep.json").read_text())
+    fronts = [(d["netem"]["forward"], d["passivity"]) for d in doc["fronts"]]
+    assert fronts == [("", "wave"), ("", "tdpa"), ("delay 20ms", "wave"), ("delay 20ms", "tdpa")]
+    for d in doc["fronts"]:
+        assert [c["codec"] for c in d["cases"]] == ["none", "pdp:1"] and all(c["passive"] for c in d["cases"])
+        assert any(c["pareto"] for c in d["cases"])
+    assert (out / "fronts.png").stat().st_size > 10_000 and (out / "pareto.png").exists()

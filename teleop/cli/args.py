@@ -326,17 +326,19 @@ def add_session_args(
     p.add_argument("--phase", type=float, default=0.5, help=argparse.SUPPRESS)
 
 
-def add_netem_specs(p: argparse.ArgumentParser, teleoperator: bool = False) -> None:
+def add_netem_specs(p: argparse.ArgumentParser, teleoperator: bool = False, repeatable: bool = False) -> None:
     """--netem and its per-direction overrides.  On the teleoperator they say which impairment it
     accepts from the operator's hello (a ``trace FILE`` only when named here: a peer may not make
-    this side read a file of its choosing)."""
+    this side read a file of its choosing).  ``repeatable`` (teleop sweep): one front per --netem."""
     what = "accept only an operator impairing" if teleoperator else "impair"
     p.add_argument(
         "--netem",
         type=netem_spec,
         metavar="SPEC",
+        action="append" if repeatable else "store",
         help=f'{what} both directions, netem grammar, e.g. "delay 50ms 5ms '
-        'loss 2%%" (see docs/guides/netem.md); "trace FILE" for a Mahimahi-style trace',
+        'loss 2%%" (see docs/guides/netem.md); "trace FILE" for a Mahimahi-style trace'
+        + ('; repeatable: one Pareto front per impairment ("" for none)' if repeatable else ""),
     )
     p.add_argument(
         "--netem-forward",
@@ -352,8 +354,10 @@ def add_netem_specs(p: argparse.ArgumentParser, teleoperator: bool = False) -> N
     )
 
 
-def add_netem_args(p: argparse.ArgumentParser, variation_default: float = 0.0) -> None:
-    add_netem_specs(p)
+def add_netem_args(
+    p: argparse.ArgumentParser, variation_default: float = 0.0, repeatable: bool = False
+) -> None:
+    add_netem_specs(p, repeatable=repeatable)
     p.add_argument(
         "--seed",
         type=int_range("seed", 0, MAX_SEED),
@@ -371,11 +375,12 @@ def add_netem_args(p: argparse.ArgumentParser, variation_default: float = 0.0) -
     )
 
 
-def add_passivity_args(p: argparse.ArgumentParser) -> None:
+def add_passivity_args(p: argparse.ArgumentParser, repeatable: bool = False) -> None:
     p.add_argument(
         "--passivity",
         choices=["wave", "tdpa"],
-        default="wave",
+        default=None if repeatable else "wave",
+        action="append" if repeatable else "store",
         help="how the channel is kept passive: wave (default) sends scattering waves (eq. 3-5); tdpa "
         "sends velocity forward and force back with each side's input energy, and an adaptive damper "
         "at each side dissipates what the channel would generate (time-domain passivity approach). "

@@ -27,37 +27,71 @@ def _progress(done: int, total: int, spec: str) -> None:
     sys.stderr.flush()
 
 
+def _grid(args: argparse.Namespace, passivity: str) -> list[str]:
+    """The codecs of one front: --codec, or the default grid (under tdpa, its codecs that apply to
+    power variables)."""
+    from ..codecs import POWER_CODECS
+    from ..sweep import DEFAULT_GRID
+
+    codecs = list(args.codec or DEFAULT_GRID)
+    if passivity == "tdpa":
+        codecs = [c for c in codecs if c.split(":")[0] in POWER_CODECS]
+    return codecs
+
+
 def cmd_sweep(args: argparse.Namespace) -> int:
     from .. import plots
-    from ..sweep import DEFAULT_GRID, format_table, run_sweep
+    from ..sweep import format_table, run_sweep
 
     sc = SCENARIOS[args.scenario]
     duration = args.duration if args.duration is not None else sc.duration
     check_duration(duration, args.dof if args.dof is not None else sc.dof)
     out = writable_dir(Path(args.out), "--out")
-    fresh_out(out, ["sweep.json", "pareto.png"])
-    codecs = args.codec or list(DEFAULT_GRID)
-    if args.passivity == "tdpa" and not args.codec:  # the grid's codecs that apply to power variables
-        from ..codecs import POWER_CODECS
-
-        codecs = [c for c in codecs if c.split(":")[0] in POWER_CODECS]
-    workers = args.jobs or min(len(codecs), os.cpu_count() or 1)
-    base = sim_config(args)
-    try:
-        print(
-            f"teleop sweep: {len(codecs)} codecs, scenario {base.scenario}, {base.duration:g} s, "
-            f"netem {base.netem_forward or '-'} / {base.netem_backward or '-'}, {workers} workers",
-            file=sys.stderr,
-        )
-        doc = run_sweep(codecs, base, workers=workers, progress=_progress)
-    except (ValueError, CodecError, OSError) as e:
-        raise CliError(str(e)) from None
-    print(format_table(doc))
-    write_new(out / "sweep.json", (json.dumps(doc, indent=2) + "\n").encode())
-    net = doc["netem"]["forward"] or "no impairment"
-    plots.pareto(out / "pareto.png", doc["cases"], f"teleop sweep: {doc['scenario']}, {net}")
-    print(f"wrote {out / 'sweep.json'} and {out / 'pareto.png'}")
-    bad = [c["codec"] for c in doc["cases"] if not c["passive"]]
+    netems = list(dict.fromkeys(args.netem or [None]))  # one front per --netem, in order, each once
+    passivities = list(dict.fromkeys(args.passivity or ["wave"]))
+    many = len(netems) * len(passivities) > 1
+    fresh_out(out, ["sweep.json", "pareto.png", *(["fronts.png"] if many else [])])
+    docs = []
+    for net in netems:
+        for passivity in passivities:
+            one = argparse.Namespace(**{**vars(args), "netem": net, "passivity": passivity})
+            codecs = _grid(one, passivity)
+            if not codecs:
+                raise CliError(f"no codec of --codec applies under --passivity {passivity}")
+            workers = args.jobs or min(len(codecs), os.cpu_count() or 1)
+            base = sim_config(one)
+            try:
+                print(
+                    f"teleop sweep: {len(codecs)} codecs, {passivity}, scenario {base.scenario}, "
+                    f"{base.duration:g} s, netem {base.netem_forward or '-'} / {base.netem_backward or '-'}, "
+                    f"{workers} workers",
+                    file=sys.stderr,
+                )
+                doc = run_sweep(codecs, base, workers=workers, progress=_progress)
+            except (ValueError, CodecError, OSError) as e:
+                raise CliError(str(e)) from None
+            print(f"{passivity}, netem {base.netem_forward or 'none'}:")
+            print(format_table(doc))
+            docs.append(doc)
+    # One front: the document as before.  Several: {"fronts": [...]}, one document each.
+    body = docs[0] if not many else {"fronts": docs}
+    write_new(out / "sweep.json", (json.dumps(body, indent=2) + "\n").encode())
+    first = docs[0]
+    net0 = first["netem"]["forward"] or "no impairment"
+    plots.pareto(
+        out / "pareto.png", first["cases"], f"teleop sweep: {first['scenario']}, {net0}, {first['passivity']}"
+    )
+    written = [out / "sweep.json", out / "pareto.png"]
+    if many:
+        plots.pareto_fronts(out / "fronts.png", docs, f"teleop sweep: {first['scenario']}")
+        written.append(out / "fronts.png")
+    print("wrote " + ", ".join(str(w) for w in written))
+    bad = [
+        f"{c['codec']} ({d['passivity']}, {d['netem']['forward'] or 'none'})"
+        for d in docs
+        for c in d["cases"]
+        if not c["passive"]
+    ]
     if bad:
         print(f"NOT passive: {', '.join(bad)}", file=sys.stderr)
         return 1
@@ -70,7 +104,9 @@ def add_parser(sub: Subcommands) -> None:
         help="packet rate against transparency over a grid of codecs (simulation, Pareto front)",
         description="Run a grid of codecs in teleop sim with the same settings, in parallel; print a "
         "table sorted by wire rate, write DIR/sweep.json and DIR/pareto.png (I against wire kbit/s, "
-        "Pareto front drawn). Exit status 1 if a case lost passivity.",
+        "Pareto front drawn). --netem and --passivity are repeatable: one front per impairment and "
+        "architecture, all in DIR/fronts.png (one panel per impairment, wave and tdpa side by side) and "
+        'sweep.json as {"fronts": [...]}. Exit status 1 if a case lost passivity.',
     )
     s.add_argument(
         "--codec",
@@ -80,8 +116,8 @@ def add_parser(sub: Subcommands) -> None:
         help=f"codec, repeatable (default: a grid over every family). Accepted: {ACCEPTED}",
     )
     add_model_args(s, "protocol")
-    add_netem_args(s)
-    add_passivity_args(s)
+    add_netem_args(s, repeatable=True)
+    add_passivity_args(s, repeatable=True)
     s.add_argument(
         "--jobs",
         type=int_range("jobs", 1, 256),
