@@ -156,6 +156,58 @@ def sweep() -> Table:
     )
 
 
+def fronts() -> Table:
+    """Per impairment and architecture: the case of least I among those at most 100 packets/s a
+    direction (issue 23's comparison), and the case of least I overall."""
+    b = Builder("fronts/sweep.json")
+    rows = []
+    for fi, d in enumerate(b.doc["fronts"]):
+        cases = list(enumerate(d["cases"]))
+        sparse = [ic for ic in cases if max(ic[1]["packets_per_s"].values()) <= 100.0]
+        for label, pool in (("<= 100/s", sparse), ("any rate", cases)):
+            if not pool:
+                continue
+            i, c = min(pool, key=lambda ic: ic[1]["I"])
+            p = f"fronts[{fi}].cases[{i}]"
+            rows.append(
+                (
+                    d["netem"]["forward"] or "none",
+                    d["passivity"],
+                    label,
+                    f"`{c['codec']}`",
+                    b.one(f"{p}.I", ".3g"),
+                    b.one(f"{p}.I_dc", ".3g"),
+                    (
+                        "{} / {}",
+                        (
+                            b.fig(f"{p}.packets_per_s.forward", ".0f"),
+                            b.fig(f"{p}.packets_per_s.backward", ".0f"),
+                        ),
+                    ),
+                    b.one(f"{p}.drift_m.max", ".3g", scale=1e3),
+                )
+            )
+    return Table(
+        "fronts",
+        "fronts/sweep.json",
+        'teleop sweep --scenario protocol --netem "" --netem "delay 10ms" --netem "delay 50ms" '
+        '--netem "delay 200ms" --passivity wave --passivity tdpa --out DIR',
+        (
+            "one-way delay",
+            "passivity",
+            "rate",
+            "best codec",
+            "I",
+            "I_dc",
+            "packets/s fwd / bwd",
+            "drift max [mm]",
+        ),
+        tuple(rows),
+        note=" Scenario `protocol`, 15 s; I is eq. (7), I_dc the same with the measured one-way delays"
+        " taken out.",
+    )
+
+
 def loop() -> Table:
     b = Builder("loop.json")
     rows = []
@@ -537,6 +589,7 @@ def tick() -> Table:
 
 TABLES: dict[str, Callable[[], Table]] = {
     "sweep": sweep,
+    "fronts": fronts,
     "loop": loop,
     "transports": transports,
     "soak-memory": soak_memory,
