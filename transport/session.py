@@ -56,6 +56,7 @@ from .base import Addr, Transport
 from .mcaplog import McapLog, spawn_writer, wall_clock_of
 from .realtime import LoopStats, Ticker, setup_realtime
 from .udp import UdpTransport, new_event_loop
+from .watch import LogWatch, status_line
 from .zenoh import ZENOH_PEER, ZenohTransport, make_config
 
 __all__ = [
@@ -143,7 +144,7 @@ class _Runner:
         self.log: McapLog | None = None
         self._logs: dict[int, McapLog | None] = {}  # session id -> its log (a takeover opens the next)
         self._writer: subprocess.Popen[bytes] | None = None
-        self._watched: tuple[int, ...] = ()
+        self.watch = LogWatch()
         self.warnings: list[str] = []
         self.ticker: Ticker | None = None
         self._stats: LoopStats | None = None
@@ -230,7 +231,7 @@ class _Runner:
 
     async def ticks(self) -> None:
         """Serve the socket until just before the first tick, then tick until the session ends."""
-        ep, ticker = self.ep, self.ticker
+        ep, ticker, o = self.ep, self.ticker, self.opts
         assert ticker is not None
         while ep.state == State.STARTING and not self.stop.requested:
             left = ticker.deadline(ep.k0) - 2_000_000 - self.clock()
@@ -254,9 +255,11 @@ class _Runner:
             assert ep.port is not None
             ep.port.loop_timing(k, ticker.last_lateness_ns)
             if self.log is not None:
-                self.observe(k, ticker)
-            if self.opts.live and k % 1000 == 999:
-                self.status(k, ticker)
+                self.watch.tick(self.log, ep.port, k, ep.session_time(self.clock()), ticker.overruns)
+            if o.live and k % 1000 == 999:
+                print(
+                    status_line(o.role, ep.port, k, ticker.overruns, o.insecure), file=sys.stderr, flush=True
+                )
             self.events()
         if self.ticker is ticker:
             self._stats = ticker.stats()  # the ticking only, not the linger
@@ -375,74 +378,6 @@ class _Runner:
             }
         if o.log_dir is not None:
             logdir.save_summary(o.log_dir, o.role, s)
-
-    # --- the log's low-rate channels and the console ----------------------------------------------
-    def observe(self, k: int, ticker: Ticker) -> None:
-        """Events as they happen, the live view's decimated ticks, and the link figures once a
-        second.  A few integer comparisons a tick; messages are queued."""
-        log, port = self.log, self.ep.port
-        assert log is not None and port is not None
-        node, sec = port.node, port.security
-        watched = (node.peer_restarts, sec.rejected, sec.replayed, ticker.overruns)
-        t = self.ep.session_time(self.clock())
-        if watched != self._watched:
-            if self._watched:
-                old = self._watched
-                if watched[0] != old[0]:
-                    log.event(t, "peer_restarted", f"energy epoch {watched[0]}")
-                if watched[1] != old[1]:
-                    log.event(t, "auth_rejected", f"{watched[1]} so far: {sec.last_rejection}")
-                if watched[2] != old[2]:
-                    log.event(t, "replayed", f"{watched[2]} so far")
-                if watched[3] != old[3]:
-                    log.event(t, "overrun", f"tick {k}: {ticker.overruns} so far")
-            self._watched = watched
-        if k % log.live_every == 0:
-            log.live(k, t, _live_messages(port, k, t))
-        if k % 1000 == 999:
-            pv = node.passivity
-            link = {"link": port.observer.quick(), "sent": port.tx.summary(), "received": port.rx.summary()}
-            watchdog = {
-                "violations": pv.violations,
-                "controller_active_ticks": pv.controller_active_ticks,
-                "energy_dissipated": pv.energy_dissipated,
-                "margin": node.guard.margin,
-                "link_lost": node.link_lost,
-            }
-            log.status("link", t, {"t": t, **link, "watchdog": watchdog})
-
-    def status(self, k: int, ticker: Ticker) -> None:
-        port = self.ep.port
-        assert port is not None and self.ep.params is not None
-        node = port.node
-        pv = node.passivity
-        print(
-            f"  [{self.opts.role} {(k + 1) * self.ep.params.dt:5.1f} s] sent {port.tx.packets} "
-            f"recv {port.rx.packets}  {'LINK LOST' if node.link_lost else 'link ok'}  watchdog: "
-            f"violations {pv.violations}, controller {pv.controller_active_ticks} ticks, "
-            f"margin {node.guard.margin:.3e} J, overruns {ticker.overruns}"
-            f"{'  INSECURE (no key)' if self.opts.insecure else ''}",
-            file=sys.stderr,
-            flush=True,
-        )
-
-
-def _live_messages(port: Port, k: int, t: float) -> dict[str, dict[str, Any]]:
-    """This tick's per-tick messages, built from the node (the record's chunk is not sealed yet)."""
-    node = port.node
-    return {
-        "signals": {"k": k, "t": t, "v": node.v.tolist(), "f": node.f.tolist()},
-        "waves": {"k": k, "t": t, "wave_out": node.wave_out.tolist(), "wave_in": node.wave_in.tolist()},
-        "energy": {
-            "k": k,
-            "t": t,
-            "sent": node.energy_sent,
-            "played": node.energy_played,
-            "margin_observed": node.guard.margin,
-            "played_epoch": node.guard.played_in_epoch,
-            "peer_epoch": node.peer_restarts,
-        },
-    }
 
 
 # --------------------------------------------------------------------------------------------

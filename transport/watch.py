@@ -1,0 +1,83 @@
+"""What the runner shows of a running port: the log's low-rate channels and the console status line.
+
+A few integer comparisons a tick; the messages are queued by the log (``transport.mcaplog``), never
+written from the loop.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from teleop.port import Port
+
+from .mcaplog import McapLog
+
+__all__ = ["LogWatch", "live_messages", "status_line"]
+
+
+class LogWatch:
+    """Events as they happen (a peer's new energy epoch, refused and replayed datagrams, overruns),
+    the live view's decimated ticks, and the link figures once a second."""
+
+    def __init__(self) -> None:
+        self._watched: tuple[int, ...] = ()
+
+    def tick(self, log: McapLog, port: Port, k: int, t: float, overruns: int) -> None:
+        node, sec = port.node, port.security
+        watched = (node.peer_restarts, sec.rejected, sec.replayed, overruns)
+        if watched != self._watched:
+            if self._watched:
+                old = self._watched
+                if watched[0] != old[0]:
+                    log.event(t, "peer_restarted", f"energy epoch {watched[0]}")
+                if watched[1] != old[1]:
+                    log.event(t, "auth_rejected", f"{watched[1]} so far: {sec.last_rejection}")
+                if watched[2] != old[2]:
+                    log.event(t, "replayed", f"{watched[2]} so far")
+                if watched[3] != old[3]:
+                    log.event(t, "overrun", f"tick {k}: {overruns} so far")
+            self._watched = watched
+        if k % log.live_every == 0:
+            log.live(k, t, live_messages(port, k, t))
+        if k % 1000 == 999:
+            pv = node.passivity
+            link = {"link": port.observer.quick(), "sent": port.tx.summary(), "received": port.rx.summary()}
+            watchdog = {
+                "violations": pv.violations,
+                "controller_active_ticks": pv.controller_active_ticks,
+                "energy_dissipated": pv.energy_dissipated,
+                "margin": node.guard.margin,
+                "link_lost": node.link_lost,
+            }
+            log.status("link", t, {"t": t, **link, "watchdog": watchdog})
+
+
+def status_line(role: str, port: Port, k: int, overruns: int, insecure: bool) -> str:
+    """``--live``'s line, once a second: traffic, link, watchdog."""
+    node = port.node
+    pv = node.passivity
+    return (
+        f"  [{role} {(k + 1) * port.dt:5.1f} s] sent {port.tx.packets} "
+        f"recv {port.rx.packets}  {'LINK LOST' if node.link_lost else 'link ok'}  watchdog: "
+        f"violations {pv.violations}, controller {pv.controller_active_ticks} ticks, "
+        f"margin {node.guard.margin:.3e} J, overruns {overruns}"
+        f"{'  INSECURE (no key)' if insecure else ''}"
+    )
+
+
+def live_messages(port: Port, k: int, t: float) -> dict[str, dict[str, Any]]:
+    """This tick's per-tick messages, built from the node (the record's chunk is not sealed yet)."""
+    node = port.node
+    return {
+        "signals": {"k": k, "t": t, "v": node.v.tolist(), "f": node.f.tolist()},
+        "waves": {"k": k, "t": t, "wave_out": node.wave_out.tolist(), "wave_in": node.wave_in.tolist()},
+        "energy": {
+            "k": k,
+            "t": t,
+            "sent": node.energy_sent,
+            "played": node.energy_played,
+            "margin_observed": node.guard.margin,
+            "played_epoch": node.guard.played_in_epoch,
+            "peer_epoch": node.peer_restarts,
+        },
+    }
