@@ -11,21 +11,35 @@ import argparse
 from pathlib import Path
 
 from .. import auth
-from .args import CliError, Subcommands, add_key_args, robot_name, udp_addr
-from .settings import endpoint_key
+from .args import CliError, Subcommands, add_key_args, add_transport_args, robot_name, udp_addr
+from .settings import endpoint_key, zenoh_options
 
 
 def cmd_conformance(args: argparse.Namespace) -> int:
     from transport.conformance import check_operator, check_teleoperator, write_json
 
     psk, _ = endpoint_key(args)
-    if args.role == "teleoperator":
-        if args.peer is None:
-            raise CliError("--peer HOST:PORT is required: the teleoperator to check")
-        result = check_teleoperator(args.peer, psk, args.robot_name, args.codec, args.duration)
-    else:
-        listen = args.listen or ("127.0.0.1", 7000)
-        result = check_operator(listen, psk, args.robot_name, args.timeout)
+    zenoh = None
+    if args.transport == "zenoh":
+        from transport.zenoh import TransportError, make_config
+
+        z = zenoh_options(args)
+        try:
+            zenoh = (z.prefix, make_config(z.mode, z.listen, z.connect, z.config_file))
+        except (ValueError, TransportError) as e:
+            raise CliError(str(e)) from None
+    try:
+        if args.role == "teleoperator":
+            if args.peer is None and zenoh is None:
+                raise CliError(
+                    "--peer HOST:PORT is required with --transport udp (the teleoperator to check)"
+                )
+            result = check_teleoperator(args.peer, psk, args.robot_name, args.codec, args.duration, zenoh)
+        else:
+            listen = args.listen or ("127.0.0.1", 7000)
+            result = check_operator(listen, psk, args.robot_name, args.timeout, zenoh)
+    except OSError as e:  # the listen address is taken, the router cannot be reached
+        raise CliError(str(e)) from None
     print(result.text())
     if args.json is not None:
         write_json(result, Path(args.json))
@@ -37,10 +51,10 @@ def add_parser(sub: Subcommands) -> None:
         "conformance",
         help="check another implementation's endpoint against PROTOCOL.md",
         description="Check an operator or a teleoperator written from PROTOCOL.md, section by section "
-        "(the way h2spec checks HTTP/2): this command plays the other side over UDP with the project's own "
-        "endpoint, adds probes (garbage, a wrong key, a cookie from another address, a malformed hello, a "
-        "rejoin offer of the running session, a second operator), prints one line per rule and exits 1 when "
-        "a MUST failed.",
+        "(the way h2spec checks HTTP/2): this command plays the other side over UDP or Zenoh with "
+        "the project's own endpoint, adds probes (garbage, a wrong key, a cookie from another address, "
+        "a malformed hello, a rejoin offer of the running session, a second operator), prints one line "
+        "per rule and exits 1 when a MUST failed.",
     )
     c.add_argument(
         "role", choices=["operator", "teleoperator"], help="the role of the implementation to check"
@@ -79,4 +93,5 @@ def add_parser(sub: Subcommands) -> None:
     )
     c.add_argument("--json", metavar="FILE", default=None, help="also write the results as JSON to FILE")
     add_key_args(c, "required unless --insecure")
+    add_transport_args(c)
     c.set_defaults(func=cmd_conformance)
