@@ -13,7 +13,7 @@ given as ``(name, start s, end s)`` by the scenario (``teleop.scenarios.Scenario
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -159,6 +159,62 @@ def delay_compensated(
     c, d = _shifted(np.asarray(f_to, dtype=np.float64), np.asarray(f_hsi, dtype=np.float64), shift_bwd)
     dv, df = a - b, c - d
     return float((np.sum(dv * dv) + np.sum(df * df)) * dt)
+
+
+def one_way_ticks(playout: Mapping[str, Any], link: Mapping[str, Any], dt: float) -> int:
+    """The one-way delay a direction's samples saw, in ticks: the playout buffer's median release
+    delay when it holds them, else the link's measured mean delay (None: nothing arrived, 0)."""
+    ms = playout["delay_ms"]["p50"] if playout["delay_ms"]["p50"] is not None else link["delay_ms"]["mean"]
+    return 0 if ms is None else round(ms / 1e3 / dt)
+
+
+class DelayDistortionFold:
+    """:func:`delay_compensated` and :func:`position_drift` folded a block of ticks at a time (the
+    report streams hour-long logs).  Rows with a NaN (a tick one process did not run) count as no
+    motion in the positions and are left out of ``I_dc``'s sum; without NaN the figures equal the
+    whole-array functions' (a test holds them so)."""
+
+    def __init__(self, dof: int, dt: float, shift_fwd: int, shift_bwd: int) -> None:
+        self.dt, self.sf, self.sb = dt, max(0, int(shift_fwd)), max(0, int(shift_bwd))
+        self._v_hsi = np.zeros((0, dof))  # the last ``sf`` rows: what the next block's first rows pair with
+        self._f_to = np.zeros((0, dof))
+        self._x_hsi_tail = np.zeros((0, dof))
+        self._x_hsi, self._x_to = np.zeros(dof), np.zeros(dof)
+        self._sum = 0.0
+        self.drift_max = self.drift_final = 0.0
+        self._pairs = 0
+
+    @staticmethod
+    def _pair(tail: Array, block: Array, other: Array, shift: int) -> tuple[Array, Array, Array]:
+        """(``block`` shifted by ``shift`` rows against ``other``, those rows of ``other``, new tail)."""
+        full = np.concatenate([tail, block])
+        m = max(0, full.shape[0] - shift)  # rows of ``full`` that have a partner ``shift`` rows on
+        new_tail = full[max(0, full.shape[0] - shift) :] if shift else full[:0]
+        return full[:m], other[other.shape[0] - m :], new_tail
+
+    def add(self, v_hsi: Array, v_to: Array, f_hsi: Array, f_to: Array) -> None:
+        a, b, self._v_hsi = self._pair(self._v_hsi, v_hsi, v_to, self.sf)
+        c, d, self._f_to = self._pair(self._f_to, f_to, f_hsi, self.sb)
+        dv, df = a - b, c - d
+        self._sum += float(np.nansum(dv * dv) + np.nansum(df * df))
+        # Positions from rest, integrated across blocks (a NaN row: no motion).
+        x_hsi = self._x_hsi + np.cumsum(np.nan_to_num(v_hsi), axis=0) * self.dt
+        x_to = self._x_to + np.cumsum(np.nan_to_num(v_to), axis=0) * self.dt
+        if x_hsi.shape[0]:
+            self._x_hsi, self._x_to = x_hsi[-1].copy(), x_to[-1].copy()
+        xa, xb, self._x_hsi_tail = self._pair(self._x_hsi_tail, x_hsi, x_to, self.sf)
+        if xa.shape[0]:
+            e = np.sqrt(np.sum((xa - xb) ** 2, axis=1))
+            self.drift_max = max(self.drift_max, float(e.max()))
+            self.drift_final = float(e[-1])
+            self._pairs += xa.shape[0]
+
+    @property
+    def i_dc(self) -> float:
+        return self._sum * self.dt
+
+    def drift(self) -> dict[str, float]:
+        return {"max": self.drift_max, "final": self.drift_final}
 
 
 def position_drift(v_hsi: Array, v_to: Array, dt: float, shift_fwd: int) -> dict[str, float]:

@@ -257,8 +257,18 @@ class _Fold:
     per phase and DoF, wire rates per phase, the true energy margins (eq. 4-5), and the plots'
     thinned series.  Memory: the plots' series, a lookahead of ticks and 16 bytes per packet sent."""
 
-    def __init__(self, phases: list[tuple[str, float, float]], dof: int, dt: float) -> None:
+    def __init__(
+        self,
+        phases: list[tuple[str, float, float]],
+        dof: int,
+        dt: float,
+        shifts: tuple[int, int] | None = None,
+    ) -> None:
         self.dt = dt
+        # I_dc and the drift, with the one-way delays in ticks (forward, backward) the summaries
+        # measured; None when a summary is missing (a killed process): then they are not reported.
+        self.shifts = shifts
+        self.delay = metrics.DelayDistortionFold(dof, dt, *shifts) if shifts is not None else None
         # Phases as given (clipped to the run's length at the end, by metrics.phase_ticks) and their
         # bounds in ticks, unclipped, to sum each block's ticks into.
         self.phases = phases
@@ -321,6 +331,8 @@ class _Fold:
                 sel = (to["peer_epoch"] == e_to) & (op["peer_epoch"] == e_op) & fin
                 _keep_min(self.two_port, (e_to, e_op), both[sel])
         self.signals.add(k, v_op=op["v"], v_to=to["v"], f_op=op["f"], f_to=to["f"])
+        if self.delay is not None:
+            self.delay.add(op["v"], to["v"], op["f"], to["f"])
         self.energy.add(
             k,
             fwd_sent=op["energy_sent"],
@@ -373,10 +385,12 @@ def fold_logs(
     dof: int,
     dt: float,
     max_tick: int | None = None,
+    shifts: tuple[int, int] | None = None,
 ) -> _Fold:
     """One pass over both processes' logs, a block of ticks at a time (teleop.logfile.iter_ticks);
-    ``max_tick``: the session's length in ticks, beyond which a log is refused."""
-    fold = _Fold(phases, dof, dt)
+    ``max_tick``: the session's length in ticks, beyond which a log is refused; ``shifts``: the
+    one-way delays in ticks for I_dc and the drift (teleop.metrics.DelayDistortionFold)."""
+    fold = _Fold(phases, dof, dt, shifts)
     ops, tos = iter_ticks(op_log, TOPICS, max_tick), iter_ticks(to_log, TOPICS, max_tick)
     for k0, a_op, a_to in _paired(ops, tos):
         fold.add(k0, a_op, a_to)
@@ -410,8 +424,43 @@ def _fold_of(op_path: str, to_path: str, mtimes: tuple[int, int]) -> _Logs:
     ticks = round((p["duration"] or limits.MAX_DURATION_S) / p["dt"])
     # A session without a fixed end: its last phase lasts until the end of the log.
     phases = _phases(p, p["duration"] or 1e9)
-    fold = fold_logs(paths["operator"], paths["teleoperator"], phases, p["dof"], p["dt"], ticks + 1)
+    fold = fold_logs(
+        paths["operator"],
+        paths["teleoperator"],
+        phases,
+        p["dof"],
+        p["dt"],
+        ticks + 1,
+        _shifts(summaries, p["dt"]),
+    )
     return _Logs(paths, summaries, p, [], fold)
+
+
+def _delay_figures(fold: _Fold) -> dict[str, Any]:
+    """Next to eq. (7): I_dc (the measured one-way delays taken out), the HSI-TO position drift, and
+    the delays used, as ``teleop sim`` reports them; nothing when a summary was missing."""
+    if fold.delay is None or fold.shifts is None:
+        return {}
+    return {
+        "I_dc": fold.delay.i_dc,
+        "drift_m": fold.delay.drift(),
+        "delay_compensation_ms": {
+            d: s * fold.dt * 1e3 for d, s in zip(("forward", "backward"), fold.shifts, strict=True)
+        },
+    }
+
+
+def _shifts(summaries: dict[str, dict[str, Any]], dt: float) -> tuple[int, int] | None:
+    """(forward, backward) one-way delays in ticks as each receiver measured them (its playout
+    buffer's median release delay, else its link's mean delay: ``teleop.metrics.one_way_ticks``, the
+    rule ``teleop sim`` uses), or None when a summary lacks them."""
+    try:
+        return tuple(  # type: ignore[return-value]
+            metrics.one_way_ticks(summaries[role]["playout"], summaries[role]["link_received"], dt)
+            for role in ("teleoperator", "operator")
+        )
+    except (KeyError, TypeError):
+        return None
 
 
 def _load(log_dir: Path, session: int | None = None) -> _Logs:
@@ -506,7 +555,7 @@ def build(
         "processes": {role: _process(s) for role, s in (("operator", op), ("teleoperator", to))},
         "handshake": {"rtt_us": op.get("handshake_rtt_us"), "clock_offset_ns": op.get("clock_offset_ns")},
         "wire": {"forward": _wire(op, to), "backward": _wire(to, op)} if both else None,
-        "transparency": {"I": i_real, "ticks_compared": phases["all"]["ticks"]},
+        "transparency": {"I": i_real, "ticks_compared": phases["all"]["ticks"], **_delay_figures(logs.fold)},
         # Per phase of the scenario (free, foam, wall; ``all``: the run): I per DoF and wire rates.
         "phases": phases,
         # Watchdog figures of each direction, measured by its receiver.
@@ -681,6 +730,12 @@ def summary_text(rep: dict[str, Any]) -> str:
         missed = [n for n, b in rep["phases"].items() if n != "all" and not b["ticks"]]
         lines.append(
             "  per phase: " + "  ".join(ran) + (f"  (not reached: {', '.join(missed)})" if missed else "")
+        )
+    if "I_dc" in tr:
+        dc, drift = tr["delay_compensation_ms"], tr["drift_m"]
+        lines.append(
+            f"  delay taken out ({dc['forward']:g} / {dc['backward']:g} ms): I_dc = {tr['I_dc']:.4e}  "
+            f"HSI-TO drift max {1e3 * drift['max']:.2f} mm, at the end {1e3 * drift['final']:.2f} mm"
         )
     for d, pv in (rep["passivity"] or {}).items():
         lk = rep["link"][d]

@@ -313,19 +313,12 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
     return summary
 
 
-def _one_way_ticks(playout: dict[str, Any], link: dict[str, Any], dt: float) -> int:
-    """The one-way delay a direction's samples saw, in ticks: the playout buffer's median release
-    delay when it holds them, else the link's measured mean delay (None: nothing arrived, 0)."""
-    ms = playout["delay_ms"]["p50"] if playout["delay_ms"]["p50"] is not None else link["delay_ms"]["mean"]
-    return 0 if ms is None else round(ms / 1e3 / dt)
-
-
 def _delay_and_distortion(cfg: SimConfig, tr: Trace, summary: dict[str, Any]) -> dict[str, Any]:
     """Figures next to eq. (7) that separate delay from distortion (issue 23): ``I_dc``, eq. (7)
     with the measured one-way delays taken out (``teleop.metrics.delay_compensated``), the
     position drift between HSI and TO, and the energy the passivity controllers dissipated."""
     dt = cfg.dt
-    shift = {d: _one_way_ticks(summary["playout"][d], summary["link"][d], dt) for d in wire.DIRECTIONS}
+    shift = {d: metrics.one_way_ticks(summary["playout"][d], summary["link"][d], dt) for d in wire.DIRECTIONS}
     pv = summary["passivity"]
     out: dict[str, Any] = {
         "I_dc": metrics.delay_compensated(

@@ -332,6 +332,20 @@ def test_run_until_stopped_reports_and_both_exit_cleanly(
     assert tr["I_over_sim_s"] == pytest.approx(i_first, rel=1e-9)
     assert tr["relative_difference"] == pytest.approx(abs(i_first - tr["I_sim"]) / tr["I_sim"])
     assert "over the first 0.5 s" in report.summary_text(rep)
+    # Next to eq. (7), as teleop sim reports them: I_dc and the drift, folded from the same logs,
+    # equal their whole-array definitions with the delays the receivers measured.
+    dc = {d: round(ms) for d, ms in tr["delay_compensation_ms"].items()}
+    n = min(len(a_op["v"]), len(a_to["v"]))
+    ok = ~(np.isnan(a_op["v"][:n]).any(axis=1) | np.isnan(a_to["v"][:n]).any(axis=1))
+    assert ok.all()  # both ran every tick: the whole-array functions apply as they are
+    i_dc = metrics.delay_compensated(
+        a_op["v"][:n], a_to["v"][:n], a_op["f"][:n], a_to["f"][:n], 1e-3, dc["forward"], dc["backward"]
+    )
+    assert tr["I_dc"] == pytest.approx(i_dc, rel=1e-9)
+    assert tr["drift_m"] == pytest.approx(
+        metrics.position_drift(a_op["v"][:n], a_to["v"][:n], 1e-3, dc["forward"])
+    )
+    assert "I_dc = " in report.summary_text(rep)
     for role in ("operator", "teleoperator"):
         summary, arrays = read_log(out / "logs" / f"{role}.mcap")
         assert summary["params"]["duration"] == 0
