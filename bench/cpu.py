@@ -76,6 +76,7 @@ def run_case(codec: str, dof: int, duration: float, tmp: Path) -> dict[str, Any]
             str(duration),
             "--spin-us",
             str(EMPTY_SPIN_US),
+            "--fixed-spin",
         ]
     )
     cmd = [sys.executable, "-m", "teleop.cli", "run", "--codec", codec, "--dof", str(dof)]
