@@ -11,8 +11,11 @@ the host (timer slack, C-states, a VM's scheduler): a few microseconds on a quie
 shared VM.  A fixed 100 us spin burns 10% of a core when the host wakes in 20 us, and that CPU is
 what the robot's own controller does not get.  So the ticker measures every wake-up (how long after
 the asked time ``sleep`` returned) and spins only that host's high percentile plus a margin
-(:class:`SpinLearner`), within ``[min_spin, spin]``; it starts at ``spin`` and adapts once a
-second, so a host that gets noisier widens the spin within a second.
+(:class:`SpinLearner`), within ``[min_spin, spin]``.  The 99.9th percentile, not the 99th: a
+tick that starts late makes two period errors (late, then early), so the 99th percentile of the
+period error stays where a fixed spin would put it only if well under 0.5% of wake-ups overrun.
+It starts at ``spin`` and adapts once a second, so a host that gets noisier widens the spin within
+a second.
 
 Lateness is ``start - deadline`` of each tick; period error is ``(start_k - start_{k-1}) - period``.
 An *overrun* is a tick started more than one period late.  When the loop falls more than
@@ -122,7 +125,7 @@ class SpinLearner:
     """
 
     def __init__(
-        self, lo_ns: int, hi_ns: int, quantile: float = 0.995, margin_ns: int = 10_000, every: int = 1000
+        self, lo_ns: int, hi_ns: int, quantile: float = 0.999, margin_ns: int = 10_000, every: int = 1000
     ) -> None:
         self.lo, self.hi = lo_ns, hi_ns
         self.quantile, self.margin, self.every = quantile, margin_ns, every
