@@ -28,8 +28,9 @@ from transport.realtime import Ticker, setup_realtime
 from transport.udp import new_event_loop
 
 
-async def _empty_loop(duration: float, spin_us: int) -> dict[str, Any]:
-    ticker = Ticker(spin_ns=spin_us * 1000, capacity=int(duration * 1000) + 16)
+async def _empty_loop(duration: float, spin_us: int, fixed_spin: bool = False) -> dict[str, Any]:
+    min_spin = spin_us * 1000 if fixed_spin else 10_000
+    ticker = Ticker(spin_ns=spin_us * 1000, capacity=int(duration * 1000) + 16, min_spin_ns=min_spin)
     ticker.start(time.monotonic_ns() + 50_000_000)
     n = int(duration * 1000)
     while ticker.k < n:
@@ -38,11 +39,12 @@ async def _empty_loop(duration: float, spin_us: int) -> dict[str, Any]:
     return ticker.stats().summary()
 
 
-def run_empty(duration: float, spin_us: int, out: Path) -> None:
+def run_empty(duration: float, spin_us: int, out: Path, fixed_spin: bool = False) -> None:
+    """The empty loop; ``fixed_spin``: always spin ``spin_us`` (the scheduler before issue 22)."""
     warnings = setup_realtime(10)
     loop, name = new_event_loop()
     try:
-        summary = loop.run_until_complete(_empty_loop(duration, spin_us))
+        summary = loop.run_until_complete(_empty_loop(duration, spin_us, fixed_spin))
     finally:
         loop.close()
     out.write_text(json.dumps({**summary, "event_loop": name, "warnings": warnings}))
@@ -66,9 +68,10 @@ def main() -> None:
     ap.add_argument("--spin-us", type=int, default=100)
     ap.add_argument("--out", default="bench/results/loop.json")
     ap.add_argument("--empty-only", metavar="FILE", help=argparse.SUPPRESS)
+    ap.add_argument("--fixed-spin", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.empty_only:
-        run_empty(a.duration, a.spin_us, Path(a.empty_only))
+        run_empty(a.duration, a.spin_us, Path(a.empty_only), a.fixed_spin)
         return
     with tempfile.TemporaryDirectory() as tmp:
         empty_json = Path(tmp) / "empty.json"

@@ -643,6 +643,75 @@ def tick() -> Table:
     )
 
 
+def cpu() -> Table:
+    b = Builder("cpu.json")
+    rows: list[tuple[Cell, ...]] = [
+        (
+            "floor reference",
+            "",
+            "each",
+            b.one("floor.cpu_fraction", ".1f", scale=100, template="{} %"),
+            "1",
+            "-",
+            "-",
+            "-",
+        )
+    ]
+    for i, c in enumerate(b.doc["cases"]):
+        for role in ("operator", "teleoperator"):
+            x = f"cases[{i}].{role}"
+            rows.append(
+                (
+                    f"`{c['codec']}`",
+                    str(c["dof"]),
+                    role,
+                    b.one(f"{x}.cpu_fraction", ".1f", scale=100, template="{} %"),
+                    (
+                        "{} (target {})",
+                        (b.fig(f"{x}.cpu_ratio_to_floor", ".2f"), b.fig(f"cases[{i}].cpu_target_ratio", "g")),
+                    ),
+                    (
+                        "{} ({})",
+                        (
+                            b.fig(f"{x}.period_error_us.p99", ".1f"),
+                            b.fig(f"cases[{i}].empty.period_error_us.p99", ".1f"),
+                        ),
+                    ),
+                    (
+                        "{} ({})",
+                        (
+                            b.fig(f"{x}.period_error_us.p999", ".0f"),
+                            b.fig(f"cases[{i}].empty.period_error_us.p999", ".0f"),
+                        ),
+                    ),
+                    b.one(f"{x}.port_tick_us", ".1f"),
+                )
+            )
+    t = b.doc["targets"]
+    return Table(
+        "cpu",
+        "cpu.json",
+        "python -m bench.cpu",
+        (
+            "codec",
+            "DoF",
+            "process",
+            "CPU",
+            "x floor",
+            "period error p99, us (empty loop)",
+            "p99.9, us (empty loop)",
+            "port tick, us",
+        ),
+        tuple(rows),
+        note=(
+            f" {b.doc['duration_s']:g} s sessions, `{b.doc['scenario']}` scenario, one invocation;"
+            f" targets met: CPU {t['cpu']['met']} of {t['cpu']['of']},"
+            f" port tick (15 us per side at 2 DoF, `none`) {t['port_tick_15us_none_2dof']['met']} of"
+            f" {t['port_tick_15us_none_2dof']['of']}."
+        ),
+    )
+
+
 TABLES: dict[str, Callable[[], Table]] = {
     "sweep": sweep,
     "fronts": fronts,
@@ -658,6 +727,7 @@ TABLES: dict[str, Callable[[], Table]] = {
     "fuzz-loop": fuzz_loop,
     "mujoco-step": mujoco_step,
     "tick": tick,
+    "cpu": cpu,
 }
 
 

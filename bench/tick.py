@@ -90,31 +90,36 @@ def bench_nodes(spec: str, dof: int, ticks: int, repeats: int) -> list[float]:
     return _time_per_call(run, ticks, repeats)
 
 
+def _port_pair(spec: str, dof: int, ticks: int, scenario: str = "step") -> tuple[Port, Port]:
+    """The two ports as the real runner makes them: playout ``auto`` with its one-tick floor."""
+    opts = PortOptions(playout="auto")
+    op, to = (
+        Port(
+            make_node(
+                role,
+                scenario=scenario,
+                dof=dof,
+                dt=DT,
+                b=1.0,
+                codec=spec,
+                full_scale=2.0,
+                session=1,
+                options=opts,
+            ),
+            ticks=ticks,
+            playout_floor=1,
+        )
+        for role in ("operator", "teleoperator")
+    )
+    return op, to
+
+
 def bench_ports(spec: str, dof: int, ticks: int, repeats: int) -> list[float]:
     """Both ports per tick: node, wire encode and parse, counters, link observer, playout buffer
     (``auto`` with the real runner's one-tick floor), recorder."""
-    opts = PortOptions(playout="auto")
     out = []
     for _ in range(repeats):
-        ports = [
-            Port(
-                make_node(
-                    role,
-                    scenario="step",
-                    dof=dof,
-                    dt=DT,
-                    b=1.0,
-                    codec=spec,
-                    full_scale=2.0,
-                    session=1,
-                    options=opts,
-                ),
-                ticks=ticks,
-                playout_floor=1,
-            )
-            for role in ("operator", "teleoperator")
-        ]
-        op, to = ports
+        op, to = _port_pair(spec, dof, ticks)
         t0 = time.perf_counter_ns()
         for k in range(ticks):
             now = k * DT
@@ -126,6 +131,37 @@ def bench_ports(spec: str, dof: int, ticks: int, repeats: int) -> list[float]:
             to.sent(k, now)
         out.append((time.perf_counter_ns() - t0) / ticks / 1e3)
     return out
+
+
+def bench_port_sides(
+    spec: str, dof: int, ticks: int, repeats: int, scenario: str = "step"
+) -> tuple[list[float], list[float]]:
+    """Each side's port per tick, as its process runs it: receive what arrived, tick, sent.  Same
+    exchange as :func:`bench_ports`, with a clock read around each side's share (~0.1 us each)."""
+    ops, tos = [], []
+    clock = time.perf_counter_ns
+    for _ in range(repeats):
+        op, to = _port_pair(spec, dof, ticks, scenario)
+        t_op = t_to = 0
+        backward: list[bytes] = []
+        for k in range(ticks):
+            now = k * DT
+            t0 = clock()
+            for d in backward:
+                op.receive(d, now, k)
+            forward = op.tick(k, now)
+            op.sent(k, now)
+            t1 = clock()
+            for d in forward:
+                to.receive(d, now, k)
+            backward = to.tick(k, now)
+            to.sent(k, now)
+            t2 = clock()
+            t_op += t1 - t0
+            t_to += t2 - t1
+        ops.append(t_op / ticks / 1e3)
+        tos.append(t_to / ticks / 1e3)
+    return ops, tos
 
 
 def main() -> None:

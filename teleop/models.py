@@ -74,6 +74,8 @@ class DiscreteLTI:
         self.a = az / az[0]
         self.order = n
         self.z = np.zeros((n, channels))
+        self._b_mid = self.b[1:n, None]  # b[1..n-1], a[1..n-1] as columns for advance's rows
+        self._a_mid = self.a[1:n, None]
 
     @property
     def feedthrough(self) -> float:
@@ -87,8 +89,10 @@ class DiscreteLTI:
     def advance(self, u: Array) -> Array:
         """Commit this tick's input; returns the output ``D u + free``."""
         y = self.b[0] * u + (self.z[0] if self.order else 0.0)
-        for i in range(self.order - 1):
-            self.z[i] = self.b[i + 1] * u - self.a[i + 1] * y + self.z[i + 1]
+        if self.order > 1:
+            # Every row but the last at once: z[i] <- b[i+1] u - a[i+1] y + z[i+1] from the old
+            # z[i+1] (the right side is built before it is stored), as the loop over i did.
+            self.z[:-1] = self._b_mid * u - self._a_mid * y + self.z[1:]
         if self.order:
             self.z[-1] = self.b[-1] * u - self.a[-1] * y
         return np.asarray(y, dtype=float)
@@ -299,6 +303,7 @@ class ProtocolHuman:
         self.admittance = DiscreteLTI(tuple(num), tuple(den), dt, dof)
         self._y = np.full(dof, self.admittance.feedthrough)
         self._ref = np.zeros(dof)
+        self._lateral_j = np.arange(1, dof, dtype=np.float64)  # the lateral DoF's indices
         self._knots = self.plan.knots()
         self._w = 2 * np.pi * self.plan.stroke_freq
 
@@ -310,10 +315,12 @@ class ProtocolHuman:
 
     def reference(self, now: float) -> Array:
         self._ref[0] = self.push_profile(now)
-        p = self.plan
-        for j in range(1, self.dof):
+        if self.dof > 1:
+            p = self.plan
             # Starts from rest: a jump would ring the one-tick wave loop (docs/results/sim.md, Models).
-            self._ref[j] = p.lateral_amp * np.sin(2 * np.pi * p.lateral_freq * j * now)
+            # One array expression over DoF 1.. (the same IEEE operations per element as a loop of
+            # scalars, bit for bit, at one numpy call instead of one per DoF).
+            self._ref[1:] = p.lateral_amp * np.sin(2 * np.pi * p.lateral_freq * self._lateral_j * now)
         return self._ref
 
     def affine(self, now: float) -> tuple[Array, Array]:

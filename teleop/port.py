@@ -323,6 +323,21 @@ def concat_chunks(
     return out
 
 
+class _Columns:
+    """The open chunk's per-tick columns as attributes: the recorder writes a row of each every
+    tick, and an attribute is found faster than a key of a dict of a dict."""
+
+    def __init__(self, c: Chunk) -> None:
+        self.v, self.f = c.signals["v"], c.signals["f"]
+        self.wave_out, self.wave_in = c.signals["wave_out"], c.signals["wave_in"]
+        e, b = c.energy, c.bytes
+        self.energy_sent, self.energy_played = e["energy_sent"], e["energy_played"]
+        self.energy_margin_observed = e["energy_margin_observed"]
+        self.energy_played_epoch = e["energy_played_epoch"]
+        self.tx_wire, self.tx_payload = b["tx_wire"], b["tx_payload"]
+        self.rx_wire, self.rx_payload = b["rx_wire"], b["rx_payload"]
+
+
 class Recorder:
     """The per-tick record of one side, a chunk at a time: ``CHUNK_TICKS`` ticks are kept in
     arrays allocated for the chunk, and a chunk is handed to the sink once a tick beyond it comes
@@ -353,28 +368,39 @@ class Recorder:
         self.first = -1  # first tick run, -1 none yet
         self.last = -1  # last tick run
         self.ticks_run = 0
+        self._end = 0  # the open chunk's end (exclusive)
+        self._cols: _Columns  # the open chunk's columns, made with it in _at
         tx.on_tick = self._tx_bytes
         rx.on_tick = self._rx_bytes
 
     def _at(self, k: int) -> tuple[Chunk, int]:
         """The chunk and row of tick ``k``: a tick past the chunk seals it and opens the next one
-        (aligned on multiples of the chunk size); an earlier one counts in the chunk's first row."""
+        (aligned on multiples of the chunk size); an earlier one counts in the chunk's first row.
+        Called several times a tick: the common case (``k`` in the open chunk) is :meth:`Chunk.row`
+        inlined, with the chunk's end kept in ``_end``."""
         c = self.chunk
-        if c is None or k >= c.k0 + c.size:
+        if c is None or k >= self._end:
             if c is not None:
                 self._seal(c, k)
             c = self.chunk = Chunk(k - k % self.chunk_ticks, self.chunk_ticks, self.dof)
-        return c, c.row(max(k, c.k0))
+            self._end = c.k0 + c.size
+            self._cols = _Columns(c)
+        r = k - c.k0 if k > c.k0 else 0
+        if r >= c.n:
+            c.n = r + 1
+        return c, r
 
     def _tx_bytes(self, k: int, wire: int, payload: int) -> None:
-        c, r = self._at(k)
-        c.bytes["tx_wire"][r] += wire
-        c.bytes["tx_payload"][r] += payload
+        r = self._at(k)[1]
+        cols = self._cols
+        cols.tx_wire[r] += wire
+        cols.tx_payload[r] += payload
 
     def _rx_bytes(self, k: int, wire: int, payload: int) -> None:
-        c, r = self._at(k)
-        c.bytes["rx_wire"][r] += wire
-        c.bytes["rx_payload"][r] += payload
+        r = self._at(k)[1]
+        cols = self._cols
+        cols.rx_wire[r] += wire
+        cols.rx_payload[r] += payload
 
     def produced(self, k: int, payload: int, packet: int, seq: int) -> None:
         c, r = self._at(k)
@@ -384,15 +410,15 @@ class Recorder:
 
     def record(self, k: int, t: float, node: Node) -> None:
         c, r = self._at(k)
-        s, e = c.signals, c.energy
-        s["v"][r] = node.v
-        s["f"][r] = node.f
-        s["wave_out"][r] = node.wave_out
-        s["wave_in"][r] = node.wave_in
-        e["energy_sent"][r] = node.energy_sent
-        e["energy_played"][r] = node.energy_played
-        e["energy_margin_observed"][r] = node.guard.margin
-        e["energy_played_epoch"][r] = node.guard.played_in_epoch
+        cols = self._cols
+        cols.v[r] = node.v
+        cols.f[r] = node.f
+        cols.wave_out[r] = node.wave_out
+        cols.wave_in[r] = node.wave_in
+        cols.energy_sent[r] = node.energy_sent
+        cols.energy_played[r] = node.energy_played
+        cols.energy_margin_observed[r] = node.guard.margin
+        cols.energy_played_epoch[r] = node.guard.played_in_epoch
         c.play_time[r] = t
         c.rx_seq[r] = node.last_rx_seq
         c.peer_epoch[r] = node.peer_restarts

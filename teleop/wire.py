@@ -156,16 +156,25 @@ def decode(data: bytes) -> Packet:
         raise WireError(f"field payload must be bin, got {type(payload).__name__}")
     if type(energy) is not float or not math.isfinite(energy) or energy < 0.0:
         raise WireError(f"field energy must be a finite float >= 0, got {energy!r}")
-    return Packet(
-        session=_uint("session", session, _U32),
-        direction=direction,
-        seq=_uint("seq", seq, _U32),
-        tick=_uint("tick", tick, _U64),
-        t_us=_uint("t_us", t_us, _U64),
-        codec_id=_uint("codec_id", codec_id, 255),
-        payload=payload,
-        energy=energy,
-    )
+    # One test of every integer field for the 1 kHz path; on failure, _uint says which and why.
+    if not (
+        type(session) is type(seq) is type(tick) is type(t_us) is type(codec_id) is int
+        and 0 <= session <= _U32
+        and 0 <= seq <= _U32
+        and 0 <= tick <= _U64
+        and 0 <= t_us <= _U64
+        and 0 <= codec_id <= 255
+    ):
+        for name, v, hi in (
+            ("session", session, _U32),
+            ("seq", seq, _U32),
+            ("tick", tick, _U64),
+            ("t_us", t_us, _U64),
+            ("codec_id", codec_id, 255),
+        ):
+            _uint(name, v, hi)
+    return Packet(session, direction, seq, tick, t_us, codec_id, payload, energy)
+
 
 
 #: The largest codec payload any session can send: ``teleop.limits.MAX_DOF`` DoF of the codec with

@@ -6,6 +6,17 @@ timer slack is 50 us, so a loop on ``call_later`` or relative sleeps drifts and 
 ``clock_nanosleep`` on Linux) until ``spin`` before the deadline, then spins on the clock for the
 last stretch.  Deadlines never accumulate error, because they are computed, not chained.
 
+**The spin is learned.**  Spinning covers ``time.sleep``'s wake-up latency, which is a property of
+the host (timer slack, C-states, a VM's scheduler): a few microseconds on a quiet kernel, tens on a
+shared VM.  A fixed 100 us spin burns 10% of a core when the host wakes in 20 us, and that CPU is
+what the robot's own controller does not get.  So the ticker measures every wake-up (how long after
+the asked time ``sleep`` returned) and spins only that host's high percentile plus a margin
+(:class:`SpinLearner`), within ``[min_spin, spin]``.  The 99.9th percentile, not the 99th: a
+tick that starts late makes two period errors (late, then early), so the 99th percentile of the
+period error stays where a fixed spin would put it only if well under 0.5% of wake-ups overrun.
+It starts at ``spin`` and adapts once a second, so a host that gets noisier widens the spin within
+a second.
+
 Lateness is ``start - deadline`` of each tick; period error is ``(start_k - start_{k-1}) - period``.
 An *overrun* is a tick started more than one period late.  When the loop falls more than
 ``max_catchup`` ticks behind (a stall: the VM's host stole the CPU), the missed ticks are *skipped*
@@ -80,6 +91,7 @@ class LoopStats:
     wall_s: float
     lateness_q: Quantiles | None = None
     period_error_q: Quantiles | None = None
+    spin_ns: int = 0  # the spin in use at the end (learned, see SpinLearner)
 
     def summary(self) -> dict[str, object]:
         return {
@@ -92,6 +104,7 @@ class LoopStats:
             "cpu_s": self.cpu_s,
             "wall_s": self.wall_s,
             "cpu_fraction": self.cpu_s / self.wall_s if self.wall_s > 0 else 0.0,
+            "spin_us": self.spin_ns / 1e3,
         }
 
 
@@ -102,12 +115,57 @@ def _percentiles(q: Quantiles | None, samples_ns: npt.NDArray[np.int64]) -> dict
     return {"p50": p50 / 1e3, "p99": p99 / 1e3, "p999": p999 / 1e3, "max": q.max_abs / 1e3}
 
 
+class SpinLearner:
+    """How long to spin before a deadline: the ``quantile`` of recent wake-up latencies plus ``margin``.
+
+    Latencies go in 1 us bins (a list of ints: a tick adds one to a bin, nothing more).  Every
+    ``every`` samples the spin is recomputed and the counts are halved, so the estimate follows
+    the host over a few seconds while one stalled second is not forgotten at once.  A latency
+    beyond ``hi`` lands in the last bin, which asks for the full ``hi`` spin.
+    """
+
+    def __init__(
+        self, lo_ns: int, hi_ns: int, quantile: float = 0.999, margin_ns: int = 10_000, every: int = 1000
+    ) -> None:
+        self.lo, self.hi = lo_ns, hi_ns
+        self.quantile, self.margin, self.every = quantile, margin_ns, every
+        self.bins = [0.0] * (hi_ns // 1000 + 1)  # weights: halved every ``every`` samples
+        self.total = 0.0  # weight in the bins (halved with them)
+        self._n = 0
+        self.spin_ns = hi_ns  # until the first estimate: the bound
+
+    def add(self, latency_ns: int) -> int:
+        """One wake-up's latency; returns the spin to use from now on."""
+        bins = self.bins
+        i = latency_ns // 1000
+        bins[i if 0 <= i < len(bins) else (0 if i < 0 else len(bins) - 1)] += 1
+        self._n += 1
+        if self._n >= self.every:
+            self._update()
+        return self.spin_ns
+
+    def _update(self) -> None:
+        self.total = self.total / 2 + self._n
+        self._n = 0
+        need, acc, top = self.quantile * self.total, 0.0, len(self.bins) - 1
+        for i, c in enumerate(self.bins):
+            acc += c
+            if acc >= need:
+                top = i
+                break
+        latency = (top + 1) * 1000  # the bin's upper edge
+        self.spin_ns = min(self.hi, max(self.lo, latency + self.margin))
+        self.bins = [c / 2 for c in self.bins]
+
+
 class Ticker:
     """Blocking absolute-deadline ticker: ``start(t0_ns)``, then ``wait() -> k`` for each tick.
 
     ``capacity`` > 0 keeps every tick's lateness and period error in arrays (benchmarks); 0 keeps
     only streaming percentiles, so a loop of any length runs in fixed memory (``last_lateness_ns``
-    says how late the latest tick started, for the caller's own record)."""
+    says how late the latest tick started, for the caller's own record).  ``spin_ns`` bounds the
+    learned spin (:class:`SpinLearner`) from above and ``min_spin_ns`` from below; equal, the spin
+    is fixed."""
 
     def __init__(
         self,
@@ -116,11 +174,13 @@ class Ticker:
         max_catchup: int = 20,
         capacity: int = 0,
         clock: Callable[[], int] = time.monotonic_ns,
+        min_spin_ns: int = 10_000,
     ) -> None:
         if period_ns <= 0 or spin_ns < 0 or max_catchup < 1:
             raise ValueError("period must be > 0, spin >= 0, max_catchup >= 1")
         self.period = period_ns
-        self.spin = spin_ns
+        self.spin = spin_ns  # the spin in use (learned, within [min_spin_ns, spin_ns])
+        self.learner = SpinLearner(min(min_spin_ns, spin_ns), spin_ns) if min_spin_ns < spin_ns else None
         self.max_catchup = max_catchup
         self.clock = clock
         self.k = 0
@@ -154,7 +214,10 @@ class Ticker:
         deadline = self.t0 + self.k * self.period
         remaining = deadline - clock()
         if remaining > self.spin:
+            wake = deadline - self.spin
             time.sleep((remaining - self.spin) / 1e9)
+            if self.learner is not None:
+                self.spin = self.learner.add(clock() - wake)
         while clock() < deadline:
             pass
         now = clock()
@@ -198,4 +261,5 @@ class Ticker:
             wall_s=(self.clock() - self._wall0) / 1e9,
             lateness_q=self._late_q,
             period_error_q=self._perr_q,
+            spin_ns=self.spin,
         )

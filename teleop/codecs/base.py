@@ -41,9 +41,14 @@ class RawFormat:
             raise CodecError(f"full scale (range) must be finite and > 0, got {self.full_scale!r}")
         if not 2 <= self.bits <= RAW_BITS:
             raise CodecError(f"bits must be in 2..{RAW_BITS}, got {self.bits}")
+        # Computed once (the 1 kHz path reads them every tick; the properties compute them anew).
         object.__setattr__(self, "_inv_step", self.max_code / self.full_scale)
+        object.__setattr__(self, "_step", self.step)
+        object.__setattr__(self, "_max_code_f", float(self.max_code))
 
     _inv_step: float = field(init=False, repr=False, compare=False, default=0.0)
+    _step: float = field(init=False, repr=False, compare=False, default=0.0)
+    _max_code_f: float = field(init=False, repr=False, compare=False, default=0.0)
 
     @property
     def max_code(self) -> int:
@@ -55,12 +60,12 @@ class RawFormat:
 
     def quantize(self, x: Array) -> IntArray:
         """Round toward zero and saturate: ``|dequantize(quantize(x))| <= |x|`` (eq. 11)."""
-        m = float(self.max_code)
+        m = self._max_code_f
         # astype truncates toward zero; saturating first keeps |code| <= max_code.
         return np.minimum(np.maximum(x * self._inv_step, -m), m).astype(np.int64)
 
     def dequantize(self, q: IntArray) -> Array:
-        return q.astype(np.float64) * self.step
+        return q.astype(np.float64) * self._step
 
 
 def pack(q: IntArray, bits: int) -> bytes:

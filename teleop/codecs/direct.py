@@ -33,4 +33,4 @@ class DirectDecoder(PlayoutDecoder):
 
     def parse(self, payload: bytes) -> tuple[Array, int]:
         q = unpack(payload, self.bits, self.dof)
-        return self.raw.dequantize(q * self.shift), 1
+        return self.raw.dequantize(q if self.shift == 1 else q * self.shift), 1

@@ -1,0 +1,130 @@
+"""The floor reference: the least CPU a pair of 1 kHz Python processes on this design can spend.
+
+Each of the two processes does only what any loop of ``teleop run`` must do every tick: sleep until
+``--spin-us`` (100 us) before the deadline, spin on the clock for the rest, seal a 40-byte body
+with keyed BLAKE2s (``teleop.auth.Sealer``), send it to the other over loopback UDP, drain the
+socket and verify what arrived (``teleop.auth.Opener``).  No models, no codec, no wire format, no
+counters, no recorder, no event loop.  ``bench.cpu`` runs the pair beside ``teleop run`` and
+divides each process's CPU by this one's.
+
+    python -m bench.floor --duration S [--spin-us US] [--out FILE]     # the pair, one JSON
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from teleop.auth import Opener, Sealer
+from transport.realtime import setup_realtime
+
+KEY = bytes(range(32))
+BODY = bytes(40)
+PERIOD_NS = 1_000_000
+
+
+def one_side(
+    sock: socket.socket, peer: tuple[str, int], side: int, t0: int, ticks: int, spin_ns: int
+) -> dict[str, Any]:
+    """One process's loop: ``ticks`` ticks from monotonic ``t0``; returns its CPU figures."""
+    sealer = Sealer(KEY, 1, side)
+    opener = Opener(KEY, 1, 1 - side)
+    sock.setblocking(False)
+    clock, sleep = time.monotonic_ns, time.sleep
+    received = verified = 0
+    remaining = t0 - clock()
+    if remaining > 0:
+        sleep(remaining / 1e9)
+    cpu0, wall0 = time.process_time(), clock()
+    for k in range(ticks):
+        deadline = t0 + k * PERIOD_NS
+        remaining = deadline - clock()
+        if remaining > spin_ns:
+            sleep((remaining - spin_ns) / 1e9)
+        while clock() < deadline:
+            pass
+        sock.sendto(sealer.seal(BODY), peer)
+        while True:
+            try:
+                data = sock.recv(2048)
+            except BlockingIOError:
+                break
+            received += 1
+            counter, _ = opener.verify(data)
+            opener.accept(counter, k * 1e-3)
+            verified += 1
+    cpu, wall = time.process_time() - cpu0, (clock() - wall0) / 1e9
+    return {
+        "ticks": ticks,
+        "received": received,
+        "verified": verified,
+        "cpu_s": cpu,
+        "wall_s": wall,
+        "cpu_fraction": cpu / wall,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--duration", type=float, default=10.0)
+    ap.add_argument("--spin-us", type=int, default=100)
+    ap.add_argument("--out", default=None, help="JSON file (default: print only)")
+    ap.add_argument("--side", type=int, choices=(0, 1), help=argparse.SUPPRESS)
+    ap.add_argument("--fd", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--peer-port", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--t0", type=int, help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    ticks = round(a.duration * 1000)
+    if a.side is not None:  # one of the pair, started below: print its JSON on stdout
+        warnings = setup_realtime(10)
+        sock = socket.socket(fileno=a.fd)
+        res = one_side(sock, ("127.0.0.1", a.peer_port), a.side, a.t0, ticks, a.spin_us * 1000)
+        print(json.dumps({**res, "warnings": warnings}))
+        return
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2)]
+    for s in socks:
+        s.bind(("127.0.0.1", 0))
+    ports = [s.getsockname()[1] for s in socks]
+    t0 = time.monotonic_ns() + 1_000_000_000  # both start on the same deadline, after their imports
+    procs = []
+    for side in (0, 1):
+        fd = socks[side].fileno()
+        cmd = [
+            sys.executable,
+            "-m",
+            "bench.floor",
+            "--side",
+            str(side),
+            "--fd",
+            str(fd),
+            "--peer-port",
+            str(ports[1 - side]),
+            "--t0",
+            str(t0),
+            "--duration",
+            str(a.duration),
+            "--spin-us",
+            str(a.spin_us),
+        ]
+        procs.append(subprocess.Popen(cmd, pass_fds=(fd,), stdout=subprocess.PIPE, text=True))
+    outs = [p.communicate(timeout=a.duration + 60)[0] for p in procs]
+    for s in socks:
+        s.close()
+    if any(p.returncode for p in procs):
+        sys.exit("bench.floor: a side failed")
+    sides = [json.loads(o) for o in outs]
+    res = {"duration_s": a.duration, "spin_us": a.spin_us, "body_bytes": len(BODY), "sides": sides}
+    for i, s in enumerate(sides):
+        print(f"floor side {i}: CPU {100 * s['cpu_fraction']:5.1f}%  received {s['received']}/{ticks}")
+    if a.out:
+        Path(a.out).write_text(json.dumps(res, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,33 @@
+"""The ticker's learned spin (issue 22): it spins as long as the host's wake-ups need, bounded."""
+
+from __future__ import annotations
+
+from transport.realtime import SpinLearner, Ticker
+
+
+def test_the_spin_follows_the_hosts_wake_up_latency_within_bounds() -> None:
+    s = SpinLearner(10_000, 100_000)
+    assert s.spin_ns == 100_000  # nothing learned yet: the bound
+    for i in range(1000):
+        s.add(20_000 + (i % 5) * 1000)  # wake-ups 20-24 us late
+    assert s.spin_ns == 25_000 + 10_000  # the bin's upper edge plus the margin
+    for _ in range(10_000):
+        s.add(3_000)  # a quiet host: the spin shrinks (the old seconds fade by half each), to the floor
+    assert s.spin_ns == 14_000
+    s.add(5_000_000)  # a stall beyond the bound counts in the last bin
+    for i in range(999):
+        s.add(-1 if i == 0 else 3_000)
+    assert s.spin_ns == 14_000  # 1 in ~2000 is below the 0.1% the quantile leaves out
+    for _ in range(2):
+        for _ in range(20):
+            s.add(500_000)
+        for _ in range(980):
+            s.add(3_000)
+    assert s.spin_ns == 100_000  # a host stalling 2% of its wake-ups gets the whole bound
+
+
+def test_a_ticker_with_equal_bounds_keeps_its_spin() -> None:
+    t = Ticker(spin_ns=100_000, min_spin_ns=100_000)
+    assert t.learner is None and t.spin == 100_000
+    t.start(0)
+    assert Ticker(spin_ns=100_000).learner is not None
