@@ -176,7 +176,6 @@ def decode(data: bytes) -> Packet:
     return Packet(session, direction, seq, tick, t_us, codec_id, payload, energy)
 
 
-
 #: The largest codec payload any session can send: ``teleop.limits.MAX_DOF`` DoF of the codec with
 #: the most values per payload (``dct:N:N`` at the longest frame), raw 16-bit values.
 # (Not imported from teleop.codecs, which imports this module: dct's longest frame,

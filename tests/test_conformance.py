@@ -17,8 +17,6 @@ from pathlib import Path
 
 import pytest
 
-from teleop import auth
-
 pytestmark = pytest.mark.integration
 TELEOP = [sys.executable, "-m", "teleop.cli"]
 
@@ -27,13 +25,6 @@ def _free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
-
-
-@pytest.fixture
-def key(tmp_path: Path) -> str:
-    path = tmp_path / "teleop.key"
-    auth.write_key_file(path, auth.generate_key())
-    return str(path)
 
 
 def _peer(brk: str | None, *args: str) -> subprocess.Popen[str]:

@@ -71,15 +71,20 @@ def test_counts_and_compression(tmp_path: Path, codec: str, per_dir: int, c_payl
     for d, sender in (("forward", "operator"), ("backward", "teleoperator")):
         w = rep["wire"][d]
         skipped = rep["processes"][sender]["loop"]["skipped"]  # a host stall: those ticks send nothing
-        assert per_dir - skipped <= w["packets"] <= per_dir  # the codec's rate, counted at the socket
-        assert w["baseline_packets"] == 3000  # the uncompressed stream: every tick of the session
+        # The teleoperator's iDS/eDS send phase follows its playout target (PROTOCOL 3.5): a target
+        # the host's jitter moves can move one send across the session's end, once per move.
+        moved = 2 if d == "backward" and codec.split(":")[0] in ("ids", "eds") else 0
+        assert per_dir - skipped - moved <= w["packets"] <= per_dir + moved  # the codec's rate, at the socket
+        # The uncompressed stream: every tick of the session (a stall that skips past the end: fewer).
+        assert 3000 - skipped <= w["baseline_packets"] <= 3000
         assert w["received_packets"] == w["packets"]  # loopback loses nothing: both ends agree
         assert w["received_wire_bytes"] == w["wire_bytes"]
         assert w["payload_bytes"] == w["packets"] * (4 if codec != "cq:8" else 2)  # 2 DoF
-        if skipped == 0:
+        if skipped == 0 and moved == 0:
             assert w["packets"] == per_dir and w["compression_payload"] == c_payload
         else:
-            assert w["compression_payload"] == pytest.approx(c_payload * per_dir / w["packets"])
+            base = w["baseline_packets"] / 3000  # a stall past the end shortens the baseline too
+            assert w["compression_payload"] == pytest.approx(c_payload * per_dir / w["packets"] * base)
         # On the wire the header weighs in: c_wire < c_payload unless every tick is sent (then a
         # stall's skipped ticks, which send nothing, raise both alike).
         assert 0.5 * c_payload < w["compression_wire"] <= 1.05 * c_payload * per_dir / w["packets"]
@@ -321,16 +326,6 @@ def test_impaired_run_without_controller_is_seen_violating(tmp_path: Path) -> No
 
 def _spawn(*args: str) -> subprocess.Popen[str]:
     return subprocess.Popen([*TELEOP, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-
-@pytest.fixture
-def key(tmp_path: Path) -> str:
-    """A deployment's pre-shared key, as `teleop keygen` writes it."""
-    from teleop import auth
-
-    path = tmp_path / "teleop.key"
-    auth.write_key_file(path, auth.generate_key())
-    return str(path)
 
 
 def test_teleoperator_restarted_mid_session_and_the_operator_recovers(tmp_path: Path, key: str) -> None:

@@ -21,9 +21,7 @@ from typing import Any
 
 import pytest
 
-from teleop import auth
-
-TELEOP = [sys.executable, "-m", "teleop.cli"]
+from tests.test_processes import TELEOP, _free_port, _spawn
 
 
 class DelayRelay:
@@ -71,23 +69,6 @@ class DelayRelay:
         self._thread.join(2)
         self.front.close()
         self.back.close()
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _spawn(*args: str) -> subprocess.Popen[str]:
-    return subprocess.Popen([*TELEOP, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-
-@pytest.fixture
-def key(tmp_path: Path) -> str:
-    path = tmp_path / "teleop.key"
-    auth.write_key_file(path, auth.generate_key())
-    return str(path)
 
 
 def _operator(

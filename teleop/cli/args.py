@@ -276,6 +276,19 @@ def robot_name(flag: str) -> Callable[[str], str]:
     return parse
 
 
+def add_robot_name_arg(p: argparse.ArgumentParser, flag: str, help: str) -> None:
+    """``--name`` (a teleoperator's) or ``--robot-name`` (whom an operator reaches): bound into every key."""
+    from ..auth import DEFAULT_ROBOT_NAME
+
+    p.add_argument(
+        flag,
+        type=robot_name(flag),
+        default=DEFAULT_ROBOT_NAME,
+        metavar="NAME",
+        help=f"{help} (default {DEFAULT_ROBOT_NAME!r})",
+    )
+
+
 def device_spec(role: str) -> Callable[[str], str]:
     """A ``--hsi``/``--robot`` spec, resolved now (teleop.devices): a bad one lists what is available."""
 

@@ -10,8 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .. import auth
-from .args import CliError, Subcommands, add_key_args, add_transport_args, robot_name, udp_addr
+from .args import CliError, Subcommands, add_key_args, add_robot_name_arg, add_transport_args, udp_addr
 from .settings import endpoint_key, zenoh_options
 
 
@@ -69,13 +68,7 @@ def add_parser(sub: Subcommands) -> None:
         metavar="HOST:PORT",
         help="where to wait for the operator to check (default 127.0.0.1:7000; point its --peer here)",
     )
-    c.add_argument(
-        "--robot-name",
-        type=robot_name("--robot-name"),
-        default=auth.DEFAULT_ROBOT_NAME,
-        metavar="NAME",
-        help=f"the robot name both sides' keys derive from (default {auth.DEFAULT_ROBOT_NAME!r})",
-    )
+    add_robot_name_arg(c, "--robot-name", "the robot name both sides' keys derive from")
     c.add_argument(
         "--codec", default="none", help="codec of the session proposed to a teleoperator (default none)"
     )

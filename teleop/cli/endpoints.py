@@ -11,7 +11,6 @@ import argparse
 import os
 from typing import Any
 
-from .. import auth
 from ..limits import MAX_B, MAX_RANGE
 from ..scenarios import SCENARIOS
 from .args import (
@@ -23,10 +22,10 @@ from .args import (
     add_netem_args,
     add_netem_specs,
     add_passivity_args,
+    add_robot_name_arg,
     add_session_args,
     add_transport_args,
     positive_float,
-    robot_name,
     session_id,
     udp_addr,
     zenoh_config_file,
@@ -135,13 +134,11 @@ def add_operator_parser(sub: Subcommands) -> None:
         help="local address to bind (default 0.0.0.0:0, any free port)",
     )
     o.add_argument("--session", type=session_id, default=0, help="session id (default: random)")
-    o.add_argument(
+    add_robot_name_arg(
+        o,
         "--robot-name",
-        type=robot_name("--robot-name"),
-        default=auth.DEFAULT_ROBOT_NAME,
-        metavar="NAME",
-        help=f"the name of the robot to reach (its --name; default {auth.DEFAULT_ROBOT_NAME!r}): bound into "
-        "every key, so a robot of another name never answers, even with the same key",
+        "the name of the robot to reach (its --name): bound into every key, so a robot of another "
+        "name never answers, even with the same key",
     )
     add_session_args(o, "eds:50", "protocol")
     add_device_args(o, ("hsi",))
@@ -168,13 +165,8 @@ def add_teleoperator_parser(sub: Subcommands) -> None:
         metavar="HOST:PORT",
         help="UDP address to wait on, for example 0.0.0.0:7000 (required with --transport udp)",
     )
-    t.add_argument(
-        "--name",
-        type=robot_name("--name"),
-        default=auth.DEFAULT_ROBOT_NAME,
-        metavar="NAME",
-        help=f"this robot's name (default {auth.DEFAULT_ROBOT_NAME!r}); operators reach it with "
-        "--robot-name NAME. Give each robot its own",
+    add_robot_name_arg(
+        t, "--name", "this robot's name; operators reach it with --robot-name NAME. Give each robot its own"
     )
     add_session_args(t, None, None)
     t.add_argument(
