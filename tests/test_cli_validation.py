@@ -121,6 +121,15 @@ CASES: list[tuple[list[str], str]] = [
     (["operator", "--peer", "nohostport"], "--peer must be HOST:PORT"),
     (["teleoperator", "--listen", "127.0.0.1:99999"], "port must be an integer 0..65535"),
     (["sim", "--dof", "65"], "DoF must be an integer 1..64, got '65'"),
+    # the robot name, the robot's own limits and conformance's bounds
+    (["teleoperator", *LISTEN, "--name", "bad/name"], "a robot name is 1 to 64 of the characters"),
+    (["operator", *PEER, "--robot-name", "x" * 65], "a robot name is 1 to 64 of the characters"),
+    (["teleoperator", *LISTEN, "--max-range", "nan"], "max range must be a finite number"),
+    (
+        ["conformance", "teleoperator", "--insecure", "--peer", "127.0.0.1:9", "--duration", "-5"],
+        "duration must be 0.5 to 60 s",
+    ),
+    (["conformance", "operator", "--insecure", "--timeout", "nan"], "timeout must be a finite number"),
 ]
 
 

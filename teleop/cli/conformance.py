@@ -10,7 +10,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .args import CliError, Subcommands, add_key_args, add_robot_name_arg, add_transport_args, udp_addr
+from .args import (
+    CliError,
+    Subcommands,
+    add_key_args,
+    add_robot_name_arg,
+    add_transport_args,
+    float_range,
+    udp_addr,
+)
 from .settings import endpoint_key, zenoh_options
 
 
@@ -74,13 +82,13 @@ def add_parser(sub: Subcommands) -> None:
     )
     c.add_argument(
         "--duration",
-        type=float,
+        type=float_range("duration", 0.5, 60.0, "s"),
         default=1.5,
         help="seconds of the session run with a teleoperator (default 1.5)",
     )
     c.add_argument(
         "--timeout",
-        type=float,
+        type=float_range("timeout", 1.0, 3600.0, "s"),
         default=30.0,
         help="seconds to wait for the operator to say hello (default 30)",
     )
