@@ -389,7 +389,7 @@ class Endpoint:
                 if self._to_hs.done:
                     self._from_to_handshake(self._to_hs, now_ns)
         elif self.state in (State.STARTING, State.RUNNING, State.LINGER):
-            self._session_datagram(data, addr, now_ns)
+            self._session_datagram(data, hdr, addr, now_ns)
 
     def datagrams_to_send(self, now_ns: int) -> list[tuple[bytes, Addr]]:
         """What to send now (a welcome is stamped with ``now_ns`` as it leaves: NTP's t3)."""
@@ -574,10 +574,12 @@ class Endpoint:
             self._events.append(HelloRejected(why))
 
     # --- during the session -------------------------------------------------------------------
-    def _session_datagram(self, data: bytes, addr: Addr, now_ns: int) -> None:
+    def _session_datagram(
+        self, data: bytes, hdr: tuple[int, int, int] | None, addr: Addr, now_ns: int
+    ) -> None:
+        """``hdr``: ``auth.peek(data)``, read once by :meth:`receive_datagram` (the 1 kHz path)."""
         port = self.port
         assert port is not None
-        hdr = auth.peek(data)
         if self._to_takeover(data, hdr, addr, now_ns):
             return
         if hdr is not None and hdr[0] == auth.HANDSHAKE:
