@@ -43,13 +43,14 @@ import enum
 import secrets
 from collections import deque
 from collections.abc import Callable, Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any, TypeAlias
 
 from . import auth, protocol, wire
 from .link import Addr
 from .port import Port, PortKeys
 from .protocol import Failure, SessionParams
+from .summary import EndpointSummary, RejoinFigures
 
 __all__ = [
     "GRACE_RESUME_TICKS",
@@ -192,7 +193,7 @@ class HelloRejected:
 @dataclass(frozen=True)
 class SessionEnded:
     reason: EndReason
-    summary: dict[str, Any]
+    summary: EndpointSummary  # SessionSummary(summary).document() is its JSON map
 
 
 @dataclass(frozen=True)
@@ -797,47 +798,46 @@ class Endpoint:
         self.state = State.CLOSED
         self._events.append(SessionEnded(self._ended, summary))
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> EndpointSummary:
         """This session's figures: the port's, and the session's around it (the runner adds the
-        loop's, the process's and the transport's)."""
+        loop's, the process's and the transport's: :class:`teleop.summary.ProcessSummary`)."""
         port, params = self.port, self.params
         assert port is not None and params is not None
         bye = self.peer_bye
-        s = port.summary(
-            peer_produced=bye.produced if bye else None,
-            peer_dropped_by_limit=bye.dropped_by_limit if bye else 0,
-        )
-        s["received"]["foreign"] = self.foreign
         shim = port.shim_stats()
         spec_tx = params.netem_forward if self.role == "operator" else params.netem_backward
         ended = self._ended
         completed = ended == EndReason.COMPLETED or (
             params.until_stopped and ended in (EndReason.STOPPED, EndReason.PEER_BYE)
         )
-        return {
-            "role": self.role,
-            "peer": _addr(self._peer()),
-            "completed": bool(completed),
-            "end": ended.value if ended else None,
-            "peer_said_bye": bye is not None,
-            "first_tick": self.k0,
-            "replaced_by_new_session": ended == EndReason.REPLACED,
-            "rejoin": {
-                "offers": self.rejoin_offers,
-                "retries": self.rejoin_retries,
-                "rejoins": self.rejoins,
-                "own_offers_ignored": self.own_offers_ignored,
-            },
-            "busy_rejects": self.busy_rejects,
-            "handshake_throttled": self._limiter.dropped,
-            "oversize_refused": self.oversize,
-            "retries_sent": self.retries_sent,
-            "shim": {"spec": spec_tx, **shim} if shim else None,
-            "grace": dict(self.grace),
-            "params": asdict(params),
-            **self._handshake_info,
-            **s,
-        }
+        return EndpointSummary(
+            role=self.role,
+            peer=_addr(self._peer()),
+            completed=bool(completed),
+            end=ended.value if ended else None,
+            peer_said_bye=bye is not None,
+            first_tick=self.k0,
+            replaced_by_new_session=ended == EndReason.REPLACED,
+            rejoin=RejoinFigures(
+                offers=self.rejoin_offers,
+                retries=self.rejoin_retries,
+                rejoins=self.rejoins,
+                own_offers_ignored=self.own_offers_ignored,
+            ),
+            busy_rejects=self.busy_rejects,
+            handshake_throttled=self._limiter.dropped,
+            oversize_refused=self.oversize,
+            retries_sent=self.retries_sent,
+            foreign=self.foreign,
+            shim={"spec": spec_tx, **shim} if shim else None,
+            grace=dict(self.grace),
+            params=params,
+            handshake=dict(self._handshake_info),
+            port=port.summary(
+                peer_produced=bye.produced if bye else None,
+                peer_dropped_by_limit=bye.dropped_by_limit if bye else 0,
+            ),
+        )
 
 
 # A real loop and transport deliver a payload a fraction of a tick late now and then (a stalled

@@ -47,20 +47,17 @@ from . import auth, wire
 from .codecs import Array, Codec, CodecError
 from .models import Environment, Human
 from .passivity import (
-    DEFAULT_LINK_TIMEOUT,
-    ON_LOSS,
     EnergyGuard,
     PassivityReport,
     TdpaGuard,
     parallel_damper,
     series_damper,
 )
-from .playout import parse_playout
 from .ratecap import RateCap
+from .settings import DEFAULTS, Channel
 from .wave import WaveImpedance
 
 SPARSE_MARGIN_S = 0.010  # s: how late the payload after a lost one may be before the link is lost
-PASSIVITY = ("wave", "tdpa")  # the two architectures: scattering (eq. 3-5) or TDPA on power variables
 #: J of input energy a TDPA port may leave unreported before an event-based (deadband) encoder must
 #: send: the receiver's budget lags the truth by at most this between sparse updates (teleop.tdpa).
 TDPA_REPORT_QUANTUM_J = 2e-3
@@ -102,19 +99,22 @@ class PortCounters:
 
 @dataclass(frozen=True)
 class PortOptions:
-    """How a node reconstructs what it receives and guards the channel's passivity."""
+    """How a node reconstructs what it receives and guards the channel's passivity.
+
+    The channel's fields and their defaults are :class:`teleop.settings.Channel`'s: :meth:`of` takes
+    them from a session's settings (``SessionParams``, ``SimConfig``)."""
 
     max_queue: int | None = None  # playout queue bound in ticks (default: one payload, newest wins)
-    on_loss: str = "conceal"  # what to play when nothing is queued: "conceal", "hold" or "zero"
-    controller: bool = True  # passivity controller on (never play more energy than was sent)
-    link_timeout: float = DEFAULT_LINK_TIMEOUT  # s of silence before the safe state
+    on_loss: str = DEFAULTS.on_loss  # what to play when nothing is queued: "conceal", "hold" or "zero"
+    controller: bool = DEFAULTS.controller  # passivity controller on (never play more energy than was sent)
+    link_timeout: float = DEFAULTS.link_timeout  # s of silence before the safe state
     fade_time: float = 0.1  # s to fade the coupling out (and back in)
-    rate_cap: float = 0.0  # bit/s on the wire in any 100 ms window (teleop.ratecap); 0: no cap
-    playout: str = "off"  # the receiver's playout buffer: "off", "auto" or extra ms (teleop.playout)
-    passivity: str = "wave"  # "wave" (scattering, eq. 3-5) or "tdpa" (power variables, teleop.passivity)
+    rate_cap: float = DEFAULTS.rate_cap  # bit/s on the wire in any 100 ms window (teleop.ratecap); 0: no cap
+    playout: str = DEFAULTS.playout  # the receiver's playout buffer: off, auto or extra ms (teleop.playout)
+    passivity: str = DEFAULTS.passivity  # "wave" (scattering, eq. 3-5) or "tdpa" (power variables)
 
     @classmethod
-    def of(cls, settings: Any) -> PortOptions:
+    def of(cls, settings: Channel) -> PortOptions:
         """The options a session's settings (``SessionParams``, ``SimConfig``) give both ports."""
         return cls(
             on_loss=settings.on_loss,
@@ -122,19 +122,21 @@ class PortOptions:
             link_timeout=settings.link_timeout,
             rate_cap=settings.rate_cap,
             playout=settings.playout,
-            passivity=getattr(settings, "passivity", "wave"),
+            passivity=settings.passivity,
         )
 
     def __post_init__(self) -> None:
-        if self.on_loss not in ON_LOSS:
-            raise ValueError(f"on_loss must be one of {', '.join(ON_LOSS)}, got {self.on_loss!r}")
-        if not self.link_timeout > 0 or not self.fade_time > 0:
-            raise ValueError("link_timeout and fade_time must be > 0 s")
-        if self.rate_cap:
-            RateCap(self.rate_cap, 1e-3)  # ValueError saying the allowed range
-        object.__setattr__(self, "playout", parse_playout(self.playout))  # canonical, or ValueError
-        if self.passivity not in PASSIVITY:
-            raise ValueError(f"passivity must be one of {', '.join(PASSIVITY)}, got {self.passivity!r}")
+        if not self.fade_time > 0:
+            raise ValueError("fade_time must be > 0 s")
+        channel = Channel(
+            on_loss=self.on_loss,
+            link_timeout=self.link_timeout,
+            rate_cap=self.rate_cap,
+            playout=self.playout,
+            passivity=self.passivity,
+        )
+        # canonical, or ValueError saying what is allowed (the same checks as every settings type)
+        object.__setattr__(self, "playout", channel.check_channel(netem_files=False))
 
 
 class _Port:

@@ -45,11 +45,12 @@ import msgpack
 from teleop import auth, limits, scenarios
 from teleop.codecs import CodecError, make_codec
 from teleop.link import Addr
-from teleop.link.netem import NetemError, NetemSpec, make_link, parse_netem
+from teleop.link.netem import NetemError, NetemSpec, parse_netem
 from teleop.node import PortOptions
 from teleop.passivity import ON_LOSS
 from teleop.ratecap import MAX_RATE_BPS, MIN_RATE_BPS
 from teleop.scenarios import SCENARIOS
+from teleop.settings import Channel
 from teleop.wave import WaveImpedance
 
 from .errors import RemoteError
@@ -231,9 +232,14 @@ def configured_netem(expect: Mapping[str, object]) -> frozenset[str]:
     return frozenset(v for k in _NETEM_FIELDS if isinstance(v := expect.get(k), str))
 
 
+#: What an optional field left out of a hello means (PROTOCOL.md 4.2): what a session meant before the
+#: field existed, so an older peer's hello keeps its meaning.  Not a default (teleop.settings has those).
+WIRE_ABSENT: dict[str, Any] = {"rate_cap": 0.0, "playout": "off", "variation": 0.0, "passivity": "wave"}
+
+
 @dataclass(frozen=True)
-class SessionParams:
-    """What the handshake agrees on."""
+class SessionParams(Channel):
+    """What the handshake agrees on: the model's settings and the channel's (:class:`Channel`)."""
 
     session: int
     codec: str
@@ -243,19 +249,7 @@ class SessionParams:
     full_scale: float
     duration: float
     dt: float = 0.001
-    phase: float = 0.5
-    netem_forward: str = ""  # impairment of operator -> TO, applied by the operator's shim
-    netem_backward: str = ""  # impairment of TO -> operator, applied by the TO's shim
-    seed: int = 0
-    on_loss: str = "conceal"  # reconstruction when nothing is queued (teleop.node.PortOptions)
-    controller: bool = True  # passivity controller
-    link_timeout: float = 0.05  # s of silence before a side goes to its safe state
-    rate_cap: float = 0.0  # bit/s per direction in any 100 ms window (teleop.ratecap); 0: none
-    playout: str = "off"  # both receivers' playout buffer: off, auto or extra ms (teleop.playout)
-    # Scale of the human's seeded variation (teleop.models.ProtocolPlan, drawn from ``seed``);
-    # 0, the scripted run, is left out of the hello, so a hello without it means 0.
-    variation: float = 0.0
-    passivity: str = "wave"  # "wave" or "tdpa" (teleop.node.PASSIVITY); optional on the wire like the above
+    phase: float = 0.5  # the teleoperator's ticks run this fraction of a period behind the operator's
 
     def _check_ranges(self) -> None:
         """ValueError naming the first field outside what this process can afford (teleop.limits).
@@ -292,21 +286,13 @@ class SessionParams:
         scenarios.get(self.scenario)
         self._check_ranges()
         WaveImpedance.of(self.b, self.dof)
+        playout = self.check_channel(netem_files=True)
         for name in _NETEM_FIELDS:
             text = getattr(self, name)
-            if text:
-                try:
-                    make_link(text, self.seed)  # NetemError (a ValueError) names the bad token
-                except NetemError as e:  # a trace file refused (teleop.files): say for which direction
-                    if text.split()[:1] == ["trace"]:
-                        raise ValueError(f"{name}: {e}") from None
-                    raise
-                toks = text.split()
-                if toks and toks[0] != "trace":
-                    _check_netem_numbers(name, parse_netem(text))
-        opts = self.port_options()  # ValueError for a bad on_loss, timeout or playout
+            if text.split()[:1] not in ([], ["trace"]):
+                _check_netem_numbers(name, parse_netem(text))
         spec = make_codec(self.codec, self.dof, self.full_scale, power=self.passivity == "tdpa").spec
-        return dataclasses.replace(self, codec=spec, playout=opts.playout)
+        return dataclasses.replace(self, codec=spec, playout=playout)
 
     def port_options(self) -> PortOptions:
         return PortOptions.of(self)
@@ -351,17 +337,17 @@ class SessionParams:
             on_loss=_str(m, "on_loss", _MAX_NAME_LEN),
             controller=_bool(m, "controller"),
             link_timeout=_float(m, "link_timeout"),
-            rate_cap=_float(m, "rate_cap") if "rate_cap" in m else 0.0,
-            playout=_str(m, "playout", _MAX_NAME_LEN) if "playout" in m else "off",
-            variation=_float(m, "variation") if "variation" in m else 0.0,
-            passivity=_str(m, "passivity", _MAX_NAME_LEN) if "passivity" in m else "wave",
+            rate_cap=_float(m, "rate_cap") if "rate_cap" in m else WIRE_ABSENT["rate_cap"],
+            playout=_str(m, "playout", _MAX_NAME_LEN) if "playout" in m else WIRE_ABSENT["playout"],
+            variation=_float(m, "variation") if "variation" in m else WIRE_ABSENT["variation"],
+            passivity=_str(m, "passivity", _MAX_NAME_LEN) if "passivity" in m else WIRE_ABSENT["passivity"],
         )
         try:
             p._check_ranges()
             for name in _NETEM_FIELDS:
                 _check_peer_netem(name, getattr(p, name), local_netem)
             WaveImpedance.of(p.b, p.dof)
-            playout = p.port_options().playout
+            playout = p.check_channel(netem_files=False)
             spec = make_codec(p.codec, p.dof, p.full_scale, power=p.passivity == "tdpa").spec
         except ProtocolError:
             raise
@@ -388,10 +374,7 @@ class SessionParams:
             "link_timeout": self.link_timeout,
             # Optional on the wire: sent only when set, so a session without a cap is byte-for-byte
             # what it was before the cap existed.
-            **({"rate_cap": self.rate_cap} if self.rate_cap else {}),
-            **({"playout": self.playout} if self.playout != "off" else {}),
-            **({"variation": self.variation} if self.variation else {}),
-            **({"passivity": self.passivity} if self.passivity != "wave" else {}),
+            **{k: getattr(self, k) for k, absent in WIRE_ABSENT.items() if getattr(self, k) != absent},
         }
 
 

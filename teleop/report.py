@@ -45,7 +45,7 @@ BANDWIDTH_WINDOW = 100  # ticks per bandwidth point (100 ms at 1 kHz)
 HIST_US = 100_000  # the lateness histogram's 1 us bins; later ticks are kept one by one
 
 
-def _checked_params(path: Path, p: Any) -> dict[str, Any]:
+def _checked_params(path: Path, p: Any) -> SessionParams:
     """A log's session parameters held to what a peer's hello is held to (``SessionParams.from_msg``:
     every type, and the ranges of ``teleop.limits``), before any of them sizes an allocation or a
     loop: an edited ``dof``, ``duration`` or ``dt`` is one :class:`LogError`.  A ``trace FILE`` spec
@@ -56,19 +56,19 @@ def _checked_params(path: Path, p: Any) -> dict[str, Any]:
     m["range"] = p.get("full_scale")
     own = [v for k in ("netem_forward", "netem_backward") if isinstance(v := p.get(k), str)]
     try:
-        return dataclasses.asdict(SessionParams.from_msg(m, local_netem=own))
+        return SessionParams.from_msg(m, local_netem=own)
     except ProtocolError as e:
         raise LogError(f"{path}: its session parameters: {e}") from None
 
 
 def _trace_specs(
-    paths: dict[str, Path], p: dict[str, Any], traces: tuple[Path, ...]
+    paths: dict[str, Path], p: SessionParams, traces: tuple[Path, ...]
 ) -> tuple[dict[str, str], str | None]:
     """The netem specs the sim re-runs with: a ``trace FILE`` spec's path (what the log names) is
     replaced by a file the user gave (``--trace``) whose SHA-256 is the one the log recorded
     (``/ROLE/session``'s ``traces``, teleop.files.trace_digests); returns (specs, None), or
     (specs, why the sim cannot be re-run)."""
-    specs = {d: str(p[f"netem_{d}"]) for d in ("forward", "backward")}
+    specs = {"forward": p.netem_forward, "backward": p.netem_backward}
     used = [d for d, spec in specs.items() if spec.split()[:1] == ["trace"]]
     if not used:
         return specs, None
@@ -407,7 +407,7 @@ class _Logs:
 
     paths: dict[str, Path]
     summaries: dict[str, dict[str, Any]]
-    params: dict[str, Any]
+    params: SessionParams
     notes: list[str]
     fold: _Fold
 
@@ -421,17 +421,17 @@ def _fold_of(op_path: str, to_path: str, mtimes: tuple[int, int]) -> _Logs:
     for role, path in paths.items():
         _, summaries[role], params[role] = log_session(path)
     p = _checked_params(paths["operator"], params["operator"])
-    ticks = round((p["duration"] or limits.MAX_DURATION_S) / p["dt"])
+    ticks = round((p.duration or limits.MAX_DURATION_S) / p.dt)
     # A session without a fixed end: its last phase lasts until the end of the log.
-    phases = _phases(p, p["duration"] or 1e9)
+    phases = _phases(p, p.duration or 1e9)
     fold = fold_logs(
         paths["operator"],
         paths["teleoperator"],
         phases,
-        p["dof"],
-        p["dt"],
+        p.dof,
+        p.dt,
         ticks + 1,
-        _shifts(summaries, p["dt"]),
+        _shifts(summaries, p.dt),
     )
     return _Logs(paths, summaries, p, [], fold)
 
@@ -498,9 +498,9 @@ def _security(op: dict[str, Any], to: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _phases(p: dict[str, Any], duration: float) -> list[tuple[str, float, float]]:
+def _phases(p: SessionParams, duration: float) -> list[tuple[str, float, float]]:
     """The session's phases from its scenario and seeded plan (older logs: no variation)."""
-    return scenarios.get(p["scenario"]).phases(p["seed"], p.get("variation", 0.0), duration)
+    return scenarios.get(p.scenario).phases(p.seed, p.variation, duration)
 
 
 def _process(s: dict[str, Any]) -> dict[str, Any] | None:
@@ -536,21 +536,21 @@ def build(
     fold, p = logs.fold, logs.params
     op, to = logs.summaries["operator"], logs.summaries["teleoperator"]
     both = bool(op) and bool(to)
-    dt = p["dt"]
+    dt = p.dt
     ticks = fold.n  # the ticks both logs cover: the session's, or those run until stopped
     phases = fold.phase_summary()
     i_real = phases["all"]["I"]
     rep: dict[str, Any] = {
         "transport": transport,
-        "codec": p["codec"],
-        "scenario": p["scenario"],
-        "duration_s": p["duration"] or ticks * dt,
-        "until_stopped": p["duration"] == 0,
-        "session": p["session"],
-        "dof": p["dof"],
-        "b": p["b"],
-        "range": p["full_scale"],
-        "phase": p["phase"],
+        "codec": p.codec,
+        "scenario": p.scenario,
+        "duration_s": p.duration or ticks * dt,
+        "until_stopped": p.duration == 0,
+        "session": p.session,
+        "dof": p.dof,
+        "b": p.b,
+        "range": p.full_scale,
+        "phase": p.phase,
         "logs": {role: path.name for role, path in logs.paths.items()},
         "processes": {role: _process(s) for role, s in (("operator", op), ("teleoperator", to))},
         "handshake": {"rtt_us": op.get("handshake_rtt_us"), "clock_offset_ns": op.get("clock_offset_ns")},
@@ -588,7 +588,7 @@ def build(
         rep["summary_missing"] = missing  # killed before it finished its log: its ticks are reported
     if logs.notes:
         rep["notes"] = logs.notes
-    netem = {"forward": p["netem_forward"], "backward": p["netem_backward"]}
+    netem = {"forward": p.netem_forward, "backward": p.netem_backward}
     if compare_sim:
         netem, why = _trace_specs(logs.paths, p, traces)
         if why is not None:
@@ -605,30 +605,16 @@ def build(
     if compare_sim:
         sim_ticks = min(ticks, fold.sim_ticks)
         sim = run_case(
-            SimConfig(
-                codec=p["codec"],
-                scenario=p["scenario"],
+            SimConfig.of_session(
+                p,
                 duration=sim_ticks * dt,
-                dof=p["dof"],
-                b=p["b"],
-                full_scale=p["full_scale"],
-                dt=dt,
                 netem_forward=netem["forward"],
                 netem_backward=netem["backward"],
-                seed=p["seed"],
-                on_loss=p["on_loss"],
-                controller=p["controller"],
-                link_timeout=p["link_timeout"],
-                rate_cap=p.get("rate_cap", 0.0),
-                playout=p.get("playout", "off"),
                 # The allowance each real receiver's playout buffer settled on (its median), so the
                 # comparison is like for like: delay costs transparency through the wave loop.
                 playout_floor=(_settled_allowance(to, dt), _settled_allowance(op, dt)),
-                session=p["session"],  # its size on the wire counts in the byte figures
                 hsi=sim_devices["hsi"],
                 robot=sim_devices["robot"],
-                variation=p.get("variation", 0.0),
-                passivity=p.get("passivity", "wave"),
             )
         )
         i_sim = sim.summary["I"]

@@ -28,17 +28,21 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
 
-from teleop.link.netem import Link, make_link
+from teleop.link.netem import Link
 
 from . import devices, metrics, scenarios, wire
 from .codecs import Codec, make_codec
 from .node import PortOptions
 from .port import ConstantDelayLink, MemorySink, Port, make_node, make_shim, wire_block
+from .settings import Channel
+
+if TYPE_CHECKING:
+    from .protocol import SessionParams
 
 Array = npt.NDArray[np.float64]
 
@@ -48,12 +52,13 @@ __all__ = ["ConstantDelayLink", "SimConfig", "run_case", "run_set"]
 ENERGY_TOLERANCE = 1e-9  # J: float rounding in cumulative sums, far below any real violation
 
 
-@dataclass
-class SimConfig:
-    """One run.  ``None`` means the scenario's default (``teleop.scenarios``)."""
+@dataclass(frozen=True)
+class SimConfig(Channel):
+    """One run: the channel's settings (:class:`teleop.settings.Channel`, the same as a real
+    session's) and the model's.  ``None`` means the scenario's default (``teleop.scenarios``)."""
 
     codec: str = "none"
-    delay_ms: float = 0.0
+    delay_ms: float = 0.0  # constant one-way delay of a direction without a netem spec
     duration: float | None = None
     dt: float = 0.001
     dof: int | None = None
@@ -62,21 +67,26 @@ class SimConfig:
     scenario: str = "step"
     window_ms: float = 100.0
     session: int = 1
-    netem_forward: str = ""  # netem spec for operator -> TO; non-empty replaces delay_ms there
-    netem_backward: str = ""  # netem spec for TO -> operator
-    seed: int = 0  # link seeds: 2 seed forward, 2 seed + 1 backward (a spec's own ``seed N`` wins)
-    on_loss: str = "conceal"  # receivers' reconstruction when nothing is queued (teleop.node.PortOptions)
-    controller: bool = True  # passivity controller on both receivers
-    link_timeout: float = 0.05  # s of silence before a side goes to its safe state
-    rate_cap: float = 0.0  # bit/s per direction in any 100 ms window (teleop.ratecap); 0: none
-    playout: str = "auto"  # receivers' playout buffer: off, auto or extra ms (teleop.playout)
     # Ticks ``auto`` keeps at least, at the teleoperator (forward) and the operator (backward):
     # what a real run's buffers settled on, to compare with one (teleop.report).
     playout_floor: tuple[int, int] = (0, 0)
     hsi: str | None = None  # --hsi spec (teleop.devices); None: the scenario's human
     robot: str | None = None  # --robot spec; None: the scenario's environment
-    variation: float = 0.0  # the human's seeded variation (teleop.models.ProtocolPlan); 0: scripted
-    passivity: str = "wave"  # "wave" (scattering, eq. 3-5) or "tdpa" (power variables + TDPA)
+
+    @classmethod
+    def of_session(cls, p: SessionParams, **sim: Any) -> SimConfig:
+        """The simulation of a real session with parameters ``p`` (``sim``: the sim's own fields)."""
+        model = {
+            "codec": p.codec,
+            "scenario": p.scenario,
+            "dof": p.dof,
+            "b": p.b,
+            "full_scale": p.full_scale,
+            "duration": p.duration,
+            "dt": p.dt,
+            "session": p.session,  # its size on the wire counts in the byte figures
+        }
+        return cls(**{**model, **p.channel_fields(), **sim})
 
     def resolved(self) -> SimConfig:
         """A copy with every default filled in and every value checked (ValueError says what is wrong)."""
@@ -96,15 +106,13 @@ class SimConfig:
             raise ValueError(f"delay must be >= 0 ms, got {c.delay_ms}")
         if not c.dof or c.dof < 1:
             raise ValueError(f"dof must be >= 1, got {c.dof}")
-        c.port_options()  # checks them
+        dof = c.dof
+        c = replace(c, playout=c.check_channel(netem_files=True))  # canonical; ValueError says what is wrong
         if c.passivity == "tdpa" and c.full_scale is not None:
-            make_codec(c.codec, c.dof, c.full_scale, power=True)  # CodecError: not on power variables
-        scenarios.get(c.scenario).make(c.dof, c.dt, c.seed, c.variation)  # ModelError says what is wrong
+            make_codec(c.codec, dof, c.full_scale, power=True)  # CodecError: not on power variables
+        scenarios.get(c.scenario).make(dof, c.dt, c.seed, c.variation)  # ModelError says what is wrong
         if not c.window_ms >= c.dt * 1e3:
             raise ValueError(f"window must be at least one tick ({c.dt * 1e3} ms), got {c.window_ms}")
-        for spec in (c.netem_forward, c.netem_backward):
-            if spec.strip():
-                make_link(spec, c.seed)  # NetemError (a ValueError) says which token is wrong
         for role, dev in (("hsi", c.hsi), ("robot", c.robot)):
             if dev is not None:
                 devices.resolve(dev, role)  # DeviceError (a ValueError) lists what is available

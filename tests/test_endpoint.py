@@ -27,6 +27,7 @@ from teleop.endpoint import (
     SessionStarted,
     State,
 )
+from teleop.summary import SessionSummary
 
 from .vnet import EVE, MS, OP, PSK, TO, TO_B, Host, VirtualNet, params
 
@@ -48,8 +49,7 @@ def start(net: VirtualNet, duration: float = 6.0, **kw: Any) -> tuple[Host, Host
 
 def ended(h: Host) -> dict[str, Any]:
     (ev,) = h.of(SessionEnded)[-1:]
-    s: dict[str, Any] = ev.summary
-    return s
+    return SessionSummary(ev.summary).document()
 
 
 def assert_passive(s: dict[str, Any]) -> None:
@@ -166,7 +166,7 @@ def test_a_restarted_operator_replaces_the_silent_one(rtt_ms: float) -> None:
     (rp,) = to.of(Replaced)
     assert (rp.old_session, rp.new_session) == (7, 8)
     old = [e for e in to.of(SessionEnded) if e.reason == EndReason.REPLACED]
-    assert len(old) == 1 and old[0].summary["replaced_by_new_session"] and not old[0].summary["completed"]
+    assert len(old) == 1 and old[0].summary.replaced_by_new_session and not old[0].summary.completed
     net.seconds(4.0)
     assert ended(op2)["completed"] and ended(to)["completed"] and ended(to)["params"]["session"] == 8
     assert_passive(ended(to))

@@ -303,7 +303,12 @@ def test_run_until_stopped_reports_and_both_exit_cleanly(
         text=True,
         start_new_session=True,
     )
-    time.sleep(3.0)
+    # Ctrl-C once both loops have ticked a while: both logs exist once a session has started (on a
+    # loaded host the processes take seconds to import, and a fixed 3 s could interrupt the start).
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and len(list((out / "logs").glob("*.mcap"))) < 2:
+        time.sleep(0.1)
+    time.sleep(1.5)
     os.killpg(p.pid, signal.SIGINT)  # Ctrl-C: the way an open session ends
     _, stderr = p.communicate(timeout=30)
     assert p.returncode == 0, stderr

@@ -33,6 +33,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import teleop.link.netem
+import teleop.settings
 from teleop import auth, limits, protocol, wire
 from teleop.auth import HANDSHAKE, SESSION, AuthError
 from teleop.codecs import CodecError
@@ -668,7 +669,7 @@ def no_files(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[str]]:
         (pathlib.Path, "read_bytes"),
         (teleop.link.netem, "load_trace"),
         (teleop.link.netem, "make_link"),
-        (protocol, "make_link"),
+        (teleop.settings, "make_link"),
     ]:
         monkeypatch.setattr(target, name, refuse)
     yield opened

@@ -598,8 +598,8 @@ def _session_as_operator(
     _data_checks(r, data, codec, p.ticks)
     ended = [e for e in events if isinstance(e, SessionEnded)]
     if ended:
-        pv = ended[0].summary["passivity"]
-        sec = ended[0].summary["security"]
+        pv = ended[0].summary.port["passivity"]
+        sec = ended[0].summary.port["security"]
         r.check(
             "3.6",
             "MUST",

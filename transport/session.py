@@ -50,6 +50,7 @@ from teleop.endpoint import (
 from teleop.errors import TeleopError
 from teleop.port import Chunk, Port, PortKeys
 from teleop.protocol import PROTOCOL_VERSION, LocalLimits, SessionParams
+from teleop.summary import LogFigures, ProcessSummary, SessionSummary
 
 from . import logdir
 from .base import Addr, Transport
@@ -152,7 +153,7 @@ class _Runner:
         self._starts: dict[int, int] = {}  # session id -> its tick 0 on this clock
         self._created = self.clock()
         self._waited: dict[int, float] = {}  # session id -> s from this process's start to its start
-        self.summary: dict[str, Any] | None = None
+        self.summary: SessionSummary | None = None
         self.ep = build(self._port)
 
     # --- the port factory (called by the endpoint when a session starts) ----------------------
@@ -213,7 +214,7 @@ class _Runner:
         self.send()
         self.events()
 
-    async def run(self) -> dict[str, Any]:
+    async def run(self) -> SessionSummary:
         """Until the endpoint is finished: handshake, each session (a takeover starts the next)."""
         self.send()
         while not self.ep.finished:
@@ -324,26 +325,29 @@ class _Runner:
 
     def ended(self, ev: SessionEnded) -> None:
         """One session is over: the process's figures join the endpoint's; ROLE.json and the log."""
-        o, s = self.opts, dict(ev.summary)
+        o, tr = self.opts, self.tr
         stats = self._stats or (self.ticker.stats() if self.ticker is not None else None)
         self._stats = None
-        s["received"].update(inbox_overflow=self.tr.inbox_overflow, socket_errors=self.tr.socket_errors)
-        s["received"]["oversize"] = self.tr.oversize  # refused by length (teleop.wire.MAX_DATAGRAM_BYTES)
-        s.update(
-            pid=os.getpid(),
-            local=_addr(self.tr.local_address),
-            transport=o.transport,
-            stopped_by_signal=self.stop.signal,
-            robot=o.robot_name,
-            waited_for_session_s=self._waited.get(s["params"]["session"]),
-            loop=stats.summary() if stats is not None else None,
-            warnings=self.warnings,
-            event_loop=type(asyncio.get_running_loop()).__module__.split(".")[0],
+        session = ev.summary.params.session
+        s = SessionSummary(
+            ev.summary,
+            ProcessSummary(
+                pid=os.getpid(),
+                local=_addr(tr.local_address),
+                transport=o.transport,
+                robot=o.robot_name,
+                auth="insecure" if o.insecure else "blake2s-128",
+                key_id=auth.key_id(o.psk or b""),
+                event_loop=type(asyncio.get_running_loop()).__module__.split(".")[0],
+                stopped_by_signal=self.stop.signal,
+                waited_for_session_s=self._waited.get(session),
+                loop=stats.summary() if stats is not None else None,
+                warnings=self.warnings,
+                inbox_overflow=tr.inbox_overflow,
+                socket_errors=tr.socket_errors,
+                oversize=tr.oversize,
+            ),
         )
-        s["security"].update(
-            auth="insecure" if o.insecure else "blake2s-128", key_id=auth.key_id(o.psk or b"")
-        )
-        session = s["params"]["session"]
         log = self._logs.pop(session, None)
         replaced = ev.reason == EndReason.REPLACED
         t_end = (self.clock() - self._starts.pop(session, self.ep.start_ns)) / 1e9
@@ -362,22 +366,23 @@ class _Runner:
             self.log = None
         self.summary = s
 
-    def _finish(self, s: dict[str, Any], log: McapLog | None, name: str, t_end: float) -> None:
+    def _finish(self, s: SessionSummary, log: McapLog | None, name: str, t_end: float) -> None:
         """Close the session's log (it waits for the writer) and write its JSON summary beside it
         (``transport.logdir.save_summary``: the MCAP file's stem, never over a file; a full disk
         is one line)."""
         o = self.opts
+        assert s.process is not None
         if log is not None:
-            log.close({**s, "end_t": t_end})
-            s["log"] = {
-                "mcap": log.path.name if log.path is not None else None,
-                "messages": log.messages,
-                "dropped_chunks": log.dropped_chunks,
-                "live_view_port": log.live_port,
-                "error": log.error,
-            }
+            log.close(s.document(end_t=t_end))
+            s.process.log = LogFigures(
+                mcap=log.path.name if log.path is not None else None,
+                messages=log.messages,
+                dropped_chunks=log.dropped_chunks,
+                live_view_port=log.live_port,
+                error=log.error,
+            )
         if o.log_dir is not None:
-            logdir.save_summary(o.log_dir, o.role, s)
+            logdir.save_summary(o.log_dir, o.role, s.document())
 
 
 # --------------------------------------------------------------------------------------------
@@ -398,7 +403,7 @@ async def _open_transport(opts: EndpointOptions) -> Transport:
 
 async def _endpoint(
     opts: EndpointOptions, params: SessionParams | None, expect: dict[str, Any]
-) -> dict[str, Any]:
+) -> SessionSummary:
     if opts.psk is None:
         raise SessionError("no key: give the pre-shared key (teleop keygen) or choose insecure")
     try:
@@ -464,18 +469,20 @@ def run_endpoint(
         return 1
     finally:
         loop.close()
-    if not opts.quiet and summary.get("loop"):
-        lp = summary["loop"]
+    proc = summary.process
+    assert proc is not None
+    if not opts.quiet and proc.loop:
+        lp, port = proc.loop, summary.endpoint.port
         pe = lp["period_error_us"]
         print(
             f"teleop {opts.role} [{loop_name}]: {lp['ticks']} ticks, overruns {lp['overruns']}, "
             f"period error p50/p99/max {pe['p50']:.1f}/{pe['p99']:.1f}/{pe['max']:.0f} us, "
-            f"CPU {100 * lp['cpu_fraction']:.0f}%, sent {summary['sent']['packets']} packets, "
-            f"received {summary['received']['packets']}",
+            f"CPU {100 * lp['cpu_fraction']:.0f}%, sent {port['sent']['packets']} packets, "
+            f"received {port['received']['packets']}",
             file=sys.stderr,
         )
-    if summary["stopped_by_signal"] is not None and summary["params"]["duration"] != 0:
-        return 128 + int(summary["stopped_by_signal"])
+    if proc.stopped_by_signal is not None and not summary.endpoint.params.until_stopped:
+        return 128 + proc.stopped_by_signal
     return 0  # a session without a fixed end stopped by a signal ended as it should
 
 

@@ -29,6 +29,7 @@ from ..limits import (
     MIN_LINK_TIMEOUT_S,
 )
 from ..scenarios import SCENARIOS
+from ..settings import DEFAULTS
 
 MAX_GRACE_US = 900.0  # the wait for a late payload must end well within the 1 ms tick
 MAX_CONNECT_TIMEOUT_S = 86400.0  # a day: longer waits overflow the loop's nanosecond clock
@@ -114,9 +115,6 @@ def int_range(what: str, lo: int, hi: int, note: str = "") -> Callable[[str], in
         return v
 
     return parse
-
-
-DEFAULT_PLAYOUT = "auto"
 
 
 def playout(text: str) -> str:
@@ -374,8 +372,8 @@ def add_netem_args(
     p.add_argument(
         "--seed",
         type=int_range("seed", 0, MAX_SEED),
-        default=0,
-        help="seed of the impairment shims and of the human's variation (default 0)",
+        default=DEFAULTS.seed,
+        help=f"seed of the impairment shims and of the human's variation (default {DEFAULTS.seed})",
     )
     p.add_argument(
         "--variation",
@@ -392,7 +390,7 @@ def add_passivity_args(p: argparse.ArgumentParser, repeatable: bool = False) -> 
     p.add_argument(
         "--passivity",
         choices=["wave", "tdpa"],
-        default=None if repeatable else "wave",
+        default=None if repeatable else DEFAULTS.passivity,
         action="append" if repeatable else "store",
         help="how the channel is kept passive: wave (default) sends scattering waves (eq. 3-5); tdpa "
         "sends velocity forward and force back with each side's input energy, and an adaptive damper "
@@ -416,23 +414,23 @@ def add_passivity_args(p: argparse.ArgumentParser, repeatable: bool = False) -> 
     p.add_argument(
         "--link-timeout",
         type=float_range("link timeout", MIN_LINK_TIMEOUT_S * 1e3, MAX_LINK_TIMEOUT_S * 1e3, "ms"),
-        default=50.0,
+        default=DEFAULTS.link_timeout * 1e3,
         metavar="MS",
-        help="silence before a side goes to its safe state, ms (default 50)",
+        help=f"silence before a side goes to its safe state, ms (default {DEFAULTS.link_timeout * 1e3:g})",
     )
     p.add_argument(
         "--playout",
         type=playout,
-        default=DEFAULT_PLAYOUT,
+        default=DEFAULTS.playout,
         metavar="auto|MS|off",
         help="receivers' playout (jitter) buffer: play each payload at its send tick plus the lowest "
         "delay seen plus an allowance: auto follows the observed lateness, MS fixes it, off plays "
-        f"payloads as they arrive (default {DEFAULT_PLAYOUT})",
+        f"payloads as they arrive (default {DEFAULTS.playout})",
     )
     p.add_argument(
         "--rate-cap",
         type=rate_cap,
-        default=0.0,
+        default=DEFAULTS.rate_cap,
         metavar="RATE",
         help="hard cap on each direction's data rate, whole datagrams in any 100 ms window, in netem's "
         "rate units (e.g. 64kbit, 8kbps); the encoder holds payloads back to keep it (default: none)",

@@ -33,7 +33,7 @@ from .args import (
     int_range,
     nonneg_float,
 )
-from .settings import channel_kwargs, check_duration, fresh_out, sim_config, writable_dir
+from .settings import channel, check_duration, fresh_out, sim_config, writable_dir
 
 MAX_RUNS = 1000
 
@@ -68,8 +68,8 @@ def _settings(args: argparse.Namespace, dof: int, duration: float) -> dict[str, 
         "seeds": [args.seed, args.seed + args.runs - 1],
         "transport": args.transport if args.real else None,
         "netem": {
-            "forward": channel_kwargs(args)["netem_forward"],
-            "backward": channel_kwargs(args)["netem_backward"],
+            "forward": channel(args).netem_forward,
+            "backward": channel(args).netem_backward,
         },
     }
 

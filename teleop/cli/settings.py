@@ -16,6 +16,7 @@ from typing import Any
 from .. import limits
 from ..codecs import CodecError
 from ..scenarios import SCENARIOS
+from ..settings import DEFAULTS, Channel
 from .args import CliError
 
 
@@ -95,21 +96,25 @@ def netem(args: argparse.Namespace, direction: str) -> str:
     return str(specific if specific is not None else (getattr(args, "netem", None) or ""))
 
 
-def channel_kwargs(args: argparse.Namespace) -> dict[str, Any]:
-    """Impairment and passivity settings, the same for `teleop sim` and a real session."""
-    return {
-        "netem_forward": netem(args, "forward"),
-        "netem_backward": netem(args, "backward"),
-        "seed": args.seed,
-        "variation": args.variation,
+def channel(args: argparse.Namespace) -> Channel:
+    """The channel's settings (impairment, reconstruction, passivity), parsed once from the command
+    line and the same for `teleop sim` and a real session; an option a command lacks keeps the
+    one default (``teleop.settings.DEFAULTS``)."""
+    no_controller = getattr(args, "no_controller", not DEFAULTS.controller)
+    on_loss = getattr(args, "on_loss", None)
+    return Channel(
+        netem_forward=netem(args, "forward"),
+        netem_backward=netem(args, "backward"),
+        seed=getattr(args, "seed", DEFAULTS.seed),
+        variation=getattr(args, "variation", DEFAULTS.variation),
         # conceal is passive only behind the controller: without it, zero unless asked otherwise
-        "on_loss": args.on_loss or ("zero" if args.no_controller else "conceal"),
-        "controller": not args.no_controller,
-        "link_timeout": args.link_timeout / 1e3,
-        "rate_cap": args.rate_cap,
-        "playout": args.playout,
-        "passivity": getattr(args, "passivity", "wave"),
-    }
+        on_loss=on_loss or ("zero" if no_controller else DEFAULTS.on_loss),
+        controller=not no_controller,
+        link_timeout=args.link_timeout / 1e3 if hasattr(args, "link_timeout") else DEFAULTS.link_timeout,
+        rate_cap=getattr(args, "rate_cap", DEFAULTS.rate_cap),
+        playout=getattr(args, "playout", DEFAULTS.playout),
+        passivity=getattr(args, "passivity", DEFAULTS.passivity),
+    )
 
 
 def sim_config(args: argparse.Namespace) -> Any:
@@ -128,7 +133,7 @@ def sim_config(args: argparse.Namespace) -> Any:
             scenario=args.scenario,
             hsi=getattr(args, "hsi", None),
             robot=getattr(args, "robot", None),
-            **channel_kwargs(args),
+            **channel(args).channel_fields(),
         ).resolved()
     except (ValueError, CodecError, OSError) as e:
         raise CliError(str(e)) from None
@@ -152,7 +157,7 @@ def session_params(args: argparse.Namespace, session: int) -> Any:
             full_scale=args.range if args.range is not None else sc.full_scale,
             duration=duration,
             phase=args.phase,
-            **channel_kwargs(args),
+            **channel(args).channel_fields(),
         ).validate()
     except (ValueError, CodecError, OSError) as e:
         raise CliError(str(e)) from None
