@@ -162,6 +162,15 @@ def test_report_contract_and_logs(tmp_path: Path) -> None:
             assert rep["wire"][d][k] == rep["sim_wire"][d][k], (d, k)
 
 
+def _wait_for_logs(logs: Path, timeout_s: float = 60.0) -> None:
+    """Until both processes' session logs exist, and 1.5 s more: both loops then tick.  A fixed sleep
+    interrupted the start on a loaded host (the processes take seconds to import there)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and len(list(logs.glob("*.mcap"))) < 2:
+        time.sleep(0.1)
+    time.sleep(1.5)
+
+
 def _ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # what `cmd &` in a script gives its command
 
@@ -177,7 +186,7 @@ def test_ctrl_c_stops_both_cleanly(tmp_path: Path, inherited: str) -> None:
         start_new_session=True,
         preexec_fn=_ignore_sigint if inherited == "ignored" else None,
     )
-    time.sleep(3.0)
+    _wait_for_logs(out / "logs")
     os.killpg(p.pid, signal.SIGINT)  # what a terminal's Ctrl-C does: the whole process group
     _, stderr = p.communicate(timeout=20)
     assert p.returncode == 130, stderr

@@ -155,7 +155,14 @@ def test_a_stranger_on_the_zenoh_key_cannot_drive_the_robot(tmp_path: Path) -> N
             )
         )
         captured: list[tuple[str, bytes]] = []
-        with zenoh.open(cfg) as z:
+        # The router may still be starting on a loaded host: a refused connection is retried.
+        for _ in range(100):
+            try:
+                z = zenoh.open(cfg)
+                break
+            except zenoh.ZError:
+                time.sleep(0.1)
+        with z:
             z.declare_subscriber(
                 "teleop/**", lambda s: captured.append((str(s.key_expr), s.payload.to_bytes()))
             )

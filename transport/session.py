@@ -7,26 +7,20 @@ the endpoint, send what it returns, hand the record to the log, and turn the end
 log messages, console lines and ``ROLE.json``.  Clocks are ``time.monotonic_ns``; tick ``k`` of a
 session is due at ``t0 + k dt`` (the endpoint's ``SessionStarted`` says ``t0`` and the first tick).
 
-**Log.** The port hands its per-tick record to a sink a chunk (1000 ticks) at a time; here the sink
-is ``transport.mcaplog.McapLog``, whose writer process writes ``ROLE.mcap`` as the session runs (and,
-with ``live_view``, serves the same channels over the Foxglove WebSocket protocol), so memory stays
-flat however long the session lasts and the loop never encodes or writes a message.  SIGINT/SIGTERM
-stop the loop at the next tick; the logs are still written.
+The session's records (its MCAP log, live view and ``ROLE.json``) are ``transport.records``'s; the
+process's options are ``transport.options``'.  SIGINT/SIGTERM stop the loop at the next tick; the
+logs are still written.
 """
 
 from __future__ import annotations
 
 import asyncio
 import os
-import random
 import signal
-import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
-from pathlib import Path
+from dataclasses import asdict
 from typing import Any
 
 from teleop import auth
@@ -48,14 +42,15 @@ from teleop.endpoint import (
     session_port,
 )
 from teleop.errors import TeleopError
-from teleop.port import Chunk, Port, PortKeys
-from teleop.protocol import PROTOCOL_VERSION, LocalLimits, SessionParams
-from teleop.summary import LogFigures, ProcessSummary, SessionSummary
+from teleop.port import Port, PortKeys
+from teleop.protocol import PROTOCOL_VERSION, SessionParams
+from teleop.summary import ProcessSummary, SessionSummary
 
-from . import logdir
 from .base import Addr, Transport
-from .mcaplog import McapLog, spawn_writer, wall_clock_of
+from .mcaplog import McapLog
+from .options import EndpointOptions, ZenohOptions, new_session_id
 from .realtime import LoopStats, Ticker, setup_realtime
+from .records import RecordError, Records
 from .udp import UdpTransport, new_event_loop
 from .watch import LogWatch, status_line
 from .zenoh import ZENOH_PEER, ZenohTransport, make_config
@@ -77,49 +72,6 @@ class SessionError(TeleopError):
     """The session could not start or run: printed as one clear line, non-zero exit."""
 
 
-@dataclass
-class EndpointOptions:
-    role: str
-    listen: Addr
-    peer: Addr | None = None
-    log_dir: Path | None = None
-    connect_timeout: float = 10.0
-    rt_priority: int | None = 10
-    use_uvloop: bool = True
-    spin_us: int = 100
-    linger: float = 0.2
-    grace_us: float = 400.0
-    quiet: bool = False
-    live: bool = False  # a status line every second: traffic, link, watchdog
-    transport: str = "udp"  # "udp" or "zenoh"
-    zenoh: ZenohOptions | None = None
-    psk: bytes | None = None  # the deployment's pre-shared key (teleop.auth); None: refuse to start
-    insecure: bool = False  # --insecure: run with teleop.auth.INSECURE_KEY (integrity only), say so
-    device: str | None = None  # --hsi/--robot spec (teleop.devices), local only; None: the scenario's
-    live_view: int | None = None  # serve the Foxglove WebSocket live view on this port (0: any free)
-    live_view_host: str = "127.0.0.1"
-    robot_name: str = auth.DEFAULT_ROBOT_NAME  # the robot this operator names / this robot is
-    local_limits: LocalLimits = field(default_factory=LocalLimits)  # teleoperator: what it affords
-
-
-@dataclass
-class ZenohOptions:
-    """How a process joins Zenoh (see transport.zenoh.make_config and docs/guides/zenoh.md)."""
-
-    mode: str = "peer"  # peer | client
-    listen: list[str] = field(default_factory=list)
-    connect: list[str] = field(default_factory=list)
-    prefix: str = "teleop/default"
-    config_file: str | None = None
-
-
-class _Discard:
-    """The sink of a process that keeps no log and serves no live view: chunks are dropped."""
-
-    def write(self, chunk: Chunk) -> None:
-        pass
-
-
 class _Stop:
     def __init__(self) -> None:
         self.requested = False
@@ -138,60 +90,33 @@ class _Runner:
     """One process: the clock, the socket, the log and the console around an endpoint."""
 
     def __init__(
-        self, opts: EndpointOptions, tr: Transport, stop: _Stop, build: Callable[[PortFactory], Endpoint]
+        self,
+        opts: EndpointOptions,
+        tr: Transport,
+        stop: _Stop,
+        records: Records,
+        build: Callable[[PortFactory], Endpoint],
     ) -> None:
-        self.opts, self.tr, self.stop = opts, tr, stop
+        self.opts, self.tr, self.stop, self.records = opts, tr, stop, records
         self.clock = time.monotonic_ns
-        self.log: McapLog | None = None
-        self._logs: dict[int, McapLog | None] = {}  # session id -> its log (a takeover opens the next)
-        self._writer: subprocess.Popen[bytes] | None = None
+        self.log: McapLog | None = None  # the running session's (None: no log, no live view)
         self.watch = LogWatch()
         self.warnings: list[str] = []
         self.ticker: Ticker | None = None
         self._stats: LoopStats | None = None
-        self._finishing: list[threading.Thread] = []  # replaced sessions' logs being finished
         self._starts: dict[int, int] = {}  # session id -> its tick 0 on this clock
         self._created = self.clock()
         self._waited: dict[int, float] = {}  # session id -> s from this process's start to its start
         self.summary: SessionSummary | None = None
         self.ep = build(self._port)
 
-    # --- the port factory (called by the endpoint when a session starts) ----------------------
     def _port(self, params: SessionParams, k0: int, keys: PortKeys, start_ns: int) -> Port:
-        log = self._open_log(params.session, start_ns)
-        self._logs[params.session] = log
-        sink = log if log is not None else _Discard()
-        return session_port(
-            self.opts.role,
-            params,
-            k0,
-            keys,
-            header_bytes=self.tr.header_bytes,
-            sink=sink,
-            device=self.opts.device,
-        )
-
-    def _open_log(self, session: int, t_common_ns: int) -> McapLog | None:
-        """A new MCAP file in the log folder (``transport.logdir.reserve``: ``ROLE.mcap`` or, if an
-        earlier run or session holds it, ``ROLE-SESSION[-N].mcap``; nothing is renamed or
-        overwritten) and/or the live view, or None (neither)."""
+        """The port factory, called by the endpoint when a session starts: its sink is the log."""
+        sink = self.records.open(params.session, start_ns)
         o = self.opts
-        if o.log_dir is None and o.live_view is None:
-            return None
-        writer, self._writer = self._writer, None
-        try:
-            files = logdir.reserve(o.log_dir, o.role, session) if o.log_dir is not None else None
-            return McapLog(
-                files.mcap if files is not None else None,
-                o.role,
-                wall_clock_of(t_common_ns),
-                live_port=o.live_view,
-                live_host=o.live_view_host,
-                process=writer,
-                file_id=(files.dev, files.ino) if files is not None else None,
-            )
-        except (OSError, RuntimeError, ValueError) as e:  # a folder others can write, the port is taken
-            raise SessionError(f"cannot open the log or the live view: {e}") from None
+        return session_port(
+            o.role, params, k0, keys, header_bytes=self.tr.header_bytes, sink=sink, device=o.device
+        )
 
     # --- I/O ------------------------------------------------------------------------------------
     def drain(self) -> None:
@@ -285,7 +210,7 @@ class _Runner:
         ep, o = self.ep, self.opts
         while (ev := ep.next_event()) is not None:
             if isinstance(ev, SessionStarted):
-                self.log = self._logs.get(ev.params.session)
+                self.log = self.records.logs.get(ev.params.session)
                 self._starts[ev.params.session] = ev.start_ns
                 self._waited[ev.params.session] = (self.clock() - self._created) / 1e9
                 self.ticker = Ticker(period_ns=round(ev.params.dt * 1e9), spin_ns=o.spin_us * 1000)
@@ -348,41 +273,15 @@ class _Runner:
                 oversize=tr.oversize,
             ),
         )
-        log = self._logs.pop(session, None)
         replaced = ev.reason == EndReason.REPLACED
         t_end = (self.clock() - self._starts.pop(session, self.ep.start_ns)) / 1e9
-        if log is not None:
-            why = {EndReason.PEER_BYE: "peer said bye", EndReason.STOPPED: f"signal {self.stop.signal}"}
-            log.event(t_end, "session_end", why.get(ev.reason, ev.reason.value))
-        name = f"{o.role}-{session}" if replaced else o.role
-        if replaced:  # the next session already runs: finish this one's files beside it, not in its way
-            done = threading.Thread(target=self._finish, args=(s, log, name, t_end), name="finish-log")
-            done.start()
-            self._finishing.append(done)
-        else:
-            self._finish(s, log, name, t_end)
-            self.ticker = None
-        if self.log is log:
+        why = {EndReason.PEER_BYE: "peer said bye", EndReason.STOPPED: f"signal {self.stop.signal}"}
+        if self.log is self.records.logs.get(session):
             self.log = None
+        self.records.end(s, session, t_end, why.get(ev.reason, ev.reason.value), replaced)
+        if not replaced:
+            self.ticker = None
         self.summary = s
-
-    def _finish(self, s: SessionSummary, log: McapLog | None, name: str, t_end: float) -> None:
-        """Close the session's log (it waits for the writer) and write its JSON summary beside it
-        (``transport.logdir.save_summary``: the MCAP file's stem, never over a file; a full disk
-        is one line)."""
-        o = self.opts
-        assert s.process is not None
-        if log is not None:
-            log.close(s.document(end_t=t_end))
-            s.process.log = LogFigures(
-                mcap=log.path.name if log.path is not None else None,
-                messages=log.messages,
-                dropped_chunks=log.dropped_chunks,
-                live_view_port=log.live_port,
-                error=log.error,
-            )
-        if o.log_dir is not None:
-            logdir.save_summary(o.log_dir, o.role, s.document())
 
 
 # --------------------------------------------------------------------------------------------
@@ -430,28 +329,16 @@ async def _endpoint(
             return Endpoint.operator(params, peer, make_port, **kw)
         return Endpoint.teleoperator(expect, make_port, local_limits=opts.local_limits, **kw)
 
-    runner: _Runner | None = None
+    records = Records(opts.role, opts.log_dir, opts.live_view, opts.live_view_host)
     try:
-        runner = _Runner(opts, tr, stop, build)
-        # The log's writer process starts now, so that it has imported before the loop starts.
-        if opts.log_dir is not None or opts.live_view is not None:
-            runner._writer = spawn_writer()
-        summary = await runner.run()
-        for t in runner._finishing:
-            await asyncio.to_thread(t.join)
+        summary = await _Runner(opts, tr, stop, records, build).run()
+        await asyncio.to_thread(records.wait_finished)
         return summary
+    except RecordError as e:
+        raise SessionError(str(e)) from None
     finally:
         tr.close()
-        writer = runner._writer if runner is not None else None
-        if writer is not None and writer.poll() is None:  # unused (no session): it exits at end of input
-            try:
-                writer.communicate(timeout=10)
-            except subprocess.TimeoutExpired:
-                writer.kill()
-                writer.wait()
-        for log in runner._logs.values() if runner is not None else ():
-            if log is not None:
-                log.close()
+        records.close()
 
 
 def run_endpoint(
@@ -484,7 +371,3 @@ def run_endpoint(
     if proc.stopped_by_signal is not None and not summary.endpoint.params.until_stopped:
         return 128 + proc.stopped_by_signal
     return 0  # a session without a fixed end stopped by a signal ended as it should
-
-
-def new_session_id() -> int:
-    return random.SystemRandom().randrange(1, 2**32)

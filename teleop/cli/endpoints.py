@@ -38,7 +38,8 @@ DEFAULT_MAX_B = max(sc.b for sc in SCENARIOS.values())
 
 
 def cmd_operator(args: argparse.Namespace) -> int:
-    from transport.session import new_session_id, run_endpoint
+    from transport.options import new_session_id
+    from transport.session import run_endpoint
 
     if args.transport == "udp" and args.peer is None:
         raise CliError("--peer HOST:PORT is required with --transport udp (the teleoperator's address)")

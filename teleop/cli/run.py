@@ -287,7 +287,7 @@ def _run_pair(to_cmd: list[str], op_cmd: list[str], timeout: float) -> tuple[dic
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from transport.session import new_session_id
+    from transport.options import new_session_id
 
     params = session_params(args, new_session_id())
     check_robot(args.robot, params.dof)

@@ -141,7 +141,7 @@ def sim_config(args: argparse.Namespace) -> Any:
 
 def session_params(args: argparse.Namespace, session: int) -> Any:
     """The SessionParams an operator proposes (``run`` and ``operator``), every default filled in."""
-    from transport.session import SessionParams
+    from teleop.protocol import SessionParams
 
     sc = SCENARIOS[args.scenario]
     dof = args.dof if args.dof is not None else sc.dof
@@ -194,7 +194,7 @@ def endpoint_key(args: argparse.Namespace) -> tuple[bytes, bool]:
 
 def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int]) -> Any:
     """The EndpointOptions of one real process (``operator`` or ``teleoperator``)."""
-    from transport.session import EndpointOptions
+    from transport.options import EndpointOptions
 
     log_dir = private_dir(Path(args.log), "--log") if args.log else None
     psk, insecure = endpoint_key(args)
@@ -220,7 +220,7 @@ def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int
 
 
 def zenoh_options(args: argparse.Namespace) -> Any:
-    from transport.session import ZenohOptions
+    from transport.options import ZenohOptions
 
     connect = list(args.zenoh_connect or [])
     if args.zenoh_router:

@@ -1,0 +1,56 @@
+"""The options of one real process (``teleop operator`` / ``teleoperator``): what the command line
+resolved, handed to :func:`transport.session.run_endpoint`.  The session's own settings are
+:class:`teleop.protocol.SessionParams` (the operator's proposal) and the teleoperator's pins."""
+
+from __future__ import annotations
+
+import random
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from teleop import auth
+from teleop.link import Addr
+from teleop.protocol import LocalLimits
+
+
+@dataclass
+class EndpointOptions:
+    """One process: its role and addresses, its loop, its log, its key and its robot's name."""
+
+    role: str
+    listen: Addr
+    peer: Addr | None = None
+    log_dir: Path | None = None
+    connect_timeout: float = 10.0
+    rt_priority: int | None = 10
+    use_uvloop: bool = True
+    spin_us: int = 100
+    linger: float = 0.2
+    grace_us: float = 400.0
+    quiet: bool = False
+    live: bool = False  # a status line every second: traffic, link, watchdog
+    transport: str = "udp"  # "udp" or "zenoh"
+    zenoh: ZenohOptions | None = None
+    psk: bytes | None = None  # the deployment's pre-shared key (teleop.auth); None: refuse to start
+    insecure: bool = False  # --insecure: run with teleop.auth.INSECURE_KEY (integrity only), say so
+    device: str | None = None  # --hsi/--robot spec (teleop.devices), local only; None: the scenario's
+    live_view: int | None = None  # serve the Foxglove WebSocket live view on this port (0: any free)
+    live_view_host: str = "127.0.0.1"
+    robot_name: str = auth.DEFAULT_ROBOT_NAME  # the robot this operator names / this robot is
+    local_limits: LocalLimits = field(default_factory=LocalLimits)  # teleoperator: what it affords
+
+
+@dataclass
+class ZenohOptions:
+    """How a process joins Zenoh (see transport.zenoh.make_config and docs/guides/zenoh.md)."""
+
+    mode: str = "peer"  # peer | client
+    listen: list[str] = field(default_factory=list)
+    connect: list[str] = field(default_factory=list)
+    prefix: str = "teleop/default"
+    config_file: str | None = None
+
+
+def new_session_id() -> int:
+    """A random session id (PROTOCOL.md 4.1: 1..2**32-1, never reused on purpose)."""
+    return random.SystemRandom().randrange(1, 2**32)
