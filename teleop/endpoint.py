@@ -285,7 +285,7 @@ class Endpoint:
         # teleoperator
         self._to_hs: protocol.TeleoperatorHandshake | None = None
         self._takeover: protocol.TeleoperatorHandshake | None = None
-        self._expect: dict[str, Any] = {}
+        self._expect = protocol.Pins()
         self._limits = protocol.LocalLimits()
         self._cookie_secret = rng(32)
         self._limiter = HandshakeLimiter()
@@ -321,7 +321,7 @@ class Endpoint:
     @classmethod
     def teleoperator(
         cls,
-        expect: Mapping[str, object],
+        expect: protocol.Pins | Mapping[str, object],
         make_port: PortFactory,
         *,
         now_ns: int,
@@ -332,7 +332,7 @@ class Endpoint:
         """The teleoperator's endpoint: it waits for an operator whose hello suits ``expect`` (fields
         of :class:`SessionParams`; None: the operator's choice, within ``local_limits``)."""
         ep = cls("teleoperator", make_port, now_ns=now_ns, psk=psk, **kw)
-        ep._expect = dict(expect)
+        ep._expect = protocol.Pins.of(expect)
         ep._limits = local_limits or protocol.LocalLimits()
         ep._to_hs = ep._new_to_handshake(now_ns)
         return ep

@@ -378,8 +378,36 @@ class SessionParams(Channel):
         }
 
 
-#: Field names a teleoperator may pin in ``expect``.
-PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(SessionParams))
+
+@dataclass(frozen=True)
+class Pins:
+    """What a teleoperator was configured with: a hello must match every field that is not None
+    (the rest are the operator's to choose, within :class:`LocalLimits`)."""
+
+    codec: str | None = None  # canonical spec
+    scenario: str | None = None
+    dof: int | None = None
+    b: float | None = None
+    full_scale: float | None = None
+    duration: float | None = None
+    netem_forward: str | None = None
+    netem_backward: str | None = None
+
+    @classmethod
+    def of(cls, expect: Pins | Mapping[str, object]) -> Pins:
+        """``expect`` as Pins: a map names :class:`SessionParams` fields (ValueError for others)."""
+        if isinstance(expect, Pins):
+            return expect
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(expect) - names
+        if unknown:
+            pins = ", ".join(sorted(names))
+            raise ValueError(f"a teleoperator cannot pin {', '.join(sorted(unknown))}; it pins {pins}")
+        return cls(**expect)  # type: ignore[arg-type]
+
+    def pinned(self) -> dict[str, object]:
+        """The fields that are pinned, by name."""
+        return {f.name: v for f in dataclasses.fields(self) if (v := getattr(self, f.name)) is not None}
 
 
 def _check_peer_netem(name: str, text: str, local_netem: Collection[str]) -> None:
@@ -931,8 +959,8 @@ def peek_hello(body: bytes) -> tuple[int | None, int, object, object] | None:
 class TeleoperatorHandshake:
     """The teleoperator's handshake: welcome a good hello, confirm that operator's start.
 
-    ``expect`` maps :class:`SessionParams` field names to what this teleoperator was configured with
-    (None: anything).  ``local_netem`` lists netem specs configured here that a hello may repeat even
+    ``expect``: what this teleoperator was configured with (:class:`Pins`, or a map of its fields;
+    None: anything).  ``local_netem`` lists netem specs configured here that a hello may repeat even
     if they name a trace file; the netem specs in ``expect`` are added to it.
 
     A bad hello (malformed, or differing from ``expect``) is answered with a ``reject`` carrying the
@@ -956,7 +984,7 @@ class TeleoperatorHandshake:
 
     def __init__(
         self,
-        expect: Mapping[str, object],
+        expect: Pins | Mapping[str, object],
         *,
         now_ns: int,
         timeout_s: float,
@@ -967,10 +995,7 @@ class TeleoperatorHandshake:
         local_limits: LocalLimits | None = None,
         defer_t3: bool = False,
     ) -> None:
-        unknown = set(expect) - set(PARAM_FIELDS)
-        if unknown:
-            raise ValueError(f"expect names unknown session parameters: {', '.join(sorted(unknown))}")
-        self.expect = dict(expect)
+        self.expect = Pins.of(expect).pinned()
         self.local_netem = frozenset(local_netem) | configured_netem(self.expect)
         self.timeout_s = timeout_s
         self._give_up = now_ns + round(timeout_s * 1e9)

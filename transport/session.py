@@ -43,7 +43,7 @@ from teleop.endpoint import (
 )
 from teleop.errors import TeleopError
 from teleop.port import Port, PortKeys
-from teleop.protocol import PROTOCOL_VERSION, SessionParams
+from teleop.protocol import PROTOCOL_VERSION, Pins, SessionParams
 from teleop.summary import ProcessSummary, SessionSummary
 
 from .base import Addr, Transport
@@ -301,7 +301,7 @@ async def _open_transport(opts: EndpointOptions) -> Transport:
 
 
 async def _endpoint(
-    opts: EndpointOptions, params: SessionParams | None, expect: dict[str, Any]
+    opts: EndpointOptions, params: SessionParams | None, pins: Pins | None
 ) -> SessionSummary:
     if opts.psk is None:
         raise SessionError("no key: give the pre-shared key (teleop keygen) or choose insecure")
@@ -327,7 +327,7 @@ async def _endpoint(
             peer = ZENOH_PEER if opts.transport == "zenoh" else opts.peer
             assert params is not None and peer is not None
             return Endpoint.operator(params, peer, make_port, **kw)
-        return Endpoint.teleoperator(expect, make_port, local_limits=opts.local_limits, **kw)
+        return Endpoint.teleoperator(pins or Pins(), make_port, local_limits=opts.local_limits, **kw)
 
     records = Records(opts.role, opts.log_dir, opts.live_view, opts.live_view_host)
     try:
@@ -342,12 +342,12 @@ async def _endpoint(
 
 
 def run_endpoint(
-    opts: EndpointOptions, params: SessionParams | None = None, expect: dict[str, Any] | None = None
+    opts: EndpointOptions, params: SessionParams | None = None, pins: Pins | None = None
 ) -> int:
     """Run one process's side of a session; returns the exit status (0 ok, 1 error, 130 interrupted)."""
     loop, loop_name = new_event_loop(opts.use_uvloop)
     try:
-        summary = loop.run_until_complete(_endpoint(opts, params, expect or {}))
+        summary = loop.run_until_complete(_endpoint(opts, params, pins))
     except (SessionError, DeviceError) as e:  # DeviceError: this side's device cannot run the session
         print(f"teleop {opts.role}: error: {e}", file=sys.stderr)
         return 1

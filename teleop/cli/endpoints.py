@@ -50,6 +50,8 @@ def cmd_operator(args: argparse.Namespace) -> int:
 def cmd_teleoperator(args: argparse.Namespace) -> int:
     from transport.session import run_endpoint
 
+    from ..protocol import Pins  # what this robot was configured with: a hello must match
+
     activated = os.environ.get("LISTEN_PID") == str(os.getpid())  # systemd passed the socket
     if args.transport == "udp" and args.listen is None and not activated:
         raise CliError(
@@ -64,18 +66,19 @@ def cmd_teleoperator(args: argparse.Namespace) -> int:
         check_duration(args.duration, dof)
     if args.dof is not None:
         check_robot(args.robot, args.dof)
-    expect = {
-        "codec": args.codec,  # canonical already (the --codec type)
-        "scenario": args.scenario,
-        "dof": args.dof,
-        "b": args.b,
-        "full_scale": args.range,
-        "duration": args.duration,
-        **{f"netem_{d}": netem(args, d) or None for d in ("forward", "backward")},
-    }
+    pins = Pins(
+        codec=args.codec,  # canonical already (the --codec type)
+        scenario=args.scenario,
+        dof=args.dof,
+        b=args.b,
+        full_scale=args.range,
+        duration=args.duration,
+        netem_forward=netem(args, "forward") or None,
+        netem_backward=netem(args, "backward") or None,
+    )
     opts = endpoint_options(args, "teleoperator", args.listen or ("127.0.0.1", 0))
     opts.local_limits = local_limits(args)
-    return run_endpoint(opts, None, expect)
+    return run_endpoint(opts, None, pins)
 
 
 def local_limits(args: argparse.Namespace) -> Any:
