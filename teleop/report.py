@@ -673,9 +673,10 @@ def write_plots(log_dir: Path, out: Path, rep: dict[str, Any], suffix: str = "")
     return files
 
 
-def summary_text(rep: dict[str, Any]) -> str:
+def summary_text(rep: dict[str, Any], command: str = "teleop run") -> str:
+    """The printed report; its first line names the ``command`` that printed it."""
     lines = [
-        f"teleop run: {rep['scenario']} scenario, codec {rep['codec']}, {rep['dof']} DoF, "
+        f"{command}: {rep['scenario']} scenario, codec {rep['codec']}, {rep['dof']} DoF, "
         f"{rep['duration_s']:g} s over {rep['transport']}"
     ]
     for role, pr in rep["processes"].items():

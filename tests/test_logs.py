@@ -388,6 +388,7 @@ def test_the_peers_bye_ends_an_open_session(tmp_path: Path) -> None:
         timeout=60,
     )
     assert r.returncode == 0, r.stderr
+    assert r.stdout.startswith("teleop report: ")  # the command that printed it, not `teleop run`
     rep = json.loads((tmp_path / "rep" / "report.json").read_text())
     assert rep["until_stopped"] is True and rep["transparency"]["ticks_compared"] > 1000
 

@@ -22,6 +22,7 @@ def write_report(
     transport: str,
     extra: dict[str, Any] | None = None,
     session: int | None = None,
+    command: str = "teleop report",
 ) -> None:
     """Build the report of ``session`` (default: the newest pair) from LOGS, add ``extra``, write
     OUT/report.json (a new file, never over one) and the plots, print a summary.  Any damage in
@@ -36,7 +37,7 @@ def write_report(
             logs, transport, compare_sim=not args.no_sim, session=session, traces=traces
         )
         rep.update(extra or {})
-        text = session_report.summary_text(rep)
+        text = session_report.summary_text(rep, command)
     except LogError as e:
         raise CliError(f"cannot build the report: {e}") from None
     except FileRefused as e:  # a --trace file that is not a regular file of bounded size

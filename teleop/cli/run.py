@@ -330,7 +330,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     extra: dict[str, Any] = {"exit_codes": codes, "auth": {"key": key.source, "key_id": key.key_id}}
     if net.zenoh is not None:
         extra["zenoh"] = net.zenoh
-    write_report(logs, out, args, args.transport, extra, session=params.session)
+    write_report(logs, out, args, args.transport, extra, session=params.session, command="teleop run")
     if interrupted and not params.until_stopped:  # an open session ends with Ctrl-C: that is no error
         return 130
     return 0 if all(c == 0 for c in codes.values()) else 1
