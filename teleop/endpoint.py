@@ -362,6 +362,12 @@ class Endpoint:
         return self.state in (State.CLOSED, State.FAILED)
 
     @property
+    def max_datagram_bytes(self) -> int:
+        """The longest datagram this endpoint can take now (either key kind): a transport may refuse
+        a longer one by its length alone, before copying it (``transport.udp``)."""
+        return max(self._max_len)
+
+    @property
     def handshake_throttled(self) -> int:
         """Handshake datagrams dropped over the per-source or global budget (HandshakeLimiter)."""
         return self._limiter.dropped

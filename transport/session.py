@@ -55,7 +55,7 @@ from . import logdir
 from .base import Addr, Transport
 from .mcaplog import McapLog, spawn_writer, wall_clock_of
 from .realtime import LoopStats, Ticker, setup_realtime
-from .udp import UdpTransport, new_event_loop
+from .udp import DEFAULT_RCVBUF_BYTES, UdpTransport, new_event_loop
 from .watch import LogWatch, status_line
 from .zenoh import ZENOH_PEER, ZenohTransport, make_config
 
@@ -99,6 +99,7 @@ class EndpointOptions:
     live_view_host: str = "127.0.0.1"
     robot_name: str = auth.DEFAULT_ROBOT_NAME  # the robot this operator names / this robot is
     local_limits: LocalLimits = field(default_factory=LocalLimits)  # teleoperator: what it affords
+    udp_rcvbuf: int = DEFAULT_RCVBUF_BYTES  # the UDP socket's receive buffer asked for (transport.udp)
 
 
 @dataclass
@@ -288,7 +289,8 @@ class _Runner:
                 self._starts[ev.params.session] = ev.start_ns
                 self._waited[ev.params.session] = (self.clock() - self._created) / 1e9
                 self.ticker = Ticker(period_ns=round(ev.params.dt * 1e9), spin_ns=o.spin_us * 1000)
-                self.warnings = setup_realtime(o.rt_priority)
+                self.tr.max_datagram = ep.max_datagram_bytes  # refused by length in the transport
+                self.warnings = setup_realtime(o.rt_priority) + self.tr.warnings
                 for w in self.warnings:
                     print(f"teleop {o.role}: warning: {w}", file=sys.stderr)
                 if self.log is not None:
@@ -327,8 +329,7 @@ class _Runner:
         o, s = self.opts, dict(ev.summary)
         stats = self._stats or (self.ticker.stats() if self.ticker is not None else None)
         self._stats = None
-        s["received"].update(inbox_overflow=self.tr.inbox_overflow, socket_errors=self.tr.socket_errors)
-        s["received"]["oversize"] = self.tr.oversize  # refused by length (teleop.wire.MAX_DATAGRAM_BYTES)
+        s["received"].update(self.tr.report())  # oversize: refused by length (Transport.max_datagram)
         s.update(
             pid=os.getpid(),
             local=_addr(self.tr.local_address),
@@ -385,7 +386,7 @@ class _Runner:
 # --------------------------------------------------------------------------------------------
 async def _open_transport(opts: EndpointOptions) -> Transport:
     if opts.transport == "udp":
-        return await UdpTransport.bind(opts.listen)
+        return await UdpTransport.bind(opts.listen, rcvbuf=opts.udp_rcvbuf)
     if opts.transport == "zenoh":
         z = opts.zenoh or ZenohOptions()
         try:
