@@ -18,7 +18,7 @@ with no allocation, before it is queued, hashed or parsed.  The runner narrows `
 its endpoint's bound when a session starts (4122 bytes at 2 DoF), so a 60 kB datagram costs a
 4 kB copy instead of two 60 kB ones.
 
-**Receive buffer.** The socket asks for ``rcvbuf`` bytes (default 4 MiB; never less than it has):
+**Receive buffer.** The socket asks for ``rcvbuf`` bytes (default 16 MiB; never less than it has):
 the junk that arrives between two drains, or during a stall of the host, waits there instead of
 pushing genuine payloads out.  With CAP_NET_ADMIN it is set with SO_RCVBUFFORCE; otherwise
 ``net.core.rmem_max`` caps it and :attr:`UdpTransport.warnings` says what was obtained.  What the
@@ -94,7 +94,10 @@ def inherited_socket() -> socket.socket | None:
 
 
 UDP_MAX_PAYLOAD = 65535  # no UDP datagram is longer (65507 over IPv4, 65527 over IPv6)
-DEFAULT_RCVBUF_BYTES = 4 << 20  # ~10k small datagrams: 100 ms of a 100k/s flood between two drains
+# Linux accounts a datagram's whole buffer (~830 B for 100 B, ~61 kB for 60 kB on loopback) against
+# twice what is asked: 16 MiB holds ~40k small datagrams (0.4 s of a 100k/s flood between two drains)
+# or ~550 of 60 kB (5 ms of one at 100k/s; 4 MiB, 1.4 ms of it, lost some with the junk).
+DEFAULT_RCVBUF_BYTES = 16 << 20
 MAX_RCVBUF_BYTES = 64 << 20
 MIN_RCVBUF_BYTES = 64 << 10
 DRAIN_BUDGET = 512  # datagrams one drain reads at most: 5 ticks' worth of a 100k/s flood

@@ -475,9 +475,9 @@ def add_endpoint_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--udp-rcvbuf",
         type=int_range("UDP receive buffer", 64, 65536, " KiB"),
-        default=4096,
+        default=16384,
         metavar="KIB",
-        help="the UDP socket's receive buffer to ask for, in KiB (default 4096): junk arriving between "
+        help="the UDP socket's receive buffer to ask for, in KiB (default 16384): junk arriving between "
         "two ticks waits there instead of pushing genuine datagrams out; ROLE.json says what was obtained",
     )
 
