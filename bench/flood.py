@@ -113,12 +113,15 @@ def _paced(send: Callable[[int], None], rate: float, seconds: float) -> int:
     return n
 
 
-def flood(port: int, kind: str, psk: bytes, rate: float, seconds: float, sent: Any) -> None:
+def flood(port: int, kind: str, psk: bytes, rate: float, end_at: float, sent: Any, secs: Any) -> None:
     """The flood process: ``rate`` datagrams a second of ``kind`` to 127.0.0.1:``port`` (a UDP port,
-    or for ``zenoh_oversize`` the teleoperator's Zenoh TCP endpoint) for ``seconds``; the count it
-    reached goes to ``sent``."""
+    or for ``zenoh_oversize`` the teleoperator's Zenoh TCP endpoint) until ``end_at`` on the
+    monotonic clock (shared by the processes: however late this process starts, it stops before
+    the session ends); the count it reached goes to ``sent``, the seconds it flooded to ``secs``."""
+    t0 = time.monotonic()
     if kind in ZENOH_CLASSES:
-        sent.value = _zenoh_flood(port, rate, seconds)
+        sent.value = _zenoh_flood(port, rate, end_at - t0)
+        secs.value = time.monotonic() - t0
         return
     data = payloads(kind, psk)
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -127,7 +130,9 @@ def flood(port: int, kind: str, psk: bytes, rate: float, seconds: float, sent: A
         with contextlib.suppress(OSError):  # a full socket buffer: the kernel drops, we go on
             s.sendto(data[n % len(data)], (LOOPBACK, port))
 
-    sent.value = _paced(send, rate, seconds)
+    t0 = time.monotonic()
+    sent.value = _paced(send, rate, end_at - t0)
+    secs.value = time.monotonic() - t0
     s.close()
 
 
@@ -190,15 +195,14 @@ def session(
              "--codec", "eds:50", "--duration", str(duration), "--quiet"],
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
+        end_at = time.monotonic() + duration - 0.5  # before the session's end (it starts after a handshake)
         drops0 = _kernel_drops(port) if transport == "udp" else 0
         ctx = mp.get_context("spawn")  # a fresh interpreter: no copy of this one's threads or locks
-        sent = ctx.Value("q", 0)
+        sent, secs = ctx.Value("q", 0), ctx.Value("d", 0.0)
         proc = None
         if kind is not None:
             time.sleep(1.5)  # the session runs (handshake and start: well under 1.5 s)
-            proc = ctx.Process(
-                target=flood, args=(port, kind, psk, rate, duration - 2.0, sent), daemon=True
-            )
+            proc = ctx.Process(target=flood, args=(port, kind, psk, rate, end_at, sent, secs), daemon=True)
             proc.start()
         rc_op = op.wait(timeout=duration + 60)
         if proc is not None:
@@ -219,6 +223,7 @@ def session(
         "transport": transport,
         "rate": rate if kind else 0,
         "sent": int(sent.value),
+        "flood_s": round(float(secs.value), 3),  # how long it flooded (it starts after its interpreter)
         "exit_codes": {"operator": rc_op, "teleoperator": rc_to},
         "completed": summary.get("completed"),
         "lateness_p99_us": (loop.get("lateness_us") or {}).get("p99"),
@@ -279,7 +284,7 @@ def main(argv: list[str] | None = None) -> int:
                 )  # fmt: skip
                 cases.append(c)
                 ratio = "-" if c["p99_ratio"] is None else f"{c['p99_ratio']:.2f}"
-                reached = c["sent"] / max(a.duration - 2, 1)
+                reached = c["sent"] / c["flood_s"] if c.get("flood_s") else 0.0
                 print(
                     f"{kind:15s} {rate:8.0f}/s reached {reached:8.0f}/s"
                     f"  p99 {c['lateness_p99_us']} us (x{ratio})"

@@ -234,11 +234,12 @@ def flood() -> Table:
         by_length = [f"{p}.oversize_refused"] + (
             [f"{p}.transport_oversize"] if c.get("transport_oversize") else []
         )
+        flood_s = c.get("flood_s") or max(b.doc["duration_s"] - 2.0, 1.0)  # an older file: the nominal
         rows.append(
             (
                 c["class"],
                 b.one(f"{p}.rate", ".0f"),
-                ("{}", (b.fig(f"{p}.sent", ".0f", scale=1.0 / max(b.doc["duration_s"] - 2.0, 1.0)),)),
+                ("{}", (b.fig(f"{p}.sent", ".0f", scale=1.0 / flood_s),)),
                 b.one(f"{p}.lateness_p99_us", ".1f"),
                 b.one(f"{p}.p99_ratio", ".2f") if c["p99_ratio"] is not None else "-",
                 str(c["link_lost_events"]),

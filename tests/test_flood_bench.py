@@ -66,6 +66,7 @@ def _fake_session(calls: list[tuple[Any, ...]]) -> Any:
             "transport": transport,
             "rate": rate if kind else 0,
             "sent": int(rate * (duration - 2)),
+            "flood_s": duration - 2 if kind else 0.0,
             "completed": True,
             "lateness_p99_us": 20.0,
             "overruns": 0,
@@ -105,6 +106,7 @@ def test_a_run_records_a_baseline_per_transport_and_the_table_reads_it(
     md = tables.flood().markdown()
     zenoh_row = next(ln for ln in md.splitlines() if ln.startswith("| zenoh_oversize"))
     assert "| - | 7 |" in zenoh_row  # no kernel drops to read over TCP; refused by length: 7
+    assert zenoh_row.startswith("| zenoh_oversize | 1000 | 1000 |")  # reached: sent / flood_s
     assert "baseline (zenoh)" in md
 
 
