@@ -125,3 +125,11 @@ def test_the_flood_is_bounded_in_count_and_time() -> None:
     t0 = time.monotonic()
     n = flood._paced(lambda i: time.sleep(0.001), 1e6, 0.2)  # 1000/s at most, asked 1M/s
     assert time.monotonic() - t0 < 0.35 and n < 300
+
+
+async def test_the_refusal_micro_benchmark_reads_every_datagram_both_ways() -> None:
+    from bench import refusal
+
+    for kind in ("random", "big_session"):
+        r = await refusal._measure(kind, 20, 1)
+        assert set(r) == {"drain", "recvfrom"} and all(0 < v < 1e9 for v in r.values())
