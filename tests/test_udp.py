@@ -120,3 +120,26 @@ def test_parse_addr_errors(text: str, msg: str) -> None:
 def test_parse_addr() -> None:
     assert parse_addr("127.0.0.1:7000", "x") == ("127.0.0.1", 7000)
     assert parse_addr("[::1]:7000", "x") == ("::1", 7000)
+
+
+class _CappedSocket:
+    """A socket as an unprivileged process sees it: SO_RCVBUFFORCE refused, SO_RCVBUF capped by
+    net.core.rmem_max (here 1 MiB), the kernel reporting twice what it set."""
+
+    def __init__(self) -> None:
+        self.rcvbuf = 212992
+
+    def getsockopt(self, level: int, opt: int) -> int:
+        return self.rcvbuf
+
+    def setsockopt(self, level: int, opt: int, value: int) -> None:
+        if opt != socket.SO_RCVBUF:
+            raise PermissionError(1, "Operation not permitted")
+        self.rcvbuf = 2 * min(value, 1 << 20)
+
+
+def test_a_capped_receive_buffer_is_reported_as_obtained() -> None:
+    got, warning = set_rcvbuf(_CappedSocket(), 16 << 20)  # type: ignore[arg-type]
+    assert got == 2 << 20
+    assert warning is not None and f"{2 << 20} bytes, asked {16 << 20}" in warning
+    assert set_rcvbuf(_CappedSocket(), 1 << 20) == (2 << 20, None)  # type: ignore[arg-type]
