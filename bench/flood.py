@@ -9,12 +9,17 @@ length; a baseline session without a flood runs first in the same invocation.  C
 * ``big_session``: 60 000 bytes behind a valid session-key header (refused by length);
 * ``recorded_hello``: authentic hellos recorded from 200 earlier handshakes (they hold the key),
   replayed from the flood's own address (rate-limited, then retries or nothing).
+* ``zenoh_oversize``: the same session over Zenoh (peers on 127.0.0.1 TCP) and a stranger that
+  joins the teleoperator's Zenoh endpoint and publishes 60 000-byte samples on the session's
+  forward key (refused by length in the subscriber callback, ``ZenohTransport.max_datagram``); its
+  ratio is to a Zenoh baseline run in the same invocation.
 
 Per case, from the teleoperator's ROLE.json: the loop's lateness p99 (and its ratio to the
 baseline's), overruns, link-lost events, the energy margins, the log's dropped chunks, what the
-endpoint refused (oversize, throttled); and what the kernel dropped at the socket (``/proc/net/udp``)
-and the rate the flood reached.  Every datagram goes to 127.0.0.1 only; each flood is bounded in
-count and time.
+endpoint refused (oversize, throttled), what the transport refused by length, the socket's receive
+buffer (asked and obtained) and the kernel's drops on it (SO_MEMINFO, as the process saw them, and
+``/proc/net/udp``); and the rate the flood reached (sends attempted).  Every datagram goes to
+127.0.0.1 only; each flood is bounded in count and time.
 
     python -m bench.flood [--rates 10000 50000 100000] [--duration 8] [--out bench/results/flood.json]
 """
@@ -33,6 +38,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -40,11 +46,15 @@ from teleop import auth, protocol
 
 LOOPBACK = "127.0.0.1"
 TELEOP = [sys.executable, "-m", "teleop.cli"]
-CLASSES = ("random", "big_handshake", "big_session", "recorded_hello")
+UDP_CLASSES = ("random", "big_handshake", "big_session", "recorded_hello")
+ZENOH_CLASSES = ("zenoh_oversize",)
+CLASSES = UDP_CLASSES + ZENOH_CLASSES
+ZENOH_PREFIX = "bench/flood"
+ZENOH_SAMPLE_BYTES = 60_000
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+def _free_port(kind: int = socket.SOCK_DGRAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
         s.bind((LOOPBACK, 0))
         return int(s.getsockname()[1])
 
@@ -90,54 +100,118 @@ def payloads(kind: str, psk: bytes) -> list[bytes]:
     return recorded_hellos(psk)
 
 
-def flood(port: int, kind: str, psk: bytes, rate: float, seconds: float, sent: Any) -> None:
-    """The flood process: ``rate`` datagrams a second of ``kind`` to 127.0.0.1:``port``, paced in
-    1 ms batches, for ``seconds``; the count it reached goes to ``sent``."""
-    data = payloads(kind, psk)
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+def _paced(send: Callable[[int], None], rate: float, seconds: float) -> int:
+    """Call ``send(n)`` ``rate`` times a second for ``seconds``, in batches of at most 64 with the
+    clock read between them (a sender slower than ``rate`` once sent its whole backlog in one batch,
+    past its end); it sleeps 0.5 ms when it is ahead.  Returns the count."""
     n, t0 = 0, time.monotonic()
     end = t0 + seconds
+    batch = 64
     while (now := time.monotonic()) < end:
         due = int((now - t0) * rate)
-        while n < due:
-            with contextlib.suppress(OSError):  # a full socket buffer: the kernel drops, we go on
-                s.sendto(data[n % len(data)], (LOOPBACK, port))
+        for _ in range(min(due - n, batch)):
+            send(n)
             n += 1
-        time.sleep(0.0005)
-    sent.value = n
+        if n >= due:
+            time.sleep(0.0005)
+    return n
+
+
+def flood(port: int, kind: str, psk: bytes, rate: float, end_at: float, sent: Any, secs: Any) -> None:
+    """The flood process: ``rate`` datagrams a second of ``kind`` to 127.0.0.1:``port`` (a UDP port,
+    or for ``zenoh_oversize`` the teleoperator's Zenoh TCP endpoint) until ``end_at`` on the
+    monotonic clock (shared by the processes: however late this process starts, it stops before
+    the session ends); the count it reached goes to ``sent``, the seconds it flooded to ``secs``."""
+    t0 = time.monotonic()
+    if kind in ZENOH_CLASSES:
+        sent.value = _zenoh_flood(port, rate, end_at - t0)
+        secs.value = time.monotonic() - t0
+        return
+    data = payloads(kind, psk)
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+
+    def send(n: int) -> None:
+        with contextlib.suppress(OSError):  # a full socket buffer: the kernel drops, we go on
+            s.sendto(data[n % len(data)], (LOOPBACK, port))
+
+    t0 = time.monotonic()
+    sent.value = _paced(send, rate, end_at - t0)
+    secs.value = time.monotonic() - t0
     s.close()
 
 
-def session(key_file: str, psk: bytes, kind: str | None, rate: float, duration: float) -> dict[str, Any]:
-    """One session of ``duration`` s, flooded (``kind``) from 1 s after its start, or not."""
-    port = _free_port()
+def _zenoh_flood(port: int, rate: float, seconds: float) -> int:
+    """A stranger joins the teleoperator's Zenoh endpoint and publishes oversize samples on the
+    session's forward key (what the teleoperator subscribes to)."""
+    import zenoh
+
+    from transport.zenoh import make_config
+
+    config = make_config("peer", connect=[f"tcp/{LOOPBACK}:{port}"])
+    session: Any = zenoh.open(config)
+    try:
+        pub = session.declare_publisher(f"{ZENOH_PREFIX}/forward")
+        samples = [secrets.token_bytes(ZENOH_SAMPLE_BYTES) for _ in range(8)]
+
+        def send(n: int) -> None:
+            with contextlib.suppress(zenoh.ZError):
+                pub.put(samples[n % len(samples)])
+
+        return _paced(send, rate, seconds)
+    finally:
+        session.close()
+
+
+def _transport_args(transport: str, role: str, port: int) -> list[str]:
+    """The command line of one side: UDP on ``port``, or Zenoh peers meeting at TCP ``port``."""
+    if transport == "zenoh":
+        ep = f"tcp/{LOOPBACK}:{port}"
+        where = ["--zenoh-listen", ep] if role == "teleoperator" else ["--zenoh-connect", ep]
+        return ["--transport", "zenoh", "--zenoh-prefix", ZENOH_PREFIX, *where]
+    if role == "teleoperator":
+        return ["--listen", f"{LOOPBACK}:{port}"]
+    return ["--peer", f"{LOOPBACK}:{port}", "--listen", f"{LOOPBACK}:0"]
+
+
+def session(
+    key_file: str,
+    psk: bytes,
+    kind: str | None,
+    rate: float,
+    duration: float,
+    transport: str = "udp",
+    rcvbuf_kib: int | None = None,
+) -> dict[str, Any]:
+    """One session of ``duration`` s over ``transport``, flooded (``kind``) from 1 s after its start,
+    or not."""
+    port = _free_port(socket.SOCK_STREAM if transport == "zenoh" else socket.SOCK_DGRAM)
     with tempfile.TemporaryDirectory(prefix="teleop-flood-") as tmp:
         logs = Path(tmp) / "logs"
         to = subprocess.Popen(
-            [*TELEOP, "teleoperator", "--key-file", key_file, "--listen", f"{LOOPBACK}:{port}",
-             "--log", str(logs), "--quiet"],
+            [*TELEOP, "teleoperator", "--key-file", key_file,
+             *_transport_args(transport, "teleoperator", port), "--log", str(logs), "--quiet",
+             *(["--udp-rcvbuf", str(rcvbuf_kib)] if rcvbuf_kib is not None else [])],
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
         time.sleep(1.5)
         op = subprocess.Popen(
-            [*TELEOP, "operator", "--key-file", key_file, "--peer", f"{LOOPBACK}:{port}", "--listen",
-             f"{LOOPBACK}:0", "--codec", "eds:50", "--duration", str(duration), "--quiet"],
+            [*TELEOP, "operator", "--key-file", key_file, *_transport_args(transport, "operator", port),
+             "--codec", "eds:50", "--duration", str(duration), "--quiet"],
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
-        drops0 = _kernel_drops(port)
+        end_at = time.monotonic() + duration - 0.5  # before the session's end (it starts after a handshake)
+        drops0 = _kernel_drops(port) if transport == "udp" else 0
         ctx = mp.get_context("spawn")  # a fresh interpreter: no copy of this one's threads or locks
-        sent = ctx.Value("q", 0)
+        sent, secs = ctx.Value("q", 0), ctx.Value("d", 0.0)
         proc = None
         if kind is not None:
             time.sleep(1.5)  # the session runs (handshake and start: well under 1.5 s)
-            proc = ctx.Process(
-                target=flood, args=(port, kind, psk, rate, duration - 2.0, sent), daemon=True
-            )
+            proc = ctx.Process(target=flood, args=(port, kind, psk, rate, end_at, sent, secs), daemon=True)
             proc.start()
         rc_op = op.wait(timeout=duration + 60)
         if proc is not None:
             proc.join(10)
-        drops = _kernel_drops(port) - drops0
+        drops = _kernel_drops(port) - drops0 if transport == "udp" else None
         rc_to = to.wait(timeout=60)
         summary = (
             json.loads((logs / "teleoperator.json").read_text())
@@ -147,10 +221,13 @@ def session(key_file: str, psk: bytes, kind: str | None, rate: float, duration: 
     loop = summary.get("loop") or {}
     pv = summary.get("passivity") or {}
     log = summary.get("log") or {}
+    rx = summary.get("received") or {}
     return {
-        "class": kind or "baseline",
+        "class": kind or ("baseline" if transport == "udp" else f"baseline_{transport}"),
+        "transport": transport,
         "rate": rate if kind else 0,
         "sent": int(sent.value),
+        "flood_s": round(float(secs.value), 3),  # how long it flooded (it starts after its interpreter)
         "exit_codes": {"operator": rc_op, "teleoperator": rc_to},
         "completed": summary.get("completed"),
         "lateness_p99_us": (loop.get("lateness_us") or {}).get("p99"),
@@ -161,9 +238,14 @@ def session(key_file: str, psk: bytes, kind: str | None, rate: float, duration: 
         "log_dropped_chunks": log.get("dropped_chunks"),
         "oversize_refused": summary.get("oversize_refused"),
         "handshake_throttled": summary.get("handshake_throttled"),
-        "transport_oversize": (summary.get("received") or {}).get("oversize"),
-        "foreign": (summary.get("received") or {}).get("foreign"),
-        "kernel_drops": drops,
+        "transport_oversize": rx.get("oversize"),
+        "foreign": rx.get("foreign"),
+        "kernel_drops": drops,  # /proc/net/udp over the session (None: not UDP)
+        "socket_kernel_drops": rx.get("kernel_drops"),  # SO_MEMINFO: what the process saw
+        "rcvbuf_asked": rx.get("rcvbuf_asked"),
+        "rcvbuf_bytes": rx.get("rcvbuf_bytes"),
+        "drain_budget_hits": rx.get("drain_budget_hits"),
+        "warnings": summary.get("warnings"),
     }
 
 
@@ -172,6 +254,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rates", type=float, nargs="+", default=[10_000.0, 50_000.0, 100_000.0])
     ap.add_argument("--classes", nargs="+", choices=CLASSES, default=list(CLASSES))
     ap.add_argument("--duration", type=float, default=8.0, help="seconds of each session (>= 4)")
+    ap.add_argument(
+        "--udp-rcvbuf", type=int, metavar="KIB", help="the teleoperator's --udp-rcvbuf (default: its own)"
+    )
     ap.add_argument("--out", default="bench/results/flood.json")
     a = ap.parse_args(argv)
     if a.duration < 4:
@@ -180,13 +265,21 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="teleop-flood-key-") as kd:
         key_file = str(Path(kd) / "k")
         auth.write_key_file(key_file, psk)
-        base = session(key_file, psk, None, 0, a.duration)
-        print(f"baseline: lateness p99 {base['lateness_p99_us']} us, overruns {base['overruns']}", flush=True)
+        bases: dict[str, dict[str, Any]] = {}
+        used = {"zenoh" if k in ZENOH_CLASSES else "udp" for k in a.classes}
+        for transport in [t for t in ("udp", "zenoh") if t in used]:
+            bases[transport] = base = session(key_file, psk, None, 0, a.duration, transport, a.udp_rcvbuf)
+            print(
+                f"baseline ({transport}): lateness p99 {base['lateness_p99_us']} us, overruns"
+                f" {base['overruns']}, receive buffer {base['rcvbuf_bytes']} B",
+                flush=True,
+            )
         cases = []
         for kind in a.classes:
+            transport = "zenoh" if kind in ZENOH_CLASSES else "udp"
             for rate in a.rates:
-                c = session(key_file, psk, kind, rate, a.duration)
-                b = base["lateness_p99_us"]
+                c = session(key_file, psk, kind, rate, a.duration, transport, a.udp_rcvbuf)
+                b = bases[transport]["lateness_p99_us"]
                 c["p99_ratio"] = c["lateness_p99_us"] / b if b and c["lateness_p99_us"] is not None else None
                 c["within_2x"] = c["p99_ratio"] is not None and c["p99_ratio"] <= 2.0
                 c["ok"] = bool(
@@ -195,13 +288,13 @@ def main(argv: list[str] | None = None) -> int:
                 )  # fmt: skip
                 cases.append(c)
                 ratio = "-" if c["p99_ratio"] is None else f"{c['p99_ratio']:.2f}"
-                reached = c["sent"] / max(a.duration - 2, 1)
+                reached = c["sent"] / c["flood_s"] if c.get("flood_s") else 0.0
                 print(
                     f"{kind:15s} {rate:8.0f}/s reached {reached:8.0f}/s"
                     f"  p99 {c['lateness_p99_us']} us (x{ratio})"
                     f"  link lost {c['link_lost_events']}  dropped chunks {c['log_dropped_chunks']}"
                     f"  kernel drops {c['kernel_drops']}  oversize {c['oversize_refused']}"
-                    f"  throttled {c['handshake_throttled']}",
+                    f"/{c['transport_oversize']} (endpoint/transport)  throttled {c['handshake_throttled']}",
                     flush=True,
                 )
     out = {
@@ -212,7 +305,9 @@ def main(argv: list[str] | None = None) -> int:
         },
         "command": "python -m bench.flood " + " ".join(argv or sys.argv[1:]),
         "duration_s": a.duration,
-        "baseline": base,
+        "udp_rcvbuf_kib": a.udp_rcvbuf,
+        "baseline": bases.get("udp"),
+        "baselines": bases,
         "cases": cases,
         "targets_met": sum(c["ok"] for c in cases),
         "cases_run": len(cases),

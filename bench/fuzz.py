@@ -1073,6 +1073,10 @@ def figures(run: SessionRun) -> dict[str, Any]:
                 "at": role,
                 **{k: logs[role]["received"].get(k) for k in ("packets", "malformed", "foreign")},
                 **{k: logs[role]["received"].get(k) for k in ("inbox_overflow", "socket_errors")},
+                # Refused by length: by the transport (UDP: once a session runs, longer than its
+                # largest datagram, by the true length) or by the endpoint (by key kind).
+                "oversize": logs[role]["received"].get("oversize"),
+                "oversize_refused": logs[role].get("oversize_refused"),
                 "control_rejected": logs[role].get("control_rejected"),
                 "node": logs[role]["node"],
             }
@@ -1162,7 +1166,8 @@ def verdict(attacked: dict[str, Any], baseline: dict[str, Any] | None = None) ->
 def accounting(attacked: dict[str, Any]) -> dict[str, Any]:
     """Per target: hostile datagrams sent, and where they went by the receivers' own counts.
 
-    ``refused`` = rejected + replayed + counter_jumps (the port's security counters);
+    ``refused`` = rejected + replayed + counter_jumps (the port's security counters) + what the
+    transport and the endpoint refused by length (``oversize``, ``oversize_refused``);
     ``handshake_replays`` are authentic and so not refused by the tag (see AttackStats); the inbox
     and the kernel socket drop datagrams of any origin, genuine ones and handshake replays included.
     ``unaccounted`` is what none of these explains: exact without drops; with drops it is negative by
@@ -1176,6 +1181,7 @@ def accounting(attacked: dict[str, Any]) -> dict[str, Any]:
     for d, role in (("forward", "teleoperator"), ("backward", "operator")):
         sent = att["by_target"][role]["total"]
         refused = sum(sec[k][d] or 0 for k in ("rejected", "replayed", "counter_jumps"))
+        refused += sum(rep["received"][d].get(k) or 0 for k in ("oversize", "oversize_refused"))
         hs = att["handshake_replays_by_target"][role]
         overflow = rep["received"][d]["inbox_overflow"] or 0
         drops = attacked["kernel_sockets"][role]["kernel_drops"] or 0

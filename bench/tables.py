@@ -211,34 +211,41 @@ def fronts() -> Table:
 def flood() -> Table:
     """bench.flood: the teleoperator's loop under each class of flood at each rate."""
     b = Builder("flood.json")
-    base = b.doc["baseline"]
+    # One baseline per transport flooded ("baselines"); a file before Zenoh's class has "baseline" only.
+    bases = {k: f"baselines.{k}" for k in b.doc["baselines"]} if "baselines" in b.doc else {"udp": "baseline"}
     rows: list[tuple[Cell, ...]] = [
         (
-            "baseline",
+            "baseline" if transport == "udp" else f"baseline ({transport})",
             "-",
             "-",
-            b.one("baseline.lateness_p99_us", ".1f"),
+            b.one(f"{path}.lateness_p99_us", ".1f"),
             "1",
-            str(base["link_lost_events"]),
-            str(base["log_dropped_chunks"]),
+            str(resolve(b.doc, f"{path}.link_lost_events")),
+            str(resolve(b.doc, f"{path}.log_dropped_chunks")),
             "-",
             "-",
             "-",
         )
+        for transport, path in bases.items()
     ]
     for i, c in enumerate(b.doc["cases"]):
         p = f"cases[{i}]"
+        # Refused by length: by the transport (its true length, UDP or Zenoh) or by the endpoint.
+        by_length = [f"{p}.oversize_refused"] + (
+            [f"{p}.transport_oversize"] if c.get("transport_oversize") else []
+        )
+        flood_s = c.get("flood_s") or max(b.doc["duration_s"] - 2.0, 1.0)  # an older file: the nominal
         rows.append(
             (
                 c["class"],
                 b.one(f"{p}.rate", ".0f"),
-                ("{}", (b.fig(f"{p}.sent", ".0f", scale=1.0 / max(b.doc["duration_s"] - 2.0, 1.0)),)),
+                ("{}", (b.fig(f"{p}.sent", ".0f", scale=1.0 / flood_s),)),
                 b.one(f"{p}.lateness_p99_us", ".1f"),
                 b.one(f"{p}.p99_ratio", ".2f") if c["p99_ratio"] is not None else "-",
                 str(c["link_lost_events"]),
                 str(c["log_dropped_chunks"]),
-                b.one(f"{p}.kernel_drops", ".0f"),
-                b.one(f"{p}.oversize_refused", ".0f"),
+                b.one(f"{p}.kernel_drops", ".0f") if c["kernel_drops"] is not None else "-",
+                ("{}", (b.fig(by_length, ".0f", "sum"),)),
                 b.one(f"{p}.handshake_throttled", ".0f"),
             )
         )

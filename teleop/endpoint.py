@@ -363,6 +363,12 @@ class Endpoint:
         return self.state in (State.CLOSED, State.FAILED)
 
     @property
+    def max_datagram_bytes(self) -> int:
+        """The longest datagram this endpoint can take now (either key kind): a transport may refuse
+        a longer one by its length alone, before copying it (``transport.udp``)."""
+        return max(self._max_len)
+
+    @property
     def handshake_throttled(self) -> int:
         """Handshake datagrams dropped over the per-source or global budget (HandshakeLimiter)."""
         return self._limiter.dropped
@@ -581,6 +587,17 @@ class Endpoint:
         """``hdr``: ``auth.peek(data)``, read once by :meth:`receive_datagram` (the 1 kHz path)."""
         port = self.port
         assert port is not None
+        if addr != self.peer and (hdr is None or hdr[0] == auth.SESSION):
+            # Not our peer's and not a handshake datagram: unless a takeover may be under way (our
+            # operator went silent, PROTOCOL.md 4.5) it can only be refused.  Counted as the full
+            # path would count it, for a fraction of its cost (a flood of junk: issue 21).
+            possible = self._takeover_possible(port)
+            if not possible:
+                self._takeover = None
+            if hdr is None or not possible:
+                self.foreign += 1
+                port.refuse_foreign(hdr is not None)
+                return
         if self._to_takeover(data, hdr, addr, now_ns):
             return
         if hdr is not None and hdr[0] == auth.HANDSHAKE:
@@ -708,7 +725,7 @@ class Endpoint:
         are not our peer's, go to a handshake of their own.  Returns whether ``data`` was taken."""
         port, params = self.port, self.params
         assert port is not None and params is not None
-        if self.role != "teleoperator" or self.state != State.RUNNING or not port.node.link_lost:
+        if not self._takeover_possible(port):
             self._takeover = None
             return False
         if hdr is None or (hdr[0] == auth.SESSION and port.verifies(data)):
@@ -735,6 +752,10 @@ class Endpoint:
             assert self.params is not None
             self._events.append(Replaced(old, self.params.session))
         return True
+
+    def _takeover_possible(self, port: Port) -> bool:
+        """A teleoperator whose running session's link is lost may be taken over (PROTOCOL.md 4.5)."""
+        return self.role == "teleoperator" and self.state == State.RUNNING and port.node.link_lost
 
     def _own_offer(self, data: bytes) -> bool:
         """Whether ``data`` is an authentic hello of this very session (our operator's rejoin offer)."""

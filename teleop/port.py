@@ -71,6 +71,9 @@ WIRE_KEYS = (
 )
 
 
+NOT_AN_ENVELOPE = "not a teleop envelope"
+FOREIGN_SESSION_DATAGRAM = "a session datagram from another address"
+
 class ConstantDelayLink:
     """A lossless link with constant delay: ``send(now, data)``, ``due(now) -> [data]``.
 
@@ -538,9 +541,9 @@ class Port:
             return None if body is None else self._control(body, auth.HANDSHAKE)
         try:
             if hdr is None:
-                raise auth.AuthError("header", "not a teleop envelope")
+                raise auth.AuthError("header", NOT_AN_ENVELOPE)
             if not from_peer:
-                raise auth.AuthError("kind", "a session datagram from another address")
+                raise auth.AuthError("kind", FOREIGN_SESSION_DATAGRAM)
             counter, body = self.keys.rx.verify(data)
         except auth.AuthError as e:
             if e.reason == "replay":
@@ -584,6 +587,14 @@ class Port:
     def control(self, body: bytes) -> protocol.Message | None:
         """An authentic handshake-key body parsed (:meth:`open_handshake`'s), or None (counted)."""
         return self._control(body, auth.HANDSHAKE)
+
+    def refuse_foreign(self, envelope: bool) -> None:
+        """Count a datagram from another address that is not a handshake datagram (``envelope``:
+        it has an envelope's header) as :meth:`receive` would, without raising: the endpoint's
+        cheap path for a flood of junk (``Endpoint._session_datagram``)."""
+        sec = self.security
+        sec.rejected += 1
+        sec.last_rejection = FOREIGN_SESSION_DATAGRAM if envelope else NOT_AN_ENVELOPE
 
     def verifies(self, data: bytes) -> bool:
         """Whether ``data`` is an authentic session datagram of this session's peer (no state change)."""

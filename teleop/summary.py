@@ -78,9 +78,9 @@ class ProcessSummary:
     waited_for_session_s: float | None = None
     loop: dict[str, Any] | None = None  # transport.realtime.LoopStats.summary
     warnings: list[str] = field(default_factory=list)
-    inbox_overflow: int = 0
-    socket_errors: int = 0
-    oversize: int = 0  # refused by length before any work (teleop.wire.MAX_DATAGRAM_BYTES)
+    # The transport's counters (Transport.report: inbox_overflow, socket_errors, oversize refused by
+    # length before any work; UDP also its receive buffer and the kernel's drops), under ``received``.
+    received: dict[str, Any] = field(default_factory=dict)
     log: LogFigures | None = None
 
 
@@ -119,9 +119,7 @@ class SessionSummary:
         }
         p = self.process
         if p is not None:
-            doc["received"].update(
-                inbox_overflow=p.inbox_overflow, socket_errors=p.socket_errors, oversize=p.oversize
-            )
+            doc["received"].update(p.received)
             doc["security"].update(auth=p.auth, key_id=p.key_id)
             doc.update(
                 pid=p.pid,

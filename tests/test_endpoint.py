@@ -426,6 +426,37 @@ def test_a_flood_of_garbage_is_counted_and_the_session_completes() -> None:
     assert ended(to)["received"]["foreign"] >= 3000
 
 
+def test_foreign_junk_takes_the_cheap_path_with_the_full_paths_counts(monkeypatch: Any) -> None:
+    """Link up: a datagram from another address that is not a handshake datagram can only be
+    refused, so it never reaches Port.receive; it is counted (foreign, security.rejected, the same
+    last rejection) as the full path counts it."""
+    net = VirtualNet(1.0, seed=5)
+    _, to = start(net, duration=1.0)
+    port = to.ep.port
+    assert port is not None
+    real, foreign_calls = port.receive, []
+
+    def spy(data: bytes, t: float, k: int, play: bool = True, from_peer: bool = True) -> Any:
+        if not from_peer:
+            foreign_calls.append(data)
+        return real(data, t, k, play, from_peer)
+
+    monkeypatch.setattr(port, "receive", spy)
+    rejected, foreign = port.security.rejected, to.ep.foreign
+    session_junk = [b"T\x12" + (i + 1).to_bytes(8, "big") + bytes(60) for i in range(100)]
+    for i, junk in enumerate(session_junk):
+        net.inject(EVE, TO, bytes(100), delay_ns=i * 100_000)  # not an envelope
+        net.inject(EVE, TO, junk, delay_ns=i * 100_000)  # a session header, no valid tag
+    net.seconds(0.05)
+    assert not foreign_calls and not port.node.link_lost
+    assert port.security.rejected - rejected == 200 and to.ep.foreign - foreign == 200
+    cheap = port.security.last_rejection
+    real(session_junk[0], 0.0, 0, False, from_peer=False)  # the full path, for comparison
+    assert port.security.last_rejection == cheap and port.security.rejected - rejected == 201
+    net.seconds(3.0)
+    assert ended(to)["completed"]
+
+
 def test_every_event_is_typed_and_failures_are_enums() -> None:
     net = VirtualNet(1.0)
     op = net.operator(params(), connect_timeout_s=0.5)  # nobody there

@@ -12,7 +12,7 @@ import zenoh
 
 from teleop import auth, limits, wire
 from teleop.codecs import make_codec
-from transport.udp import UdpTransport, _Protocol
+from transport.udp import UdpTransport
 from transport.zenoh import MAX_MESSAGE_BYTES, ZENOH_PEER, ZenohTransport, make_config
 
 
@@ -35,14 +35,30 @@ def test_the_bound_is_the_largest_message() -> None:
     assert wire.MAX_DATAGRAM_BYTES == wire.MAX_PACKET_BYTES + auth.OVERHEAD
 
 
-def test_udp_refuses_an_oversize_datagram_by_length() -> None:
-    """(Over IPv4 no datagram exceeds 65507 bytes, so the callback is fed directly.)"""
+async def test_udp_refuses_an_oversize_datagram_by_its_true_length() -> None:
+    """With ``max_datagram`` narrowed (a session's bound), a longer datagram is counted by the true
+    length MSG_TRUNC reports, though only ``max_datagram`` bytes of it were copied; the datagrams
+    around it, one of exactly the bound among them, are taken whole."""
+    a = await UdpTransport.bind(("127.0.0.1", 0))
+    b = await UdpTransport.bind(("127.0.0.1", 0))
+    try:
+        n = wire.max_session_datagram_bytes(2)
+        b.max_datagram = n
+        assert len(b._buf) == n  # the preallocated buffer: nothing longer is ever copied
+        for data in (b"before", bytes(n + 1), bytes(60_000), bytes(n), b"after"):
+            a.send(data, b.local_address)
+        await asyncio.sleep(0.05)
+        assert [len(d) for d, _, _ in b.drain()] == [6, n, 5]
+        assert b.oversize == 2
+    finally:
+        a.close()
+        b.close()
+
+
+def test_udp_bound_never_exceeds_a_datagram() -> None:
+    """The protocol's bound (128 kB) is beyond UDP's: the buffer stops at 65535, which holds any."""
     tr = UdpTransport()
-    proto = _Protocol(tr)
-    proto.datagram_received(bytes(wire.MAX_DATAGRAM_BYTES + 1), ("127.0.0.1", 9))
-    proto.datagram_received(bytes(wire.MAX_DATAGRAM_BYTES), ("127.0.0.1", 9))
-    assert tr.oversize == 1
-    assert [len(d) for d, _, _ in tr.drain()] == [wire.MAX_DATAGRAM_BYTES]
+    assert tr.max_datagram == 65535 < wire.MAX_DATAGRAM_BYTES
 
 
 async def test_udp_counts_nothing_for_ordinary_datagrams() -> None:

@@ -505,6 +505,10 @@ def test_an_outage_both_sides_see_leaves_the_session_whole(tmp_path: Path) -> No
     assert t["rejoin"]["own_offers_ignored"] >= 1
     for side in (o, t):
         assert side["passivity"]["link_lost_events"] == 1, side["role"]
+        rx = side["received"]  # the socket: its buffer (asked, obtained or a warning), the kernel's drops
+        assert rx["rcvbuf_asked"] == 16 << 20
+        assert rx["rcvbuf_bytes"] >= rx["rcvbuf_asked"] or side["warnings"]
+        assert rx["kernel_drops"] == 0 and rx["oversize"] == 0 and rx["drain_budget_hits"] == 0
     for d in ("forward", "backward"):
         assert rep["energy"][d]["min_margin"] >= -1e-9, d
 

@@ -1,13 +1,23 @@
-"""The UDP transport on loopback: wake on I/O, receive timestamps, bounded inbox, address parsing."""
+"""The UDP transport on loopback: wake on I/O, receive timestamps, the drain budget, the receive
+buffer, address parsing."""
 
 from __future__ import annotations
 
 import asyncio
+import socket
 import time
 
 import pytest
 
-from transport.udp import UdpTransport, new_event_loop, parse_addr
+from transport.udp import (
+    MAX_RCVBUF_BYTES,
+    MIN_RCVBUF_BYTES,
+    UdpTransport,
+    kernel_drops,
+    new_event_loop,
+    parse_addr,
+    set_rcvbuf,
+)
 
 
 async def test_exchange_and_wait() -> None:
@@ -30,19 +40,59 @@ async def test_exchange_and_wait() -> None:
         b.close()
 
 
-async def test_inbox_overflow_is_counted() -> None:
+async def test_drain_budget_leaves_the_rest_in_the_kernel() -> None:
+    """A drain reads at most ``budget`` datagrams; the rest waits for the next drain, oldest first."""
     a = await UdpTransport.bind(("127.0.0.1", 0))
-    b = await UdpTransport.bind(("127.0.0.1", 0), inbox_size=10)
+    b = await UdpTransport.bind(("127.0.0.1", 0), budget=10)
     try:
-        for i in range(30):
+        for i in range(25):
             a.send(i.to_bytes(2, "big"), b.local_address)
         await asyncio.sleep(0.05)
-        got = b.drain()
-        assert len(got) == 10 and b.inbox_overflow == 20
-        assert got[-1][0] == (29).to_bytes(2, "big")  # newest kept
+        got = [b.drain() for _ in range(4)]
+        assert [len(g) for g in got] == [10, 10, 5, 0]
+        assert [d for g in got for d, _, _ in g] == [i.to_bytes(2, "big") for i in range(25)]
+        assert b.drain_budget_hits == 2 and b.inbox_overflow == 0
+        assert b.report()["kernel_drops"] == 0
     finally:
         a.close()
         b.close()
+
+
+async def test_receive_buffer_is_set_and_reported() -> None:
+    """The asked buffer is obtained (root: SO_RCVBUFFORCE) or a warning says what was; ROLE.json's
+    ``received`` gets both figures."""
+    want = 2 << 20
+    b = await UdpTransport.bind(("127.0.0.1", 0), rcvbuf=want)
+    try:
+        got = b._sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) if b._sock else 0
+        assert got == b.rcvbuf_bytes
+        assert got >= want or (b.warnings and f"{got} bytes, asked {want}" in b.warnings[0])
+        r = b.report()
+        assert r["rcvbuf_asked"] == want and r["rcvbuf_bytes"] == got
+    finally:
+        b.close()
+
+
+def test_receive_buffer_is_bounded_and_never_shrunk() -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        with pytest.raises(ValueError, match="receive buffer must be"):
+            set_rcvbuf(s, MAX_RCVBUF_BYTES + 1)
+        big = s.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        assert set_rcvbuf(s, MIN_RCVBUF_BYTES) == (big, None)  # already larger: kept
+
+
+def test_kernel_drops_are_read_from_the_socket() -> None:
+    """A full receive buffer: the kernel's drops on this socket are what SO_MEMINFO reports."""
+    with (
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx,
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx,
+    ):
+        rx.bind(("127.0.0.1", 0))
+        rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # a few datagrams fit
+        for _ in range(200):
+            tx.sendto(bytes(1000), rx.getsockname())
+        drops = kernel_drops(rx)
+        assert drops is not None and 100 < drops < 200
 
 
 def test_uvloop_is_the_default() -> None:
@@ -70,3 +120,26 @@ def test_parse_addr_errors(text: str, msg: str) -> None:
 def test_parse_addr() -> None:
     assert parse_addr("127.0.0.1:7000", "x") == ("127.0.0.1", 7000)
     assert parse_addr("[::1]:7000", "x") == ("::1", 7000)
+
+
+class _CappedSocket:
+    """A socket as an unprivileged process sees it: SO_RCVBUFFORCE refused, SO_RCVBUF capped by
+    net.core.rmem_max (here 1 MiB), the kernel reporting twice what it set."""
+
+    def __init__(self) -> None:
+        self.rcvbuf = 212992
+
+    def getsockopt(self, level: int, opt: int) -> int:
+        return self.rcvbuf
+
+    def setsockopt(self, level: int, opt: int, value: int) -> None:
+        if opt != socket.SO_RCVBUF:
+            raise PermissionError(1, "Operation not permitted")
+        self.rcvbuf = 2 * min(value, 1 << 20)
+
+
+def test_a_capped_receive_buffer_is_reported_as_obtained() -> None:
+    got, warning = set_rcvbuf(_CappedSocket(), 16 << 20)  # type: ignore[arg-type]
+    assert got == 2 << 20
+    assert warning is not None and f"{2 << 20} bytes, asked {16 << 20}" in warning
+    assert set_rcvbuf(_CappedSocket(), 1 << 20) == (2 << 20, None)  # type: ignore[arg-type]

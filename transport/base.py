@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import Any, Protocol
 
 from teleop.link import Addr
 
@@ -19,8 +19,12 @@ class Transport(Protocol):
 
     inbox_overflow: int
     socket_errors: int
-    oversize: int  # datagrams/samples longer than teleop.wire.MAX_DATAGRAM_BYTES, refused by length
+    oversize: int  # datagrams/samples longer than ``max_datagram``, refused by length
     header_bytes: int
+    #: The longest datagram taken: teleop.wire.MAX_DATAGRAM_BYTES until the runner narrows it to its
+    #: endpoint's bound (``Endpoint.max_datagram_bytes``) when a session starts.
+    max_datagram: int
+    warnings: list[str]  # what the transport could not set up as asked (printed, kept in ROLE.json)
 
     @property
     def local_address(self) -> Addr: ...
@@ -30,5 +34,7 @@ class Transport(Protocol):
     def drain(self) -> list[tuple[bytes, Addr, int]]: ...
 
     async def wait(self, timeout: float) -> bool: ...
+
+    def report(self) -> dict[str, Any]: ...
 
     def close(self) -> None: ...

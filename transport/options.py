@@ -12,6 +12,8 @@ from teleop import auth
 from teleop.link import Addr
 from teleop.protocol import LocalLimits
 
+from .udp import DEFAULT_RCVBUF_BYTES
+
 
 @dataclass
 class EndpointOptions:
@@ -38,6 +40,7 @@ class EndpointOptions:
     live_view_host: str = "127.0.0.1"
     robot_name: str = auth.DEFAULT_ROBOT_NAME  # the robot this operator names / this robot is
     local_limits: LocalLimits = field(default_factory=LocalLimits)  # teleoperator: what it affords
+    udp_rcvbuf: int = DEFAULT_RCVBUF_BYTES  # the UDP socket's receive buffer asked for (transport.udp)
 
 
 @dataclass

@@ -214,7 +214,8 @@ class _Runner:
                 self._starts[ev.params.session] = ev.start_ns
                 self._waited[ev.params.session] = (self.clock() - self._created) / 1e9
                 self.ticker = Ticker(period_ns=round(ev.params.dt * 1e9), spin_ns=o.spin_us * 1000)
-                self.warnings = setup_realtime(o.rt_priority)
+                self.tr.max_datagram = ep.max_datagram_bytes  # refused by length in the transport
+                self.warnings = setup_realtime(o.rt_priority) + self.tr.warnings
                 for w in self.warnings:
                     print(f"teleop {o.role}: warning: {w}", file=sys.stderr)
                 if self.log is not None:
@@ -268,9 +269,7 @@ class _Runner:
                 waited_for_session_s=self._waited.get(session),
                 loop=stats.summary() if stats is not None else None,
                 warnings=self.warnings,
-                inbox_overflow=tr.inbox_overflow,
-                socket_errors=tr.socket_errors,
-                oversize=tr.oversize,
+                received=tr.report(),  # oversize: refused by length (Transport.max_datagram)
             ),
         )
         replaced = ev.reason == EndReason.REPLACED
@@ -289,7 +288,7 @@ class _Runner:
 # --------------------------------------------------------------------------------------------
 async def _open_transport(opts: EndpointOptions) -> Transport:
     if opts.transport == "udp":
-        return await UdpTransport.bind(opts.listen)
+        return await UdpTransport.bind(opts.listen, rcvbuf=opts.udp_rcvbuf)
     if opts.transport == "zenoh":
         z = opts.zenoh or ZenohOptions()
         try:

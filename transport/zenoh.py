@@ -23,8 +23,9 @@ like a UDP socket buffer, it absorbs a starved moment instead of dropping.
 dropped, counted in ``inbox_overflow``) and, if the loop is waiting, schedules the wake-up with
 ``loop.call_soon_threadsafe``.
 
-**Bounds.** A sample longer than the protocol's largest datagram (``teleop.wire.MAX_DATAGRAM_BYTES``)
-is refused by its length alone, before its bytes are copied or hashed, and counted in ``oversize``;
+**Bounds.** A sample longer than ``max_datagram`` (the protocol's largest datagram,
+``teleop.wire.MAX_DATAGRAM_BYTES``, until the runner narrows it to the session's bound) is refused
+by its length alone, before its bytes are copied or hashed, and counted in ``oversize``;
 ``make_config`` also sets Zenoh's ``transport/link/rx/max_message_size`` to ``MAX_MESSAGE_BYTES``
 (Zenoh's default is 1 GiB: six 256 MB samples froze a robot's loop for 1.4 s), so Zenoh itself
 drops a longer message before reassembling it (a file may set a smaller value, not a larger one).
@@ -257,6 +258,8 @@ class ZenohTransport:
         self.rx_key = ""
         self.inbox_overflow = 0
         self.oversize = 0
+        self.max_datagram = MAX_DATAGRAM_BYTES  # narrowed by the runner when a session starts
+        self.warnings: list[str] = []
         self.socket_errors = 0
         self.last_socket_error = ""
 
@@ -293,7 +296,7 @@ class ZenohTransport:
             return
         payload = sample.payload
         n = len(payload)
-        if n > MAX_DATAGRAM_BYTES:  # by length alone: never copied, hashed or queued
+        if n > self.max_datagram:  # by length alone: never copied, hashed or queued
             self.oversize += 1
             return
         data = payload.to_bytes()
@@ -348,6 +351,14 @@ class ZenohTransport:
         finally:
             self._waiter = None
         return True
+
+    def report(self) -> dict[str, Any]:
+        """The transport's counters for ``ROLE.json``'s ``received``."""
+        return {
+            "inbox_overflow": self.inbox_overflow,
+            "socket_errors": self.socket_errors,
+            "oversize": self.oversize,
+        }
 
     def close(self) -> None:
         """Undeclare and close the session; idempotent."""

@@ -470,6 +470,14 @@ def add_endpoint_args(p: argparse.ArgumentParser) -> None:
         metavar="US",
         help="wait up to US microseconds into a tick for a payload that is due (default 400)",
     )
+    p.add_argument(
+        "--udp-rcvbuf",
+        type=int_range("UDP receive buffer", 64, 65536, " KiB"),
+        default=16384,
+        metavar="KIB",
+        help="the UDP socket's receive buffer to ask for, in KiB (default 16384): junk arriving between "
+        "two ticks waits there instead of pushing genuine datagrams out; ROLE.json says what was obtained",
+    )
 
 
 LIVE_VIEW_PORT = 8765  # Foxglove's default WebSocket port

@@ -209,6 +209,7 @@ def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int
         quiet=args.quiet,
         live=args.live,
         grace_us=args.grace_us,
+        udp_rcvbuf=args.udp_rcvbuf * 1024,
         transport=args.transport,
         zenoh=zenoh_options(args) if args.transport == "zenoh" else None,
         psk=psk,
