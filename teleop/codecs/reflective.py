@@ -29,8 +29,8 @@ toward ``p``'s side of ``d``), scaled to the reserve like eDS (eq. 10) when that
 so it needs that much *reserve* (energy sent and never played), and in free space every joule of
 reserve is work the operator does against a drag the teleoperator does not feel: with ``F = a v``,
 eq. (7) grows by ``W^2 / int v^2`` at least (Cauchy-Schwarz).  Building reserve is cheapest early
-and slowly, so the sender shrinks each new value by ``RESERVE_SCALE * RANGE / sqrt(E_in) +
-RESERVE_FLOOR`` (``E_in`` its cumulative ``sum |x|^2``), at most ``RESERVE_MAX_SHRINK``, while the
+and slowly, so the sender shrinks each new value by ``scale * RANGE / sqrt(E_in) + floor`` (``RESERVE``, per
+direction; ``E_in`` its cumulative ``sum |x|^2``), at most ``RESERVE_MAX_SHRINK``, while the
 reserve is below ``RESERVE_TICKS`` ticks of the current power: the reserve then grows like
 ``sqrt(E_in)`` (``R ~ 4 scale sqrt(E_in)``), the profile that keeps ``W^2 / int v^2`` smallest for a
 given hold length over the whole run.  Measured on the protocol scenario: see the codec guide.
@@ -42,15 +42,18 @@ import math
 
 import numpy as np
 
-from ..wire import BACKWARD
+from ..wire import BACKWARD, FORWARD
 from .base import Array, CodecError, Encoder, PlayoutDecoder, RawFormat, pack, unpack
 from .deadband import FLOOR_FRACTION, SLOPE_SCALE, SLOPE_WINDOW, _slope_weights
 
-RESERVE_SCALE = 0.01  # of RANGE / sqrt(E_in): the reserve shrink early in a session
-RESERVE_FLOOR = 0.003  # the shrink that remains once E_in is large
+#: Per direction, the reserve shrink ``scale * RANGE / sqrt(E_in) + floor`` (module docstring).  The
+#: forward wave carries the contact force, ``g = (b v + F) / sqrt(2b)``: in the protocol's foam it has
+#: 9 times the backward wave's power, so its holds need the larger reserve, built in free space.
+#: Tuned on the protocol scenario (docs/guides/codecs.md has the measurements).
+RESERVE = {FORWARD: (0.012, 0.004), BACKWARD: (0.008, 0.002)}
 RESERVE_MAX_SHRINK = 0.5
 RESERVE_TICKS = 100  # reserve wanted: this many ticks of the current power
-REFLECTION_FORGET = 1.0 - 1.0 / 32.0  # per tick: the fit of rho looks back about 32 ticks
+REFLECTION_FORGET = 1.0 - 1.0 / 125.0  # per tick: the fit of rho looks back about 125 ticks
 REFLECTION_MIN_POWER = 1e-6  # sum g^2 below which rho keeps its last value (a still wave)
 VALUE_SCALE = 2.0  # value full scale, in RANGEs: the innovation g - h spans up to twice a wave
 
@@ -97,6 +100,7 @@ class ReflectiveEncoder(Encoder):
         self.heartbeat = heartbeat
         self.dof = dof
         self._dec: ReflectiveDecoder | None = None
+        self._scale, self._floor_shrink = RESERVE[FORWARD]
         self._refl = Reflection(dof)
         zero = np.zeros(dof)
         self._val = zero
@@ -123,6 +127,7 @@ class ReflectiveEncoder(Encoder):
         hand, whose grip matches ``b``, absorbs it (``g_l`` does not follow ``h_l``).  Not on power
         variables, where the waves of eq. 3 do not exist."""
         if isinstance(decoder, ReflectiveDecoder) and not self.power:
+            self._scale, self._floor_shrink = RESERVE[direction]
             if direction == BACKWARD:
                 self._dec = decoder  # the teleoperator: its wave refers to the g_r it played
             else:
@@ -175,8 +180,8 @@ class ReflectiveEncoder(Encoder):
             reserve = max(self._e_in - self._e_played, 0.0)
             target = RESERVE_TICKS * xx
             if reserve < target:
-                early = RESERVE_SCALE * self.full_scale / math.sqrt(self._e_in)
-                shrink = min(RESERVE_MAX_SHRINK, early + RESERVE_FLOOR)
+                early = self._scale * self.full_scale / math.sqrt(self._e_in)
+                shrink = min(RESERVE_MAX_SHRINK, early + self._floor_shrink)
                 p = x * (1.0 - shrink * (1.0 - reserve / target))
             if float(np.dot(p, p)) > reserve:  # eq. (10): the send tick plays at most the reserve
                 self.limited += 1
