@@ -79,11 +79,16 @@ class Reflection:
 
 
 def _toward(p: Array, ref: Array, fmt: RawFormat) -> tuple[Array, Array]:
-    """Codes ``q`` of ``p - ref`` rounded so that ``ref + q step`` lies on the zero side of ``p``
-    (within one step): the played value never exceeds ``|p|`` by more than rounding near zero."""
+    """Codes ``q`` of ``p - ref`` such that ``ref + q step`` does not exceed ``|p|``: rounded toward
+    ``p``'s side of zero, or, when ``|p|`` is below the step and both neighbours overshoot, the one
+    nearer zero (then by less than a step: the guard trims that rounding, eq. 11's role here)."""
     step = fmt.full_scale / fmt.max_code
     r = (p - ref) / step
-    q = np.where(p >= 0.0, np.floor(r), np.ceil(r))
+    lo, hi = np.floor(r), np.ceil(r)
+    q = np.where(p >= 0.0, lo, hi)
+    other = np.where(p >= 0.0, hi, lo)
+    over = np.abs(ref + q * step) > np.abs(p)
+    q = np.where(over & (np.abs(ref + other * step) < np.abs(ref + q * step)), other, q)
     q = np.clip(q, -fmt.max_code, fmt.max_code).astype(np.int64)
     return q, q.astype(np.float64) * step
 
