@@ -26,7 +26,7 @@ from tests.test_watchdog_matrix import run as run_matrix_case
 
 DT = 1e-3
 #: The frontier point (bench/frontier0.py runs it on the full 15 s).
-WINNER = "pdr:0.8:1000"
+WINNER = "pdr:0.8"
 
 #: Two waves per tick (the operator's g_l, the teleoperator's h_r), DoF 1..3, beyond the range.
 loops = st.integers(1, 3).flatmap(
@@ -93,9 +93,7 @@ def test_lossless_loop_plays_what_the_senders_modelled_within_budget(x: np.ndarr
     assert exact  # each receiver's reference and reconstruction are its peer's model, bit for bit
     assert min(worst) >= -1e-12  # eq. (5) per direction, at every tick: passive
     for guard in guards:
-        # The senders keep the receivers within their budgets: the guards only ever trim the value
-        # grid's rounding near zero (less than a step of the 16-bit format, about 1e-11 J a tick).
-        assert guard.report.energy_dissipated <= 2e-11 * x.shape[0]
+        assert guard.report.violations == 0  # the senders keep the receivers within their budgets
 
 
 @settings(max_examples=80, deadline=None)

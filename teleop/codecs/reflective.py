@@ -5,25 +5,28 @@ by eq. (3), at the operator ``g_l = h_l + sqrt(2/b) F_hsi`` and at the teleopera
 ``h_r = g_r - sqrt(2/b) F_to``.  In free space ``F_to = 0``, so the returning wave *is* the sent one,
 and ``pdp``'s two linear predictors chase each other's reconstructions: every send in one direction
 puts a kink into the other direction's signal, which its predictor then misses.  ``pdr`` predicts
-each wave as the reflection of the wave the receiver itself just played plus a linear prediction of
-the rest, the *innovation* ``u = x - d`` (``d`` the wave this side played this tick): the force term
-of eq. (3), about zero in free space and smooth in contact.  Both ends know ``d`` exactly: the
-sender's decoder played it, and the receiver's encoder modelled it (it is what the receiver played
-from the sender's own previous payloads).
+the backward wave as the teleoperator's reflection ``rho g_r`` of the forward wave it played, plus a
+linear prediction of the rest (the force term of eq. 3, zero in free space, smooth against the
+foam).  Both ends know ``g_r``: the teleoperator played it, and the operator's forward sender
+modelled it.  The forward wave is no reflection (the hand's grip matches ``b`` and absorbs what comes
+back, so ``g_l`` does not follow ``h_l``); it is predicted as by ``pdp``, with the slope a chord
+(``ReflectiveEncoder._slope_now``).
 
-*Receiver* (:class:`ReflectiveDecoder`): it plays ``m + value + slope * i``, ``i`` counting from 0 on
-the first tick it plays a payload, where ``m`` is what its own side's encoder modelled, on the
-previous tick, that the peer plays (the peer's ``d``).  So the two ends of a node are paired
-(``pair``, called by ``teleop.node``).  Unpaired (on power variables under TDPA, or a lone
-decoder) ``m`` is 0 and ``pdr`` is ``pdp`` with its own reserve schedule.  The reference assumes the
-zero-delay loop of ``teleop sim`` (the peer's payload refers to the tick right before this one); with
-a longer round trip the reference is older than assumed, which costs transparency, never passivity.
+*Receiver* (:class:`ReflectiveDecoder`), backward: it plays ``value + slope * i + rho m - r0``, ``i``
+counting from 0 on the first tick it plays a payload, ``m`` what its own side's forward encoder
+modelled, on the previous tick, that the teleoperator plays, ``rho`` the fitted reflection
+coefficient (:class:`Reflection`) and ``r0`` the ``rho m`` of the payload's first tick: the value is
+absolute, as ``pdp``'s, and the reflection only carries what the forward wave did since.  So a
+payload resynchronises both ends, and a reference that is off (a loss, or a round trip longer than
+``teleop sim``'s one tick, which the reference assumes) costs transparency only until the next one,
+never passivity.  The two ends of a node are paired (``pair``, called by ``teleop.node``);
+unpaired (on power variables under TDPA) ``pdr`` is ``pdp`` with its own slope and reserve schedule.
 
-*Passivity* (eqs. 5 and 10): as for ``pdp`` (``teleop.codecs.deadband``).  The receiver's energy guard
-plays only within the energy reported in-band, whatever the payload says; the sender runs the
-receiver's reconstruction and its budget exactly and sends before a hold would exceed it, and the
-value it sends plays at most ``|x|`` per DoF on the send tick (``|d + value| <= |p|``, rounded
-toward ``p``'s side of ``d``), scaled to the reserve like eDS (eq. 10) when that is short.
+*Passivity* (eqs. 5, 10, 11): as for ``pdp`` (``teleop.codecs.deadband``).  The receiver's energy
+guard plays only within the energy reported in-band, whatever the payload says; the sender runs the
+receiver's reconstruction and its budget exactly and sends before a hold would exceed it; the value
+it sends is rounded toward zero (eq. 11) and scaled to the reserve like eDS (eq. 10) when that is
+short.
 
 *Reserve schedule.*  A hold of ``N`` ticks plays about ``N |x|^2`` the receiver has no report of yet,
 so it needs that much *reserve* (energy sent and never played), and in free space every joule of
@@ -54,7 +57,6 @@ RESERVE_MAX_SHRINK = 0.5
 RESERVE_TICKS = 100  # reserve wanted: this many ticks of the current power
 REFLECTION_FORGET = 1.0 - 1.0 / 125.0  # per tick: the fit of rho looks back about 125 ticks
 REFLECTION_MIN_POWER = 1e-6  # sum g^2 below which rho keeps its last value (a still wave)
-VALUE_SCALE = 2.0  # value full scale, in RANGEs: the innovation g - h spans up to twice a wave
 #: The forward slope: the chord of a parabola fitted over CHORD_WINDOW ticks, to a horizon of
 #: CHORD_FRACTION of the ticks a tangent would stay in the band (``2 sqrt(band / curvature)``), at most
 #: CHORD_MAX ticks (see ``_slope_now``).
@@ -85,26 +87,11 @@ class Reflection:
         self.rho = np.where(ok, np.clip(self._gh / np.where(ok, self._gg, 1.0), -1.0, 1.0), self.rho)
 
 
-def _toward(p: Array, ref: Array, fmt: RawFormat) -> tuple[Array, Array]:
-    """Codes ``q`` of ``p - ref`` such that ``ref + q step`` does not exceed ``|p|``: rounded toward
-    ``p``'s side of zero, or, when ``|p|`` is below the step and both neighbours overshoot, the one
-    nearer zero (then by less than a step: the guard trims that rounding, eq. 11's role here)."""
-    step = fmt.full_scale / fmt.max_code
-    r = (p - ref) / step
-    lo, hi = np.floor(r), np.ceil(r)
-    q = np.where(p >= 0.0, lo, hi)
-    other = np.where(p >= 0.0, hi, lo)
-    over = np.abs(ref + q * step) > np.abs(p)
-    q = np.where(over & (np.abs(ref + other * step) < np.abs(ref + q * step)), other, q)
-    q = np.clip(q, -fmt.max_code, fmt.max_code).astype(np.int64)
-    return q, q.astype(np.float64) * step
-
-
 class ReflectiveEncoder(Encoder):
     """Sender side of ``pdr``; see the module docstring."""
 
     def __init__(self, raw: RawFormat, dof: int, k_pct: float, heartbeat: int) -> None:
-        self.value_raw = RawFormat(raw.full_scale * VALUE_SCALE)
+        self.raw = raw
         self.slope_raw = RawFormat(raw.full_scale * SLOPE_SCALE)
         self.full_scale = raw.full_scale
         self.k = k_pct / 100.0
@@ -114,6 +101,7 @@ class ReflectiveEncoder(Encoder):
         self._dec: ReflectiveDecoder | None = None
         self._refl = Reflection(dof)
         zero = np.zeros(dof)
+        self._r0 = zero  # rho d on the last send tick: the reflection its value contains
         self._val = zero
         self._slope = zero
         self._off = zero  # x - played on the last send: the band is tested without the shrink
@@ -149,7 +137,7 @@ class ReflectiveEncoder(Encoder):
         (and unpaired): the hand's wave curves (the arm's mode near 3 Hz in contact), and a tangent
         overshoots a concave wave, which spends the reserve on energy the wave never carried; the
         chord of the fitted parabola to a short horizon stays under it.  Measured on the protocol
-        scenario (pdr:0.8:1000, 15 s): forward 54.7 -> 48.8 packets/s, I 1.154e-3 -> 1.146e-3."""
+        scenario (pdr:0.7, 15 s): forward 57.1 -> 49.9 packets/s, I 1.055e-3 -> 1.086e-3."""
         if self._dec is None and self._n >= CHORD_WINDOW:
             _, slope, curv = _CHORD_FIT @ self._chord
             band = self.k * max(float(np.linalg.norm(self._chord[-1])), self.floor)
@@ -165,15 +153,16 @@ class ReflectiveEncoder(Encoder):
 
     def encode(self, x: Array) -> bytes | None:
         d = self._dec.played if self._dec is not None else None
-        ref = self._refl.rho * d if d is not None else np.zeros(self.dof)
+        # The reflection of the forward wave now, less the one in the last send's value (eq. 3).
+        refl = self._refl.rho * d - self._r0 if d is not None else np.zeros(self.dof)
         xx = float(np.dot(x, x))
         self._e_in += xx
         self._hist[:-1] = self._hist[1:]
-        self._hist[-1] = x - ref
+        self._hist[-1] = x - (self._refl.rho * d if d is not None else 0.0)
         self._chord[:-1] = self._chord[1:]
-        self._chord[-1] = x - ref
+        self._chord[-1] = self._hist[-1]
         self._n += 1
-        pred = ref + self._val + self._slope * self._i
+        pred = self._val + self._slope * self._i + refl
         e_pred = float(np.dot(pred, pred))
         reason = ""
         if not self._sent_once:
@@ -210,9 +199,12 @@ class ReflectiveEncoder(Encoder):
             if float(np.dot(p, p)) > reserve:  # eq. (10): the send tick plays at most the reserve
                 self.limited += 1
                 p = x * math.sqrt(reserve / xx)
-        q, val = _toward(p, ref, self.value_raw)
+        q = self.raw.quantize(p)  # toward zero: the send tick plays at most |p| per DoF (eq. 11)
+        val = self.raw.dequantize(q)
         qs = self.slope_raw.quantize(self._slope_now())
-        played = ref + val
+        played = val
+        if d is not None:
+            self._r0 = self._refl.rho * d
         self._val, self._slope, self._i, self._sent_once = val, self.slope_raw.dequantize(qs), 1, True
         self._off = x - played
         self._e_budget = self._e_in
@@ -241,13 +233,14 @@ class ReflectiveDecoder(PlayoutDecoder):
 
     def __init__(self, raw: RawFormat, dof: int, max_queue: int, on_loss: str) -> None:
         super().__init__(dof, max_queue, on_loss)
-        self.value_raw = RawFormat(raw.full_scale * VALUE_SCALE)
+        self.raw = raw
         self.slope_raw = RawFormat(raw.full_scale * SLOPE_SCALE)
         self._seg: tuple[Array, Array] | None = None
         self._i = 0
         self.paired: ReflectiveEncoder | None = None
         self._refl = Reflection(dof)
         self.played = self._zero  # d: what this side played this tick (before the energy guard)
+        self._r0 = self._zero  # rho m when the playing payload started: the reflection in its value
 
     def parse(self, payload: bytes) -> tuple[Array, int]:  # pragma: no cover - push is overridden
         raise CodecError("pdr payloads are pushed whole")
@@ -255,7 +248,7 @@ class ReflectiveDecoder(PlayoutDecoder):
     def push(self, payload: bytes) -> None:
         """The newest payload replaces whatever was playing; malformed raises, changes nothing."""
         q = unpack(payload, 16, 2 * self.dof)
-        seg = self.value_raw.dequantize(q[: self.dof]), self.slope_raw.dequantize(q[self.dof :])
+        seg = self.raw.dequantize(q[: self.dof]), self.slope_raw.dequantize(q[self.dof :])
         if self._seg is not None and self._i == 0:
             self.dropped_samples += 1
         self._seg, self._i = seg, 0
@@ -276,8 +269,12 @@ class ReflectiveDecoder(PlayoutDecoder):
             return self._zero
         val, slope = self._seg
         g = self.paired.model if self.paired is not None else None
-        x = (self._refl.rho * g if g is not None else self._zero) + val + slope * self._i
+        x = val + slope * self._i
         if g is not None:
+            r = self._refl.rho * g
+            if self._i == 0:
+                self._r0 = r
+            x = x + (r - self._r0)
             self._refl.add(g, x)
         self._i += 1
         self._last = self.played = x
