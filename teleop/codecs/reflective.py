@@ -228,8 +228,9 @@ class ReflectiveEncoder(Encoder):
 
 
 class ReflectiveDecoder(PlayoutDecoder):
-    """Receiver side of ``pdr``: plays the reflection its own side's encoder modelled, plus the
-    newest payload's extrapolated innovation; never runs dry once a payload has arrived."""
+    """Receiver side of ``pdr``: extrapolates the newest payload as ``pdp``'s and, paired (the
+    operator's), adds the reflection of what its side's forward model did since the payload
+    began; never runs dry once a payload has arrived."""
 
     def __init__(self, raw: RawFormat, dof: int, max_queue: int, on_loss: str) -> None:
         super().__init__(dof, max_queue, on_loss)
