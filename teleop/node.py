@@ -164,6 +164,11 @@ class _Port:
         self.rx_codec = rx
         self.encoder = tx.encoder()
         self.decoder = rx.decoder(opts.max_queue, opts.on_loss)
+        # A codec whose reconstruction refers to the wave this side receives (pdr, eq. 3's
+        # reflection) pairs its two ends here; the others have no ``pair``.
+        pair = getattr(self.encoder, "pair", None)
+        if pair is not None:
+            pair(self.decoder, self.tx_direction)
         self.rate_cap = RateCap(opts.rate_cap, dt) if opts.rate_cap else None
         # Bytes a datagram carries beyond the packet: the envelope and the transport's header, as
         # the wire counters count them (the port sets it from its transport).

@@ -20,7 +20,7 @@ direction  uint       0 forward (operator -> TO, wave g), 1 backward (TO -> oper
 seq        uint32     packets this sender's node produced before this one, from 0 (the shim may drop some)
 tick       uint64     sender's loop tick at which the payload was produced
 t_us       uint64     the tick's session time, ``round(tick * dt * 1e6)`` microseconds (not a clock)
-codec_id   uint       0 none, 1 ids, 2 eds, 3 cq, 4 pd, 5 pdp, 6 dct
+codec_id   uint       0 none, 1 ids, 2 eds, 3 cq, 4 pd, 5 pdp, 6 dct, 7 pdr
 payload    bin        the codec's bytes (see ``teleop.codecs``)
 energy     float      sender's cumulative transmitted wave energy, J (eq. 4-5); float32/64 only
 =========  =========  ==============================================================

@@ -267,6 +267,7 @@ def test_codec_table_matches_the_code() -> None:
         "eds": "eds:5",
         "pd": "pd:5",
         "pdp": "pdp:5",
+        "pdr": "pdr:5",
         "dct": "dct:20:2",
     }
     assert {name for name, _ in rows} == set(specs) == set(CODECS)
@@ -274,10 +275,10 @@ def test_codec_table_matches_the_code() -> None:
         assert make_codec(specs[name]).codec_id == int(codec_id), name
     for name, spec in specs.items():  # the table's payload sizes, at 3 DoF
         c = make_codec(spec, dof=3)
-        want = {"pdp": 4 * 3, "dct": 2 * 2 * 3}.get(name, 2 * 3 if name != "cq" else 3)
+        want = {"pdp": 4 * 3, "pdr": 4 * 3, "dct": 2 * 2 * 3}.get(name, 2 * 3 if name != "cq" else 3)
         assert c.payload_bytes == want, name
         payload = c.encoder().encode(np.full(3, 0.3))
-        if c.k == 1 or name in ("pd", "pdp"):  # sent on the first tick
+        if c.k == 1 or name in ("pd", "pdp", "pdr"):  # sent on the first tick
             assert payload is not None and len(payload) == want, name
 
 

@@ -1,5 +1,5 @@
 """LDR codecs on wave variables, chosen by a spec string (``none``, ``ids:K``, ``eds:K``, ``cq:BITS``,
-``pd:K``, ``pdp:K``, ``dct:N:M``).
+``pd:K``, ``pdp:K``, ``pdr:K``, ``dct:N:M``).
 
 Each codec is an encoder/decoder pair that enforces its class's passivity condition:
 
@@ -12,6 +12,7 @@ ids:K       interpolative   eq. (8), frame mean (Cauchy-Schwarz)         one fra
 eds:K       extrapolative   eq. (10), budgeted hold                      none
 pd:K        deadband        Weber band; budgeted hold (sender + guard)   none
 pdp:K       deadband        predictive band; budgeted extrapolation      none
+pdr:K       deadband        as pdp, predicting the reflection (eq. 3)    none
 dct:N:M     frequency       eq. (8) by Parseval, M of N DCT-II coeffs    one frame
 ==========  ==============  ===========================================  ==================
 
@@ -34,6 +35,7 @@ from .direct import DirectDecoder, DirectEncoder
 from .extrapolative import EdsDecoder, EdsEncoder
 from .frequency import MAX_FRAME, DctDecoder, DctEncoder
 from .interpolative import IdsDecoder, IdsEncoder
+from .reflective import ReflectiveDecoder, ReflectiveEncoder
 
 __all__ = [
     "CODECS",
@@ -55,7 +57,8 @@ MAX_K = 100_000  # ticks (100 s at 1 kHz): any longer frame, horizon or heartbea
 MAX_BAND_PCT = 100.0
 
 ACCEPTED = (
-    "none | ids:K | eds:K | cq:BITS[:RANGE] | pd:PCT[:MAXMS] | pdp:PCT[:MAXMS] | dct:N:M  "
+    "none | ids:K | eds:K | cq:BITS[:RANGE] | pd:PCT[:MAXMS] | pdp:PCT[:MAXMS] | pdr:PCT[:MAXMS] | "
+    "dct:N:M  "
     f"(K integer 1..{MAX_K} ticks; BITS integer 2..{RAW_BITS}; RANGE full scale > 0, default session "
     f"range; PCT deadband in percent, 0 < PCT <= {MAX_BAND_PCT:g}; MAXMS heartbeat in ms, integer "
     f"1..{MAX_K}, default {DEFAULT_HEARTBEAT_MS}; N frame 2..{MAX_FRAME} ticks, M coefficients 1..N)"
@@ -208,7 +211,7 @@ def _cq(spec: str, params: list[str], dof: int, fs: float) -> Codec:
 
 
 def _deadband(name: str) -> Callable[[str, list[str], int, float], Codec]:
-    predictive = name == "pdp"
+    predictive = name in ("pdp", "pdr")
 
     def make(spec: str, params: list[str], dof: int, fs: float) -> Codec:
         if len(params) not in (1, 2):
@@ -226,6 +229,21 @@ def _deadband(name: str) -> Callable[[str, list[str], int, float], Codec]:
         # MAXMS is counted in ticks, which are ms at the default 1 kHz (a codec does not know dt);
         # the node's link supervision reads k, so it stays consistent at any rate.
         canon = f"{name}:{pct:g}" + (f":{hb}" if hb != DEFAULT_HEARTBEAT_MS else "")
+        if name == "pdr":  # pdp's payload, the reflection-aware receiver (teleop.codecs.reflective)
+            return Codec(
+                canon,
+                name,
+                7,
+                "deadband",
+                dof,
+                raw,
+                hb,
+                RAW_BITS,
+                lambda: ReflectiveEncoder(raw, dof, pct, hb),
+                lambda q, o: ReflectiveDecoder(raw, dof, q, o),
+                values=2,
+                event_based=True,
+            )
         return Codec(
             canon,
             name,
@@ -273,13 +291,14 @@ CODECS: dict[str, Callable[[str, list[str], int, float], Codec]] = {
     "cq": _cq,
     "pd": _deadband("pd"),
     "pdp": _deadband("pdp"),
+    "pdr": _deadband("pdr"),
     "dct": _dct,
 }
 
 
 #: The codecs that make sense on power variables (TDPA): a frequency codec's frame of delay and
 #: Parseval bound buy nothing there.
-POWER_CODECS = ("none", "cq", "ids", "eds", "pd", "pdp")
+POWER_CODECS = ("none", "cq", "ids", "eds", "pd", "pdp", "pdr")
 
 
 def _powered(enc: Encoder) -> Encoder:
