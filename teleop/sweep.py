@@ -39,6 +39,8 @@ DEFAULT_GRID: tuple[str, ...] = (
     "pdp:1",
     "pdp:2",
     "pdp:5",
+    "pdr:0.8",
+    "pdr:2",
 )
 
 
