@@ -719,9 +719,48 @@ def cpu() -> Table:
     )
 
 
+def frontier0() -> Table:
+    """The zero-delay frontier (issue 23 item 6): every case of ``bench.frontier0``, and whether the
+    winner is passive under the watchdog's matrix."""
+    b = Builder("frontier0.json")
+    rows = []
+    for i, c in enumerate(b.doc["cases"]):
+        p = f"cases[{i}]"
+        rows.append(
+            (
+                f"`{c['codec']}`",
+                c["passivity"],
+                (
+                    "{} / {}",
+                    (
+                        b.fig(f"{p}.packets_per_s.forward", ".1f"),
+                        b.fig(f"{p}.packets_per_s.backward", ".1f"),
+                    ),
+                ),
+                b.one(f"{p}.I", ".4g"),
+                b.one(f"{p}.I_dc", ".4g"),
+            )
+        )
+    t, w = b.doc["target"], b.doc["frontier"]
+    passive = sum(1 for m in b.doc["matrix"] if m["passive"])
+    return Table(
+        "frontier0",
+        "frontier0.json",
+        "python -m bench.frontier0",
+        ("codec", "passivity", "packets/s fwd / bwd", "I", "I_dc"),
+        tuple(rows),
+        note=f" Scenario `{b.doc['scenario']}`, {b.doc['duration']:g} s, 0 ms. Target: at most"
+        f" {t['packets_per_s']:g} packets/s a direction at I <= {t['I']:.4g} (`{t['I_from']}`'s)."
+        f" Frontier: `{w['codec']}`, {w['max_packets_per_s']:g} packets/s at most, target"
+        f" {'met' if w['target_met'] else 'not met'}; passive in {passive} of {len(b.doc['matrix'])}"
+        " cases of the watchdog's impairment matrix.",
+    )
+
+
 TABLES: dict[str, Callable[[], Table]] = {
     "sweep": sweep,
     "fronts": fronts,
+    "frontier0": frontier0,
     "flood": flood,
     "loop": loop,
     "transports": transports,
