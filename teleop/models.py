@@ -76,6 +76,9 @@ class DiscreteLTI:
         self.z = np.zeros((n, channels))
         self._b_mid = self.b[1:n, None]  # b[1..n-1], a[1..n-1] as columns for advance's rows
         self._a_mid = self.a[1:n, None]
+        # b[0], b[n], a[n] as Python floats for advance (read every tick; a float times an array is
+        # the same IEEE product as the numpy scalar times it, without indexing a numpy array).
+        self._b0, self._bn, self._an = float(self.b[0]), float(self.b[-1]), float(self.a[-1])
 
     @property
     def feedthrough(self) -> float:
@@ -88,14 +91,14 @@ class DiscreteLTI:
 
     def advance(self, u: Array) -> Array:
         """Commit this tick's input; returns the output ``D u + free``."""
-        y = self.b[0] * u + (self.z[0] if self.order else 0.0)
+        y = self._b0 * u + (self.z[0] if self.order else 0.0)
         if self.order > 1:
             # Every row but the last at once: z[i] <- b[i+1] u - a[i+1] y + z[i+1] from the old
             # z[i+1] (the right side is built before it is stored), as the loop over i did.
             self.z[:-1] = self._b_mid * u - self._a_mid * y + self.z[1:]
         if self.order:
-            self.z[-1] = self.b[-1] * u - self.a[-1] * y
-        return np.asarray(y, dtype=float)
+            self.z[-1] = self._bn * u - self._an * y
+        return y if type(y) is np.ndarray else np.asarray(y, dtype=float)
 
 
 class Human(Protocol):
@@ -131,10 +134,13 @@ class StepHuman:
         self.admittance = DiscreteLTI(num, den, dt, dof)
         self._y = np.full(dof, self.admittance.feedthrough)
         self._half_dt = dt / 2.0
+        # The two values the reference takes, made once (read-only: returned every tick).
+        self._off, self._on = np.zeros(dof), np.full(dof, float(amplitude))
+        self._off.setflags(write=False)
+        self._on.setflags(write=False)
 
     def reference(self, now: float) -> Array:
-        on = now + self._half_dt >= self.t_step
-        return np.full(self._y.shape, self.amplitude if on else 0.0)
+        return self._on if now + self._half_dt >= self.t_step else self._off
 
     def affine(self, now: float) -> tuple[Array, Array]:
         return self.reference(now) - self.admittance.free(), self._y

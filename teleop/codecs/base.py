@@ -11,6 +11,7 @@ conditions (8) and (10) are never broken by the representation.
 
 from __future__ import annotations
 
+import importlib
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -18,6 +19,13 @@ import numpy as np
 import numpy.typing as npt
 
 from ..errors import LocalError
+
+#: The clip ufunc itself: ``np.clip`` wraps it in Python argument handling that costs several times
+#: the ufunc on a few DoF, and it is not exported (``numpy._core.umath`` from numpy 2, ``numpy.core``
+#: before).
+_clip: np.ufunc = importlib.import_module(
+    "numpy._core.umath" if int(np.__version__.split(".")[0]) >= 2 else "numpy.core.umath"
+).clip
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -61,8 +69,10 @@ class RawFormat:
     def quantize(self, x: Array) -> IntArray:
         """Round toward zero and saturate: ``|dequantize(quantize(x))| <= |x|`` (eq. 11)."""
         m = self._max_code_f
-        # astype truncates toward zero; saturating first keeps |code| <= max_code.
-        return np.minimum(np.maximum(x * self._inv_step, -m), m).astype(np.int64)
+        # astype truncates toward zero; saturating first keeps |code| <= max_code.  The clip ufunc
+        # is minimum(maximum(., -m), m) element for element (NaN included), in one call.
+        q: IntArray = _clip(x * self._inv_step, -m, m).astype(np.int64)
+        return q
 
     def dequantize(self, q: IntArray) -> Array:
         return q.astype(np.float64) * self._step
