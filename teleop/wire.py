@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 import zlib
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import msgpack
 import numpy as np
@@ -62,8 +62,11 @@ class WireError(RemoteError):
     """Bytes that are not a valid teleop packet."""
 
 
-@dataclass(frozen=True, slots=True)
-class Packet:
+class Packet(NamedTuple):
+    """One parsed (or to be encoded) packet.  Immutable; a named tuple, not a frozen dataclass: one is
+    made per datagram each way on the 1 kHz path, and a frozen dataclass's ``__init__`` sets each of
+    its eight fields through ``object.__setattr__`` (several times the cost)."""
+
     session: int
     direction: int
     seq: int
