@@ -74,6 +74,9 @@ class DiscreteLTI:
         self.a = az / az[0]
         self.order = n
         self.z = np.zeros((n, channels))
+        # Views of the first and last state rows, made once: advance reads and writes them every tick.
+        self._z_first: Array = self.z[0] if n else self.z
+        self._z_last: Array = self.z[-1] if n else self.z
         self._b_mid = self.b[1:n, None]  # b[1..n-1], a[1..n-1] as columns for advance's rows
         self._a_mid = self.a[1:n, None]
         # b[0], b[n], a[n] as Python floats for advance (read every tick; a float times an array is
@@ -87,17 +90,17 @@ class DiscreteLTI:
 
     def free(self) -> Array:
         """The part of this tick's output that the state alone determines."""
-        return self.z[0] if self.order else np.zeros(self.z.shape[1])
+        return self._z_first if self.order else np.zeros(self.z.shape[1])
 
     def advance(self, u: Array) -> Array:
         """Commit this tick's input; returns the output ``D u + free``."""
-        y = self._b0 * u + (self.z[0] if self.order else 0.0)
+        y = self._b0 * u + (self._z_first if self.order else 0.0)
         if self.order > 1:
             # Every row but the last at once: z[i] <- b[i+1] u - a[i+1] y + z[i+1] from the old
             # z[i+1] (the right side is built before it is stored), as the loop over i did.
             self.z[:-1] = self._b_mid * u - self._a_mid * y + self.z[1:]
         if self.order:
-            self.z[-1] = self._bn * u - self._an * y
+            np.subtract(self._bn * u, self._an * y, out=self._z_last)  # z[-1] = b[n] u - a[n] y
         return y if type(y) is np.ndarray else np.asarray(y, dtype=float)
 
 
@@ -133,6 +136,7 @@ class StepHuman:
         self.t_step = t_step
         self.admittance = DiscreteLTI(num, den, dt, dof)
         self._y = np.full(dof, self.admittance.feedthrough)
+        self._y.setflags(write=False)  # constant: the node may reuse what it derives from it
         self._half_dt = dt / 2.0
         # The two values the reference takes, made once (read-only: returned every tick).
         self._off, self._on = np.zeros(dof), np.full(dof, float(amplitude))
@@ -157,6 +161,7 @@ class LtiEnvironment:
     ) -> None:
         self.impedance = DiscreteLTI(num, den, dt, dof)
         self._z = np.full(dof, self.impedance.feedthrough)
+        self._z.setflags(write=False)  # constant: the node may reuse what it derives from it
 
     def affine(self, now: float) -> tuple[Array, Array]:
         return self.impedance.free(), self._z
@@ -308,6 +313,7 @@ class ProtocolHuman:
         den = np.polymul(arm_den, grip_den)
         self.admittance = DiscreteLTI(tuple(num), tuple(den), dt, dof)
         self._y = np.full(dof, self.admittance.feedthrough)
+        self._y.setflags(write=False)  # constant: the node may reuse what it derives from it
         self._ref = np.zeros(dof)
         self._lateral_j = np.arange(1, dof, dtype=np.float64)  # the lateral DoF's indices
         self._knots = self.plan.knots()
