@@ -63,7 +63,7 @@ import math
 
 import numpy as np
 
-from .base import Array, CodecError, Encoder, PlayoutDecoder, RawFormat, pack, unpack
+from .base import Array, CodecError, Encoder, PlayoutDecoder, RawFormat, pack, unpack16
 
 FLOOR_FRACTION = 1.0 / 16.0  # of the range: the band's absolute floor (below it Weber's law fails)
 SLOPE_SCALE = 1.0 / 64.0  # slope full scale, per tick, as a fraction of the range
@@ -209,9 +209,9 @@ class DeadbandDecoder(PlayoutDecoder):
 
     def _segment(self, payload: bytes) -> tuple[Array, Array]:
         if self.predictive:
-            q = unpack(payload, 16, 2 * self.dof)
+            q = unpack16(payload, 2 * self.dof)
             return self.raw.dequantize(q[: self.dof]), self.slope_raw.dequantize(q[self.dof :])
-        return self.raw.dequantize(unpack(payload, 16, self.dof)), np.zeros(self.dof)
+        return self.raw.dequantize(unpack16(payload, self.dof)), np.zeros(self.dof)
 
     def push(self, payload: bytes) -> None:
         """The newest payload replaces whatever was being held; malformed raises, changes nothing."""
