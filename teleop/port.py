@@ -402,14 +402,12 @@ class Recorder:
         cols.rx_wire[r] += wire
         cols.rx_payload[r] += payload
 
-    def produced(self, k: int, payload: int, packet: int, seq: int) -> None:
+    def record(self, k: int, t: float, node: Node, produced: tuple[int, int, int] | None = None) -> None:
+        """Tick ``k`` ran at ``t``: the node's signals and energies; ``produced`` is ``(payload
+        bytes, packet bytes, seq)`` of the packet the node made in it, if any (one call a tick)."""
         c, r = self._at(k)
-        c.produced_payload[r] = payload
-        c.produced_packet[r] = packet
-        c.tx_seq[r] = seq
-
-    def record(self, k: int, t: float, node: Node) -> None:
-        c, r = self._at(k)
+        if produced is not None:
+            c.produced_payload[r], c.produced_packet[r], c.tx_seq[r] = produced
         cols = self._cols
         cols.v[r] = node.v
         cols.f[r] = node.f
@@ -647,10 +645,10 @@ class Port:
             node.encoder.phase = d  # send phase: sample right after the operator's payload plays
         pkt = node.tick(k * self.dt)
         out: list[bytes] = []
-        rec = self.rec
+        produced = None
         if pkt is not None:
             data = self.keys.tx.seal(wire.encode(pkt))
-            rec.produced(k, len(pkt.payload), len(data), pkt.seq)
+            produced = (len(pkt.payload), len(data), pkt.seq)
             if self.shim is None:
                 self.tx.packet(k, len(data), len(pkt.payload))
                 out.append(data)
@@ -658,7 +656,7 @@ class Port:
                 self.shim.send(t, data)
         if self.shim is not None:
             out += self.flush(t, k)
-        rec.record(k, t, self.node)
+        self.rec.record(k, t, node, produced)
         self._last_k = k
         return out
 
