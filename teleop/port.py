@@ -323,6 +323,12 @@ def concat_chunks(
     return out
 
 
+#: The per-datagram byte columns: added to (not set) for each datagram, in lists while their chunk
+#: is open (a list element is added to several times faster than a numpy one), into the chunk's
+#: arrays when it is sealed (the sums are integers, exact either way).
+_DATAGRAM_BYTES = ("tx_wire", "tx_payload", "rx_wire", "rx_payload")
+
+
 class _Columns:
     """The open chunk's per-tick columns as attributes: the recorder writes a row of each every
     tick, and an attribute is found faster than a key of a dict of a dict."""
@@ -330,12 +336,16 @@ class _Columns:
     def __init__(self, c: Chunk) -> None:
         self.v, self.f = c.signals["v"], c.signals["f"]
         self.wave_out, self.wave_in = c.signals["wave_out"], c.signals["wave_in"]
-        e, b = c.energy, c.bytes
+        e = c.energy
         self.energy_sent, self.energy_played = e["energy_sent"], e["energy_played"]
         self.energy_margin_observed = e["energy_margin_observed"]
         self.energy_played_epoch = e["energy_played_epoch"]
-        self.tx_wire, self.tx_payload = b["tx_wire"], b["tx_payload"]
-        self.rx_wire, self.rx_payload = b["rx_wire"], b["rx_payload"]
+        self.tx_wire, self.tx_payload, self.rx_wire, self.rx_payload = ([0] * c.size for _ in range(4))
+
+    def store_bytes(self, c: Chunk) -> None:
+        """The byte columns into the chunk's arrays (at its seal)."""
+        for name in _DATAGRAM_BYTES:
+            c.bytes[name][:] = getattr(self, name)
 
 
 class Recorder:
@@ -436,6 +446,7 @@ class Recorder:
     def _seal(self, c: Chunk, next_k: int | None) -> None:
         """Baseline of the chunk's ticks (and of ticks skipped before ``next_k``), the sliding
         compression window, then the chunk to the sink."""
+        self._cols.store_bytes(c)
         if self.first >= 0:
             # The session goes on (next_k): every tick to the chunk's end counts; else to the last run.
             hi = c.k0 + c.size - 1 if next_k is not None else self.last
