@@ -383,7 +383,7 @@ class OperatorNode(_Port):
         """``(yc sqrt(2b), 1 + yc b)`` with ``yc = c y`` (the human feels ``c F``): what the HSI's
         closed-form solve multiplies and divides by.  A read-only ``y`` cannot change, so at full
         coupling its two arrays are made once and reused (the built-in humans' feedthrough is a
-        constant): two numpy operations a tick fewer, the same arrays."""
+        constant): three numpy operations a tick fewer, the same arrays."""
         if c == 1.0 and y is self._gains_of:
             return self._gains_made
         yc = _scaled(y, c)

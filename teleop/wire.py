@@ -78,8 +78,9 @@ class Packet(NamedTuple):
 
 
 #: One packer for every packet: ``msgpack.packb`` builds a new one per call, which is most of its
-#: cost on the 1 kHz path; same options, so the same bytes.  ``pack`` runs under the GIL from start to
-#: end (no ``nogil`` section), so threads cannot interleave in its buffer.
+#: cost on the 1 kHz path; same options, so the same bytes.  The C packer's ``pack`` holds the GIL
+#: from start to end, so threads cannot interleave in its buffer, and it empties the buffer when a
+#: value does not fit (the next packet starts clean).
 _PACKER = msgpack.Packer(use_bin_type=True)
 
 
