@@ -58,6 +58,22 @@ class RawFormat:
     _inv_step: float = field(init=False, repr=False, compare=False, default=0.0)
     _step: float = field(init=False, repr=False, compare=False, default=0.0)
     _max_code_f: float = field(init=False, repr=False, compare=False, default=0.0)
+    _shaped: dict[tuple[int, ...], tuple[Array, Array, Array, Array]] = field(
+        init=False, repr=False, compare=False, default_factory=dict
+    )
+
+    def _constants(self, shape: tuple[int, ...]) -> tuple[Array, Array, Array, Array]:
+        """``1/step``, ``-max_code``, ``max_code`` and ``step`` as arrays of ``shape``, made once per
+        shape.  An array times an array of equal values gives the same IEEE products as times the
+        Python float, at about half the cost on a few DoF (numpy converts a scalar on every call)."""
+        c = self._shaped.get(shape)
+        if c is None:
+            m = self._max_code_f
+            full = np.full
+            c = self._shaped[shape] = (
+                full(shape, self._inv_step), full(shape, -m), full(shape, m), full(shape, self._step)
+            )
+        return c
 
     @property
     def max_code(self) -> int:
@@ -69,14 +85,14 @@ class RawFormat:
 
     def quantize(self, x: Array) -> IntArray:
         """Round toward zero and saturate: ``|dequantize(quantize(x))| <= |x|`` (eq. 11)."""
-        m = self._max_code_f
+        inv, lo, hi, _ = self._constants(x.shape)
         # astype truncates toward zero; saturating first keeps |code| <= max_code.  The clip ufunc
         # is minimum(maximum(., -m), m) element for element (NaN included), in one call.
-        q: IntArray = _clip(x * self._inv_step, -m, m).astype(np.int64)
+        q: IntArray = _clip(x * inv, lo, hi).astype(np.int64)
         return q
 
     def dequantize(self, q: npt.NDArray[np.signedinteger[Any]]) -> Array:
-        return q.astype(np.float64) * self._step
+        return q.astype(np.float64) * self._constants(q.shape)[3]
 
 
 #: The packed dtypes as objects: a dtype given as a string is parsed again on every call (measured
