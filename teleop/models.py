@@ -74,8 +74,16 @@ class DiscreteLTI:
         self.a = az / az[0]
         self.order = n
         self.z = np.zeros((n, channels))
+        # Views of the first and last state rows, made once: advance reads and writes them every tick.
+        self._z_first: Array = self.z[0] if n else self.z
+        self._z_last: Array = self.z[-1] if n else self.z
         self._b_mid = self.b[1:n, None]  # b[1..n-1], a[1..n-1] as columns for advance's rows
         self._a_mid = self.a[1:n, None]
+        # b[0], b[n], a[n] as arrays of one value per channel for advance: an array times them gives
+        # the same IEEE products as times the scalar, at about half the cost (numpy converts a scalar
+        # operand on every call; measured 2.4 -> 1.7 us an advance at 2 channels).
+        ends = (self.b[0], self.b[-1], self.a[-1])
+        self._b0, self._bn, self._an = (np.full(channels, float(c)) for c in ends)
 
     @property
     def feedthrough(self) -> float:
@@ -84,18 +92,18 @@ class DiscreteLTI:
 
     def free(self) -> Array:
         """The part of this tick's output that the state alone determines."""
-        return self.z[0] if self.order else np.zeros(self.z.shape[1])
+        return self._z_first if self.order else np.zeros(self.z.shape[1])
 
     def advance(self, u: Array) -> Array:
         """Commit this tick's input; returns the output ``D u + free``."""
-        y = self.b[0] * u + (self.z[0] if self.order else 0.0)
+        y = self._b0 * u + (self._z_first if self.order else 0.0)
         if self.order > 1:
             # Every row but the last at once: z[i] <- b[i+1] u - a[i+1] y + z[i+1] from the old
             # z[i+1] (the right side is built before it is stored), as the loop over i did.
             self.z[:-1] = self._b_mid * u - self._a_mid * y + self.z[1:]
         if self.order:
-            self.z[-1] = self.b[-1] * u - self.a[-1] * y
-        return np.asarray(y, dtype=float)
+            np.subtract(self._bn * u, self._an * y, out=self._z_last)  # z[-1] = b[n] u - a[n] y
+        return y if type(y) is np.ndarray else np.asarray(y, dtype=float)
 
 
 class Human(Protocol):
@@ -130,11 +138,15 @@ class StepHuman:
         self.t_step = t_step
         self.admittance = DiscreteLTI(num, den, dt, dof)
         self._y = np.full(dof, self.admittance.feedthrough)
+        self._y.setflags(write=False)  # constant: the node may reuse what it derives from it
         self._half_dt = dt / 2.0
+        # The two values the reference takes, made once (read-only: returned every tick).
+        self._off, self._on = np.zeros(dof), np.full(dof, float(amplitude))
+        self._off.setflags(write=False)
+        self._on.setflags(write=False)
 
     def reference(self, now: float) -> Array:
-        on = now + self._half_dt >= self.t_step
-        return np.full(self._y.shape, self.amplitude if on else 0.0)
+        return self._on if now + self._half_dt >= self.t_step else self._off
 
     def affine(self, now: float) -> tuple[Array, Array]:
         return self.reference(now) - self.admittance.free(), self._y
@@ -151,6 +163,7 @@ class LtiEnvironment:
     ) -> None:
         self.impedance = DiscreteLTI(num, den, dt, dof)
         self._z = np.full(dof, self.impedance.feedthrough)
+        self._z.setflags(write=False)  # constant: the node may reuse what it derives from it
 
     def affine(self, now: float) -> tuple[Array, Array]:
         return self.impedance.free(), self._z
@@ -302,6 +315,7 @@ class ProtocolHuman:
         den = np.polymul(arm_den, grip_den)
         self.admittance = DiscreteLTI(tuple(num), tuple(den), dt, dof)
         self._y = np.full(dof, self.admittance.feedthrough)
+        self._y.setflags(write=False)  # constant: the node may reuse what it derives from it
         self._ref = np.zeros(dof)
         self._lateral_j = np.arange(1, dof, dtype=np.float64)  # the lateral DoF's indices
         self._knots = self.plan.knots()

@@ -225,6 +225,8 @@ class PlayoutBuffer:
 
     def due(self, k: int) -> list[wire.Packet]:
         """Payloads whose release tick has come, in send order."""
+        if not self._heap:  # most ticks (and every tick with the buffer off): nothing held
+            return []
         out = []
         d = self.target()
         while self._heap and self._heap[0][0] + (d or 0) <= k:

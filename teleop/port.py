@@ -326,6 +326,12 @@ def concat_chunks(
     return out
 
 
+#: The per-datagram byte columns: added to (not set) for each datagram, in lists while their chunk
+#: is open (a list element is added to several times faster than a numpy one), into the chunk's
+#: arrays when it is sealed (the sums are integers, exact either way).
+_DATAGRAM_BYTES = ("tx_wire", "tx_payload", "rx_wire", "rx_payload")
+
+
 class _Columns:
     """The open chunk's per-tick columns as attributes: the recorder writes a row of each every
     tick, and an attribute is found faster than a key of a dict of a dict."""
@@ -333,12 +339,16 @@ class _Columns:
     def __init__(self, c: Chunk) -> None:
         self.v, self.f = c.signals["v"], c.signals["f"]
         self.wave_out, self.wave_in = c.signals["wave_out"], c.signals["wave_in"]
-        e, b = c.energy, c.bytes
+        e = c.energy
         self.energy_sent, self.energy_played = e["energy_sent"], e["energy_played"]
         self.energy_margin_observed = e["energy_margin_observed"]
         self.energy_played_epoch = e["energy_played_epoch"]
-        self.tx_wire, self.tx_payload = b["tx_wire"], b["tx_payload"]
-        self.rx_wire, self.rx_payload = b["rx_wire"], b["rx_payload"]
+        self.tx_wire, self.tx_payload, self.rx_wire, self.rx_payload = ([0] * c.size for _ in range(4))
+
+    def store_bytes(self, c: Chunk) -> None:
+        """The byte columns into the chunk's arrays (at its seal)."""
+        for name in _DATAGRAM_BYTES:
+            c.bytes[name][:] = getattr(self, name)
 
 
 class Recorder:
@@ -405,14 +415,12 @@ class Recorder:
         cols.rx_wire[r] += wire
         cols.rx_payload[r] += payload
 
-    def produced(self, k: int, payload: int, packet: int, seq: int) -> None:
+    def record(self, k: int, t: float, node: Node, produced: tuple[int, int, int] | None = None) -> None:
+        """Tick ``k`` ran at ``t``: the node's signals and energies; ``produced`` is ``(payload
+        bytes, packet bytes, seq)`` of the packet the node made in it, if any (one call a tick)."""
         c, r = self._at(k)
-        c.produced_payload[r] = payload
-        c.produced_packet[r] = packet
-        c.tx_seq[r] = seq
-
-    def record(self, k: int, t: float, node: Node) -> None:
-        c, r = self._at(k)
+        if produced is not None:
+            c.produced_payload[r], c.produced_packet[r], c.tx_seq[r] = produced
         cols = self._cols
         cols.v[r] = node.v
         cols.f[r] = node.f
@@ -441,6 +449,7 @@ class Recorder:
     def _seal(self, c: Chunk, next_k: int | None) -> None:
         """Baseline of the chunk's ticks (and of ticks skipped before ``next_k``), the sliding
         compression window, then the chunk to the sink."""
+        self._cols.store_bytes(c)
         if self.first >= 0:
             # The session goes on (next_k): every tick to the chunk's end counts; else to the last run.
             hi = c.k0 + c.size - 1 if next_k is not None else self.last
@@ -658,10 +667,10 @@ class Port:
             node.encoder.phase = d  # send phase: sample right after the operator's payload plays
         pkt = node.tick(k * self.dt)
         out: list[bytes] = []
-        rec = self.rec
+        produced = None
         if pkt is not None:
             data = self.keys.tx.seal(wire.encode(pkt))
-            rec.produced(k, len(pkt.payload), len(data), pkt.seq)
+            produced = (len(pkt.payload), len(data), pkt.seq)
             if self.shim is None:
                 self.tx.packet(k, len(data), len(pkt.payload))
                 out.append(data)
@@ -669,7 +678,7 @@ class Port:
                 self.shim.send(t, data)
         if self.shim is not None:
             out += self.flush(t, k)
-        rec.record(k, t, self.node)
+        self.rec.record(k, t, node, produced)
         self._last_k = k
         return out
 

@@ -37,7 +37,7 @@ def _seq_from_5() -> None:  # 3.1: seq does not start at 0
     from teleop import port, wire
 
     encode = wire.encode
-    port.wire.encode = lambda p: encode(dataclasses.replace(p, seq=p.seq + 5))  # type: ignore[attr-defined]
+    port.wire.encode = lambda p: encode(p._replace(seq=p.seq + 5))  # type: ignore[attr-defined]
 
 
 def _ignores_retry() -> None:  # 4.3 step 2: an operator that never puts the cookie in its hellos

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import RAW_BITS, Array, Encoder, PlayoutDecoder, RawFormat, pack, unpack
+from .base import RAW_BITS, Array, Encoder, PlayoutDecoder, RawFormat, pack, unpack, unpack16
 
 
 class DirectEncoder(Encoder):
@@ -32,5 +32,7 @@ class DirectDecoder(PlayoutDecoder):
         self.shift = 1 << (RAW_BITS - bits)
 
     def parse(self, payload: bytes) -> tuple[Array, int]:
+        if self.bits == RAW_BITS:
+            return self.raw.dequantize(unpack16(payload, self.dof)), 1
         q = unpack(payload, self.bits, self.dof)
         return self.raw.dequantize(q if self.shift == 1 else q * self.shift), 1

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Array, Encoder, PhasedSchedule, PlayoutDecoder, RawFormat, pack, unpack
+from .base import Array, Encoder, PhasedSchedule, PlayoutDecoder, RawFormat, pack, unpack16
 
 
 class EdsEncoder(Encoder):
@@ -59,4 +59,4 @@ class EdsDecoder(PlayoutDecoder):
         self.k = k
 
     def parse(self, payload: bytes) -> tuple[Array, int]:
-        return self.raw.dequantize(unpack(payload, 16, self.dof)), self.k
+        return self.raw.dequantize(unpack16(payload, self.dof)), self.k

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Array, Encoder, PlayoutDecoder, RawFormat, pack, unpack
+from .base import Array, Encoder, PlayoutDecoder, RawFormat, pack, unpack16
 
 MAX_FRAME = 1000  # ticks: a frame is buffered whole; longer ones would also add seconds of delay
 
@@ -66,6 +66,6 @@ class DctDecoder(PlayoutDecoder):
         self.k = n
 
     def runs(self, payload: bytes) -> list[tuple[Array, int]]:
-        coeffs = self.raw.dequantize(unpack(payload, 16, self.m * self.dof)).reshape(self.m, self.dof)
+        coeffs = self.raw.dequantize(unpack16(payload, self.m * self.dof)).reshape(self.m, self.dof)
         frame = self.basis.T @ coeffs  # (n, dof)
         return [(frame[i], 1) for i in range(self.n)]
