@@ -66,10 +66,6 @@ __all__ = [
 ]
 
 IDLE_WAIT_S = 0.01  # the longest the runner sleeps on the socket outside the ticks
-# Ticks between event-loop passes while ticking.  Datagrams do not need one: the UDP transport reads
-# its socket itself and Zenoh's callbacks fill the inbox from their own threads; signals and wakers
-# do, and wait at most this long.  A pass each tick cost ~6% of the operator's busy time (py-spy).
-LOOP_PASS_TICKS = 10
 
 
 class SessionError(TeleopError):
@@ -174,8 +170,7 @@ class _Runner:
         session = ep.params
         while ep.running and not self.stop.requested and self.ticker is ticker:
             k = ticker.wait()
-            if k % LOOP_PASS_TICKS == 0:
-                await asyncio.sleep(0)  # an event-loop pass: signals, the transport's wakers
+            await asyncio.sleep(0)  # one event-loop pass: datagrams received since the last tick
             self.drain()
             await self.grace(k, ticker)
             if not ep.running or ep.params is not session:  # a takeover replaced the session
