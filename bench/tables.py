@@ -714,9 +714,19 @@ def cpu() -> Table:
             f" {b.doc['duration_s']:g} s sessions, `{b.doc['scenario']}` scenario, one invocation;"
             f" targets met: CPU {t['cpu']['met']} of {t['cpu']['of']},"
             f" port tick (15 us per side at 2 DoF, `none`) {t['port_tick_15us_none_2dof']['met']} of"
-            f" {t['port_tick_15us_none_2dof']['of']}."
+            f" {t['port_tick_15us_none_2dof']['of']}.{_repeats(b.doc)}"
         ),
     )
+
+
+def _repeats(doc: dict[str, Any]) -> str:
+    """How often the targets were met when the invocation was repeated (``repeats``, if recorded)."""
+    r = doc.get("repeats")
+    if not r:
+        return ""
+    cpu = ", ".join(str(n) for n in r["cpu_met"])
+    tick = ", ".join(str(n) for n in r["port_tick_met"])
+    return f" Run {len(r['cpu_met'])} times in a row: CPU targets met {cpu}; port tick {tick}."
 
 
 def frontier0() -> Table:
