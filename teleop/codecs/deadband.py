@@ -81,6 +81,20 @@ def _norm(x: Array) -> float:
     return math.sqrt(float(x.dot(x)))
 
 
+def send_reason(band: bool, heartbeat: bool, power: bool, urgent: bool, over_budget: bool) -> str:
+    """Why a deadband encoder sends this tick, in order of precedence ("": it need not): outside the
+    band (or nothing sent yet), the heartbeat, under TDPA an urgent energy report, under wave
+    variables a hold that would play more than the receiver's budget (eq. 10).  One rule for every
+    deadband (``pd``, ``pdp``, ``pdr``)."""
+    if band:
+        return "band"
+    if heartbeat:
+        return "heartbeat"
+    if power:
+        return "energy" if urgent else ""
+    return "budget" if over_budget else ""
+
+
 def _slope_weights(n: int) -> Array:
     """Weights ``w`` with ``w @ x[-n:]`` the least-squares slope of ``x`` against the tick."""
     t = np.arange(n, dtype=np.float64) - (n - 1) / 2.0
@@ -138,15 +152,13 @@ class DeadbandEncoder(Encoder):
             self._n += 1
         pred = self._prediction()
         e_pred = float(pred.dot(pred))
-        reason = ""
-        if not self._sent_once or self._outside_band(x, pred):
-            reason = "band"
-        elif self._i >= self.heartbeat:
-            reason = "heartbeat"
-        elif self.power:
-            reason = "energy" if self.urgent else ""
-        elif self._e_played + e_pred > self._e_budget:
-            reason = "budget"
+        reason = send_reason(
+            not self._sent_once or self._outside_band(x, pred),
+            self._i >= self.heartbeat,
+            self.power,
+            self.urgent,
+            self._e_played + e_pred > self._e_budget,
+        )
         if not reason:
             self._e_played += e_pred
             self._i += 1

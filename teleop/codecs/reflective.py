@@ -47,7 +47,7 @@ import numpy as np
 
 from ..wire import BACKWARD
 from .base import Array, CodecError, Encoder, PlayoutDecoder, RawFormat, pack, unpack
-from .deadband import FLOOR_FRACTION, SLOPE_SCALE, SLOPE_WINDOW, _slope_weights
+from .deadband import FLOOR_FRACTION, SLOPE_SCALE, SLOPE_WINDOW, _slope_weights, send_reason
 
 #: The reserve shrink ``RESERVE_SCALE * RANGE / sqrt(E_in) + RESERVE_FLOOR`` (module docstring), tuned
 #: on the protocol scenario: more reserve in one direction moves budget sends into the other.
@@ -132,6 +132,11 @@ class ReflectiveEncoder(Encoder):
             else:
                 decoder.paired = self  # the operator: its decoder refers to what g_r was modelled
 
+    def _outside_band(self, x: Array, pred: Array) -> bool:
+        """Weber's test on the vector, against the prediction with its reserve offset."""
+        full = pred + self._off
+        return float(np.linalg.norm(x - full)) > self.k * max(float(np.linalg.norm(full)), self.floor)
+
     def _slope_now(self) -> Array:
         """The slope to send.  Backward: ``pdp``'s least-squares slope of the innovation.  Forward
         (and unpaired): the hand's wave curves (the arm's mode near 3 Hz in contact), and a tangent
@@ -164,19 +169,13 @@ class ReflectiveEncoder(Encoder):
         self._n += 1
         pred = self._val + self._slope * self._i + refl
         e_pred = float(np.dot(pred, pred))
-        reason = ""
-        if not self._sent_once:
-            reason = "band"
-        else:
-            full = pred + self._off
-            if float(np.linalg.norm(x - full)) > self.k * max(float(np.linalg.norm(full)), self.floor):
-                reason = "band"
-            elif self._i >= self.heartbeat:
-                reason = "heartbeat"
-            elif self.power:
-                reason = "energy" if self.urgent else ""
-            elif self._e_played + e_pred > self._e_budget:
-                reason = "budget"
+        reason = send_reason(
+            not self._sent_once or self._outside_band(x, pred),
+            self._i >= self.heartbeat,
+            self.power,
+            self.urgent,
+            self._e_played + e_pred > self._e_budget,
+        )
         if not reason:
             self._e_played += e_pred
             self._i += 1
