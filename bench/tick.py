@@ -30,6 +30,7 @@ from teleop.port import Port, make_node
 from teleop.wave import WaveImpedance
 
 CODECS = ("none", "ids:50", "eds:50", "cq:8")
+TDPA_CODECS = ("none", "eds:50", "pdp:1")  # the port's hot path under TDPA (issue 23)
 DT = 1e-3
 
 
@@ -90,9 +91,11 @@ def bench_nodes(spec: str, dof: int, ticks: int, repeats: int) -> list[float]:
     return _time_per_call(run, ticks, repeats)
 
 
-def _port_pair(spec: str, dof: int, ticks: int, scenario: str = "step") -> tuple[Port, Port]:
+def _port_pair(
+    spec: str, dof: int, ticks: int, scenario: str = "step", passivity: str = "wave"
+) -> tuple[Port, Port]:
     """The two ports as the real runner makes them: playout ``auto`` with its one-tick floor."""
-    opts = PortOptions(playout="auto")
+    opts = PortOptions(playout="auto", passivity=passivity)
     op, to = (
         Port(
             make_node(
@@ -114,12 +117,13 @@ def _port_pair(spec: str, dof: int, ticks: int, scenario: str = "step") -> tuple
     return op, to
 
 
-def bench_ports(spec: str, dof: int, ticks: int, repeats: int) -> list[float]:
+def bench_ports(spec: str, dof: int, ticks: int, repeats: int, passivity: str = "wave") -> list[float]:
     """Both ports per tick: node, wire encode and parse, counters, link observer, playout buffer
-    (``auto`` with the real runner's one-tick floor), recorder."""
+    (``auto`` with the real runner's one-tick floor), recorder; ``passivity`` ``tdpa``: power
+    variables, the energy reports and both dampers instead of the wave transform."""
     out = []
     for _ in range(repeats):
-        op, to = _port_pair(spec, dof, ticks)
+        op, to = _port_pair(spec, dof, ticks, passivity=passivity)
         t0 = time.perf_counter_ns()
         for k in range(ticks):
             now = k * DT
@@ -209,6 +213,18 @@ def main() -> None:
                 f"dof {dof}  {spec:<7} codec {mc:7.2f} us   both nodes + wire {mn:7.2f} us "
                 f"({mn / 10:.1f}% of 1 ms)   both ports {mp:7.2f} us ({mp / 10:.1f}%)"
             )
+        for spec in TDPA_CODECS:
+            mt = statistics.median(bench_ports(spec, dof, a.ticks, a.repeats, passivity="tdpa"))
+            res["results"].append(
+                {
+                    "dof": dof,
+                    "part": "both port ticks, --passivity tdpa (power variables, energy reports, dampers)",
+                    "codec": spec,
+                    "us": mt,
+                    "fraction_of_period": mt / 1000.0,
+                }
+            )
+            print(f"dof {dof}  {spec:<7} tdpa: both ports {mt:7.2f} us ({mt / 10:.1f}%)")
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=2) + "\n")
