@@ -157,9 +157,16 @@ def test_report_contract_and_logs(tmp_path: Path) -> None:
         targets = rep["playout"]["forward"]["target_ms"]
         same = rep["processes"][sender]["loop"]["skipped"] == 0 and targets["max"] == targets["p50"]
         keys: tuple[str, ...] = ("packets", "payload_bytes", "received_packets")
-        keys += ("wire_bytes", "baseline_wire_bytes") if same else ()
+        keys += ("baseline_wire_bytes",) if same else ()
         for k in keys:
             assert rep["wire"][d][k] == rep["sim_wire"][d][k], (d, k)
+        if same:
+            # The send phase can also move while the target settles in the first ticks (below its
+            # p50, which the summary does not show): a send that moves across a msgpack size
+            # boundary of its header (t_us at tick 65/66: 2 bytes; tick at 127/128 and 255/256: 1
+            # byte each) changes the bytes, never the packets.  One CI run in three saw 3785 vs 3787.
+            slack = 4 if d == "backward" else 0
+            assert abs(rep["wire"][d]["wire_bytes"] - rep["sim_wire"][d]["wire_bytes"]) <= slack, d
 
 
 def _wait_for_logs(logs: Path, timeout_s: float = 60.0) -> None:
