@@ -47,7 +47,7 @@ import numpy as np
 
 from ..wire import BACKWARD
 from .base import Array, CodecError, Encoder, PlayoutDecoder, RawFormat, pack, unpack
-from .deadband import FLOOR_FRACTION, SLOPE_SCALE, SLOPE_WINDOW, _slope_weights, send_reason
+from .deadband import FLOOR_FRACTION, SLOPE_SCALE, SLOPE_WINDOW, _norm, _slope_weights, send_reason
 
 #: The reserve shrink ``RESERVE_SCALE * RANGE / sqrt(E_in) + RESERVE_FLOOR`` (module docstring), tuned
 #: on the protocol scenario: more reserve in one direction moves budget sends into the other.
@@ -135,7 +135,7 @@ class ReflectiveEncoder(Encoder):
     def _outside_band(self, x: Array, pred: Array) -> bool:
         """Weber's test on the vector, against the prediction with its reserve offset."""
         full = pred + self._off
-        return float(np.linalg.norm(x - full)) > self.k * max(float(np.linalg.norm(full)), self.floor)
+        return _norm(x - full) > self.k * max(_norm(full), self.floor)
 
     def _slope_now(self) -> Array:
         """The slope to send.  Backward: ``pdp``'s least-squares slope of the innovation.  Forward
@@ -145,8 +145,8 @@ class ReflectiveEncoder(Encoder):
         scenario (pdr:0.7, 15 s): forward 57.1 -> 49.9 packets/s, I 1.055e-3 -> 1.086e-3."""
         if self._dec is None and self._n >= CHORD_WINDOW:
             _, slope, curv = _CHORD_FIT @ self._chord
-            band = self.k * max(float(np.linalg.norm(self._chord[-1])), self.floor)
-            c = float(np.linalg.norm(curv))
+            band = self.k * max(_norm(self._chord[-1]), self.floor)
+            c = _norm(curv)
             horizon = min(CHORD_FRACTION * 2.0 * math.sqrt(band / c), CHORD_MAX) if c > 0 else CHORD_MAX
             return np.asarray(slope + curv * horizon)
         n = min(self._n, SLOPE_WINDOW)
@@ -160,7 +160,7 @@ class ReflectiveEncoder(Encoder):
         d = self._dec.played if self._dec is not None else None
         # The reflection of the forward wave now, less the one in the last send's value (eq. 3).
         refl = self._refl.rho * d - self._r0 if d is not None else np.zeros(self.dof)
-        xx = float(np.dot(x, x))
+        xx = float(x.dot(x))
         self._e_in += xx
         self._hist[:-1] = self._hist[1:]
         self._hist[-1] = x - (self._refl.rho * d if d is not None else 0.0)
@@ -168,7 +168,7 @@ class ReflectiveEncoder(Encoder):
         self._chord[-1] = self._hist[-1]
         self._n += 1
         pred = self._val + self._slope * self._i + refl
-        e_pred = float(np.dot(pred, pred))
+        e_pred = float(pred.dot(pred))
         reason = send_reason(
             not self._sent_once or self._outside_band(x, pred),
             self._i >= self.heartbeat,
@@ -195,7 +195,7 @@ class ReflectiveEncoder(Encoder):
                 early = RESERVE_SCALE * self.full_scale / math.sqrt(self._e_in)
                 shrink = min(RESERVE_MAX_SHRINK, early + RESERVE_FLOOR)
                 p = x * (1.0 - shrink * (1.0 - reserve / target))
-            if float(np.dot(p, p)) > reserve:  # eq. (10): the send tick plays at most the reserve
+            if float(p.dot(p)) > reserve:  # eq. (10): the send tick plays at most the reserve
                 self.limited += 1
                 p = x * math.sqrt(reserve / xx)
         q = self.raw.quantize(p)  # toward zero: the send tick plays at most |p| per DoF (eq. 11)
@@ -207,7 +207,7 @@ class ReflectiveEncoder(Encoder):
         self._val, self._slope, self._i, self._sent_once = val, self.slope_raw.dequantize(qs), 1, True
         self._off = x - played
         self._e_budget = self._e_in
-        self._e_played += float(np.dot(played, played))
+        self._e_played += float(played.dot(played))
         self.model = played
         if d is not None:
             self._refl.add(d, played)
@@ -222,7 +222,7 @@ class ReflectiveEncoder(Encoder):
         self._e_budget = budget
         # Without a payload so far the receiver plays zero; else the prediction it had.
         self.model = pred if once else np.zeros(self.dof)
-        self._e_played = played + float(np.dot(self.model, self.model))
+        self._e_played = played + float(self.model.dot(self.model))
         self._undo = None
 
 
