@@ -59,6 +59,19 @@ def _free_port(kind: int = socket.SOCK_DGRAM) -> int:
         return int(s.getsockname()[1])
 
 
+def _rcvbuf_errors() -> int:
+    """Datagrams the host's UDP dropped for a full receive buffer (``/proc/net/snmp``'s
+    ``RcvbufErrors``, every socket): a socket filter's refusals are not among them."""
+    with contextlib.suppress(OSError, ValueError, IndexError):
+        rows = [
+            line.split()
+            for line in Path("/proc/net/snmp").read_text().splitlines()
+            if line.startswith("Udp:")
+        ]
+        return int(rows[1][rows[0].index("RcvbufErrors")])
+    return 0
+
+
 def _kernel_drops(port: int) -> int:
     want = f"0100007F:{port:04X}"
     with contextlib.suppress(OSError):
@@ -117,24 +130,27 @@ def _paced(send: Callable[[int], None], rate: float, seconds: float) -> int:
     return n
 
 
-def flood(port: int, kind: str, psk: bytes, rate: float, end_at: float, sent: Any, secs: Any) -> None:
-    """The flood process: ``rate`` datagrams a second of ``kind`` to 127.0.0.1:``port`` (a UDP port,
-    or for ``zenoh_oversize`` the teleoperator's Zenoh TCP endpoint) until ``end_at`` on the
-    monotonic clock (shared by the processes: however late this process starts, it stops before
-    the session ends); the count it reached goes to ``sent``, the seconds it flooded to ``secs``."""
+def flood(
+    port: int, kind: str, data: list[bytes], rate: float, start_at: float, end_at: float, sent: Any, secs: Any
+) -> None:
+    """The flood process: ``rate`` datagrams a second of ``data`` (``payloads(kind)``, made by the
+    parent before the session) to 127.0.0.1:``port`` (a UDP port, or for ``zenoh_oversize`` the
+    teleoperator's Zenoh TCP endpoint) from ``start_at`` until ``end_at`` on the monotonic clock
+    (shared by the processes).  The process starts before the session, so its interpreter's start
+    and the payloads' making (200 handshakes) do not land in the measured loop's ticks.  The count
+    it reached goes to ``sent``, the seconds it flooded to ``secs``."""
+    time.sleep(max(0.0, start_at - time.monotonic()))
     t0 = time.monotonic()
     if kind in ZENOH_CLASSES:
         sent.value = _zenoh_flood(port, rate, end_at - t0)
         secs.value = time.monotonic() - t0
         return
-    data = payloads(kind, psk)
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
 
     def send(n: int) -> None:
         with contextlib.suppress(OSError):  # a full socket buffer: the kernel drops, we go on
             s.sendto(data[n % len(data)], (LOOPBACK, port))
 
-    t0 = time.monotonic()
     sent.value = _paced(send, rate, end_at - t0)
     secs.value = time.monotonic() - t0
     s.close()
@@ -184,7 +200,17 @@ def session(
 ) -> dict[str, Any]:
     """One session of ``duration`` s over ``transport``, flooded (``kind``) from 1 s after its start,
     or not."""
+    data = payloads(kind, psk) if kind is not None and kind not in ZENOH_CLASSES else None
     port = _free_port(socket.SOCK_STREAM if transport == "zenoh" else socket.SOCK_DGRAM)
+    ctx = mp.get_context("spawn")  # a fresh interpreter: no copy of this one's threads or locks
+    sent, secs = ctx.Value("q", 0), ctx.Value("d", 0.0)
+    proc = None
+    t0 = time.monotonic()  # the operator starts 1.5 s after the teleoperator, the session soon after
+    if kind is not None:  # started first, so its interpreter's start lands before the session's ticks
+        start_at, end_at = t0 + 3.0, t0 + 1.5 + duration - 0.5  # before the session's end
+        args = (port, kind, data or [], rate, start_at, end_at, sent, secs)
+        proc = ctx.Process(target=flood, args=args, daemon=True)
+        proc.start()
     with tempfile.TemporaryDirectory(prefix="teleop-flood-") as tmp:
         logs = Path(tmp) / "logs"
         to = subprocess.Popen(
@@ -193,25 +219,19 @@ def session(
              *(["--udp-rcvbuf", str(rcvbuf_kib)] if rcvbuf_kib is not None else [])],
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
-        time.sleep(1.5)
+        time.sleep(max(0.0, t0 + 1.5 - time.monotonic()))
         op = subprocess.Popen(
             [*TELEOP, "operator", "--key-file", key_file, *_transport_args(transport, "operator", port),
              "--codec", "eds:50", "--duration", str(duration), "--quiet"],
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
-        end_at = time.monotonic() + duration - 0.5  # before the session's end (it starts after a handshake)
         drops0 = _kernel_drops(port) if transport == "udp" else 0
-        ctx = mp.get_context("spawn")  # a fresh interpreter: no copy of this one's threads or locks
-        sent, secs = ctx.Value("q", 0), ctx.Value("d", 0.0)
-        proc = None
-        if kind is not None:
-            time.sleep(1.5)  # the session runs (handshake and start: well under 1.5 s)
-            proc = ctx.Process(target=flood, args=(port, kind, psk, rate, end_at, sent, secs), daemon=True)
-            proc.start()
+        overflow0 = _rcvbuf_errors()
         rc_op = op.wait(timeout=duration + 60)
         if proc is not None:
             proc.join(10)
         drops = _kernel_drops(port) - drops0 if transport == "udp" else None
+        overflow = _rcvbuf_errors() - overflow0
         rc_to = to.wait(timeout=60)
         summary = (
             json.loads((logs / "teleoperator.json").read_text())
@@ -240,11 +260,15 @@ def session(
         "handshake_throttled": summary.get("handshake_throttled"),
         "transport_oversize": rx.get("oversize"),
         "foreign": rx.get("foreign"),
-        "kernel_drops": drops,  # /proc/net/udp over the session (None: not UDP)
+        # /proc/net/udp over the session (None: not UDP): what the socket's filter refused and what a
+        # full buffer dropped; the latter alone (host-wide) in rcvbuf_errors.
+        "kernel_drops": drops,
+        "rcvbuf_errors": overflow,
         "socket_kernel_drops": rx.get("kernel_drops"),  # SO_MEMINFO: what the process saw
         "rcvbuf_asked": rx.get("rcvbuf_asked"),
         "rcvbuf_bytes": rx.get("rcvbuf_bytes"),
         "drain_budget_hits": rx.get("drain_budget_hits"),
+        "filter": rx.get("filter"),
         "warnings": summary.get("warnings"),
     }
 
@@ -293,7 +317,8 @@ def main(argv: list[str] | None = None) -> int:
                     f"{kind:15s} {rate:8.0f}/s reached {reached:8.0f}/s"
                     f"  p99 {c['lateness_p99_us']} us (x{ratio})"
                     f"  link lost {c['link_lost_events']}  dropped chunks {c['log_dropped_chunks']}"
-                    f"  kernel drops {c['kernel_drops']}  oversize {c['oversize_refused']}"
+                    f"  kernel drops {c['kernel_drops']} (full buffer {c['rcvbuf_errors']})"
+                    f"  oversize {c['oversize_refused']}"
                     f"/{c['transport_oversize']} (endpoint/transport)  throttled {c['handshake_throttled']}",
                     flush=True,
                 )

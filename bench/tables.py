@@ -225,6 +225,7 @@ def flood() -> Table:
             "-",
             "-",
             "-",
+            "-",
         )
         for transport, path in bases.items()
     ]
@@ -247,6 +248,7 @@ def flood() -> Table:
                 b.one(f"{p}.kernel_drops", ".0f") if c["kernel_drops"] is not None else "-",
                 ("{}", (b.fig(by_length, ".0f", "sum"),)),
                 b.one(f"{p}.handshake_throttled", ".0f"),
+                b.one(f"{p}.rcvbuf_errors", ".0f") if "rcvbuf_errors" in c else "-",
             )
         )
     return Table(
@@ -261,9 +263,10 @@ def flood() -> Table:
             "x baseline",
             "link lost",
             "log chunks dropped",
-            "kernel drops",
+            "kernel drops (filter and full buffer)",
             "refused by length",
             "throttled",
+            "full buffer (host)",
         ),
         tuple(rows),
         note=f" {b.doc['targets_met']} of {b.doc['cases_run']} cases met every target (p99 within 2x, no link"

@@ -44,7 +44,7 @@ import secrets
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, TypeAlias
+from typing import Any, NamedTuple, TypeAlias
 
 from . import auth, protocol, wire
 from .link import Addr
@@ -53,11 +53,13 @@ from .protocol import Failure, SessionParams
 from .summary import EndpointSummary, RejoinFigures
 
 __all__ = [
+    "FLOOD_SAMPLE",
     "GRACE_RESUME_TICKS",
     "JOIN_AHEAD_TICKS",
     "REJOIN_COLLECT_NS",
     "REJOIN_OFFER_INTERVAL_NS",
     "REJOIN_SAMPLES",
+    "Admission",
     "EndReason",
     "Endpoint",
     "Event",
@@ -74,6 +76,7 @@ __all__ = [
     "SessionEnded",
     "SessionStarted",
     "State",
+    "Strangers",
 ]
 
 REJOIN_OFFER_INTERVAL_NS = 250_000_000  # operator, link lost: an offer this often
@@ -93,6 +96,33 @@ HANDSHAKE_BURST = 20.0
 HANDSHAKE_RATE_ALL = 1000.0  # ... and all sources together (burst 200): bounds the loop's cost
 HANDSHAKE_BURST_ALL = 200.0
 LIMITER_SOURCES = 4096  # source addresses remembered (oldest forgotten first)
+#: Under a handshake flood (the limiter dropped within FLOOD_HOLD_NS) a transport that can filter
+#: keeps strangers' handshake datagrams 1 in FLOOD_SAMPLE (see Admission).
+FLOOD_SAMPLE = 64
+FLOOD_HOLD_NS = 1_000_000_000
+
+
+class Strangers(enum.IntEnum):
+    """What an endpoint takes from addresses other than its peer (:class:`Admission`)."""
+
+    ALL = 0  # anything (no peer yet, or a takeover is possible)
+    HANDSHAKE = 1  # handshake-key datagrams only (another operator's hello gets busy or a retry)
+    NONE = 2  # nothing (an operator in session: only its teleoperator speaks to it)
+
+
+class Admission(NamedTuple):
+    """What the endpoint can take now, for a transport able to refuse datagrams before they reach
+    the process (``transport.udp`` compiles it into a kernel socket filter).  Only a coarse
+    prefilter: the endpoint still checks every datagram that passes, so a transport that ignores
+    this (Zenoh, a test) changes what is counted where, never what is accepted.  Issue 21: a flood
+    costs a syscall and a Python loop turn per datagram if it reaches the process, nothing if the
+    kernel refuses it."""
+
+    max_bytes: int  # any datagram longer than this (either key kind)
+    peer: Addr | None  # None: no peer (yet), everyone is treated as the peer
+    strangers: Strangers
+    max_handshake_bytes: int  # a stranger's handshake datagram longer than this is refused
+    sample: int  # strangers' handshake datagrams kept 1 in ``sample`` (1: all; >1 under a flood)
 
 
 class HandshakeLimiter:
@@ -108,6 +138,7 @@ class HandshakeLimiter:
         self._per: dict[Addr, tuple[float, int]] = {}  # tokens, last refill (ns)
         self._all = (HANDSHAKE_BURST_ALL, 0)
         self.dropped = 0
+        self.last_drop_ns: int | None = None
 
     @staticmethod
     def _take(tokens: float, last: int, now_ns: int, rate: float, burst: float) -> tuple[float, bool]:
@@ -125,6 +156,7 @@ class HandshakeLimiter:
             self._all = (all_tokens, now_ns)
         if not ok:
             self.dropped += 1
+            self.last_drop_ns = now_ns
         return ok
 
 
@@ -367,6 +399,25 @@ class Endpoint:
         """The longest datagram this endpoint can take now (either key kind): a transport may refuse
         a longer one by its length alone, before copying it (``transport.udp``)."""
         return max(self._max_len)
+
+    def admission(self, now_ns: int) -> Admission:
+        """What this endpoint can take now (:class:`Admission`); the runner passes it to its transport
+        when it changes.  A teleoperator in session takes strangers' handshake datagrams (another
+        operator is told it is busy), sampled while its limiter is dropping them; once its operator
+        is silent (a takeover is possible, PROTOCOL.md 4.5) everything.  An operator in session takes
+        only its teleoperator's.  In the handshake: an operator its teleoperator's, a teleoperator
+        anyone's."""
+        hs_max = self._max_len[auth.HANDSHAKE]
+        running = self.state in (State.STARTING, State.RUNNING, State.LINGER)
+        if self.role == "operator":
+            return Admission(max(self._max_len), self.peer, Strangers.NONE, hs_max, 1)
+        if not running or self.port is None or self._takeover_possible(self.port):
+            return Admission(max(self._max_len), None, Strangers.ALL, hs_max, 1)
+        last = self._limiter.last_drop_ns
+        flooded = last is not None and now_ns - last < FLOOD_HOLD_NS
+        return Admission(
+            max(self._max_len), self.peer, Strangers.HANDSHAKE, hs_max, FLOOD_SAMPLE if flooded else 1
+        )
 
     @property
     def handshake_throttled(self) -> int:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any, Protocol
 
+from teleop.endpoint import Admission
 from teleop.link import Addr
 
 __all__ = ["Addr", "Transport"]
@@ -30,6 +31,10 @@ class Transport(Protocol):
     def local_address(self) -> Addr: ...
 
     def send(self, data: bytes, addr: Addr) -> None: ...
+
+    def admit(self, admission: Admission) -> None:
+        """What the endpoint can take now: a transport may refuse the rest before it is read
+        (UDP: a kernel socket filter); one that cannot ignores it."""
 
     def drain(self) -> list[tuple[bytes, Addr, int]]: ...
 

@@ -66,6 +66,9 @@ __all__ = [
 ]
 
 IDLE_WAIT_S = 0.01  # the longest the runner sleeps on the socket outside the ticks
+#: Ticks between two looks at the endpoint's admission (a takeover becomes possible 50 ms after the
+#: operator falls silent; a flood's sampling starts within this of the limiter's first drop).
+ADMIT_EVERY = 16
 
 
 class SessionError(TeleopError):
@@ -132,6 +135,7 @@ class _Runner:
         ``until_ns``; feed, fire the timer, send, handle events."""
         timer = self.ep.get_timer()
         wake = min(t for t in (timer, until_ns, self.clock() + int(IDLE_WAIT_S * 1e9)) if t is not None)
+        self.tr.admit(self.ep.admission(self.clock()))
         await self.tr.wait(max(0.0, (wake - self.clock()) / 1e9))
         self.drain()
         if (timer := self.ep.get_timer()) is not None and self.clock() >= timer:
@@ -178,6 +182,8 @@ class _Runner:
                 break
             ep.tick(k, self.clock())
             self.send()
+            if k % ADMIT_EVERY == 0:  # the kernel's filter follows the endpoint (transport.sockfilter)
+                self.tr.admit(ep.admission(self.clock()))
             assert ep.port is not None
             ep.port.loop_timing(k, ticker.last_lateness_ns)
             if self.log is not None:
@@ -299,9 +305,7 @@ async def _open_transport(opts: EndpointOptions) -> Transport:
     raise SessionError(f"unknown transport {opts.transport!r}; accepted: udp, zenoh")
 
 
-async def _endpoint(
-    opts: EndpointOptions, params: SessionParams | None, pins: Pins | None
-) -> SessionSummary:
+async def _endpoint(opts: EndpointOptions, params: SessionParams | None, pins: Pins | None) -> SessionSummary:
     if opts.psk is None:
         raise SessionError("no key: give the pre-shared key (teleop keygen) or choose insecure")
     try:
@@ -340,9 +344,7 @@ async def _endpoint(
         records.close()
 
 
-def run_endpoint(
-    opts: EndpointOptions, params: SessionParams | None = None, pins: Pins | None = None
-) -> int:
+def run_endpoint(opts: EndpointOptions, params: SessionParams | None = None, pins: Pins | None = None) -> int:
     """Run one process's side of a session; returns the exit status (0 ok, 1 error, 130 interrupted)."""
     loop, loop_name = new_event_loop(opts.use_uvloop)
     try:

@@ -23,6 +23,12 @@ the junk that arrives between two drains, or during a stall of the host, waits t
 pushing genuine payloads out.  With CAP_NET_ADMIN it is set with SO_RCVBUFFORCE; otherwise
 ``net.core.rmem_max`` caps it and :attr:`UdpTransport.warnings` says what was obtained.  What the
 kernel still dropped on this socket (a full buffer) is read with SO_MEMINFO (``kernel_drops``).
+
+**Kernel filter.** :meth:`UdpTransport.admit` installs the endpoint's :class:`Admission` as a socket
+filter (``transport.sockfilter``): in a session, what the endpoint would refuse anyway (too long, a
+stranger's non-handshake datagram, and under a handshake flood most strangers' handshakes) is
+dropped by the kernel before the loop reads it, and counted in ``kernel_drops`` with the overflow.
+Where the kernel refuses the filter, the warning says so and the drain above still refuses it all.
 """
 
 from __future__ import annotations
@@ -37,8 +43,10 @@ import sys
 import time
 from typing import Any
 
+from teleop.endpoint import Admission
 from teleop.wire import MAX_DATAGRAM_BYTES
 
+from . import sockfilter
 from .base import Addr
 
 
@@ -174,6 +182,9 @@ class UdpTransport:
         self._buf = bytearray(0)
         self._view = memoryview(self._buf)
         self.max_datagram = MAX_DATAGRAM_BYTES
+        self._admission: Admission | None = None
+        self.filter_updates = 0  # filters installed (one per change of the endpoint's admission)
+        self.filter_error = ""  # why the kernel refused the filter (then the drain refuses all)
 
     @property
     def max_datagram(self) -> int:
@@ -208,6 +219,21 @@ class UdpTransport:
         assert self._sock is not None
         host, port = self._sock.getsockname()[:2]
         return str(host), int(port)
+
+    def admit(self, admission: Admission) -> None:
+        """Let the kernel refuse what ``admission`` excludes (module docstring); a no-op when it has
+        not changed.  A filter the kernel refuses is reported once and the drain goes on refusing."""
+        if admission == self._admission or self._sock is None or self.filter_error:
+            return
+        self._admission = admission
+        try:
+            sockfilter.attach(self._sock, sockfilter.compile_filter(admission, self._sock.family))
+        except OSError as e:
+            self.filter_error = f"{type(e).__name__}: {e}"
+            why = f"no kernel socket filter ({self.filter_error}): floods are refused in the loop"
+            self.warnings.append(why)
+            return
+        self.filter_updates += 1
 
     def send(self, data: bytes, addr: Addr) -> None:
         """Send at once; a failure (a full send buffer, an unreachable network) is counted, not raised."""
@@ -264,7 +290,18 @@ class UdpTransport:
             "drain_budget_hits": self.drain_budget_hits,
             "rcvbuf_asked": self.rcvbuf_asked,
             "rcvbuf_bytes": self.rcvbuf_bytes,
+            # Refused by the socket filter or dropped by a full buffer (the kernel counts both).
             "kernel_drops": kernel_drops(self._sock) if self._sock is not None else None,
+            "filter": self._filter_report(),
+        }
+
+    def _filter_report(self) -> dict[str, Any]:
+        a = self._admission
+        return {
+            "updates": self.filter_updates,
+            "error": self.filter_error or None,
+            "strangers": a.strangers.name.lower() if a is not None else None,
+            "sample": a.sample if a is not None else None,
         }
 
     def _error(self, e: OSError) -> None:

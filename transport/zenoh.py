@@ -56,6 +56,7 @@ from typing import Any
 
 import zenoh
 
+from teleop.endpoint import Admission
 from teleop.errors import TeleopError
 from teleop.files import MAX_CONFIG_BYTES, read_regular
 from teleop.wire import MAX_DATAGRAM_BYTES
@@ -317,6 +318,9 @@ class ZenohTransport:
     def local_address(self) -> Addr:
         """(Zenoh id, 0): for logs; there is no socket address to show."""
         return self._zid, 0
+
+    def admit(self, admission: Admission) -> None:
+        """Nothing to install: Zenoh's own threads receive, and ``_on_sample`` refuses by length."""
 
     def send(self, data: bytes, addr: Addr) -> None:
         """Publish ``data`` on the tx key (``addr`` is ignored); failures are counted, not raised."""
