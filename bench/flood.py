@@ -2,7 +2,8 @@
 
 A teleoperator and an operator run as two real processes on 127.0.0.1 (UDP, ``eds:50``, 2 DoF) and a
 flood process sends the teleoperator ``rate`` datagrams a second of one class for the session's
-length; a baseline session without a flood runs first in the same invocation.  Classes:
+length; baseline sessions without a flood run in the same invocation, one before the floods of
+each transport and one after each class, and a case's p99 is held to their median.  Classes:
 
 * ``random``: 100 random bytes;
 * ``big_handshake``: 60 000 bytes behind a valid handshake-key header (refused by length);
@@ -34,6 +35,7 @@ import os
 import platform
 import secrets
 import socket
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -273,6 +275,32 @@ def session(
     }
 
 
+def _reference(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """The baseline a transport's cases are held to: its first run's figures, with the lateness p99
+    the median of all its runs (one before the floods and one after each class: a single quiet
+    session's p99 on a shared 2-core host varied 7-215 us)."""
+    p99s = [r["lateness_p99_us"] for r in runs if r["lateness_p99_us"] is not None]
+    ref = dict(runs[0])
+    ref["lateness_p99_us"] = statistics.median(p99s) if p99s else None
+    ref["lateness_p99_us_runs"] = p99s
+    ref["runs"] = len(runs)
+    ref["link_lost_events"] = max((r["link_lost_events"] or 0) for r in runs)
+    ref["log_dropped_chunks"] = max((r["log_dropped_chunks"] or 0) for r in runs)
+    return ref
+
+
+def _print_case(c: dict[str, Any]) -> None:
+    reached = c["sent"] / c["flood_s"] if c.get("flood_s") else 0.0
+    print(
+        f"{c['class']:15s} {c['rate']:8.0f}/s reached {reached:8.0f}/s  p99 {c['lateness_p99_us']} us"
+        f"  link lost {c['link_lost_events']}  dropped chunks {c['log_dropped_chunks']}"
+        f"  kernel drops {c['kernel_drops']} (full buffer {c['rcvbuf_errors']})"
+        f"  oversize {c['oversize_refused']}/{c['transport_oversize']} (endpoint/transport)"
+        f"  throttled {c['handshake_throttled']}",
+        flush=True,
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.flood", description=__doc__.split("\n\n")[0])
     ap.add_argument("--rates", type=float, nargs="+", default=[10_000.0, 50_000.0, 100_000.0])
@@ -289,39 +317,37 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="teleop-flood-key-") as kd:
         key_file = str(Path(kd) / "k")
         auth.write_key_file(key_file, psk)
-        bases: dict[str, dict[str, Any]] = {}
-        used = {"zenoh" if k in ZENOH_CLASSES else "udp" for k in a.classes}
-        for transport in [t for t in ("udp", "zenoh") if t in used]:
-            bases[transport] = base = session(key_file, psk, None, 0, a.duration, transport, a.udp_rcvbuf)
+        runs: dict[str, list[dict[str, Any]]] = {}
+
+        def baseline(transport: str) -> None:
+            base = session(key_file, psk, None, 0, a.duration, transport, a.udp_rcvbuf)
+            runs.setdefault(transport, []).append(base)
             print(
                 f"baseline ({transport}): lateness p99 {base['lateness_p99_us']} us, overruns"
                 f" {base['overruns']}, receive buffer {base['rcvbuf_bytes']} B",
                 flush=True,
             )
+
         cases = []
         for kind in a.classes:
             transport = "zenoh" if kind in ZENOH_CLASSES else "udp"
+            if transport not in runs:
+                baseline(transport)
             for rate in a.rates:
-                c = session(key_file, psk, kind, rate, a.duration, transport, a.udp_rcvbuf)
-                b = bases[transport]["lateness_p99_us"]
-                c["p99_ratio"] = c["lateness_p99_us"] / b if b and c["lateness_p99_us"] is not None else None
-                c["within_2x"] = c["p99_ratio"] is not None and c["p99_ratio"] <= 2.0
-                c["ok"] = bool(
-                    c["within_2x"] and c["link_lost_events"] == 0 and (c["min_margin_J"] or 0) >= -1e-9
-                    and c["log_dropped_chunks"] == 0 and c["completed"]
-                )  # fmt: skip
-                cases.append(c)
-                ratio = "-" if c["p99_ratio"] is None else f"{c['p99_ratio']:.2f}"
-                reached = c["sent"] / c["flood_s"] if c.get("flood_s") else 0.0
-                print(
-                    f"{kind:15s} {rate:8.0f}/s reached {reached:8.0f}/s"
-                    f"  p99 {c['lateness_p99_us']} us (x{ratio})"
-                    f"  link lost {c['link_lost_events']}  dropped chunks {c['log_dropped_chunks']}"
-                    f"  kernel drops {c['kernel_drops']} (full buffer {c['rcvbuf_errors']})"
-                    f"  oversize {c['oversize_refused']}"
-                    f"/{c['transport_oversize']} (endpoint/transport)  throttled {c['handshake_throttled']}",
-                    flush=True,
-                )
+                cases.append(session(key_file, psk, kind, rate, a.duration, transport, a.udp_rcvbuf))
+                _print_case(cases[-1])
+            baseline(transport)  # one after each class's rates: the reference is their median
+    bases = {t: _reference(r) for t, r in runs.items()}
+    for c in cases:
+        b = bases[c["transport"]]["lateness_p99_us"]
+        c["p99_ratio"] = c["lateness_p99_us"] / b if b and c["lateness_p99_us"] is not None else None
+        c["within_2x"] = c["p99_ratio"] is not None and c["p99_ratio"] <= 2.0
+        c["ok"] = bool(
+            c["within_2x"] and c["link_lost_events"] == 0 and (c["min_margin_J"] or 0) >= -1e-9
+            and c["log_dropped_chunks"] == 0 and c["completed"]
+        )  # fmt: skip
+        ratio = "-" if c["p99_ratio"] is None else f"{c['p99_ratio']:.2f}"
+        print(f"{c['class']:15s} {c['rate']:8.0f}/s  p99 x{ratio} of the baselines' median", flush=True)
     out = {
         "host": {
             "platform": platform.platform(),

@@ -95,14 +95,17 @@ def test_a_run_records_a_baseline_per_transport_and_the_table_reads_it(
     out = tmp_path / "flood.json"
     argv = ["--classes", "big_session", "zenoh_oversize", "--rates", "1000", "--duration", "4"]
     assert flood.main([*argv, "--udp-rcvbuf", "8192", "--out", str(out)]) == 0
-    assert calls == [
+    assert calls == [  # a baseline before each transport's floods and after each class
+        (None, "udp", 8192),
+        ("big_session", "udp", 8192),
         (None, "udp", 8192),
         (None, "zenoh", 8192),
-        ("big_session", "udp", 8192),
         ("zenoh_oversize", "zenoh", 8192),
+        (None, "zenoh", 8192),
     ]
     doc = json.loads(out.read_text())
     assert set(doc["baselines"]) == {"udp", "zenoh"} and doc["baseline"]["transport"] == "udp"
+    assert doc["baseline"]["runs"] == 2 and doc["baseline"]["lateness_p99_us_runs"] == [20.0, 20.0]
     assert doc["udp_rcvbuf_kib"] == 8192 and doc["cases_run"] == doc["targets_met"] == 2
     monkeypatch.setattr(tables, "RESULTS", tmp_path)
     md = tables.flood().markdown()
@@ -134,3 +137,13 @@ async def test_the_refusal_micro_benchmark_reads_every_datagram_both_ways() -> N
     for kind in ("random", "big_session"):
         r = await refusal._measure(kind, 20, 1)
         assert set(r) == {"drain", "recvfrom"} and all(0 < v < 1e9 for v in r.values())
+
+
+def test_the_reference_is_the_median_of_the_baselines() -> None:
+    runs = [
+        {"lateness_p99_us": p, "link_lost_events": 0, "log_dropped_chunks": d, "transport": "udp"}
+        for p, d in ((7.0, 0), (215.0, 1), (50.0, 0))
+    ]
+    ref = flood._reference(runs)
+    assert ref["lateness_p99_us"] == 50.0 and ref["lateness_p99_us_runs"] == [7.0, 215.0, 50.0]
+    assert ref["runs"] == 3 and ref["log_dropped_chunks"] == 1  # the worst run's, not the first's
