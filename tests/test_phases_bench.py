@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from bench import phases
+from bench._phase_probe import PHASES
 
 
 def test_phases_take_the_probes_reads_off_and_nest_the_port_in_the_endpoint() -> None:
     ticks = 1000
-    calls = {k: ticks for _, _, _, k, _ in phases.PHASES}
+    calls = {k: ticks for _, _, _, k, _ in PHASES}
     calls["ticks"] = 1
     us = 1000  # ns per µs
     cpu = {"ticks": 300 * us * ticks, "ticks_process": 310 * us * ticks, "wait": 100 * us * ticks}
