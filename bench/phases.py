@@ -3,7 +3,7 @@
 ``bench.cpu`` says how much CPU each ``teleop run`` process takes against the floor; this says
 where it goes.  It runs ``teleop run`` (UDP, authenticated, logs on, the ``protocol`` scenario) with
 a probe (``bench._phase_probe``) loaded in each process at start, which times the loop's phases
-with the thread's CPU clock: the wait (sleep and spin), the socket's read, the endpoint's receive,
+with the thread's CPU clock: the sleep, the spin, the socket's read, the endpoint's receive,
 its tick (the port's tick within it), the sends, the log's watch and the events; ``other`` is the
 ticking's CPU that no phase took (the event loop's pass each tick and the loop's own lines),
 ``ticking`` the main thread's CPU over the ticks, ``threads`` the other threads' over the same span

@@ -11,10 +11,10 @@ def test_phases_take_the_probes_reads_off_and_nest_the_port_in_the_endpoint() ->
     calls = {k: ticks for _, _, _, k, _ in PHASES}
     calls["ticks"] = 1
     us = 1000  # ns per µs
-    cpu = {"ticks": 300 * us * ticks, "ticks_process": 310 * us * ticks, "wait": 100 * us * ticks}
+    cpu = {"ticks": 300 * us * ticks, "ticks_process": 310 * us * ticks, "spin": 100 * us * ticks}
     cpu |= {"endpoint_tick": 80 * us * ticks, "port_tick": 70 * us * ticks, "socket_read": 20 * us * ticks}
     f = phases.figures({"cpu_ns": cpu, "calls": calls, "clock_read_ns": 500.0}, ticks)
-    assert f["wait"] == 99.0  # two reads of 0.5 µs a call taken off
+    assert f["spin"] == 99.0  # two reads of 0.5 µs a call taken off
     assert f["port_tick"] == 69.0 and f["endpoint_tick"] == 78.0  # and the nested port's two
     assert f["process"] == 310.0 and f["threads"] == 10.0
     wrapped = sum(calls.values()) - 1

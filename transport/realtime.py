@@ -210,6 +210,18 @@ class Ticker:
 
     def wait(self) -> int:
         """Block until tick ``k``'s deadline; returns ``k`` (which may jump after a skip)."""
+        self.sleep()
+        return self.spin_to_deadline()
+
+    @property
+    def next_deadline(self) -> int:
+        """The deadline of the tick :meth:`wait` (or :meth:`spin_to_deadline`) returns next."""
+        return self.t0 + self.k * self.period
+
+    def sleep(self) -> None:
+        """The first half of :meth:`wait`: sleep until ``spin`` before the next deadline.  A caller
+        may then do work that need not wait for the deadline (``transport.session`` reads what
+        arrived), in time the spin would otherwise burn, before :meth:`spin_to_deadline`."""
         clock = self.clock
         deadline = self.t0 + self.k * self.period
         remaining = deadline - clock()
@@ -218,6 +230,11 @@ class Ticker:
             time.sleep((remaining - self.spin) / 1e9)
             if self.learner is not None:
                 self.spin = self.learner.add(clock() - wake)
+
+    def spin_to_deadline(self) -> int:
+        """The second half of :meth:`wait`: spin until the deadline; returns the tick."""
+        clock = self.clock
+        deadline = self.t0 + self.k * self.period
         while clock() < deadline:
             pass
         now = clock()

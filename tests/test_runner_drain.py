@@ -1,0 +1,65 @@
+"""The runner's early drain (transport.session._Runner.drain_early): datagrams that arrived before
+the spin are fed in the spin's time while each one's expected cost ends before the limit; the rest
+wait, in order, for the drain at the deadline."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from transport.session import EARLY_COST_START_NS, _Runner
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.t = 0
+
+    def __call__(self) -> int:
+        return self.t
+
+
+class _Transport:
+    def __init__(self, batches: list[list[tuple[bytes, Any, int]]]) -> None:
+        self.batches = batches
+
+    def drain(self) -> list[tuple[bytes, Any, int]]:
+        return self.batches.pop(0) if self.batches else []
+
+
+class _Endpoint:
+    """Feeding a datagram costs ``cost`` ns of the fake clock."""
+
+    def __init__(self, clock: _Clock, cost: int) -> None:
+        self.clock, self.cost = clock, cost
+        self.fed: list[bytes] = []
+
+    def receive_datagram(self, data: bytes, addr: Any, t_rx: int) -> None:
+        self.fed.append(data)
+        self.clock.t += self.cost
+
+
+def _runner(batches: list[list[tuple[bytes, Any, int]]], cost: int) -> tuple[Any, _Endpoint]:
+    r: Any = object.__new__(_Runner)  # only the drain's state: no socket, log or endpoint to build
+    clock = _Clock()
+    r.clock, r.tr, r._pending, r._rx_cost_ns = clock, _Transport(batches), [], EARLY_COST_START_NS
+    r.ep = _Endpoint(clock, cost)
+    return r, r.ep
+
+
+def test_the_early_drain_stops_before_the_limit_and_the_deadline_drain_feeds_the_rest_in_order() -> None:
+    got = [(bytes([i]), ("h", 1), i) for i in range(10)]
+    r, ep = _runner([got, [(b"late", ("h", 1), 99)]], cost=20_000)
+    r.drain_early(until_ns=100_000)
+    early = len(ep.fed)
+    assert 1 <= early < 10 and ep.fed == [bytes([i]) for i in range(early)]
+    assert ep.clock.t <= 100_000  # none started that its expected cost would carry past the limit
+    r.drain()
+    assert ep.fed == [bytes([i]) for i in range(10)] + [b"late"] and r._pending == []
+
+
+def test_the_early_drain_learns_the_cost_of_a_datagram() -> None:
+    r, ep = _runner([[(b"x", None, 0)] * 50], cost=2_000)
+    r.drain_early(until_ns=10**9)
+    assert len(ep.fed) == 50 and 2_000 <= r._rx_cost_ns < 3_000
+    r, ep = _runner([[(b"x", None, 0)] * 3], cost=1)
+    r.drain_early(until_ns=EARLY_COST_START_NS - 1)  # the first guess alone does not fit
+    assert ep.fed == [] and len(r._pending) == 3
