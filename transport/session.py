@@ -203,10 +203,11 @@ class _Runner:
         ticker.start(ep.t0_ns, ep.k0)
         session = ep.params
         while ep.running and not self.stop.requested and self.ticker is ticker:
-            ticker.sleep()  # until the spin before the deadline; then in the spin's time:
-            await asyncio.sleep(0)  # one event-loop pass (signals, the live view, Zenoh's wake-ups)
+            ticker.sleep()  # until the spin before the deadline; then, in the spin's time,
             self.drain_early(ticker.next_deadline - EARLY_MARGIN_NS)  # what arrived so far
             k = ticker.spin_to_deadline()
+            # One event-loop pass (signals, the live view), not bounded, so after the deadline.
+            await asyncio.sleep(0)
             self.drain()  # what arrived during the spin, and what the early drain left
             await self.grace(k, ticker)
             if not ep.running or ep.params is not session:  # a takeover replaced the session
