@@ -25,9 +25,10 @@ from tests.test_watchdog_matrix import IMPAIRMENTS
 from tests.test_watchdog_matrix import run as run_matrix_case
 
 DT = 1e-3
-#: The frontier point (bench/frontier0.py runs it on the full 15 s).
+#: pdr's default frontier point (bench/frontier0.py's grid has it).
 WINNER = "pdr:0.8"
-#: The per-direction point (backward band 1 %, reserve scales 128 % forward and 86 % backward).
+#: The per-direction point (backward band 1 %, reserve scales 128 % forward and 86 % backward):
+#: bench/frontier0.py's frontier, which it runs through the matrix on the full 15 s.
 SPLIT = "pdr:0.8:100:1:128:86"
 
 #: Two waves per tick (the operator's g_l, the teleoperator's h_r), DoF 1..3, beyond the range.
