@@ -36,9 +36,11 @@ PDR = (
     "pdr:1.5:1000",
     "pdr:0.7",
     "pdr:0.8",
+    # Per direction: backward band 1 %, reserve scale 128 % forward and 86 % backward.
+    "pdr:0.8:100:1:128:86",
 )
 REFERENCES = ("none", "ids:2", "pdp:1", "pdp:2")
-TDPA = ("none", "pdp:1", "pdr:0.8")
+TDPA = ("none", "pdp:1", "pdr:0.8", "pdr:0.8:100:1:128:86")
 TARGET_PPS = 40.0
 
 

@@ -55,13 +55,16 @@ DEFAULT_FULL_SCALE = 16.0
 
 MAX_K = 100_000  # ticks (100 s at 1 kHz): any longer frame, horizon or heartbeat is meaningless
 MAX_BAND_PCT = 100.0
+MAX_RESERVE_PCT = 1000.0  # pdr's FR, BR: the reserve scale of a direction, percent of the default
 
 ACCEPTED = (
-    "none | ids:K | eds:K | cq:BITS[:RANGE] | pd:PCT[:MAXMS] | pdp:PCT[:MAXMS] | pdr:PCT[:MAXMS] | "
-    "dct:N:M  "
+    "none | ids:K | eds:K | cq:BITS[:RANGE] | pd:PCT[:MAXMS] | pdp:PCT[:MAXMS] | "
+    "pdr:PCT[:MAXMS[:BPCT[:FR:BR]]] | dct:N:M  "
     f"(K integer 1..{MAX_K} ticks; BITS integer 2..{RAW_BITS}; RANGE full scale > 0, default session "
     f"range; PCT deadband in percent, 0 < PCT <= {MAX_BAND_PCT:g}; MAXMS heartbeat in ms, integer "
-    f"1..{MAX_K}, default {DEFAULT_HEARTBEAT_MS}; N frame 2..{MAX_FRAME} ticks, M coefficients 1..N)"
+    f"1..{MAX_K}, default {DEFAULT_HEARTBEAT_MS}; BPCT pdr's backward band, as PCT, default PCT; "
+    f"FR, BR pdr's forward and backward reserve scale in percent, 0..{MAX_RESERVE_PCT:g}, default 100; "
+    f"N frame 2..{MAX_FRAME} ticks, M coefficients 1..N)"
 )
 
 
@@ -214,9 +217,12 @@ def _deadband(name: str) -> Callable[[str, list[str], int, float], Codec]:
     predictive = name in ("pdp", "pdr")
 
     def make(spec: str, params: list[str], dof: int, fs: float) -> Codec:
+        if name == "pdr" and len(params) in (3, 5):
+            return _pdr(spec, params, dof, fs)
         if len(params) not in (1, 2):
+            extra = " (pdr: then BPCT, then FR and BR)" if name == "pdr" else ""
             raise CodecError(
-                f"codec {spec!r}: '{name}' takes PCT and an optional MAXMS; accepted: {ACCEPTED}"
+                f"codec {spec!r}: '{name}' takes PCT and an optional MAXMS{extra}; accepted: {ACCEPTED}"
             )
         try:
             pct = float(params[0])
@@ -260,6 +266,46 @@ def _deadband(name: str) -> Callable[[str, list[str], int, float], Codec]:
         )
 
     return make
+
+
+def _pdr(spec: str, params: list[str], dof: int, fs: float) -> Codec:
+    """``pdr:PCT:MAXMS:BPCT[:FR:BR]``: the per-direction settings (``teleop.codecs.reflective``)."""
+    nums = []
+    for what, text in zip(("PCT", "MAXMS", "BPCT", "FR", "BR"), params, strict=False):
+        if what == "MAXMS":
+            nums.append(float(_int_param(spec, text, "MAXMS", 1, MAX_K)))
+            continue
+        try:
+            v = float(text)
+        except ValueError:
+            raise CodecError(f"codec {spec!r}: {what} must be a number, got {text!r}") from None
+        if what in ("PCT", "BPCT") and not 0 < v <= MAX_BAND_PCT:
+            raise CodecError(f"codec {spec!r}: {what} must be in (0, {MAX_BAND_PCT:g}], got {v:g}")
+        if what in ("FR", "BR") and not 0 <= v <= MAX_RESERVE_PCT:
+            raise CodecError(f"codec {spec!r}: {what} must be in [0, {MAX_RESERVE_PCT:g}], got {v:g}")
+        nums.append(v)
+    pct, hb, bpct = nums[0], int(nums[1]), nums[2]
+    fr, br = (nums[3], nums[4]) if len(nums) == 5 else (100.0, 100.0)
+    # Canonical: the shortest form that means the same (pdr:0.8:100:0.8 is pdr:0.8).
+    tail = [f"{bpct:g}", f"{fr:g}", f"{br:g}"] if (fr, br) != (100.0, 100.0) else [f"{bpct:g}"]
+    if tail == [f"{pct:g}"]:
+        tail = []
+    canon = ":".join(["pdr", f"{pct:g}", *([str(hb)] if tail or hb != DEFAULT_HEARTBEAT_MS else []), *tail])
+    raw = RawFormat(fs)
+    return Codec(
+        canon,
+        "pdr",
+        7,
+        "deadband",
+        dof,
+        raw,
+        hb,
+        RAW_BITS,
+        lambda: ReflectiveEncoder(raw, dof, pct, hb, bpct, (fr, br)),
+        lambda q, o: ReflectiveDecoder(raw, dof, q, o),
+        values=2,
+        event_based=True,
+    )
 
 
 def _dct(spec: str, params: list[str], dof: int, fs: float) -> Codec:

@@ -1,4 +1,5 @@
-"""Reflection-aware predictive deadband ``pdr:PCT[:MAXMS]`` on wave variables (direct LDR, on events).
+"""Reflection-aware predictive deadband ``pdr:PCT[:MAXMS[:BPCT[:FR:BR]]]`` on wave variables (direct LDR,
+on events).
 
 *Why.*  In wave variables each side's outgoing wave contains the reflection of the one it receives:
 by eq. (3), at the operator ``g_l = h_l + sqrt(2/b) F_hsi`` and at the teleoperator
@@ -37,6 +38,14 @@ and slowly, so the sender shrinks each new value by ``RESERVE_SCALE * RANGE / sq
 reserve is below ``RESERVE_TICKS`` ticks of the current power: the reserve then grows like
 ``sqrt(E_in)`` (``R ~ 4 scale sqrt(E_in)``), the profile that keeps ``W^2 / int v^2`` smallest for a
 given hold length over the whole run.  Measured on the protocol scenario: see the codec guide.
+
+*Per direction* (optional ``BPCT``, ``FR``, ``BR``): the backward band in percent (default ``PCT``)
+and each direction's reserve scale in percent of ``RESERVE_SCALE`` (default 100 each).  Nearly all
+of ``pdr``'s cost in eq. (7) is its reserve (without the shrink, ``pdr:0.8`` gives I = 3.29e-4, the
+uncoded 3.25e-4, at 596 packets/s), and the forward direction sends more; so moving reserve from
+the backward to the forward direction, and widening the backward band (whose errors the reflection
+model keeps small), trades the two directions' packets at about the same I.  Each encoder learns
+its direction in ``pair``; unpaired it keeps the forward settings.
 """
 
 from __future__ import annotations
@@ -90,11 +99,23 @@ class Reflection:
 class ReflectiveEncoder(Encoder):
     """Sender side of ``pdr``; see the module docstring."""
 
-    def __init__(self, raw: RawFormat, dof: int, k_pct: float, heartbeat: int) -> None:
+    def __init__(
+        self,
+        raw: RawFormat,
+        dof: int,
+        k_pct: float,
+        heartbeat: int,
+        back_pct: float | None = None,
+        reserve_pct: tuple[float, float] = (100.0, 100.0),
+    ) -> None:
         self.raw = raw
         self.slope_raw = RawFormat(raw.full_scale * SLOPE_SCALE)
         self.full_scale = raw.full_scale
         self.k = k_pct / 100.0
+        self._back_k = (k_pct if back_pct is None else back_pct) / 100.0
+        self._reserve_pct = reserve_pct
+        # RESERVE_SCALE * 1.0 is RESERVE_SCALE bit for bit: the default schedule is unchanged.
+        self.reserve_scale = RESERVE_SCALE * (reserve_pct[0] / 100.0)
         self.floor = raw.full_scale * FLOOR_FRACTION
         self.heartbeat = heartbeat
         self.dof = dof
@@ -125,7 +146,11 @@ class ReflectiveEncoder(Encoder):
         sends, ``teleop.wire``).  Only the backward wave is predicted as a reflection: the
         teleoperator reflects what it receives (``h_r = g_r`` in free space), while the operator's
         hand, whose grip matches ``b``, absorbs it (``g_l`` does not follow ``h_l``).  Not on power
-        variables, where the waves of eq. 3 do not exist."""
+        variables, where the waves of eq. 3 do not exist.  It also sets the direction's band and
+        reserve scale (``BPCT``, ``FR``, ``BR``; the module docstring)."""
+        if direction == BACKWARD:
+            self.k = self._back_k
+            self.reserve_scale = RESERVE_SCALE * (self._reserve_pct[1] / 100.0)
         if isinstance(decoder, ReflectiveDecoder) and not self.power:
             if direction == BACKWARD:
                 self._dec = decoder  # the teleoperator: its wave refers to the g_r it played
@@ -192,7 +217,7 @@ class ReflectiveEncoder(Encoder):
             reserve = max(self._e_in - self._e_played, 0.0)
             target = RESERVE_TICKS * xx
             if reserve < target:
-                early = RESERVE_SCALE * self.full_scale / math.sqrt(self._e_in)
+                early = self.reserve_scale * self.full_scale / math.sqrt(self._e_in)
                 shrink = min(RESERVE_MAX_SHRINK, early + RESERVE_FLOOR)
                 p = x * (1.0 - shrink * (1.0 - reserve / target))
             if float(p.dot(p)) > reserve:  # eq. (10): the send tick plays at most the reserve
