@@ -18,8 +18,9 @@ each transport and one after each class, and a case's p99 is held to their media
 Per case, from the teleoperator's ROLE.json: the loop's lateness p99 (and its ratio to the
 baseline's), overruns, link-lost events, the energy margins, the log's dropped chunks, what the
 endpoint refused (oversize, throttled), what the transport refused by length, the socket's receive
-buffer (asked and obtained) and the kernel's drops on it (SO_MEMINFO, as the process saw them, and
-``/proc/net/udp``); and the rate the flood reached (sends attempted).  Every datagram goes to
+buffer (asked and obtained) and the kernel's drops on it (SO_MEMINFO at the session's end: what its
+socket filter refused and what a full buffer dropped), the host's full-buffer drops over the
+session (``/proc/net/snmp``), the filter's state; and the rate the flood reached (sends attempted).  Every datagram goes to
 127.0.0.1 only; each flood is bounded in count and time.
 
     python -m bench.flood [--rates 10000 50000 100000] [--duration 8] [--out bench/results/flood.json]
@@ -71,16 +72,6 @@ def _rcvbuf_errors() -> int:
             if line.startswith("Udp:")
         ]
         return int(rows[1][rows[0].index("RcvbufErrors")])
-    return 0
-
-
-def _kernel_drops(port: int) -> int:
-    want = f"0100007F:{port:04X}"
-    with contextlib.suppress(OSError):
-        for line in Path("/proc/net/udp").read_text().splitlines()[1:]:
-            f = line.split()
-            if len(f) >= 13 and f[1] == want:
-                return int(f[12])
     return 0
 
 
@@ -227,12 +218,10 @@ def session(
              "--codec", "eds:50", "--duration", str(duration), "--quiet"],
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
-        drops0 = _kernel_drops(port) if transport == "udp" else 0
         overflow0 = _rcvbuf_errors()
         rc_op = op.wait(timeout=duration + 60)
         if proc is not None:
             proc.join(10)
-        drops = _kernel_drops(port) - drops0 if transport == "udp" else None
         overflow = _rcvbuf_errors() - overflow0
         rc_to = to.wait(timeout=60)
         summary = (
@@ -262,11 +251,11 @@ def session(
         "handshake_throttled": summary.get("handshake_throttled"),
         "transport_oversize": rx.get("oversize"),
         "foreign": rx.get("foreign"),
-        # /proc/net/udp over the session (None: not UDP): what the socket's filter refused and what a
-        # full buffer dropped; the latter alone (host-wide) in rcvbuf_errors.
-        "kernel_drops": drops,
+        # SO_MEMINFO at the session's end (None: not UDP): what the socket's filter refused and what a
+        # full buffer dropped; the latter alone (host-wide) in rcvbuf_errors.  (/proc/net/udp, read
+        # here before, lost the socket when the teleoperator exited first.)
+        "kernel_drops": rx.get("kernel_drops"),
         "rcvbuf_errors": overflow,
-        "socket_kernel_drops": rx.get("kernel_drops"),  # SO_MEMINFO: what the process saw
         "rcvbuf_asked": rx.get("rcvbuf_asked"),
         "rcvbuf_bytes": rx.get("rcvbuf_bytes"),
         "drain_budget_hits": rx.get("drain_budget_hits"),

@@ -722,6 +722,65 @@ def cpu() -> Table:
     )
 
 
+def phases() -> Table:
+    """bench.phases: each process's loop, phase by phase, in µs of CPU per tick."""
+    b = Builder("phases.json")
+    rows: list[tuple[Cell, ...]] = []
+    for i, c in enumerate(b.doc["cases"]):
+        for role in ("operator", "teleoperator"):
+            x = f"cases[{i}].{role}.us_per_tick"
+            f = b.doc["cases"][i][role]["us_per_tick"]
+            rows.append(
+                (
+                    f"`{c['codec']}`",
+                    role,
+                    b.one(f"{x}.sleep", ".1f"),
+                    b.one(f"{x}.spin", ".1f"),
+                    ("{}", (b.fig([f"{x}.socket_read", f"{x}.endpoint_receive"], ".1f", "sum"),)),
+                    b.one(f"{x}.port_tick", ".1f"),
+                    ("{}", (b.fig([f"{x}.endpoint_tick"], ".1f", scale=1.0),)),
+                    ("{}", (b.fig([f"{x}.endpoint_send", f"{x}.socket_send"], ".1f", "sum"),)),
+                    (
+                        "{}",
+                        (b.fig([f"{x}.{k}" for k in ("loop_timing", "log_watch", "events")], ".1f", "sum"),),
+                    ),
+                    b.one(f"{x}.other", ".1f"),
+                    b.one(f"{x}.process", ".1f") if "process" in f else "-",
+                    (
+                        "{} / {}",
+                        (
+                            b.fig(f"cases[{i}].port_us.hot.{role}", ".1f"),
+                            b.fig(f"cases[{i}].port_us.paced.{role}", ".1f"),
+                        ),
+                    ),
+                )
+            )
+    return Table(
+        "phases",
+        "phases.json",
+        "python -m bench.phases",
+        (
+            "codec",
+            "process",
+            "sleep",
+            "spin",
+            "read + receive",
+            "port tick",
+            "endpoint tick (with the port's)",
+            "send",
+            "timing, log, events",
+            "other",
+            "process, all threads",
+            "port alone: back to back / paced",
+        ),
+        tuple(rows),
+        note=(
+            f" Microseconds of CPU per tick, {b.doc['duration_s']:g} s `teleop run` sessions at"
+            f" {b.doc['cases'][0]['dof']} DoF; the probe's clock reads taken off."
+        ),
+    )
+
+
 def _repeats(doc: dict[str, Any]) -> str:
     """How often the targets were met when the invocation was repeated (``repeats``, if recorded)."""
     r = doc.get("repeats")
@@ -787,6 +846,7 @@ TABLES: dict[str, Callable[[], Table]] = {
     "mujoco-step": mujoco_step,
     "tick": tick,
     "cpu": cpu,
+    "phases": phases,
 }
 
 

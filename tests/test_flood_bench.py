@@ -79,7 +79,6 @@ def _fake_session(calls: list[tuple[Any, ...]]) -> Any:
             "transport_oversize": 7 if kind in ("zenoh_oversize", "big_session") else 0,
             "kernel_drops": 0 if udp else None,
             "rcvbuf_errors": 0,
-            "socket_kernel_drops": 0 if udp else None,
             "rcvbuf_asked": 1024 * rcvbuf_kib if udp and rcvbuf_kib else None,
             "rcvbuf_bytes": 2048 * rcvbuf_kib if udp and rcvbuf_kib else None,
         }
