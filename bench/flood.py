@@ -20,8 +20,8 @@ baseline's), overruns, link-lost events, the energy margins, the log's dropped c
 endpoint refused (oversize, throttled), what the transport refused by length, the socket's receive
 buffer (asked and obtained) and the kernel's drops on it (SO_MEMINFO at the session's end: what its
 socket filter refused and what a full buffer dropped), the host's full-buffer drops over the
-session (``/proc/net/snmp``), the filter's state; and the rate the flood reached (sends attempted).  Every datagram goes to
-127.0.0.1 only; each flood is bounded in count and time.
+session (``/proc/net/snmp``), the filter's state; and the rate the flood reached (sends attempted).
+Every datagram goes to 127.0.0.1 only; each flood is bounded in count and time.
 
     python -m bench.flood [--rates 10000 50000 100000] [--duration 8] [--out bench/results/flood.json]
 """
@@ -124,7 +124,15 @@ def _paced(send: Callable[[int], None], rate: float, seconds: float) -> int:
 
 
 def flood(
-    port: int, kind: str, data: list[bytes], rate: float, start_at: float, end_at: float, sent: Any, secs: Any
+    port: int,
+    kind: str,
+    data: list[bytes],
+    rate: float,
+    start_at: float,
+    end_at: float,
+    sent: Any,
+    secs: Any,
+    cpus: set[int] | None = None,
 ) -> None:
     """The flood process: ``rate`` datagrams a second of ``data`` (``payloads(kind)``, made by the
     parent before the session) to 127.0.0.1:``port`` (a UDP port, or for ``zenoh_oversize`` the
@@ -132,6 +140,8 @@ def flood(
     (shared by the processes).  The process starts before the session, so its interpreter's start
     and the payloads' making (200 handshakes) do not land in the measured loop's ticks.  The count
     it reached goes to ``sent``, the seconds it flooded to ``secs``."""
+    if cpus is not None:
+        os.sched_setaffinity(0, cpus)
     time.sleep(max(0.0, start_at - time.monotonic()))
     t0 = time.monotonic()
     if kind in ZENOH_CLASSES:
@@ -182,6 +192,18 @@ def _transport_args(transport: str, role: str, port: int) -> list[str]:
     return ["--peer", f"{LOOPBACK}:{port}", "--listen", f"{LOOPBACK}:0"]
 
 
+#: ``--pin``: the session's processes (and their log writers) on CPU 0, the flood on CPU 1, as on a
+#: robot whose real-time loops have a core of their own and a flood arrives through a NIC whose
+#: interrupts another core serves.  On loopback the receive path (the socket filter included) runs in
+#: the *sender's* time, so unpinned the bench's own attacker competes with the loops for the two
+#: cores, which a remote attacker would not.
+SESSION_CPUS, FLOOD_CPUS = {0}, {1}
+
+
+def _pinned(pin: bool) -> Callable[[], None] | None:
+    return (lambda: os.sched_setaffinity(0, SESSION_CPUS)) if pin else None
+
+
 def session(
     key_file: str,
     psk: bytes,
@@ -190,6 +212,7 @@ def session(
     duration: float,
     transport: str = "udp",
     rcvbuf_kib: int | None = None,
+    pin: bool = False,
 ) -> dict[str, Any]:
     """One session of ``duration`` s over ``transport``, flooded (``kind``) from 1 s after its start,
     or not."""
@@ -201,7 +224,7 @@ def session(
     t0 = time.monotonic()  # the operator starts 1.5 s after the teleoperator, the session soon after
     if kind is not None:  # started first, so its interpreter's start lands before the session's ticks
         start_at, end_at = t0 + 3.0, t0 + 1.5 + duration - 0.5  # before the session's end
-        args = (port, kind, data or [], rate, start_at, end_at, sent, secs)
+        args = (port, kind, data or [], rate, start_at, end_at, sent, secs, FLOOD_CPUS if pin else None)
         proc = ctx.Process(target=flood, args=args, daemon=True)
         proc.start()
     with tempfile.TemporaryDirectory(prefix="teleop-flood-") as tmp:
@@ -210,13 +233,13 @@ def session(
             [*TELEOP, "teleoperator", "--key-file", key_file,
              *_transport_args(transport, "teleoperator", port), "--log", str(logs), "--quiet",
              *(["--udp-rcvbuf", str(rcvbuf_kib)] if rcvbuf_kib is not None else [])],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, preexec_fn=_pinned(pin),
         )  # fmt: skip
         time.sleep(max(0.0, t0 + 1.5 - time.monotonic()))
         op = subprocess.Popen(
             [*TELEOP, "operator", "--key-file", key_file, *_transport_args(transport, "operator", port),
              "--codec", "eds:50", "--duration", str(duration), "--quiet"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, preexec_fn=_pinned(pin),
         )  # fmt: skip
         overflow0 = _rcvbuf_errors()
         rc_op = op.wait(timeout=duration + 60)
@@ -298,6 +321,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--udp-rcvbuf", type=int, metavar="KIB", help="the teleoperator's --udp-rcvbuf (default: its own)"
     )
+    ap.add_argument(
+        "--pin", action="store_true", help="the session on CPU 0, the flood on CPU 1 (see SESSION_CPUS)"
+    )
     ap.add_argument("--out", default="bench/results/flood.json")
     a = ap.parse_args(argv)
     if a.duration < 4:
@@ -309,7 +335,7 @@ def main(argv: list[str] | None = None) -> int:
         runs: dict[str, list[dict[str, Any]]] = {}
 
         def baseline(transport: str) -> None:
-            base = session(key_file, psk, None, 0, a.duration, transport, a.udp_rcvbuf)
+            base = session(key_file, psk, None, 0, a.duration, transport, a.udp_rcvbuf, a.pin)
             runs.setdefault(transport, []).append(base)
             print(
                 f"baseline ({transport}): lateness p99 {base['lateness_p99_us']} us, overruns"
@@ -323,7 +349,7 @@ def main(argv: list[str] | None = None) -> int:
             if transport not in runs:
                 baseline(transport)
             for rate in a.rates:
-                cases.append(session(key_file, psk, kind, rate, a.duration, transport, a.udp_rcvbuf))
+                cases.append(session(key_file, psk, kind, rate, a.duration, transport, a.udp_rcvbuf, a.pin))
                 _print_case(cases[-1])
             baseline(transport)  # one after each class's rates: the reference is their median
     bases = {t: _reference(r) for t, r in runs.items()}
@@ -346,6 +372,7 @@ def main(argv: list[str] | None = None) -> int:
         "command": "python -m bench.flood " + " ".join(argv or sys.argv[1:]),
         "duration_s": a.duration,
         "udp_rcvbuf_kib": a.udp_rcvbuf,
+        "pinned": {"session": sorted(SESSION_CPUS), "flood": sorted(FLOOD_CPUS)} if a.pin else None,
         "baseline": bases.get("udp"),
         "baselines": bases,
         "cases": cases,

@@ -59,6 +59,7 @@ def _fake_session(calls: list[tuple[Any, ...]]) -> Any:
         duration: float,
         transport: str = "udp",
         rcvbuf_kib: int | None = None,
+        pin: bool = False,
     ) -> dict[str, Any]:
         calls.append((kind, transport, rcvbuf_kib))
         udp = transport == "udp"
