@@ -95,6 +95,10 @@ def test_counts_and_compression(tmp_path: Path, codec: str, per_dir: int, c_payl
         assert abs(loop["wall_s"] - 3.0) < 0.1, role  # at 1 kHz of wall-clock time
         assert loop["period_error_us"]["p50"] < 50, role
         assert not _alive(p["pid"]), f"{role} process {p['pid']} still running"
+        summary = json.loads((tmp_path / "run" / "logs" / f"{role}.json").read_text())
+        f = summary["received"]["filter"]  # the kernel socket filter followed the endpoint's admission
+        assert f["updates"] >= 1 and f["error"] is None, role
+        assert f["strangers"] == ("none" if role == "operator" else "handshake"), role
     tr = rep["transparency"]
     assert 0 <= tr["I"] < 1.0  # bounded: an unstable or ringing loop gives I >> 1
     if _misses(rep) == 0:

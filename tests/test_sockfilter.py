@@ -167,3 +167,20 @@ def test_the_endpoints_admission_follows_the_session() -> None:
     a = to.ep.admission(to.clock(net.now))
     assert (a.peer, a.strangers) == (None, Strangers.ALL)
     assert op.ep.admission(0).strangers == Strangers.NONE and auth.HANDSHAKE == 0
+
+
+def test_a_filter_the_kernel_refuses_is_reported_once_and_the_loop_refuses_instead(
+    socks: Socks, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    tr, peer, eve = socks
+
+    def refuse(sock: socket.socket, prog: object) -> None:
+        raise OSError(22, "Invalid argument")
+
+    monkeypatch.setattr("transport.sockfilter.attach", refuse)
+    tr.admit(Admission(100, peer.getsockname(), Strangers.NONE, 60, 1))
+    tr.admit(Admission(100, peer.getsockname(), Strangers.HANDSHAKE, 60, 1))
+    assert tr.filter_updates == 0 and len(tr.warnings) == 1 and "no kernel socket filter" in tr.warnings[0]
+    assert tr.report()["filter"]["error"] == "OSError: [Errno 22] Invalid argument"
+    got = _exchange(tr, [(peer, b"p"), (eve, b"junk")])  # nothing refused in the kernel: both read
+    assert len(got) == 2 and kernel_drops(sock_of(tr)) == 0
