@@ -66,8 +66,8 @@ def _clock_read_ns(n: int = 20_000) -> float:
 
 #: (module, class, method, phase, async).  ``ticks`` is the whole ticking (its CPU minus the phases is
 #: the event loop's pass, a grace wait's sleeps and the loop's own lines); ``sleep`` is the sleep's CPU
-#: (the system call), ``spin`` the spin's.  The socket's reads and the endpoint's receives include the few outside the ticks
-#: (the handshake's, the linger's).
+#: (the system call), ``spin`` the spin's.  The socket's reads and the endpoint's receives include
+#: the few outside the ticks (the handshake's, the linger's).
 PHASES = (
     ("transport.session", "_Runner", "ticks", "ticks", True),
     ("transport.realtime", "Ticker", "sleep", "sleep", False),

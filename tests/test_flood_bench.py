@@ -147,3 +147,19 @@ def test_the_reference_is_the_median_of_the_baselines() -> None:
     ref = flood._reference(runs)
     assert ref["lateness_p99_us"] == 50.0 and ref["lateness_p99_us_runs"] == [7.0, 215.0, 50.0]
     assert ref["runs"] == 3 and ref["log_dropped_chunks"] == 1  # the worst run's, not the first's
+
+
+def test_a_case_of_several_runs_is_its_median_run_and_the_worst_of_what_must_hold() -> None:
+    runs = [
+        {
+            "lateness_p99_us": p,
+            "link_lost_events": ll,
+            "log_dropped_chunks": 0,
+            "min_margin_J": m,
+            "completed": True,
+        }
+        for p, ll, m in ((300.0, 0, 0.0), (90.0, 1, 0.0), (120.0, 0, -1.0))
+    ]
+    c = flood._combine(runs)
+    assert c["lateness_p99_us"] == 120.0 and c["lateness_p99_us_runs"] == [300.0, 90.0, 120.0]
+    assert c["link_lost_events"] == 1 and c["min_margin_J"] == -1.0 and c["completed"]
