@@ -208,9 +208,9 @@ def fronts() -> Table:
     )
 
 
-def flood() -> Table:
+def flood(source: str = "flood.json", command: str = "python -m bench.flood --repeats 3") -> Table:
     """bench.flood: the teleoperator's loop under each class of flood at each rate."""
-    b = Builder("flood.json")
+    b = Builder(source)
     # One baseline per transport flooded ("baselines"); a file before Zenoh's class has "baseline" only.
     bases = {k: f"baselines.{k}" for k in b.doc["baselines"]} if "baselines" in b.doc else {"udp": "baseline"}
     rows: list[tuple[Cell, ...]] = [
@@ -251,10 +251,20 @@ def flood() -> Table:
                 b.one(f"{p}.rcvbuf_errors", ".0f") if "rcvbuf_errors" in c else "-",
             )
         )
+    base_note = ""
+    if "lateness_p99_us_runs" in resolve(b.doc, next(iter(bases.values()))):
+        spread = "; ".join(
+            f"{t} {min(r):.0f}-{max(r):.0f} us over {len(r)} runs"
+            for t, path in bases.items()
+            for r in [resolve(b.doc, f"{path}.lateness_p99_us_runs")]
+        )
+        base_note = f" The baseline is the median of the sessions without a flood ({spread})."
+    if b.doc.get("repeats", 1) > 1:
+        base_note += f" Each case's p99 is the median of {b.doc['repeats']} sessions."
     return Table(
-        "flood",
-        "flood.json",
-        "python -m bench.flood",
+        source.removesuffix(".json").replace("_", "-"),
+        source,
+        command,
         (
             "flood",
             "rate asked [/s]",
@@ -270,7 +280,7 @@ def flood() -> Table:
         ),
         tuple(rows),
         note=f" {b.doc['targets_met']} of {b.doc['cases_run']} cases met every target (p99 within 2x, no link"
-        " lost, margins >= 0, no log chunk dropped).",
+        f" lost, margins >= 0, no log chunk dropped).{base_note}",
     )
 
 
@@ -781,6 +791,29 @@ def phases() -> Table:
     )
 
 
+def cpu_ab() -> Table:
+    """The early drain's A/B in cpu.json: each process's CPU before and after, runs alternated."""
+    b = Builder("cpu.json")
+    ab = b.doc["ab_early_drain"]["cases"]
+    rows: list[tuple[Cell, ...]] = []
+    for case, runs in ab.items():
+        codec, dof, role = case.split(" ")
+        cells: list[Cell] = []
+        for v in ("before", "after"):
+            paths = [f"ab_early_drain.cases.{case}.{v}[{i}]" for i in range(len(runs[v]))]
+            figs = tuple(b.fig(p, ".1f", scale=100) for p in paths)
+            cells.append((" / ".join(["{}"] * len(figs)) + " %", figs))
+        rows.append((f"`{codec}`", dof, role, *cells))
+    return Table(
+        "cpu-ab",
+        "cpu.json",
+        "python -m bench.cpu (twice from each commit, alternated)",
+        ("codec", "DoF", "process", "CPU before (each run)", "CPU after (each run)"),
+        tuple(rows),
+        note=" Before: the commit before the early drain; after: with it; same host, same hour.",
+    )
+
+
 def _repeats(doc: dict[str, Any]) -> str:
     """How often the targets were met when the invocation was repeated (``repeats``, if recorded)."""
     r = doc.get("repeats")
@@ -847,6 +880,7 @@ TABLES: dict[str, Callable[[], Table]] = {
     "tick": tick,
     "cpu": cpu,
     "phases": phases,
+    "cpu-ab": cpu_ab,
 }
 
 
