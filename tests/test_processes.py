@@ -317,7 +317,9 @@ def test_impaired_run_watchdog_and_observed_link(tmp_path: Path) -> None:
         lk, pv = rep["link"][d], rep["passivity"][d]
         assert lk["spec"] == "delay 10ms 2ms loss 5%"
         assert 0.03 < lk["loss"] < 0.07  # 3000 packets at 5%: +-5 sigma
-        assert 9.5 < lk["delay_ms"]["mean"] < 13.0  # 10 ms +-2 ms, flushed on the 1 ms tick grid
+        # 10 ms +-2 ms, flushed on the 1 ms tick grid.  The median: a stall of the shared host delays
+        # every packet queued behind it and moves the mean (15.7 ms in one CI run), not the median.
+        assert 9.5 < lk["delay_ms"]["p50"] < 13.0 and lk["delay_ms"]["mean"] > 9.5
         assert lk["reordered"] > 0  # netem: jitter without rate reorders
         assert pv["violations"] > 0 and pv["controller_active_ticks"] == pv["violations"]
         assert pv["min_margin"] >= -1e-9
