@@ -8,7 +8,9 @@ its tick (the port's tick within it), the sends, the log's watch and the events;
 ticking's CPU that no phase took (the event loop's pass each tick and the loop's own lines),
 ``ticking`` the main thread's CPU over the ticks, ``threads`` the other threads' over the same span
 and ``process`` both.  Figures are microseconds of CPU per tick,
-with the probe's own clock reads taken off each phase (two per wrapped call).
+with the probe's own clock reads taken off each phase (two per wrapped call); the rest of the
+probe's cost (a Python call and two dict updates per wrapped call, about ten a tick) lands in
+``other``.
 
 Beside it, each side's port alone (``bench.tick``'s exchange, no I/O) timed two ways: back to back,
 as ``bench.tick`` does, and one tick a millisecond on the real loop's scheduler.  A tick that runs
