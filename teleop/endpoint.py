@@ -113,8 +113,10 @@ class Strangers(enum.IntEnum):
 class Admission(NamedTuple):
     """What the endpoint can take now, for a transport able to refuse datagrams before they reach
     the process (``transport.udp`` compiles it into a kernel socket filter).  Only a coarse
-    prefilter: the endpoint still checks every datagram that passes, so a transport that ignores
-    this (Zenoh, a test) changes what is counted where, never what is accepted.  Issue 21: a flood
+    prefilter: the endpoint still checks every datagram that passes, and a transport that ignores
+    this (Zenoh, a test) only counts the refusals elsewhere; the sampling under a flood may also
+    drop another operator's hello the limiter would have passed (during a session it could only
+    have been answered busy or with a retry, and hellos are retried).  Issue 21: a flood
     costs a syscall and a Python loop turn per datagram if it reaches the process, nothing if the
     kernel refuses it."""
 
