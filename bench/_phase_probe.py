@@ -34,10 +34,14 @@ def _wrap(cls: Any, name: str, key: str) -> None:
         try:
             return f(*a, **k)
         finally:
-            _acc[key] = _acc.get(key, 0) + _clock() - t
-            _calls[key] = _calls.get(key, 0) + 1
+            _count(key, _clock() - t)
 
     setattr(cls, name, timed)
+
+
+def _count(key: str, ns: int) -> None:
+    _acc[key] = _acc.get(key, 0) + ns
+    _calls[key] = _calls.get(key, 0) + 1
 
 
 def _awrap(cls: Any, name: str, key: str) -> None:
@@ -50,9 +54,8 @@ def _awrap(cls: Any, name: str, key: str) -> None:
         try:
             return await f(*a, **k)
         finally:
-            _acc[key] = _acc.get(key, 0) + _clock() - t
+            _count(key, _clock() - t)
             _acc[key + "_process"] = _acc.get(key + "_process", 0) + time.process_time_ns() - p
-            _calls[key] = _calls.get(key, 0) + 1
 
     setattr(cls, name, timed)
 

@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from bench._phase_probe import PHASES
-from bench.tick import DT, _port_pair
+from bench.tick import _port_pair, port_side_ticks
 from transport.realtime import Ticker
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -75,29 +75,10 @@ def port_sides(codec: str, dof: int, ticks: int, paced: bool) -> dict[str, float
     """Each side's port per tick (µs, median of the ticks after the first 100), as ``bench.tick``
     times it: back to back (``paced`` False, caches and predictors hot), or one tick a millisecond
     on the real loop's scheduler (sleep, spin, tick) as the processes run it."""
-    op, to = _port_pair(codec, dof, ticks, "protocol")
-    clock = time.perf_counter_ns
     ticker = Ticker(period_ns=1_000_000, spin_ns=100_000, min_spin_ns=100_000)
     ticker.start(time.monotonic_ns() + 1_000_000)
-    t_op: list[int] = []
-    t_to: list[int] = []
-    backward: list[bytes] = []
-    for k in range(ticks):
-        now = k * DT
-        if paced:
-            ticker.wait()
-        t0 = clock()
-        for d in backward:
-            op.receive(d, now, k)
-        forward = op.tick(k, now)
-        op.sent(k, now)
-        t1 = clock()
-        for d in forward:
-            to.receive(d, now, k)
-        backward = to.tick(k, now)
-        to.sent(k, now)
-        t_op.append(t1 - t0)
-        t_to.append(clock() - t1)
+    pair = _port_pair(codec, dof, ticks, "protocol")
+    t_op, t_to = port_side_ticks(*pair, ticks, ticker.wait if paced else None)
     return {
         "operator": statistics.median(t_op[100:]) / 1e3,
         "teleoperator": statistics.median(t_to[100:]) / 1e3,

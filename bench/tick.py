@@ -137,34 +137,44 @@ def bench_ports(spec: str, dof: int, ticks: int, repeats: int, passivity: str = 
     return out
 
 
+def port_side_ticks(
+    op: Port, to: Port, ticks: int, wait: Callable[[], object] | None = None
+) -> tuple[list[int], list[int]]:
+    """Each side's port, per tick (ns), as its process runs it: receive what arrived, tick, sent;
+    ``wait`` (if given) is called before each tick (``bench.phases`` paces it at 1 kHz)."""
+    clock = time.perf_counter_ns
+    t_op: list[int] = []
+    t_to: list[int] = []
+    backward: list[bytes] = []
+    for k in range(ticks):
+        now = k * DT
+        if wait is not None:
+            wait()
+        t0 = clock()
+        for d in backward:
+            op.receive(d, now, k)
+        forward = op.tick(k, now)
+        op.sent(k, now)
+        t1 = clock()
+        for d in forward:
+            to.receive(d, now, k)
+        backward = to.tick(k, now)
+        to.sent(k, now)
+        t_op.append(t1 - t0)
+        t_to.append(clock() - t1)
+    return t_op, t_to
+
+
 def bench_port_sides(
     spec: str, dof: int, ticks: int, repeats: int, scenario: str = "step"
 ) -> tuple[list[float], list[float]]:
-    """Each side's port per tick, as its process runs it: receive what arrived, tick, sent.  Same
-    exchange as :func:`bench_ports`, with a clock read around each side's share (~0.1 us each)."""
+    """Each side's port per tick (:func:`port_side_ticks`), the mean of each repeat, in µs; a clock
+    read around each side's share (~0.1 us each)."""
     ops, tos = [], []
-    clock = time.perf_counter_ns
     for _ in range(repeats):
-        op, to = _port_pair(spec, dof, ticks, scenario)
-        t_op = t_to = 0
-        backward: list[bytes] = []
-        for k in range(ticks):
-            now = k * DT
-            t0 = clock()
-            for d in backward:
-                op.receive(d, now, k)
-            forward = op.tick(k, now)
-            op.sent(k, now)
-            t1 = clock()
-            for d in forward:
-                to.receive(d, now, k)
-            backward = to.tick(k, now)
-            to.sent(k, now)
-            t2 = clock()
-            t_op += t1 - t0
-            t_to += t2 - t1
-        ops.append(t_op / ticks / 1e3)
-        tos.append(t_to / ticks / 1e3)
+        t_op, t_to = port_side_ticks(*_port_pair(spec, dof, ticks, scenario), ticks)
+        ops.append(sum(t_op) / ticks / 1e3)
+        tos.append(sum(t_to) / ticks / 1e3)
     return ops, tos
 
 
