@@ -346,6 +346,9 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--duration must be at least 4 s")
     if a.repeats < 1:
         ap.error("--repeats must be at least 1")
+    need, have = SESSION_CPUS | FLOOD_CPUS, os.sched_getaffinity(0)
+    if a.pin and not have >= need:
+        ap.error(f"--pin needs CPUs {sorted(need)}; this process may run on {sorted(have)}")
     psk = auth.generate_key()
     with tempfile.TemporaryDirectory(prefix="teleop-flood-key-") as kd:
         key_file = str(Path(kd) / "k")
