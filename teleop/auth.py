@@ -176,6 +176,20 @@ def handshake_key(psk: bytes) -> bytes:
     return hashlib.blake2s(b"handshake", key=_check_key(psk), person=_PERSON).digest()
 
 
+ZENOH_USER = "teleop"
+"""The Zenoh user of the peer-mode admission (PROTOCOL.md section 1; password :func:`zenoh_password`)."""
+
+
+def zenoh_password(robot: bytes) -> str:
+    """The Zenoh password (64 hex digits) for the robot key ``robot`` (:func:`robot_key`).
+
+    In peer mode a listening endpoint admits only Zenoh peers that present it (Zenoh's user-password
+    authentication), so a stranger cannot even open a Zenoh link to publish on the session's keys:
+    its samples are refused in Zenoh's own threads, before our callback holds the GIL for each.
+    Derived, like every key here, so the robot key itself never travels or keys another use."""
+    return hashlib.blake2s(b"zenoh usrpwd", key=_check_key(robot), person=_PERSON).hexdigest()
+
+
 def session_keys(psk: bytes, session: int, nonce_op: bytes, nonce_to: bytes) -> tuple[bytes, bytes]:
     """(forward key, backward key) of one session, bound to its id and both sides' fresh nonces.
 

@@ -128,3 +128,66 @@ def test_zenoh_inbox_is_bounded_in_bytes() -> None:
         tr._on_sample(Sample(n))
     got = tr.drain()
     assert len(got) == INBOX_BYTES // n and tr.inbox_overflow == 5
+
+
+async def _delivered(to: ZenohTransport, op: ZenohTransport, seconds: float) -> list[bytes]:
+    """What ``to`` receives of ``op``'s repeated sends for ``seconds`` (links come up in the while)."""
+    got: list[bytes] = []
+    give_up = time.monotonic() + seconds
+    while time.monotonic() < give_up and not got:
+        op.send(b"hi", ZENOH_PEER)
+        await to.wait(0.05)
+        got += [d for d, _, _ in to.drain()]
+    return got
+
+
+async def test_zenoh_peer_mode_admits_only_holders_of_the_robot_key() -> None:
+    """With the robot key, a listening peer refuses a stranger's Zenoh link (no credentials, or
+    another robot's), so not one of its samples reaches the callback; a key holder's do. One config
+    opens twice (the password file of each open is gone after it)."""
+    import tempfile
+    from pathlib import Path
+
+    from transport.zenoh import admission
+
+    key = auth.robot_key(auth.generate_key(), "arm")
+    other = auth.robot_key(auth.generate_key(), "arm")
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    config = make_config("peer", listen=[ep])
+    assert admission(config, key) == "peers holding the robot key (user-password)"
+    assert admission(config, None) == "any peer"
+    to = await ZenohTransport.open("teleoperator", "t/admit", config, key=key)
+    try:
+        assert to.report()["admission"] == "peers holding the robot key (user-password)"
+        assert json.loads(config.get_json("transport/auth/usrpwd"))["user"] is None  # put back
+        assert not list(Path(tempfile.gettempdir()).glob("teleop-zenoh-*"))
+        for stranger_key in (None, other):
+            stranger = make_config("peer", connect=[ep])
+            op = await ZenohTransport.open("operator", "t/admit", stranger, key=stranger_key)
+            try:
+                assert await _delivered(to, op, 1.5) == []
+                op.send(bytes(wire.MAX_DATAGRAM_BYTES + 1), ZENOH_PEER)
+                await asyncio.sleep(0.2)
+                assert to.oversize == 0  # refused with its link, never counted by our callback
+            finally:
+                op.close()
+        good = make_config("peer", connect=[ep])
+        for _ in range(2):  # the same config opens again
+            op = await ZenohTransport.open("operator", "t/admit", good, key=key)
+            try:
+                assert await _delivered(to, op, 5) == [b"hi"]
+            finally:
+                op.close()
+    finally:
+        to.close()
+
+
+def test_zenoh_admission_leaves_a_config_files_own_and_the_router_mode() -> None:
+    from transport.zenoh import admission
+
+    key = auth.robot_key(auth.generate_key(), "arm")
+    own = make_config("peer", listen=["tcp/127.0.0.1:0"])
+    own.insert_json5("transport/auth/usrpwd", json.dumps({"user": "u", "password": "p"}))
+    assert admission(own, key) == "user-password of the config file"
+    assert admission(make_config("client", connect=["tcp/127.0.0.1:7447"]), key) == "the router's"
+    assert len(auth.zenoh_password(key)) == 64 and auth.zenoh_password(key) != auth.zenoh_password(bytes(32))

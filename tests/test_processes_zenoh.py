@@ -59,6 +59,10 @@ def test_session_over_zenoh(tmp_path: Path, mode: str) -> None:
     for role, p in rep["processes"].items():
         assert p["loop"]["ticks"] + p["loop"]["skipped"] == 3000, role
         assert not _alive(p["pid"]), role
+        # Who could open a Zenoh link to it: in peer mode only holders of the robot key.
+        received = json.loads((tmp_path / "run" / "logs" / f"{role}.json").read_text())["received"]
+        admits = {"peer": "peers holding the robot key (user-password)", "client": "the router's"}
+        assert received["admission"] == admits[mode], role
     assert (
         "teleop.cli router"
         not in subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True).stdout

@@ -137,18 +137,18 @@ class _Zenoh(_Carrier):
 
     distinct_addresses = False
 
-    def __init__(self, role: str, prefix: str, config: Any) -> None:
+    def __init__(self, role: str, prefix: str, config: Any, key: bytes) -> None:
         import threading
 
         import zenoh
 
-        from .zenoh import ZENOH_PEER, _keys
+        from .zenoh import ZENOH_PEER, _keys, open_session
 
         tx, rx = _keys(role, prefix)
         self._peer = ZENOH_PEER
         self._lock = threading.Lock()
         self._q: list[tuple[bytes, Addr, int]] = []
-        self.session: Any = zenoh.open(config)
+        self.session: Any = open_session(config, key)  # in peer mode only key holders get a link
         self.sub: Any = self.session.declare_subscriber(rx, self._on)
         self.pub: Any = self.session.declare_publisher(
             tx,
@@ -395,7 +395,7 @@ def check_teleoperator(
     a: _Carrier
     b: _Carrier
     if zenoh is not None:
-        a, b = _Zenoh("operator", *zenoh), _Zenoh("operator", *zenoh)  # two operators on the keys
+        a, b = _Zenoh("operator", *zenoh, k_r), _Zenoh("operator", *zenoh, k_r)  # two operators
         peer = a.addr
         r = Result("teleoperator", f"zenoh {zenoh[0]}")
         time.sleep(0.5)  # the subscriptions propagate before anything is published
@@ -656,15 +656,15 @@ def check_operator(
     """Wait on ``listen`` (UDP), or on Zenoh with ``zenoh`` = (key prefix, ``zenoh.Config``), for the
     operator to check, and play the teleoperator for its session."""
     sock: _Carrier
+    k_r = auth.robot_key(psk, robot)
+    k_hs = auth.handshake_key(k_r)
     if zenoh is not None:
-        sock = _Zenoh("teleoperator", *zenoh)
+        sock = _Zenoh("teleoperator", *zenoh, k_r)
         r = Result("operator", f"zenoh {zenoh[0]}")
     else:
         assert listen is not None
         sock = _Socket(listen)
         r = Result("operator", f"listening on {sock.addr[0]}:{sock.addr[1]}")
-    k_r = auth.robot_key(psk, robot)
-    k_hs = auth.handshake_key(k_r)
     try:
         got = sock.wait_for(lambda d: _open(k_hs, auth.HANDSHAKE, wire.FORWARD, d) is not None, timeout_s)
         if got is None:

@@ -325,7 +325,7 @@ class _Runner:
 # --------------------------------------------------------------------------------------------
 # entry points
 # --------------------------------------------------------------------------------------------
-async def _open_transport(opts: EndpointOptions) -> Transport:
+async def _open_transport(opts: EndpointOptions, key: bytes) -> Transport:
     if opts.transport == "udp":
         return await UdpTransport.bind(opts.listen, rcvbuf=opts.udp_rcvbuf)
     if opts.transport == "zenoh":
@@ -334,7 +334,7 @@ async def _open_transport(opts: EndpointOptions) -> Transport:
             config = make_config(z.mode, z.listen, z.connect, z.config_file)
         except ValueError as e:
             raise SessionError(str(e)) from None
-        return await ZenohTransport.open(opts.role, z.prefix, config)
+        return await ZenohTransport.open(opts.role, z.prefix, config, key=key)
     raise SessionError(f"unknown transport {opts.transport!r}; accepted: udp, zenoh")
 
 
@@ -349,7 +349,7 @@ async def _endpoint(opts: EndpointOptions, params: SessionParams | None, pins: P
     stop = _Stop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop, sig)
-    tr = await _open_transport(opts)
+    tr = await _open_transport(opts, key)
     kw: dict[str, Any] = {
         "now_ns": time.monotonic_ns(),
         "psk": key,

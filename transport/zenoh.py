@@ -30,6 +30,15 @@ by its length alone, before its bytes are copied or hashed, and counted in ``ove
 (Zenoh's default is 1 GiB: six 256 MB samples froze a robot's loop for 1.4 s), so Zenoh itself
 drops a longer message before reassembling it (a file may set a smaller value, not a larger one).
 
+**Admission (peer mode).** Given the robot key, :func:`open_session` makes the session present the
+Zenoh user and password derived from it (``teleop.auth.zenoh_password``) and admit only peers that
+present them (Zenoh's user-password authentication, PROTOCOL.md section 1): a stranger's Zenoh
+link is refused in Zenoh's own threads, so its samples never reach ``_on_sample`` (a stranger's 60 kB
+samples at 10k/s had cost the loop 3.4x its lateness p99, GIL and all).  The password file Zenoh
+reads at open lives in a private temporary folder for the duration of ``zenoh.open`` only.  A
+config file that sets ``transport/auth/usrpwd`` itself keeps its own; in client mode the router
+admits (give it TLS client certificates or its own user-password dictionary).
+
 **Processes.** Open the session inside the process that uses it: Zenoh's runtime (Tokio threads)
 does not survive ``fork()``.
 
@@ -48,17 +57,21 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import os
 import re
+import tempfile
 import threading
 import time
 from collections import deque
+from pathlib import Path
 from typing import Any
 
 import zenoh
 
+from teleop import auth
 from teleop.endpoint import Admission
 from teleop.errors import TeleopError
-from teleop.files import MAX_CONFIG_BYTES, read_regular
+from teleop.files import MAX_CONFIG_BYTES, create_new, read_regular
 from teleop.wire import MAX_DATAGRAM_BYTES
 
 Addr = tuple[str, int]
@@ -72,6 +85,7 @@ CLIENT_CONNECT_TIMEOUT_MS = 2000
 RT_QUEUE_BATCHES = 16  # Zenoh's maximum; its default of 2 dropped ~0.5 % at 1 kHz on a busy 2-core host
 _RT_QUEUE = "transport/link/tx/queue/size/real_time"
 _MAX_MESSAGE = "transport/link/rx/max_message_size"
+_USRPWD = "transport/auth/usrpwd"
 #: Zenoh's largest message: our largest sample plus room for Zenoh's own headers.
 MAX_MESSAGE_BYTES = MAX_DATAGRAM_BYTES + 4096
 #: The inbox's bound in bytes (with the count, ``inbox_size``): a few tens of the largest samples.
@@ -190,19 +204,53 @@ def _describe(config: Any) -> tuple[str, str]:
     return mode, f"listen {_get(config, 'listen/endpoints')}, connect {_get(config, 'connect/endpoints')}"
 
 
-def _open_blocking(config: Any) -> Any:
-    try:
-        return zenoh.open(config)
-    except zenoh.ZError as e:
-        mode, where = _describe(config)
-        if mode == "client":
-            raise TransportError(f"cannot reach Zenoh router at {where}: {_reason(e)}") from None
-        raise TransportError(f"cannot open Zenoh {mode} session ({where}): {_reason(e)}") from None
+def _admit_key(config: Any, key: bytes, folder: str) -> Any:
+    """Set ``config``'s user-password authentication from the robot ``key`` (peer mode, when the
+    config leaves it unset), the dictionary in a new file in ``folder``; return the setting to put
+    back after the open (the caller's config may open again, and the file is gone by then), or
+    None if nothing was changed."""
+    before = _get(config, _USRPWD)
+    if _get(config, "mode") != "peer" or any(v is not None for v in before.values()):
+        return None
+    password = auth.zenoh_password(key)
+    path = Path(folder) / "usrpwd"
+    with os.fdopen(create_new(path, 0o600), "w") as f:
+        f.write(f"{auth.ZENOH_USER}:{password}\n")
+    ours = {"user": auth.ZENOH_USER, "password": password, "dictionary_file": str(path)}
+    config.insert_json5(_USRPWD, json.dumps(ours))
+    return before
 
 
-async def _open_session(config: Any) -> Any:
-    """``zenoh.open`` off the event loop (a client may wait seconds for its router)."""
-    fut = asyncio.get_running_loop().run_in_executor(None, _open_blocking, config)
+def admission(config: Any, key: bytes | None) -> str:
+    """Who may open a Zenoh link to a session opened with ``config`` and ``key`` (for ``ROLE.json``)."""
+    mode = _get(config, "mode")
+    if mode != "peer":
+        return "the router's"
+    if any(v is not None for v in _get(config, _USRPWD).values()):
+        return "user-password of the config file"
+    return "any peer" if key is None else "peers holding the robot key (user-password)"
+
+
+def open_session(config: Any, key: bytes | None = None) -> Any:
+    """``zenoh.open(config)``, in peer mode admitting only peers that hold the robot ``key``
+    (module docstring, Admission); TransportError names the endpoints if it cannot open."""
+    with tempfile.TemporaryDirectory(prefix="teleop-zenoh-") as folder:
+        before = None if key is None else _admit_key(config, key, folder)
+        try:
+            return zenoh.open(config)
+        except zenoh.ZError as e:
+            mode, where = _describe(config)
+            if mode == "client":
+                raise TransportError(f"cannot reach Zenoh router at {where}: {_reason(e)}") from None
+            raise TransportError(f"cannot open Zenoh {mode} session ({where}): {_reason(e)}") from None
+        finally:
+            if before is not None:
+                config.insert_json5(_USRPWD, json.dumps(before))
+
+
+async def _open_session(config: Any, key: bytes | None = None) -> Any:
+    """:func:`open_session` off the event loop (a client may wait seconds for its router)."""
+    fut = asyncio.get_running_loop().run_in_executor(None, open_session, config, key)
     try:
         return await asyncio.shield(fut)
     except asyncio.CancelledError:
@@ -260,20 +308,30 @@ class ZenohTransport:
         self.inbox_overflow = 0
         self.oversize = 0
         self.max_datagram = MAX_DATAGRAM_BYTES  # narrowed by the runner when a session starts
+        self.admission = "any peer"  # who may open a Zenoh link to us (open() says)
         self.warnings: list[str] = []
         self.socket_errors = 0
         self.last_socket_error = ""
 
     @classmethod
     async def open(
-        cls, role: str, prefix: str, config: zenoh.Config, inbox_size: int = 4096
+        cls,
+        role: str,
+        prefix: str,
+        config: zenoh.Config,
+        inbox_size: int = 4096,
+        key: bytes | None = None,
     ) -> ZenohTransport:
-        """Open the session and declare the publisher and subscriber; TransportError if it can't."""
+        """Open the session and declare the publisher and subscriber; TransportError if it can't.
+
+        With the robot ``key``, a peer-mode session admits only Zenoh peers holding it
+        (:func:`open_session`)."""
         tx, rx = _keys(role, prefix)
         self = cls(inbox_size)
         self.tx_key, self.rx_key = tx, rx
         self._loop = asyncio.get_running_loop()
-        self._session = await _open_session(config)
+        self.admission = admission(config, key)
+        self._session = await _open_session(config, key)
         try:
             self._zid = str(self._session.zid())
             self._subscriber = self._session.declare_subscriber(rx, self._on_sample)
@@ -362,6 +420,7 @@ class ZenohTransport:
             "inbox_overflow": self.inbox_overflow,
             "socket_errors": self.socket_errors,
             "oversize": self.oversize,
+            "admission": self.admission,
         }
 
     def close(self) -> None:
