@@ -11,9 +11,11 @@ each transport and one after each class, and a case's p99 is held to their media
 * ``recorded_hello``: authentic hellos recorded from 200 earlier handshakes (they hold the key),
   replayed from the flood's own address (rate-limited, then retries or nothing).
 * ``zenoh_oversize``: the same session over Zenoh (peers on 127.0.0.1 TCP) and a stranger that
-  joins the teleoperator's Zenoh endpoint and publishes 60 000-byte samples on the session's
-  forward key (refused by length in the subscriber callback, ``ZenohTransport.max_datagram``); its
-  ratio is to a Zenoh baseline run in the same invocation.
+  connects to the teleoperator's Zenoh endpoint and publishes 60 000-byte samples on the session's
+  forward key; its ratio is to a Zenoh baseline run in the same invocation.  The stranger holds no
+  key, so the teleoperator's Zenoh admission (``transport.zenoh.open_session``) refuses its link
+  and no sample reaches the subscriber callback (``transport_oversize`` counts any that did, refused
+  there by length, ``ZenohTransport.max_datagram``).
 
 Per case, from the teleoperator's ROLE.json: the loop's lateness p99 (and its ratio to the
 baseline's), overruns, link-lost events, the energy margins, the log's dropped chunks, what the
@@ -133,13 +135,20 @@ def flood(
     sent: Any,
     secs: Any,
     cpus: set[int] | None = None,
+    sink: bool = False,
 ) -> None:
     """The flood process: ``rate`` datagrams a second of ``data`` (``payloads(kind)``, made by the
     parent before the session) to 127.0.0.1:``port`` (a UDP port, or for ``zenoh_oversize`` the
     teleoperator's Zenoh TCP endpoint) from ``start_at`` until ``end_at`` on the monotonic clock
     (shared by the processes).  The process starts before the session, so its interpreter's start
     and the payloads' making (200 handshakes) do not land in the measured loop's ticks.  The count
-    it reached goes to ``sent``, the seconds it flooded to ``secs``."""
+    it reached goes to ``sent``, the seconds it flooded to ``secs``.
+
+    ``sink`` (the control, ``--control``): the same datagrams at the same rate to a socket of the
+    flood's own whose socket filter drops them all, so the kernel does the same work per datagram
+    (the send, the loopback receive, one filter run) and nothing reaches the session: what the
+    session's lateness loses then is the attacker's CPU on this 2-core host, not what the endpoint
+    spends refusing."""
     if cpus is not None:
         os.sched_setaffinity(0, cpus)
     time.sleep(max(0.0, start_at - time.monotonic()))
@@ -149,6 +158,13 @@ def flood(
         secs.value = time.monotonic() - t0
         return
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    if sink:
+        from transport import sockfilter
+
+        drop_all = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        drop_all.bind((LOOPBACK, 0))
+        sockfilter.attach(drop_all, [sockfilter.Insn(0x06, 0, 0, sockfilter.DROP)])  # BPF "ret #0"
+        port = drop_all.getsockname()[1]
 
     def send(n: int) -> None:
         with contextlib.suppress(OSError):  # a full socket buffer: the kernel drops, we go on
@@ -213,9 +229,10 @@ def session(
     transport: str = "udp",
     rcvbuf_kib: int | None = None,
     pin: bool = False,
+    sink: bool = False,
 ) -> dict[str, Any]:
     """One session of ``duration`` s over ``transport``, flooded (``kind``) from 1 s after its start,
-    or not."""
+    or not; with ``sink``, the flood goes to a drop-all socket of its own instead (``flood``)."""
     data = payloads(kind, psk) if kind is not None and kind not in ZENOH_CLASSES else None
     port = _free_port(socket.SOCK_STREAM if transport == "zenoh" else socket.SOCK_DGRAM)
     ctx = mp.get_context("spawn")  # a fresh interpreter: no copy of this one's threads or locks
@@ -224,7 +241,8 @@ def session(
     t0 = time.monotonic()  # the operator starts 1.5 s after the teleoperator, the session soon after
     if kind is not None:  # started first, so its interpreter's start lands before the session's ticks
         start_at, end_at = t0 + 3.0, t0 + 1.5 + duration - 0.5  # before the session's end
-        args = (port, kind, data or [], rate, start_at, end_at, sent, secs, FLOOD_CPUS if pin else None)
+        cpus = FLOOD_CPUS if pin else None
+        args = (port, kind, data or [], rate, start_at, end_at, sent, secs, cpus, sink)
         proc = ctx.Process(target=flood, args=args, daemon=True)
         proc.start()
     with tempfile.TemporaryDirectory(prefix="teleop-flood-") as tmp:
@@ -340,6 +358,11 @@ def main(argv: list[str] | None = None) -> int:
         "--pin", action="store_true", help="the session on CPU 0, the flood on CPU 1 (see SESSION_CPUS)"
     )
     ap.add_argument("--repeats", type=int, default=1, help="sessions per case; its p99 is their median")
+    ap.add_argument(
+        "--control",
+        action="store_true",
+        help="also run each UDP case's flood into a drop-all socket of the flood's own (flood: sink)",
+    )
     ap.add_argument("--out", default="bench/results/flood.json")
     a = ap.parse_args(argv)
     if a.duration < 4:
@@ -377,7 +400,17 @@ def main(argv: list[str] | None = None) -> int:
                         session(key_file, psk, kind, rate, a.duration, transport, a.udp_rcvbuf, a.pin)
                     )
                     _print_case(reps[-1])
-                cases.append(_combine(reps))
+                case = _combine(reps)
+                if a.control and transport == "udp":
+                    ctl = [
+                        session(key_file, psk, kind, rate, a.duration, transport, a.udp_rcvbuf, a.pin, True)
+                        for _ in range(a.repeats)
+                    ]
+                    p99s = [r["lateness_p99_us"] for r in ctl if r["lateness_p99_us"] is not None]
+                    case["control_p99_us"] = statistics.median(p99s) if p99s else None
+                    case["control_p99_us_runs"] = p99s
+                    print(f"{kind:15s} {rate:8.0f}/s  control (into a sink) p99 {p99s} us", flush=True)
+                cases.append(case)
             baseline(transport)  # one after each class's rates: the reference is their median
     bases = {t: _reference(r) for t, r in runs.items()}
     for c in cases:
@@ -388,8 +421,12 @@ def main(argv: list[str] | None = None) -> int:
             c["within_2x"] and c["link_lost_events"] == 0 and (c["min_margin_J"] or 0) >= -1e-9
             and c["log_dropped_chunks"] == 0 and c["completed"]
         )  # fmt: skip
+        control = c.get("control_p99_us")
+        if control and c["lateness_p99_us"] is not None:  # beyond what the flood's own CPU takes
+            c["p99_ratio_control"] = c["lateness_p99_us"] / control
         ratio = "-" if c["p99_ratio"] is None else f"{c['p99_ratio']:.2f}"
-        print(f"{c['class']:15s} {c['rate']:8.0f}/s  p99 x{ratio} of the baselines' median", flush=True)
+        vs = f", x{c['p99_ratio_control']:.2f} of its control" if c.get("p99_ratio_control") else ""
+        print(f"{c['class']:15s} {c['rate']:8.0f}/s  p99 x{ratio} of the baselines' median{vs}", flush=True)
     out = {
         "host": {
             "platform": platform.platform(),
@@ -400,6 +437,7 @@ def main(argv: list[str] | None = None) -> int:
         "duration_s": a.duration,
         "udp_rcvbuf_kib": a.udp_rcvbuf,
         "repeats": a.repeats,
+        "control": a.control,
         "pinned": {"session": sorted(SESSION_CPUS), "flood": sorted(FLOOD_CPUS)} if a.pin else None,
         "baseline": bases.get("udp"),
         "baselines": bases,

@@ -60,8 +60,9 @@ def _fake_session(calls: list[tuple[Any, ...]]) -> Any:
         transport: str = "udp",
         rcvbuf_kib: int | None = None,
         pin: bool = False,
+        sink: bool = False,
     ) -> dict[str, Any]:
-        calls.append((kind, transport, rcvbuf_kib))
+        calls.append((kind, transport, rcvbuf_kib) + (("sink",) if sink else ()))
         udp = transport == "udp"
         return {
             "class": kind or ("baseline" if udp else "baseline_zenoh"),
@@ -70,7 +71,7 @@ def _fake_session(calls: list[tuple[Any, ...]]) -> Any:
             "sent": int(rate * (duration - 2)),
             "flood_s": duration - 2 if kind else 0.0,
             "completed": True,
-            "lateness_p99_us": 20.0,
+            "lateness_p99_us": 30.0 if sink else 20.0,
             "overruns": 0,
             "link_lost_events": 0,
             "min_margin_J": 0.0,
@@ -163,3 +164,41 @@ def test_a_case_of_several_runs_is_its_median_run_and_the_worst_of_what_must_hol
     c = flood._combine(runs)
     assert c["lateness_p99_us"] == 120.0 and c["lateness_p99_us_runs"] == [300.0, 90.0, 120.0]
     assert c["link_lost_events"] == 1 and c["min_margin_J"] == -1.0 and c["completed"]
+
+
+def test_the_control_runs_each_udp_case_into_a_sink(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    calls: list[tuple[Any, ...]] = []
+    monkeypatch.setattr(flood, "session", _fake_session(calls))
+    out = tmp_path / "flood.json"
+    argv = ["--classes", "random", "--rates", "1000", "--duration", "4", "--repeats", "2", "--control"]
+    assert flood.main([*argv, "--out", str(out)]) == 0
+    assert calls.count(("random", "udp", None, "sink")) == 2 and calls.count(("random", "udp", None)) == 2
+    case = json.loads(out.read_text())["cases"][0]
+    assert case["control_p99_us"] == 30.0 and case["control_p99_us_runs"] == [30.0, 30.0]
+    assert case["p99_ratio_control"] == pytest.approx(20.0 / 30.0) and case["p99_ratio"] == 1.0
+
+
+class _Value:
+    value: float = 0
+
+
+@pytest.mark.parametrize("sink", [False, True])
+def test_the_control_flood_reaches_no_one(sink: bool) -> None:
+    """Into the sink the same datagrams leave at the same rate and never reach the target port."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as target:
+        target.bind(("127.0.0.1", 0))
+        target.setblocking(False)
+        sent, secs = _Value(), _Value()
+        now = time.monotonic()
+        port = target.getsockname()[1]
+        flood.flood(port, "random", [b"x" * 100], 2000.0, now, now + 0.2, sent, secs, sink=sink)
+        got = 0
+        time.sleep(0.05)
+        while True:
+            try:
+                target.recv(2048)
+            except BlockingIOError:
+                break
+            got += 1
+        assert sent.value > 100
+        assert got == 0 if sink else got > 100  # (at most what its receive buffer holds)
