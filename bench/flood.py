@@ -18,11 +18,12 @@ each transport and one after each class, and a case's p99 is held to their media
   there by length, ``ZenohTransport.max_datagram``).
 
 Per case, from the teleoperator's ROLE.json: the loop's lateness p99 (and its ratio to the
-baseline's), overruns, link-lost events, the energy margins, the log's dropped chunks, what the
-endpoint refused (oversize, throttled), what the transport refused by length, the socket's receive
-buffer (asked and obtained) and the kernel's drops on it (SO_MEMINFO at the session's end: what its
-socket filter refused and what a full buffer dropped), the host's full-buffer drops over the
-session (``/proc/net/snmp``), the filter's state; and the rate the flood reached (sends attempted).
+baseline's), the process's CPU (and its ratio to the baselines' median), overruns, link-lost events,
+the energy margins, the log's dropped chunks, what the endpoint refused (oversize, throttled), what
+the transport refused by length, the socket's receive buffer (asked and obtained) and the kernel's
+drops on it (SO_MEMINFO at the session's end: what its socket filter refused and what a full buffer
+dropped), the host's full-buffer drops over the session (``/proc/net/snmp``), the filter's state;
+and the rate the flood reached (sends attempted).
 Every datagram goes to 127.0.0.1 only; each flood is bounded in count and time.
 
     python -m bench.flood [--rates 10000 50000 100000] [--duration 8] [--out bench/results/flood.json]
@@ -284,6 +285,9 @@ def session(
         "completed": summary.get("completed"),
         "lateness_p99_us": (loop.get("lateness_us") or {}).get("p99"),
         "period_error_p99_us": (loop.get("period_error_us") or {}).get("p99"),
+        # The teleoperator process's CPU (user and system, its threads included) over its wall time:
+        # what refusing the flood costs the endpoint itself, far steadier than a p99 on a shared host.
+        "cpu_fraction": loop.get("cpu_fraction"),
         "overruns": loop.get("overruns"),
         "link_lost_events": pv.get("link_lost_events"),
         "min_margin_J": pv.get("min_margin"),
@@ -313,6 +317,8 @@ def _reference(runs: list[dict[str, Any]]) -> dict[str, Any]:
     ref = dict(runs[0])
     ref["lateness_p99_us"] = statistics.median(p99s) if p99s else None
     ref["lateness_p99_us_runs"] = p99s
+    cpus = [r["cpu_fraction"] for r in runs if r.get("cpu_fraction") is not None]
+    ref["cpu_fraction"] = statistics.median(cpus) if cpus else None
     ref["runs"] = len(runs)
     ref["link_lost_events"] = max((r["link_lost_events"] or 0) for r in runs)
     ref["log_dropped_chunks"] = max((r["log_dropped_chunks"] or 0) for r in runs)
@@ -327,6 +333,8 @@ def _combine(reps: list[dict[str, Any]]) -> dict[str, Any]:
     )
     c = dict(order[(len(order) - 1) // 2])
     c["lateness_p99_us_runs"] = [r["lateness_p99_us"] for r in reps]
+    cpus = [r["cpu_fraction"] for r in reps if r.get("cpu_fraction") is not None]
+    c["cpu_fraction"] = statistics.median(cpus) if cpus else None
     c["link_lost_events"] = max((r["link_lost_events"] or 0) for r in reps)
     c["log_dropped_chunks"] = max((r["log_dropped_chunks"] or 0) for r in reps)
     c["min_margin_J"] = min((r["min_margin_J"] or 0.0) for r in reps)
@@ -414,6 +422,8 @@ def main(argv: list[str] | None = None) -> int:
             baseline(transport)  # one after each class's rates: the reference is their median
     bases = {t: _reference(r) for t, r in runs.items()}
     for c in cases:
+        base_cpu = bases[c["transport"]].get("cpu_fraction")
+        c["cpu_ratio"] = c["cpu_fraction"] / base_cpu if base_cpu and c.get("cpu_fraction") else None
         b = bases[c["transport"]]["lateness_p99_us"]
         c["p99_ratio"] = c["lateness_p99_us"] / b if b and c["lateness_p99_us"] is not None else None
         c["within_2x"] = c["p99_ratio"] is not None and c["p99_ratio"] <= 2.0

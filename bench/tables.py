@@ -208,7 +208,7 @@ def fronts() -> Table:
     )
 
 
-def flood(source: str = "flood.json", command: str = "python -m bench.flood --repeats 3") -> Table:
+def flood(source: str = "flood.json", command: str = "python -m bench.flood --repeats 3 --control") -> Table:
     """bench.flood: the teleoperator's loop under each class of flood at each rate."""
     b = Builder(source)
     # One baseline per transport flooded ("baselines"); a file before Zenoh's class has "baseline" only.
@@ -220,6 +220,8 @@ def flood(source: str = "flood.json", command: str = "python -m bench.flood --re
             "-",
             b.one(f"{path}.lateness_p99_us", ".1f"),
             "1",
+            "-",
+            "1" if resolve(b.doc, path).get("cpu_fraction") else "-",
             str(resolve(b.doc, f"{path}.link_lost_events")),
             str(resolve(b.doc, f"{path}.log_dropped_chunks")),
             "-",
@@ -243,6 +245,8 @@ def flood(source: str = "flood.json", command: str = "python -m bench.flood --re
                 ("{}", (b.fig(f"{p}.sent", ".0f", scale=1.0 / flood_s),)),
                 b.one(f"{p}.lateness_p99_us", ".1f"),
                 b.one(f"{p}.p99_ratio", ".2f") if c["p99_ratio"] is not None else "-",
+                b.one(f"{p}.p99_ratio_control", ".2f") if c.get("p99_ratio_control") is not None else "-",
+                b.one(f"{p}.cpu_ratio", ".2f") if c.get("cpu_ratio") is not None else "-",
                 str(c["link_lost_events"]),
                 str(c["log_dropped_chunks"]),
                 b.one(f"{p}.kernel_drops", ".0f") if c["kernel_drops"] is not None else "-",
@@ -261,6 +265,11 @@ def flood(source: str = "flood.json", command: str = "python -m bench.flood --re
         base_note = f" The baseline is the median of the sessions without a flood ({spread})."
     if b.doc.get("repeats", 1) > 1:
         base_note += f" Each case's p99 is the median of {b.doc['repeats']} sessions."
+    if b.doc.get("control"):
+        base_note += (
+            " x control: the p99 against the same flood sent into a drop-all socket of the flood's own"
+            " (its median over as many sessions): what the flood costs beyond its own CPU on this host."
+        )
     return Table(
         source.removesuffix(".json").replace("_", "-"),
         source,
@@ -271,6 +280,8 @@ def flood(source: str = "flood.json", command: str = "python -m bench.flood --re
             "reached [/s]",
             "lateness p99 [us]",
             "x baseline",
+            "x control",
+            "CPU x baseline",
             "link lost",
             "log chunks dropped",
             "kernel drops (filter and full buffer)",

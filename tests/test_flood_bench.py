@@ -72,6 +72,7 @@ def _fake_session(calls: list[tuple[Any, ...]]) -> Any:
             "flood_s": duration - 2 if kind else 0.0,
             "completed": True,
             "lateness_p99_us": 30.0 if sink else 20.0,
+            "cpu_fraction": 0.25 if kind else 0.2,
             "overruns": 0,
             "link_lost_events": 0,
             "min_margin_J": 0.0,
@@ -176,6 +177,7 @@ def test_the_control_runs_each_udp_case_into_a_sink(tmp_path: Path, monkeypatch:
     case = json.loads(out.read_text())["cases"][0]
     assert case["control_p99_us"] == 30.0 and case["control_p99_us_runs"] == [30.0, 30.0]
     assert case["p99_ratio_control"] == pytest.approx(20.0 / 30.0) and case["p99_ratio"] == 1.0
+    assert case["cpu_fraction"] == 0.25 and case["cpu_ratio"] == pytest.approx(1.25)
 
 
 class _Value:
