@@ -171,3 +171,30 @@ def test_both_of_the_projects_endpoints_conform_over_zenoh(tmp_path: Path, key: 
         op.wait()
     result = json.loads((tmp_path / "o.json").read_text())
     assert conf.returncode == 0 and not _failed(result) and result["passed"] >= 10, out
+
+
+def test_the_conformance_operator_joins_a_peer_mode_teleoperator_with_the_robot_key(
+    tmp_path: Path, key: str
+) -> None:
+    """In peer mode the teleoperator admits only Zenoh peers holding the robot key (PROTOCOL.md
+    section 1): the checker, which derives the same Zenoh password, gets in and the robot conforms."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    common = ["--transport", "zenoh", "--zenoh-mode", "peer"]
+    to = _peer(
+        None, "teleoperator", "--key-file", key, "--quiet", "--connect-timeout", "40",
+        *common, "--zenoh-listen", endpoint,
+    )  # fmt: skip
+    try:
+        time.sleep(1.5)
+        r = subprocess.run(
+            [*TELEOP, "conformance", "teleoperator", "--key-file", key, *common, "--zenoh-connect", endpoint,
+             "--json", str(tmp_path / "t.json")],
+            capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+    finally:
+        to.kill()
+        to.wait()
+    result = json.loads((tmp_path / "t.json").read_text())
+    assert r.returncode == 0 and not _failed(result), r.stdout
