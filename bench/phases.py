@@ -32,6 +32,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -71,14 +72,30 @@ def figures(doc: dict[str, Any], ticks: int) -> dict[str, float]:
     }
 
 
-def port_sides(codec: str, dof: int, ticks: int, paced: bool) -> dict[str, float]:
+def _spun() -> Callable[[], None]:
+    """A wait that busy-waits to the next millisecond: paced like the loop, but never idle."""
+    deadline = time.perf_counter_ns()
+
+    def wait() -> None:
+        nonlocal deadline
+        deadline += 1_000_000
+        while time.perf_counter_ns() < deadline:
+            pass
+
+    return wait
+
+
+def port_sides(codec: str, dof: int, ticks: int, pace: str) -> dict[str, float]:
     """Each side's port per tick (µs, median of the ticks after the first 100), as ``bench.tick``
-    times it: back to back (``paced`` False, caches and predictors hot), or one tick a millisecond
-    on the real loop's scheduler (sleep, spin, tick) as the processes run it."""
+    times it: back to back (``hot``: caches and predictors hot), one tick a millisecond on the
+    real loop's scheduler (``paced``: sleep, spin, tick) as the processes run it, or one a
+    millisecond busy-waiting in between (``spun``: never idle, so what a paced tick loses that a
+    spun one loses too is not the sleep's doing)."""
     ticker = Ticker(period_ns=1_000_000, spin_ns=100_000, min_spin_ns=100_000)
     ticker.start(time.monotonic_ns() + 1_000_000)
     pair = _port_pair(codec, dof, ticks, "protocol")
-    t_op, t_to = port_side_ticks(*pair, ticks, ticker.wait if paced else None)
+    wait = {"hot": None, "paced": ticker.wait, "spun": _spun()}[pace]
+    t_op, t_to = port_side_ticks(*pair, ticks, wait)
     return {
         "operator": statistics.median(t_op[100:]) / 1e3,
         "teleoperator": statistics.median(t_to[100:]) / 1e3,
@@ -105,7 +122,7 @@ def run_case(codec: str, dof: int, duration: float, tmp: Path) -> dict[str, Any]
     case: dict[str, Any] = {
         "codec": codec,
         "dof": dof,
-        "port_us": {"hot": port_sides(codec, dof, 3000, False), "paced": port_sides(codec, dof, 3000, True)},
+        "port_us": {pace: port_sides(codec, dof, 3000, pace) for pace in ("hot", "paced", "spun")},
     }
     for f in probe.glob("phases-*.json"):
         doc = json.loads(f.read_text())

@@ -746,6 +746,7 @@ def cpu() -> Table:
 def phases() -> Table:
     """bench.phases: each process's loop, phase by phase, in µs of CPU per tick."""
     b = Builder("phases.json")
+    paces = [p for p in ("hot", "paced", "spun") if p in b.doc["cases"][0]["port_us"]]
     rows: list[tuple[Cell, ...]] = []
     for i, c in enumerate(b.doc["cases"]):
         for role in ("operator", "teleoperator"):
@@ -768,11 +769,8 @@ def phases() -> Table:
                     b.one(f"{x}.other", ".1f"),
                     b.one(f"{x}.process", ".1f") if "process" in f else "-",
                     (
-                        "{} / {}",
-                        (
-                            b.fig(f"cases[{i}].port_us.hot.{role}", ".1f"),
-                            b.fig(f"cases[{i}].port_us.paced.{role}", ".1f"),
-                        ),
+                        " / ".join("{}" for _ in paces),
+                        tuple(b.fig(f"cases[{i}].port_us.{pace}.{role}", ".1f") for pace in paces),
                     ),
                 )
             )
@@ -792,7 +790,7 @@ def phases() -> Table:
             "timing, log, events",
             "other",
             "process, all threads",
-            "port alone: back to back / paced",
+            "port alone: " + " / ".join("back to back" if p == "hot" else p for p in paces),
         ),
         tuple(rows),
         note=(
