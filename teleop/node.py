@@ -164,16 +164,17 @@ class _Port:
         self.rx_codec = rx
         self.encoder = tx.encoder()
         self.decoder = rx.decoder(opts.max_queue, opts.on_loss)
-        # A codec whose reconstruction refers to the wave this side receives (pdr, eq. 3's
-        # reflection) pairs its two ends here; the others have no ``pair``.
-        pair = getattr(self.encoder, "pair", None)
-        if pair is not None:
-            pair(self.decoder, self.tx_direction)
         self.rate_cap = RateCap(opts.rate_cap, dt) if opts.rate_cap else None
         # Bytes a datagram carries beyond the packet: the envelope and the transport's header, as
         # the wire counters count them (the port sets it from its transport).
         self.datagram_overhead = auth.OVERHEAD + 28
         self.guard = self._make_guard(dt, opts, wave, tx, rx)
+        # A codec whose reconstruction refers to the wave this side receives (pdr, eq. 3's
+        # reflection) pairs its two ends here, and a pooling one (pdr's POOL) its guard; the others
+        # have no ``pair``.
+        pair = getattr(self.encoder, "pair", None)
+        if pair is not None:
+            pair(self.decoder, self.tx_direction, self.guard)
         self._now = 0.0  # the last tick's session time: when a packet arrives, as far as this node knows
         self.session = session
         self.dt = dt
@@ -340,7 +341,9 @@ class _Port:
             round(now * 1e6),
             self.tx_codec.codec_id,
             payload,
-            self.energy_sent,
+            # Plus what this side's guard granted the direction it sends (pooling, eq. 5 over both
+            # directions; 0.0 otherwise, which leaves the sum bit for bit).
+            self.energy_sent + self.encoder.granted,
         )
         cap = self.rate_cap
         if cap is not None:

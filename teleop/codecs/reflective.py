@@ -51,9 +51,11 @@ its direction in ``pair``; unpaired it keeps the forward settings.
 from __future__ import annotations
 
 import math
+import struct
 
 import numpy as np
 
+from ..passivity import EnergyGuard
 from ..wire import BACKWARD
 from .base import Array, CodecError, Encoder, PlayoutDecoder, RawFormat, pack, unpack
 from .deadband import FLOOR_FRACTION, SLOPE_SCALE, SLOPE_WINDOW, _norm, _slope_weights, send_reason
@@ -64,6 +66,10 @@ RESERVE_SCALE = 0.01
 RESERVE_FLOOR = 0.003
 RESERVE_MAX_SHRINK = 0.5
 RESERVE_TICKS = 100  # reserve wanted: this many ticks of the current power
+#: POOL's default HOLD: a grant tops the receiver's budget up to this many ticks of the sent power.
+POOL_HOLD_TICKS = 100.0
+#: POOL's measure of the power this side plays: smoothed over about 1/POOL_POWER_ALPHA ticks.
+POOL_POWER_ALPHA = 0.002
 REFLECTION_FORGET = 1.0 - 1.0 / 125.0  # per tick: the fit of rho looks back about 125 ticks
 REFLECTION_MIN_POWER = 1e-6  # sum g^2 below which rho keeps its last value (a still wave)
 #: The forward slope: the chord of a parabola fitted over CHORD_WINDOW ticks, to a horizon of
@@ -107,6 +113,7 @@ class ReflectiveEncoder(Encoder):
         heartbeat: int,
         back_pct: float | None = None,
         reserve_pct: tuple[float, float] = (100.0, 100.0),
+        pool: tuple[float, float] | None = None,
     ) -> None:
         self.raw = raw
         self.slope_raw = RawFormat(raw.full_scale * SLOPE_SCALE)
@@ -140,8 +147,17 @@ class ReflectiveEncoder(Encoder):
         self._undo: tuple[Array, Array, Array, int, bool, float, float, Array] | None = None
         self.sends = {"band": 0, "heartbeat": 0, "budget": 0, "energy": 0}
         self.limited = 0
+        #: Two-port pooling (``POOL``, ``(keep, hold)`` in ticks; the module docstring): armed by
+        #: ``pair`` with this side's guard and decoder.
+        self.pool = pool
+        self._guard: EnergyGuard | None = None
+        self._rx: ReflectiveDecoder | None = None
+        self._g_budget = 0.0  # own grant (e units) announced with the last payload
+        self._g_undo = 0.0
+        self._p_in = 0.0  # the power this side plays (e units a tick), smoothed
+        self.grants = 0  # sends that granted something
 
-    def pair(self, decoder: PlayoutDecoder, direction: int) -> None:
+    def pair(self, decoder: PlayoutDecoder, direction: int, guard: EnergyGuard | None = None) -> None:
         """Join this side's decoder (``teleop.node`` calls it; ``direction`` is the one this encoder
         sends, ``teleop.wire``).  Only the backward wave is predicted as a reflection: the
         teleoperator reflects what it receives (``h_r = g_r`` in free space), while the operator's
@@ -152,6 +168,8 @@ class ReflectiveEncoder(Encoder):
             self.k = self._back_k
             self.reserve_scale = RESERVE_SCALE * (self._reserve_pct[1] / 100.0)
         if isinstance(decoder, ReflectiveDecoder) and not self.power:
+            if self.pool is not None and guard is not None:
+                self._guard, self._rx = guard, decoder
             if direction == BACKWARD:
                 self._dec = decoder  # the teleoperator: its wave refers to the g_r it played
             else:
@@ -194,12 +212,21 @@ class ReflectiveEncoder(Encoder):
         self._n += 1
         pred = self._val + self._slope * self._i + refl
         e_pred = float(pred.dot(pred))
+        guard = self._guard
+        # Pooled: the receiver's budget is also what this side granted it, less what the receiver
+        # granted the other direction out of it (announced in its payloads).
+        taken = 0.0
+        if guard is not None and self._rx is not None:
+            taken = self._rx.peer_grant / guard.half_dt
+            d_in = self._rx.played
+            self._p_in += POOL_POWER_ALPHA * (float(d_in.dot(d_in)) - self._p_in)
+        ceiling = self._e_budget + self._g_budget - taken if guard is not None else self._e_budget
         reason = send_reason(
             not self._sent_once or self._outside_band(x, pred),
             self._i >= self.heartbeat,
             self.power,
             self.urgent,
-            self._e_played + e_pred > self._e_budget,
+            self._e_played + e_pred > ceiling,
         )
         if not reason:
             self._e_played += e_pred
@@ -211,6 +238,7 @@ class ReflectiveEncoder(Encoder):
         self._undo = (
             self._val, self._slope, self._off, self._i, self._sent_once, self._e_budget, self._e_played, pred
         )  # fmt: skip
+        self._g_undo = self._g_budget
         self.sends[reason] += 1
         p = x
         if not self.power:
@@ -220,6 +248,8 @@ class ReflectiveEncoder(Encoder):
                 early = self.reserve_scale * self.full_scale / math.sqrt(self._e_in)
                 shrink = min(RESERVE_MAX_SHRINK, early + RESERVE_FLOOR)
                 p = x * (1.0 - shrink * (1.0 - reserve / target))
+            if guard is not None:
+                reserve = self._grant(guard, taken, xx)
             if float(p.dot(p)) > reserve:  # eq. (10): the send tick plays at most the reserve
                 self.limited += 1
                 p = x * math.sqrt(reserve / xx)
@@ -236,7 +266,36 @@ class ReflectiveEncoder(Encoder):
         self.model = played
         if d is not None:
             self._refl.add(d, played)
-        return pack(np.concatenate([q, qs]), 16)
+        out = pack(np.concatenate([q, qs]), 16)
+        # Pooled: the cumulative grant, for the peer's model of this side's budget (the guard reads
+        # only the energy report, so a wrong value here costs transparency, never passivity).
+        return out + struct.pack("<d", self.granted) if self.pool is not None else out
+
+    def _grant(self, guard: EnergyGuard, taken: float, xx: float) -> float:
+        """Pooling, on a send tick: grant the receiver of this wave part of this side's own budget
+        (the other direction's, at its receiver here), and return the receiver's budget for this
+        tick's value (e units; what eq. 10 bounds it by).
+
+        Rule: keep ``keep`` ticks of the power this side plays; of the rest, give what the wave sent
+        needs to hold ``hold`` ticks of its current power beyond this tick.  The guard takes the
+        grant before the payload announces it (``EnergyGuard.grant``), so eq. (5) summed over both
+        directions holds at every tick whatever arrives."""
+        assert self.pool is not None and self._rx is not None
+        keep, hold = self.pool
+        hd = guard.half_dt
+        avail = self._e_in + self._g_budget - taken - self._e_played  # the receiver's, before a grant
+        need = (hold + 1.0) * xx - avail
+        spare = guard.margin / hd - keep * self._p_in
+        give = min(need, spare)
+        if give > 0.0:
+            total = self.granted + give * hd
+            if total - self.granted > guard.margin:  # rounding: never more than the margin
+                total = self.granted + max(guard.margin, 0.0)
+            guard.grant(total)
+            self.granted = total
+            self.grants += 1
+        self._g_budget = self.granted / hd
+        return max(self._e_in + self._g_budget - taken - self._e_played, 0.0)
 
     def cancel(self) -> None:
         """The last payload was not sent (rate cap): the receiver goes on with the previous one."""
@@ -245,6 +304,7 @@ class ReflectiveEncoder(Encoder):
         val, slope, off, i, once, budget, played, pred = self._undo
         self._val, self._slope, self._off, self._i, self._sent_once = val, slope, off, i + 1, once
         self._e_budget = budget
+        self._g_budget = self._g_undo  # a grant made stays taken at the guard; the next payload announces it
         # Without a payload so far the receiver plays zero; else the prediction it had.
         self.model = pred if once else np.zeros(self.dof)
         self._e_played = played + float(self.model.dot(self.model))
@@ -256,8 +316,10 @@ class ReflectiveDecoder(PlayoutDecoder):
     operator's), adds the reflection of what its side's forward model did since the payload
     began; never runs dry once a payload has arrived."""
 
-    def __init__(self, raw: RawFormat, dof: int, max_queue: int, on_loss: str) -> None:
+    def __init__(self, raw: RawFormat, dof: int, max_queue: int, on_loss: str, pool: bool = False) -> None:
         super().__init__(dof, max_queue, on_loss)
+        self.pool = pool
+        self.peer_grant = 0.0  # J the peer granted its other direction out of this wave's budget
         self.raw = raw
         self.slope_raw = RawFormat(raw.full_scale * SLOPE_SCALE)
         self._seg: tuple[Array, Array] | None = None
@@ -272,8 +334,17 @@ class ReflectiveDecoder(PlayoutDecoder):
 
     def push(self, payload: bytes) -> None:
         """The newest payload replaces whatever was playing; malformed raises, changes nothing."""
+        if self.pool:
+            if len(payload) != 4 * self.dof + 8:
+                raise CodecError(f"pdr pooled payload has {len(payload)} bytes, expected {4 * self.dof + 8}")
+            (grant,) = struct.unpack("<d", payload[-8:])
+            if not (math.isfinite(grant) and grant >= 0.0):
+                raise CodecError(f"pdr pooled payload has grant {grant!r}")
+            payload = payload[:-8]
         q = unpack(payload, 16, 2 * self.dof)
         seg = self.raw.dequantize(q[: self.dof]), self.slope_raw.dequantize(q[self.dof :])
+        if self.pool:
+            self.peer_grant = max(self.peer_grant, grant)
         if self._seg is not None and self._i == 0:
             self.dropped_samples += 1
         self._seg, self._i = seg, 0
