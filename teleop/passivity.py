@@ -141,6 +141,14 @@ class EnergyGuard:
             raise ValueError(f"grant of {extra!r} J exceeds the margin {self.margin!r} J")
         self.granted_out = total
 
+    def credit(self, amount: float) -> None:
+        """Add ``amount`` J to this budget out of the energy this side sent and has not reported
+        (``pdr``'s self-credit): the caller withholds it from its reports, so eq. (1) via (4) holds
+        over both directions (``teleop.codecs.reflective.ReflectiveEncoder._self_credit``)."""
+        if not amount >= 0.0:
+            raise ValueError(f"credit must be >= 0 J, got {amount!r}")
+        self.granted_out -= amount
+
     @property
     def played_in_epoch(self) -> float:
         return self.played - self.played_origin

@@ -1,9 +1,11 @@
-"""``pdr``'s two-port pooling (POOL, ``teleop.codecs.reflective``; ``EnergyGuard.grant``).
+"""``pdr``'s two-port accounting (``teleop.codecs.reflective``): POOL grants and cKAPPA self-credit.
 
-A side may grant part of its own receive budget to the direction it sends: its guard takes the grant
-before its energy report announces it.  Per-direction margins may then go negative by design; the
-channel's condition is eq. (5) summed over both directions (the two-port), checked here at every
-tick on arbitrary signals, delays and losses, with both guards' in-band margins never negative.
+POOL: a side grants part of its own receive budget to the direction it sends; its guard takes the
+grant before its energy report announces it (``EnergyGuard.grant``).  cKAPPA: a side credits its
+guard with energy it sent and has not reported, and withholds it from its reports
+(``EnergyGuard.credit``).  Per-direction margins (eq. 5) may then go negative by design; the
+channel's condition is eq. (1) with (4), the two-port's energy, checked here at every tick on
+arbitrary signals, delays and losses, with both guards' in-band margins never negative.
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ from teleop.sim import SimConfig, run_case
 
 DT = 1e-3
 POOLED = "pdr:0.8:100:1:128:86:50"
+#: The self-credit point bench/frontier0.py --pool measures: bands 0.8 %, reserve scales 30 %, kappa 1 %.
+CREDIT = "pdr:0.8:100:0.8:30:30:c1"
 
 loops = st.integers(1, 3).flatmap(
     lambda dof: arrays(
@@ -68,14 +72,22 @@ def _pooled_loop(spec: str, x: np.ndarray, delay: int, keep: list[bool] | None) 
                 links[side].append((i + delay + side, out, sent[side] + encs[side].granted))
             two_port = min(two_port, sent[0] + sent[1] - guards[0].played - guards[1].played)
             guard_min = min(guard_min, guards[0].margin, guards[1].margin)
-    return float(two_port), float(guard_min), encs[0].granted + encs[1].granted > 0.0
+    return float(two_port), float(guard_min), encs[0].granted != 0.0 or encs[1].granted != 0.0
 
 
 @settings(max_examples=80, deadline=None)
 @given(
     x=loops,
     spec=st.sampled_from(
-        [POOLED, "pdr:0.8:100:0.8:100:100:0", "pdr:5:100:2:50:300:10:20", "pdr:1:7:1:100:100:0:500"]
+        [
+            POOLED,
+            "pdr:0.8:100:0.8:100:100:0",
+            "pdr:5:100:2:50:300:10:20",
+            "pdr:1:7:1:100:100:0:500",
+            CREDIT,
+            "pdr:2:100:5:0:0:c0",
+            "pdr:0.5:10:0.5:100:100:c5",
+        ]
     ),
     delay=st.integers(0, 40),
     keep=st.one_of(st.none(), st.lists(st.booleans(), min_size=1, max_size=9)),
@@ -134,3 +146,40 @@ def test_grants_flow_on_a_smooth_loop(delay: int) -> None:
     x = np.stack([np.stack([g, g], 1), np.stack([h, h], 1)], 1)
     two_port, guard_min, granted = _pooled_loop("pdr:0.8:100:0.8:100:100:0", x, delay, [True, False, True])
     assert granted and two_port >= -1e-12 and guard_min >= -1e-12
+
+
+def test_credit_spec_and_guard() -> None:
+    c = make_codec("pdr:0.8:100:0.8:30:30:C1.0", dof=2)
+    assert c.spec == CREDIT and c.payload_bytes == 8  # no field of its own: the payload is pdr's
+    with pytest.raises(CodecError, match="KAPPA must be in"):
+        make_codec("pdr:0.8:100:0.8:30:30:c100")
+    with pytest.raises(CodecError, match="cKAPPA must be"):
+        make_codec("pdr:0.8:100:0.8:30:30:cx")
+    g = EnergyGuard(DT)
+    g.credit(1e-3)
+    assert g.margin == pytest.approx(1e-3)
+    with pytest.raises(ValueError):
+        g.credit(-1e-9)
+
+
+@pytest.mark.parametrize("delay", [0, 25])
+def test_credit_flows_on_a_smooth_loop(delay: int) -> None:
+    """Both sides self-credit (``granted`` < 0: withheld from the reports), the two-port stays >= 0."""
+    t = np.arange(2000) * DT
+    g = np.sin(2 * np.pi * 1.3 * t)
+    h = 0.9 * np.sin(2 * np.pi * 1.3 * t + 0.1)
+    x = np.stack([np.stack([g, g], 1), np.stack([h, h], 1)], 1)
+    two_port, guard_min, credited = _pooled_loop(CREDIT, x, delay, [True, True, False])
+    assert credited and two_port >= -1e-12 and guard_min >= -1e-12
+
+
+def test_credit_in_the_sim_cuts_packets_and_stays_two_port_passive() -> None:
+    """Zero delay, protocol scenario (short): the senders model each other's self-credit exactly (the
+    guards never cut), the two-port energy stays >= 0, and far fewer packets than pdr's split point."""
+    s = run_case(SimConfig(codec=CREDIT, scenario="protocol", duration=4.0)).summary
+    ref = run_case(SimConfig(codec="pdr:0.8:100:1:128:86", scenario="protocol", duration=4.0)).summary
+    assert s["two_port_min_energy"] >= -1e-9
+    for d in ("forward", "backward"):
+        assert s["passivity"][d]["violations"] == 0
+        assert s["passivity"][d]["min_margin"] >= -1e-9
+        assert s["wire"][d]["packets"] < 0.8 * ref["wire"][d]["packets"], d

@@ -273,6 +273,15 @@ def _deadband(name: str) -> Callable[[str, list[str], int, float], Codec]:
 def _pdr(spec: str, params: list[str], dof: int, fs: float) -> Codec:
     """``pdr:PCT:MAXMS:BPCT[:FR:BR]``: the per-direction settings (``teleop.codecs.reflective``)."""
     nums = []
+    credit = None
+    if len(params) == 6 and params[5][:1].lower() == "c":  # self-credit: cKAPPA, kappa in percent
+        try:
+            credit = float(params[5][1:]) / 100.0
+        except ValueError:
+            raise CodecError(f"codec {spec!r}: cKAPPA must be c and a number, got {params[5]!r}") from None
+        if not 0.0 <= credit < 1.0:
+            raise CodecError(f"codec {spec!r}: KAPPA must be in [0, 100) percent, got {params[5]!r}")
+        params = params[:5]
     for what, text in zip(("PCT", "MAXMS", "BPCT", "FR", "BR", "POOL", "HOLD"), params, strict=False):
         if what == "MAXMS":
             nums.append(float(_int_param(spec, text, "MAXMS", 1, MAX_K)))
@@ -295,6 +304,8 @@ def _pdr(spec: str, params: list[str], dof: int, fs: float) -> Codec:
     tail = [f"{bpct:g}", f"{fr:g}", f"{br:g}"] if (fr, br) != (100.0, 100.0) or pool else [f"{bpct:g}"]
     if pool is not None:
         tail += [f"{pool[0]:g}", *([f"{pool[1]:g}"] if pool[1] != POOL_HOLD_TICKS else [])]
+    if credit is not None:
+        tail = [f"{bpct:g}", f"{fr:g}", f"{br:g}", f"c{100.0 * credit:g}"]
     if tail == [f"{pct:g}"]:
         tail = []
     canon = ":".join(["pdr", f"{pct:g}", *([str(hb)] if tail or hb != DEFAULT_HEARTBEAT_MS else []), *tail])
@@ -308,7 +319,7 @@ def _pdr(spec: str, params: list[str], dof: int, fs: float) -> Codec:
         raw,
         hb,
         RAW_BITS,
-        lambda: ReflectiveEncoder(raw, dof, pct, hb, bpct, (fr, br), pool),
+        lambda: ReflectiveEncoder(raw, dof, pct, hb, bpct, (fr, br), pool, credit),
         lambda q, o: ReflectiveDecoder(raw, dof, q, o, pool is not None),
         values=2,
         event_based=True,

@@ -114,6 +114,7 @@ class ReflectiveEncoder(Encoder):
         back_pct: float | None = None,
         reserve_pct: tuple[float, float] = (100.0, 100.0),
         pool: tuple[float, float] | None = None,
+        credit: float | None = None,
     ) -> None:
         self.raw = raw
         self.slope_raw = RawFormat(raw.full_scale * SLOPE_SCALE)
@@ -155,6 +156,14 @@ class ReflectiveEncoder(Encoder):
         self._g_budget = 0.0  # own grant (e units) announced with the last payload
         self._g_undo = 0.0
         self._p_in = 0.0  # the power this side plays (e units a tick), smoothed
+        #: Self-credit (``cKAPPA``; the module docstring): kappa, armed by ``pair``.
+        self.credit = credit
+        self._c_own = 0.0  # e units this side credited its own guard: withheld from its reports
+        self._c_peer = 0.0  # the peer's self-credit, as modelled here (e units)
+        self._c_rep = (0.0, 0.0)  # (e_in, c_own) when the last report left: the invariant's origin
+        self._c_undo = (0.0, 0.0, 0.0)
+        if credit is not None:
+            self.sends["credit"] = 0
         self.grants = 0  # sends that granted something
 
     def pair(self, decoder: PlayoutDecoder, direction: int, guard: EnergyGuard | None = None) -> None:
@@ -168,7 +177,7 @@ class ReflectiveEncoder(Encoder):
             self.k = self._back_k
             self.reserve_scale = RESERVE_SCALE * (self._reserve_pct[1] / 100.0)
         if isinstance(decoder, ReflectiveDecoder) and not self.power:
-            if self.pool is not None and guard is not None:
+            if (self.pool is not None or self.credit is not None) and guard is not None:
                 self._guard, self._rx = guard, decoder
             if direction == BACKWARD:
                 self._dec = decoder  # the teleoperator: its wave refers to the g_r it played
@@ -221,6 +230,18 @@ class ReflectiveEncoder(Encoder):
             d_in = self._rx.played
             self._p_in += POOL_POWER_ALPHA * (float(d_in.dot(d_in)) - self._p_in)
         ceiling = self._e_budget + self._g_budget - taken if guard is not None else self._e_budget
+        c_hold = 0.0
+        if self.credit is not None and guard is not None and self._rx is not None:
+            # The peer's self-credit on its last tick (what it played of this wave, as modelled
+            # here, matched against what it sent as played here; none on its send ticks).
+            rx = self._rx
+            if not rx.fresh:
+                d_rx = rx.played
+                m = self.model
+                self._c_peer += min(self._kk * float(d_rx.dot(d_rx)), float(m.dot(m)))
+            ceiling = self._e_budget + self._c_peer
+            d_rx = rx.played
+            c_hold = min(self._kk * e_pred, float(d_rx.dot(d_rx)))
         reason = send_reason(
             not self._sent_once or self._outside_band(x, pred),
             self._i >= self.heartbeat,
@@ -228,13 +249,18 @@ class ReflectiveEncoder(Encoder):
             self.urgent,
             self._e_played + e_pred > ceiling,
         )
+        if not reason and xx < c_hold:
+            reason = "credit"  # the promise |x|^2 >= the credit is broken: send (no credit this tick)
         if not reason:
             self._e_played += e_pred
             self._i += 1
             self.model = pred
             if d is not None:
                 self._refl.add(d, pred)
+            if c_hold > 0.0 and guard is not None:
+                self._self_credit(guard, c_hold)
             return None
+        self._c_undo = (self._c_rep[0], self._c_rep[1], self._c_own)
         self._undo = (
             self._val, self._slope, self._off, self._i, self._sent_once, self._e_budget, self._e_played, pred
         )  # fmt: skip
@@ -243,13 +269,17 @@ class ReflectiveEncoder(Encoder):
         p = x
         if not self.power:
             reserve = max(self._e_in - self._e_played, 0.0)
+            if guard is not None and self.credit is not None:  # the receiver's budget, self-credit in
+                reserve = max(self._e_in - self._c_own + self._c_peer - self._e_played, 0.0)
             target = RESERVE_TICKS * xx
             if reserve < target:
                 early = self.reserve_scale * self.full_scale / math.sqrt(self._e_in)
                 shrink = min(RESERVE_MAX_SHRINK, early + RESERVE_FLOOR)
                 p = x * (1.0 - shrink * (1.0 - reserve / target))
-            if guard is not None:
+            if guard is not None and self.pool is not None:
                 reserve = self._grant(guard, taken, xx)
+            if guard is not None and self.credit is not None:
+                reserve = max(self._e_in - self._c_own + self._c_peer - self._e_played, 0.0)
             if float(p.dot(p)) > reserve:  # eq. (10): the send tick plays at most the reserve
                 self.limited += 1
                 p = x * math.sqrt(reserve / xx)
@@ -261,7 +291,8 @@ class ReflectiveEncoder(Encoder):
             self._r0 = self._refl.rho * d
         self._val, self._slope, self._i, self._sent_once = val, self.slope_raw.dequantize(qs), 1, True
         self._off = x - played
-        self._e_budget = self._e_in
+        self._e_budget = self._e_in - self._c_own  # what the node reports: sent less self-credit
+        self._c_rep = (self._e_in, self._c_own)
         self._e_played += float(played.dot(played))
         self.model = played
         if d is not None:
@@ -270,6 +301,29 @@ class ReflectiveEncoder(Encoder):
         # Pooled: the cumulative grant, for the peer's model of this side's budget (the guard reads
         # only the energy report, so a wrong value here costs transparency, never passivity).
         return out + struct.pack("<d", self.granted) if self.pool is not None else out
+
+    @property
+    def _kk(self) -> float:
+        assert self.credit is not None
+        return (1.0 - self.credit) ** 2
+
+    def _self_credit(self, guard: EnergyGuard, c: float) -> None:
+        """Credit this side's guard ``c`` (e units) of the energy it sent this tick and has not
+        reported, and withhold it from its reports (``granted`` goes down by it, J).
+
+        Why it is passive (eqs. 1, 4): with ``C`` a side's credits, its reports are ``S - C`` and its
+        guard plays at most ``A_peer + C``; credits since its last report never exceed the energy it
+        sent since (checked here), so ``S - A_last >= C - C_last`` and the two guards' bounds sum to
+        ``E_g_out + E_h_out <= E_g_in + E_h_in`` at every tick, under any delay or loss.  Eq. (5) per
+        direction need not hold."""
+        e_rep, c_rep = self._c_rep
+        c = min(c, (self._e_in - e_rep) - (self._c_own - c_rep))  # the invariant, whatever rounding did
+        if not c > 0.0:
+            return
+        self._c_own += c
+        total = -self._c_own * guard.half_dt
+        guard.credit(self.granted - total)
+        self.granted = total
 
     def _grant(self, guard: EnergyGuard, taken: float, xx: float) -> float:
         """Pooling, on a send tick: grant the receiver of this wave part of this side's own budget
@@ -305,6 +359,9 @@ class ReflectiveEncoder(Encoder):
         self._val, self._slope, self._off, self._i, self._sent_once = val, slope, off, i + 1, once
         self._e_budget = budget
         self._g_budget = self._g_undo  # a grant made stays taken at the guard; the next payload announces it
+        e_rep, c_rep, _ = self._c_undo
+        self._c_rep = (e_rep, c_rep)  # the report never left: the invariant keeps the older origin
+        self._e_budget = budget
         # Without a payload so far the receiver plays zero; else the prediction it had.
         self.model = pred if once else np.zeros(self.dof)
         self._e_played = played + float(self.model.dot(self.model))
@@ -357,6 +414,11 @@ class ReflectiveDecoder(PlayoutDecoder):
     @property
     def queued(self) -> int:
         return 0 if self._seg is None else 1
+
+    @property
+    def fresh(self) -> bool:
+        """Whether the last ``next`` played the first tick of a payload (its sender's send tick)."""
+        return self._seg is not None and self._i == 1
 
     def next(self) -> Array:
         if self._seg is None:
