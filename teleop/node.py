@@ -175,6 +175,10 @@ class _Port:
         pair = getattr(self.encoder, "pair", None)
         if pair is not None:
             pair(self.decoder, self.tx_direction, self.guard)
+        # A self-crediting pdr (cKAPPA) is told how many ticks after it was sent each payload began
+        # to play here: with the peer's, the round trip that pairs its model of the peer's credits.
+        self._tell_lag = getattr(self.encoder, "rx_lag", None) is not None
+        self._rx_tick = 0
         self._now = 0.0  # the last tick's session time: when a packet arrives, as far as this node knows
         self.session = session
         self.dt = dt
@@ -277,6 +281,7 @@ class _Port:
         if self.last_rx_seq >= 0:  # a late joiner's first packet leaves no gap behind it
             c.gaps += pkt.seq - self.last_rx_seq - 1
         self.last_rx_seq = pkt.seq
+        self._rx_tick = pkt.tick
         self.guard.sent(pkt.energy, self._now)
         c.accepted += 1
         return True
@@ -320,6 +325,8 @@ class _Port:
     def _play(self) -> Array:
         x = self.guard.admit(self.decoder.next())
         self.wave_in = x
+        if self._tell_lag and getattr(self.decoder, "fresh", False):
+            self.encoder.rx_lag = max(int(self._now / self.dt + 0.5) - self._rx_tick, 0)  # type: ignore[attr-defined]
         return x
 
     def _send(self, now: float, x: Array) -> wire.Packet | None:

@@ -45,15 +45,18 @@ def _pooled_loop(spec: str, x: np.ndarray, delay: int, keep: list[bool] | None) 
     was granted."""
     n, _, dof = x.shape
     c = make_codec(spec, dof=dof, full_scale=2.0)
-    encs = [c.encoder(), c.encoder()]
+    encs: list[ReflectiveEncoder] = []
+    for _ in range(2):
+        enc = c.encoder()
+        assert isinstance(enc, ReflectiveEncoder)
+        encs.append(enc)
     decs = [c.decoder(on_loss="hold"), c.decoder(on_loss="hold")]
     guards = [EnergyGuard(DT), EnergyGuard(DT)]  # [0] at the operator (plays h), [1] at the teleoperator
     for side, direction in ((0, wire.FORWARD), (1, wire.BACKWARD)):
-        enc = encs[side]
-        assert isinstance(enc, ReflectiveEncoder)
-        enc.pair(decs[side], direction, guards[side])
+        encs[side].pair(decs[side], direction, guards[side])
     sent = [0.0, 0.0]  # J: forward (operator), backward (teleoperator)
-    links: list[deque[tuple[int, bytes, float]]] = [deque(), deque()]
+    links: list[deque[tuple[int, int, bytes, float]]] = [deque(), deque()]
+    rx_tick = [0, 0]
     two_port = guard_min = np.inf
     for i in range(n):
         for side in (0, 1):
@@ -61,15 +64,17 @@ def _pooled_loop(spec: str, x: np.ndarray, delay: int, keep: list[bool] | None) 
             # link from this one (the sim's one-tick loop floor), ``delay`` ticks later still.
             link = links[1 - side]
             while link and link[0][0] <= i:
-                _, payload, energy = link.popleft()
+                _, rx_tick[side], payload, energy = link.popleft()
                 decs[side].push(payload)
                 guards[side].sent(energy)
             guards[side].admit(decs[side].next())
+            if getattr(decs[side], "fresh", False) and encs[side].rx_lag is not None:
+                encs[side].rx_lag = i - rx_tick[side]  # as teleop.node tells it
             sent[side] += 0.5 * DT * float(np.dot(x[i, side], x[i, side]))
             out = encs[side].encode(x[i, side])
             lost = keep is not None and not keep[i % len(keep)]
             if out is not None and not lost:
-                links[side].append((i + delay + side, out, sent[side] + encs[side].granted))
+                links[side].append((i + delay + side, i, out, sent[side] + encs[side].granted))
             two_port = min(two_port, sent[0] + sent[1] - guards[0].played - guards[1].played)
             guard_min = min(guard_min, guards[0].margin, guards[1].margin)
     return float(two_port), float(guard_min), encs[0].granted != 0.0 or encs[1].granted != 0.0
@@ -150,7 +155,7 @@ def test_grants_flow_on_a_smooth_loop(delay: int) -> None:
 
 def test_credit_spec_and_guard() -> None:
     c = make_codec("pdr:0.8:100:0.8:30:30:C1.0", dof=2)
-    assert c.spec == CREDIT and c.payload_bytes == 8  # no field of its own: the payload is pdr's
+    assert c.spec == CREDIT and c.payload_bytes == 10  # pdr's, and the lag it measured (16 bits)
     with pytest.raises(CodecError, match="KAPPA must be in"):
         make_codec("pdr:0.8:100:0.8:30:30:c100")
     with pytest.raises(CodecError, match="cKAPPA must be"):

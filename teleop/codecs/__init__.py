@@ -320,10 +320,10 @@ def _pdr(spec: str, params: list[str], dof: int, fs: float) -> Codec:
         hb,
         RAW_BITS,
         lambda: ReflectiveEncoder(raw, dof, pct, hb, bpct, (fr, br), pool, credit),
-        lambda q, o: ReflectiveDecoder(raw, dof, q, o, pool is not None),
+        lambda q, o: ReflectiveDecoder(raw, dof, q, o, pool is not None, credit is not None),
         values=2,
         event_based=True,
-        extra_bytes=8 if pool is not None else 0,
+        extra_bytes=8 if pool is not None else 2 if credit is not None else 0,
     )
 
 

@@ -70,6 +70,8 @@ RESERVE_TICKS = 100  # reserve wanted: this many ticks of the current power
 POOL_HOLD_TICKS = 100.0
 #: POOL's measure of the power this side plays: smoothed over about 1/POOL_POWER_ALPHA ticks.
 POOL_POWER_ALPHA = 0.002
+#: cKAPPA: the longest round trip (ticks) over which a sender pairs its model of the peer's credit.
+CREDIT_HISTORY = 4096
 REFLECTION_FORGET = 1.0 - 1.0 / 125.0  # per tick: the fit of rho looks back about 125 ticks
 REFLECTION_MIN_POWER = 1e-6  # sum g^2 below which rho keeps its last value (a still wave)
 #: The forward slope: the chord of a parabola fitted over CHORD_WINDOW ticks, to a horizon of
@@ -162,8 +164,14 @@ class ReflectiveEncoder(Encoder):
         self._c_peer = 0.0  # the peer's self-credit, as modelled here (e units)
         self._c_rep = (0.0, 0.0)  # (e_in, c_own) when the last report left: the invariant's origin
         self._c_undo = (0.0, 0.0, 0.0)
+        #: Ticks from the peer's send to the play here of its newest payload (the node sets it), and
+        #: the peer's own, from its payloads: their sum is the round trip that pairs the peer's credit
+        #: on its tick with this side's model it was playing then (1 tick at 0 ms in teleop.sim).
+        self.rx_lag: int | None = None
+        self._m_hist = np.zeros(CREDIT_HISTORY)  # |model|^2 of this side's last ticks, a ring
         if credit is not None:
             self.sends["credit"] = 0
+            self.rx_lag = 0
         self.grants = 0  # sends that granted something
 
     def pair(self, decoder: PlayoutDecoder, direction: int, guard: EnergyGuard | None = None) -> None:
@@ -235,10 +243,11 @@ class ReflectiveEncoder(Encoder):
             # The peer's self-credit on its last tick (what it played of this wave, as modelled
             # here, matched against what it sent as played here; none on its send ticks).
             rx = self._rx
-            if not rx.fresh:
+            rtt = (self.rx_lag or 0) + rx.peer_lag
+            if not rx.fresh and 1 <= rtt <= self._n - 1 and rtt < CREDIT_HISTORY:
                 d_rx = rx.played
-                m = self.model
-                self._c_peer += min(self._kk * float(d_rx.dot(d_rx)), float(m.dot(m)))
+                mm = float(self._m_hist[(self._n - 1 - rtt) % CREDIT_HISTORY])
+                self._c_peer += min(self._kk * float(d_rx.dot(d_rx)), mm)
             ceiling = self._e_budget + self._c_peer
             d_rx = rx.played
             c_hold = min(self._kk * e_pred, float(d_rx.dot(d_rx)))
@@ -259,6 +268,8 @@ class ReflectiveEncoder(Encoder):
                 self._refl.add(d, pred)
             if c_hold > 0.0 and guard is not None:
                 self._self_credit(guard, c_hold)
+            if self.credit is not None:
+                self._m_hist[(self._n - 1) % CREDIT_HISTORY] = e_pred
             return None
         self._c_undo = (self._c_rep[0], self._c_rep[1], self._c_own)
         self._undo = (
@@ -297,6 +308,9 @@ class ReflectiveEncoder(Encoder):
         self.model = played
         if d is not None:
             self._refl.add(d, played)
+        if self.credit is not None:
+            self._m_hist[(self._n - 1) % CREDIT_HISTORY] = float(played.dot(played))
+            qs = np.concatenate([qs, [min(self.rx_lag or 0, 32767)]])  # echoed: the peer's round trip
         out = pack(np.concatenate([q, qs]), 16)
         # Pooled: the cumulative grant, for the peer's model of this side's budget (the guard reads
         # only the energy report, so a wrong value here costs transparency, never passivity).
@@ -373,9 +387,13 @@ class ReflectiveDecoder(PlayoutDecoder):
     operator's), adds the reflection of what its side's forward model did since the payload
     began; never runs dry once a payload has arrived."""
 
-    def __init__(self, raw: RawFormat, dof: int, max_queue: int, on_loss: str, pool: bool = False) -> None:
+    def __init__(
+        self, raw: RawFormat, dof: int, max_queue: int, on_loss: str, pool: bool = False, lag: bool = False
+    ) -> None:
         super().__init__(dof, max_queue, on_loss)
         self.pool = pool
+        self.lag = lag  # cKAPPA: the payload ends with the peer's rx_lag (16 bits)
+        self.peer_lag = 0
         self.peer_grant = 0.0  # J the peer granted its other direction out of this wave's budget
         self.raw = raw
         self.slope_raw = RawFormat(raw.full_scale * SLOPE_SCALE)
@@ -398,7 +416,12 @@ class ReflectiveDecoder(PlayoutDecoder):
             if not (math.isfinite(grant) and grant >= 0.0):
                 raise CodecError(f"pdr pooled payload has grant {grant!r}")
             payload = payload[:-8]
-        q = unpack(payload, 16, 2 * self.dof)
+        q = unpack(payload, 16, 2 * self.dof + (1 if self.lag else 0))
+        if self.lag:
+            if q[-1] < 0:
+                raise CodecError(f"pdr payload has a negative lag {int(q[-1])}")
+            self.peer_lag = int(q[-1])
+            q = q[:-1]
         seg = self.raw.dequantize(q[: self.dof]), self.slope_raw.dequantize(q[self.dof :])
         if self.pool:
             self.peer_grant = max(self.peer_grant, grant)
