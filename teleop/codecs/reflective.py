@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import math
 import struct
+from collections import deque
 
 import numpy as np
 
@@ -72,6 +73,12 @@ POOL_HOLD_TICKS = 100.0
 POOL_POWER_ALPHA = 0.002
 #: cKAPPA: the longest round trip (ticks) over which a sender pairs its model of the peer's credit.
 CREDIT_HISTORY = 4096
+CREDIT_LAGS = 16  # payloads over which the spread of the lags is taken
+CREDIT_SPREAD = 256  # ticks: the widest window of models searched
+#: Round trips (ticks) beyond which nobody credits: a sender does not know the peer's credits in
+#: flight, so its budget sends grow with the round trip, which behind a rate limit lengthens the
+#: queue and the round trip again (measured: netem rate 300kbit, 208 / 290 packets/s, I = 182).
+CREDIT_MAX_RTT = 50
 REFLECTION_FORGET = 1.0 - 1.0 / 125.0  # per tick: the fit of rho looks back about 125 ticks
 REFLECTION_MIN_POWER = 1e-6  # sum g^2 below which rho keeps its last value (a still wave)
 #: The forward slope: the chord of a parabola fitted over CHORD_WINDOW ticks, to a horizon of
@@ -169,9 +176,10 @@ class ReflectiveEncoder(Encoder):
         #: on its tick with this side's model it was playing then (1 tick at 0 ms in teleop.sim).
         self.rx_lag: int | None = None
         self._m_hist = np.zeros(CREDIT_HISTORY)  # |model|^2 of this side's last ticks, a ring
+        self._lags: deque[int] = deque(maxlen=CREDIT_LAGS)  # rx_lag of the last payloads
         if credit is not None:
             self.sends["credit"] = 0
-            self.rx_lag = 0
+            self.rx_lag = -1  # none measured yet: the payloads say so, and nothing is credited
         self.grants = 0  # sends that granted something
 
     def pair(self, decoder: PlayoutDecoder, direction: int, guard: EnergyGuard | None = None) -> None:
@@ -243,14 +251,25 @@ class ReflectiveEncoder(Encoder):
             # The peer's self-credit on its last tick (what it played of this wave, as modelled
             # here, matched against what it sent as played here; none on its send ticks).
             rx = self._rx
-            rtt = (self.rx_lag or 0) + rx.peer_lag
-            if not rx.fresh and 1 <= rtt <= self._n - 1 and rtt < CREDIT_HISTORY:
+            if rx.fresh and self.rx_lag is not None and self.rx_lag >= 0:
+                self._lags.append(self.rx_lag)
+            # The round trip, over the spread of the lags seen lately each way: where it varies
+            # (jitter, a rate limit's queue) the smallest of the models it may pair with.
+            lo = min(self._lags, default=0) + min(rx.peer_lags, default=0)
+            hi = min(max(self._lags, default=0) + max(rx.peer_lags, default=0), lo + CREDIT_SPREAD)
+            on = bool(self._lags) and bool(rx.peer_lags) and hi <= CREDIT_MAX_RTT
+            if not rx.fresh and on and lo >= 1 and hi <= self._n - 1:
                 d_rx = rx.played
-                mm = float(self._m_hist[(self._n - 1 - rtt) % CREDIT_HISTORY])
+                if lo == hi:
+                    mm = float(self._m_hist[(self._n - 1 - lo) % CREDIT_HISTORY])
+                else:
+                    idx = np.arange(self._n - 1 - hi, self._n - lo) % CREDIT_HISTORY
+                    mm = float(self._m_hist[idx].min())
                 self._c_peer += min(self._kk * float(d_rx.dot(d_rx)), mm)
             ceiling = self._e_budget + self._c_peer
             d_rx = rx.played
-            c_hold = min(self._kk * e_pred, float(d_rx.dot(d_rx)))
+            if on:  # beyond CREDIT_MAX_RTT neither side credits: per-direction accounting (eq. 5)
+                c_hold = min(self._kk * e_pred, float(d_rx.dot(d_rx)))
         reason = send_reason(
             not self._sent_once or self._outside_band(x, pred),
             self._i >= self.heartbeat,
@@ -310,7 +329,7 @@ class ReflectiveEncoder(Encoder):
             self._refl.add(d, played)
         if self.credit is not None:
             self._m_hist[(self._n - 1) % CREDIT_HISTORY] = float(played.dot(played))
-            qs = np.concatenate([qs, [min(self.rx_lag or 0, 32767)]])  # echoed: the peer's round trip
+            qs = np.concatenate([qs, [min(self.rx_lag if self.rx_lag is not None else -1, 32767)]])
         out = pack(np.concatenate([q, qs]), 16)
         # Pooled: the cumulative grant, for the peer's model of this side's budget (the guard reads
         # only the energy report, so a wrong value here costs transparency, never passivity).
@@ -394,6 +413,7 @@ class ReflectiveDecoder(PlayoutDecoder):
         self.pool = pool
         self.lag = lag  # cKAPPA: the payload ends with the peer's rx_lag (16 bits)
         self.peer_lag = 0
+        self.peer_lags: deque[int] = deque(maxlen=CREDIT_LAGS)
         self.peer_grant = 0.0  # J the peer granted its other direction out of this wave's budget
         self.raw = raw
         self.slope_raw = RawFormat(raw.full_scale * SLOPE_SCALE)
@@ -418,9 +438,11 @@ class ReflectiveDecoder(PlayoutDecoder):
             payload = payload[:-8]
         q = unpack(payload, 16, 2 * self.dof + (1 if self.lag else 0))
         if self.lag:
-            if q[-1] < 0:
-                raise CodecError(f"pdr payload has a negative lag {int(q[-1])}")
+            if q[-1] < -1:
+                raise CodecError(f"pdr payload has a lag {int(q[-1])} (-1: none measured yet)")
             self.peer_lag = int(q[-1])
+            if self.peer_lag >= 0:
+                self.peer_lags.append(self.peer_lag)
             q = q[:-1]
         seg = self.raw.dequantize(q[: self.dof]), self.slope_raw.dequantize(q[self.dof :])
         if self.pool:
