@@ -177,6 +177,9 @@ class ReflectiveEncoder(Encoder):
         self.rx_lag: int | None = None
         self._m_hist = np.zeros(CREDIT_HISTORY)  # |model|^2 of this side's last ticks, a ring
         self._lags: deque[int] = deque(maxlen=CREDIT_LAGS)  # rx_lag of the last payloads
+        self._credit_on = False  # this side credits (as its last payload announced)
+        self._on_next = False  # what its next payload will announce
+        self._on_undo = False
         if credit is not None:
             self.sends["credit"] = 0
             self.rx_lag = -1  # none measured yet: the payloads say so, and nothing is credited
@@ -257,8 +260,10 @@ class ReflectiveEncoder(Encoder):
             # (jitter, a rate limit's queue) the smallest of the models it may pair with.
             lo = min(self._lags, default=0) + min(rx.peer_lags, default=0)
             hi = min(max(self._lags, default=0) + max(rx.peer_lags, default=0), lo + CREDIT_SPREAD)
-            on = bool(self._lags) and bool(rx.peer_lags) and hi <= CREDIT_MAX_RTT
-            if not rx.fresh and on and lo >= 1 and hi <= self._n - 1:
+            # Whether to credit is decided on send ticks only and announced in the payload, so the
+            # peer knows from which tick on (``_credit_on``); it models this side's credits likewise.
+            self._on_next = bool(self._lags) and bool(rx.peer_lags) and hi <= CREDIT_MAX_RTT
+            if not rx.fresh and rx.peer_on and lo >= 1 and hi <= self._n - 1:
                 d_rx = rx.played
                 if lo == hi:
                     mm = float(self._m_hist[(self._n - 1 - lo) % CREDIT_HISTORY])
@@ -268,7 +273,7 @@ class ReflectiveEncoder(Encoder):
                 self._c_peer += min(self._kk * float(d_rx.dot(d_rx)), mm)
             ceiling = self._e_budget + self._c_peer
             d_rx = rx.played
-            if on:  # beyond CREDIT_MAX_RTT neither side credits: per-direction accounting (eq. 5)
+            if self._credit_on:  # beyond CREDIT_MAX_RTT: per-direction accounting (eq. 5)
                 c_hold = min(self._kk * e_pred, float(d_rx.dot(d_rx)))
         reason = send_reason(
             not self._sent_once or self._outside_band(x, pred),
@@ -329,7 +334,13 @@ class ReflectiveEncoder(Encoder):
             self._refl.add(d, played)
         if self.credit is not None:
             self._m_hist[(self._n - 1) % CREDIT_HISTORY] = float(played.dot(played))
-            qs = np.concatenate([qs, [min(self.rx_lag if self.rx_lag is not None else -1, 32767)]])
+            self._on_undo, self._credit_on = self._credit_on, self._on_next
+            lag = (
+                -1
+                if self.rx_lag is None or self.rx_lag < 0
+                else 2 * min(self.rx_lag, 16383) + self._credit_on
+            )
+            qs = np.concatenate([qs, [lag]])  # the lag seen here (echoed: the round trip) and the state
         out = pack(np.concatenate([q, qs]), 16)
         # Pooled: the cumulative grant, for the peer's model of this side's budget (the guard reads
         # only the energy report, so a wrong value here costs transparency, never passivity).
@@ -394,6 +405,7 @@ class ReflectiveEncoder(Encoder):
         self._g_budget = self._g_undo  # a grant made stays taken at the guard; the next payload announces it
         e_rep, c_rep, _ = self._c_undo
         self._c_rep = (e_rep, c_rep)  # the report never left: the invariant keeps the older origin
+        self._credit_on = self._on_undo  # nor did the state it announced
         self._e_budget = budget
         # Without a payload so far the receiver plays zero; else the prediction it had.
         self.model = pred if once else np.zeros(self.dof)
@@ -414,6 +426,7 @@ class ReflectiveDecoder(PlayoutDecoder):
         self.lag = lag  # cKAPPA: the payload ends with the peer's rx_lag (16 bits)
         self.peer_lag = 0
         self.peer_lags: deque[int] = deque(maxlen=CREDIT_LAGS)
+        self.peer_on = False  # the peer credits, as its newest payload says
         self.peer_grant = 0.0  # J the peer granted its other direction out of this wave's budget
         self.raw = raw
         self.slope_raw = RawFormat(raw.full_scale * SLOPE_SCALE)
@@ -440,8 +453,9 @@ class ReflectiveDecoder(PlayoutDecoder):
         if self.lag:
             if q[-1] < -1:
                 raise CodecError(f"pdr payload has a lag {int(q[-1])} (-1: none measured yet)")
-            self.peer_lag = int(q[-1])
-            if self.peer_lag >= 0:
+            v = int(q[-1])
+            self.peer_lag, self.peer_on = (v >> 1, bool(v & 1)) if v >= 0 else (-1, False)
+            if v >= 0:
                 self.peer_lags.append(self.peer_lag)
             q = q[:-1]
         seg = self.raw.dequantize(q[: self.dof]), self.slope_raw.dequantize(q[self.dof :])
