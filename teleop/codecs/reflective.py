@@ -46,6 +46,14 @@ uncoded 3.25e-4, at 596 packets/s), and the forward direction sends more; so mov
 the backward to the forward direction, and widening the backward band (whose errors the reflection
 model keeps small), trades the two directions' packets at about the same I.  Each encoder learns
 its direction in ``pair``; unpaired it keeps the forward settings.
+
+*Two-port accounting* (optional ``POOL[:HOLD]`` or ``cKAPPA`` after ``BR``; PROTOCOL.md 3.6).  Eq. (5)
+per direction is sufficient, not necessary: passivity is eq. (1) with (4), the two-port's energy.
+``POOL`` grants the direction a side sends part of its own receive budget (``EnergyGuard.grant``):
+measured, it does not help (``bench.pool_idle``: both directions' budgets run out together, so a grant
+is a permanent move of reserve, as ``FR``/``BR``).  ``cKAPPA`` credits a side's guard with energy it
+sent and has not reported, withheld from its reports (``_self_credit``): in free space each side then
+plays the returning wave on what it sends, and the budget sends nearly vanish (the codec guide).
 """
 
 from __future__ import annotations
