@@ -8,7 +8,12 @@ architectures, marks the best ``pdr`` point within ``ids:2``'s ``I`` (``frontier
 point through the whole matrix (hold and conceal) on the full duration, with the matrix test's
 assertions.
 
-    python -m bench.frontier0 [--out bench/results/frontier0.json] [--duration 15]
+    python -m bench.frontier0 [--out bench/results/frontier0.json] [--duration 15] [--pool]
+
+``--pool`` adds ``pdr``'s two-port accounting (self-credit ``cKAPPA``, ``teleop.codecs.reflective``)
+to the grid and writes ``bench/results/frontier0_pool.json``.  Such a codec's per-direction margins
+(eq. 5) may go negative by design: its matrix verdict is the two-port's energy (eq. 1 via 4) and the
+guards' in-band margins, and both verdicts are recorded.
 
 Virtual time only (a few seconds of CPU per case); nothing here measures wall-clock time.
 """
@@ -41,6 +46,17 @@ PDR = (
 )
 REFERENCES = ("none", "ids:2", "pdp:1", "pdp:2")
 TDPA = ("none", "pdp:1", "pdr:0.8", "pdr:0.8:100:1:128:86")
+#: Two-port accounting (--pool): self-credit at kappa 1 %, bands as pdr:0.8, reserve scales 30 %;
+#: and a lower band for a lower I.
+POOL = ("pdr:0.8:100:0.8:30:30:c1", "pdr:0.8:100:0.8:30:30:c0.5", "pdr:0.6:100:0.6:30:30:c1")
+
+
+def _two_port(codec: str) -> bool:
+    """Whether ``codec`` keeps the channel passive as a two-port (pdr's POOL or cKAPPA) rather than
+    per direction."""
+    return codec.startswith("pdr") and len(codec.split(":")) >= 7
+
+
 TARGET_PPS = 40.0
 
 
@@ -78,20 +94,23 @@ def _matrix(codec: str, duration: float) -> list[dict[str, Any]]:
             s, tr = r.summary, r.trace
             pv = s["passivity"]
             peak = float(max(np.abs(a).max() for a in (tr.v_hsi, tr.v_to, tr.f_hsi, tr.f_to)))
-            ok = (
-                s["min_energy_margin"] >= -1e-9
-                and s["two_port_min_energy"] >= -1e-9
-                and bool(s["passive"])
+            two_port = (
+                s["two_port_min_energy"] >= -1e-9
                 and all(pv[d]["min_margin"] >= -1e-9 for d in pv)
                 and all(pv[d]["controller_active_ticks"] == pv[d]["violations"] for d in pv)
                 and math.isfinite(peak)
                 and peak < 50.0
             )
+            per_direction = two_port and s["min_energy_margin"] >= -1e-9 and bool(s["passive"])
+            ok = two_port if _two_port(codec) else per_direction
             out.append(
                 {
                     "impairment": name,
                     "on_loss": on_loss,
                     "passive": ok,
+                    "passive_per_direction": per_direction,
+                    "passive_two_port": two_port,
+                    "violations": {d: pv[d]["violations"] for d in pv},
                     "min_energy_margin": s["min_energy_margin"],
                     "two_port_min_energy": s["two_port_min_energy"],
                     "controller_active_ticks": {d: pv[d]["controller_active_ticks"] for d in pv},
@@ -103,8 +122,8 @@ def _matrix(codec: str, duration: float) -> list[dict[str, Any]]:
     return out
 
 
-def run(duration: float) -> dict[str, Any]:
-    cases = [_case(c, duration) for c in (*REFERENCES, *PDR)]
+def run(duration: float, pool: bool = False) -> dict[str, Any]:
+    cases = [_case(c, duration) for c in (*REFERENCES, *PDR, *(POOL if pool else ()))]
     cases += [_case(c, duration, "tdpa") for c in TDPA]
     ids2 = next(c for c in cases if c["codec"] == "ids:2")
     pdr = [c for c in cases if c["codec"].startswith("pdr") and c["passivity"] == "wave"]
@@ -132,10 +151,13 @@ def run(duration: float) -> dict[str, Any]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=Path("bench/results/frontier0.json"))
+    ap.add_argument("--out", type=Path, default=None, help="default bench/results/frontier0[_pool].json")
     ap.add_argument("--duration", type=float, default=15.0)
+    ap.add_argument("--pool", action="store_true", help="add pdr's two-port accounting (cKAPPA) to the grid")
     a = ap.parse_args()
-    doc = run(a.duration)
+    if a.out is None:
+        a.out = Path("bench/results/frontier0_pool.json" if a.pool else "bench/results/frontier0.json")
+    doc = run(a.duration, a.pool)
     a.out.write_text(json.dumps(doc, indent=1) + "\n")
     f = doc["frontier"]
     pps = f["packets_per_s"]

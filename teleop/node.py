@@ -164,16 +164,21 @@ class _Port:
         self.rx_codec = rx
         self.encoder = tx.encoder()
         self.decoder = rx.decoder(opts.max_queue, opts.on_loss)
-        # A codec whose reconstruction refers to the wave this side receives (pdr, eq. 3's
-        # reflection) pairs its two ends here; the others have no ``pair``.
-        pair = getattr(self.encoder, "pair", None)
-        if pair is not None:
-            pair(self.decoder, self.tx_direction)
         self.rate_cap = RateCap(opts.rate_cap, dt) if opts.rate_cap else None
         # Bytes a datagram carries beyond the packet: the envelope and the transport's header, as
         # the wire counters count them (the port sets it from its transport).
         self.datagram_overhead = auth.OVERHEAD + 28
         self.guard = self._make_guard(dt, opts, wave, tx, rx)
+        # A codec whose reconstruction refers to the wave this side receives (pdr, eq. 3's
+        # reflection) pairs its two ends here, and a pooling one (pdr's POOL) its guard; the others
+        # have no ``pair``.
+        pair = getattr(self.encoder, "pair", None)
+        if pair is not None:
+            pair(self.decoder, self.tx_direction, self.guard)
+        # A self-crediting pdr (cKAPPA) is told how many ticks after it was sent each payload began
+        # to play here: with the peer's, the round trip that pairs its model of the peer's credits.
+        self._tell_lag = getattr(self.encoder, "rx_lag", None) is not None
+        self._rx_tick = 0
         self._now = 0.0  # the last tick's session time: when a packet arrives, as far as this node knows
         self.session = session
         self.dt = dt
@@ -276,6 +281,7 @@ class _Port:
         if self.last_rx_seq >= 0:  # a late joiner's first packet leaves no gap behind it
             c.gaps += pkt.seq - self.last_rx_seq - 1
         self.last_rx_seq = pkt.seq
+        self._rx_tick = pkt.tick
         self.guard.sent(pkt.energy, self._now)
         c.accepted += 1
         return True
@@ -319,6 +325,8 @@ class _Port:
     def _play(self) -> Array:
         x = self.guard.admit(self.decoder.next())
         self.wave_in = x
+        if self._tell_lag and getattr(self.decoder, "fresh", False):
+            self.encoder.rx_lag = max(int(self._now / self.dt + 0.5) - self._rx_tick, 0)  # type: ignore[attr-defined]
         return x
 
     def _send(self, now: float, x: Array) -> wire.Packet | None:
@@ -340,7 +348,9 @@ class _Port:
             round(now * 1e6),
             self.tx_codec.codec_id,
             payload,
-            self.energy_sent,
+            # Plus what this side's guard granted the direction it sends (pooling, eq. 5 over both
+            # directions; 0.0 otherwise, which leaves the sum bit for bit).
+            self.energy_sent + self.encoder.granted,
         )
         cap = self.rate_cap
         if cap is not None:

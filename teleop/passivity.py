@@ -83,6 +83,10 @@ class EnergyGuard:
         self.reported_origin = 0.0
         self.played_origin = 0.0
         self._origin_from_next_report = False
+        # Two-port pooling (``pdr``'s POOL, eq. 5 summed over both directions): J of this budget
+        # given to the other direction, announced in this side's own reports (``grant``).
+        self.granted_out = 0.0
+        self.granted_origin = 0.0
 
     def sent(self, energy: float, now: float = 0.0) -> None:
         """A packet reported the sender's cumulative energy (reordered reports never lower it);
@@ -110,11 +114,40 @@ class EnergyGuard:
         joined a running session late (the first report it sees becomes the origin)."""
         self.reported_in = self.reported_origin = 0.0
         self.played_origin = self.played
+        self.granted_origin = self.granted_out
         self._origin_from_next_report = joined_late
 
     @property
     def margin(self) -> float:
-        return (self.reported_in - self.reported_origin) - (self.played - self.played_origin)
+        # Less what was granted away (0.0 without pooling: ``m - 0.0`` is ``m`` bit for bit).
+        return (
+            (self.reported_in - self.reported_origin)
+            - (self.played - self.played_origin)
+            - (self.granted_out - self.granted_origin)
+        )
+
+    def grant(self, total: float) -> None:
+        """Give up budget for the other direction: ``total`` J granted so far (cumulative, never
+        lowered), taken from this budget *before* the node announces it in its energy reports.
+
+        Why it stays passive: the channel is a two-port, and eq. (5) summed over both directions,
+        ``E_g_in - E_g_out + E_h_in - E_h_out >= 0``, is the condition (per direction is sufficient,
+        not necessary).  This side's margin loses ``total`` before the peer's budget can gain it, and
+        a report can only be older than the truth, so the sum of the two guards' margins bounds the
+        channel's stored energy from below at every tick, under any delay or loss.  A grant larger
+        than the margin would make this guard's margin negative: refused (``ValueError``)."""
+        extra = total - self.granted_out
+        if not extra >= 0.0 or extra > max(self.margin, 0.0) + self.tolerance:
+            raise ValueError(f"grant of {extra!r} J exceeds the margin {self.margin!r} J")
+        self.granted_out = total
+
+    def credit(self, amount: float) -> None:
+        """Add ``amount`` J to this budget out of the energy this side sent and has not reported
+        (``pdr``'s self-credit): the caller withholds it from its reports, so eq. (1) via (4) holds
+        over both directions (``teleop.codecs.reflective.ReflectiveEncoder._self_credit``)."""
+        if not amount >= 0.0:
+            raise ValueError(f"credit must be >= 0 J, got {amount!r}")
+        self.granted_out -= amount
 
     @property
     def played_in_epoch(self) -> float:

@@ -145,7 +145,7 @@ def test_reflection_finds_a_constant_coefficient(g: np.ndarray, rho: float) -> N
         ("pdr:1:0", "MAXMS must be in"),
         ("pdr:1:1.5", "MAXMS must be an integer"),
         ("pdr:1:100:3:1", "takes PCT"),
-        ("pdr:1:100:1:2:3:4", "takes PCT"),
+        ("pdr:1:100:1:2:3:4:5:6", "takes PCT"),
         ("pdr:1:100:0", "BPCT must be in"),
         ("pdr:1:100:x", "BPCT must be a number"),
         ("pdr:1:100:1:x:100", "FR must be a number"),

@@ -35,7 +35,7 @@ from .direct import DirectDecoder, DirectEncoder
 from .extrapolative import EdsDecoder, EdsEncoder
 from .frequency import MAX_FRAME, DctDecoder, DctEncoder
 from .interpolative import IdsDecoder, IdsEncoder
-from .reflective import ReflectiveDecoder, ReflectiveEncoder
+from .reflective import POOL_HOLD_TICKS, ReflectiveDecoder, ReflectiveEncoder
 
 __all__ = [
     "CODECS",
@@ -59,11 +59,12 @@ MAX_RESERVE_PCT = 1000.0  # pdr's FR, BR: the reserve scale of a direction, perc
 
 ACCEPTED = (
     "none | ids:K | eds:K | cq:BITS[:RANGE] | pd:PCT[:MAXMS] | pdp:PCT[:MAXMS] | "
-    "pdr:PCT[:MAXMS[:BPCT[:FR:BR]]] | dct:N:M  "
+    "pdr:PCT[:MAXMS[:BPCT[:FR:BR[:POOL[:HOLD]]]]] | dct:N:M  "
     f"(K integer 1..{MAX_K} ticks; BITS integer 2..{RAW_BITS}; RANGE full scale > 0, default session "
     f"range; PCT deadband in percent, 0 < PCT <= {MAX_BAND_PCT:g}; MAXMS heartbeat in ms, integer "
     f"1..{MAX_K}, default {DEFAULT_HEARTBEAT_MS}; BPCT pdr's backward band, as PCT, default PCT; "
     f"FR, BR pdr's forward and backward reserve scale in percent, 0..{MAX_RESERVE_PCT:g}, default 100; "
+    f"POOL, HOLD pdr's two-port pooling, ticks kept and ticks granted for, 0..{MAX_K}; "
     f"N frame 2..{MAX_FRAME} ticks, M coefficients 1..N)"
 )
 
@@ -84,10 +85,11 @@ class Codec:
     make_decoder: Callable[[int, str], PlayoutDecoder]
     values: int = 1  # values per DoF in one payload (pdp: value and slope; dct: M coefficients)
     event_based: bool = False  # sends when the signal asks (deadband): k is its longest interval
+    extra_bytes: int = 0  # beyond the values (pdr's POOL: its cumulative grant, a float64)
 
     @property
     def payload_bytes(self) -> int:
-        return packed_size(self.dof * self.values, self.bits)
+        return packed_size(self.dof * self.values, self.bits) + self.extra_bytes
 
     @property
     def raw_bytes_per_tick(self) -> int:
@@ -217,10 +219,10 @@ def _deadband(name: str) -> Callable[[str, list[str], int, float], Codec]:
     predictive = name in ("pdp", "pdr")
 
     def make(spec: str, params: list[str], dof: int, fs: float) -> Codec:
-        if name == "pdr" and len(params) in (3, 5):
+        if name == "pdr" and len(params) in (3, 5, 6, 7):
             return _pdr(spec, params, dof, fs)
         if len(params) not in (1, 2):
-            extra = " (pdr: then BPCT, then FR and BR)" if name == "pdr" else ""
+            extra = " (pdr: then BPCT, then FR and BR, then POOL and HOLD)" if name == "pdr" else ""
             raise CodecError(
                 f"codec {spec!r}: '{name}' takes PCT and an optional MAXMS{extra}; accepted: {ACCEPTED}"
             )
@@ -271,7 +273,16 @@ def _deadband(name: str) -> Callable[[str, list[str], int, float], Codec]:
 def _pdr(spec: str, params: list[str], dof: int, fs: float) -> Codec:
     """``pdr:PCT:MAXMS:BPCT[:FR:BR]``: the per-direction settings (``teleop.codecs.reflective``)."""
     nums = []
-    for what, text in zip(("PCT", "MAXMS", "BPCT", "FR", "BR"), params, strict=False):
+    credit = None
+    if len(params) == 6 and params[5][:1].lower() == "c":  # self-credit: cKAPPA, kappa in percent
+        try:
+            credit = float(params[5][1:]) / 100.0
+        except ValueError:
+            raise CodecError(f"codec {spec!r}: cKAPPA must be c and a number, got {params[5]!r}") from None
+        if not 0.0 <= credit < 1.0:
+            raise CodecError(f"codec {spec!r}: KAPPA must be in [0, 100) percent, got {params[5]!r}")
+        params = params[:5]
+    for what, text in zip(("PCT", "MAXMS", "BPCT", "FR", "BR", "POOL", "HOLD"), params, strict=False):
         if what == "MAXMS":
             nums.append(float(_int_param(spec, text, "MAXMS", 1, MAX_K)))
             continue
@@ -283,11 +294,18 @@ def _pdr(spec: str, params: list[str], dof: int, fs: float) -> Codec:
             raise CodecError(f"codec {spec!r}: {what} must be in (0, {MAX_BAND_PCT:g}], got {v:g}")
         if what in ("FR", "BR") and not 0 <= v <= MAX_RESERVE_PCT:
             raise CodecError(f"codec {spec!r}: {what} must be in [0, {MAX_RESERVE_PCT:g}], got {v:g}")
+        if what in ("POOL", "HOLD") and not 0 <= v <= MAX_K:
+            raise CodecError(f"codec {spec!r}: {what} must be in [0, {MAX_K}] ticks, got {v:g}")
         nums.append(v)
     pct, hb, bpct = nums[0], int(nums[1]), nums[2]
-    fr, br = (nums[3], nums[4]) if len(nums) == 5 else (100.0, 100.0)
+    fr, br = (nums[3], nums[4]) if len(nums) >= 5 else (100.0, 100.0)
+    pool = (nums[5], nums[6] if len(nums) == 7 else POOL_HOLD_TICKS) if len(nums) >= 6 else None
     # Canonical: the shortest form that means the same (pdr:0.8:100:0.8 is pdr:0.8).
-    tail = [f"{bpct:g}", f"{fr:g}", f"{br:g}"] if (fr, br) != (100.0, 100.0) else [f"{bpct:g}"]
+    tail = [f"{bpct:g}", f"{fr:g}", f"{br:g}"] if (fr, br) != (100.0, 100.0) or pool else [f"{bpct:g}"]
+    if pool is not None:
+        tail += [f"{pool[0]:g}", *([f"{pool[1]:g}"] if pool[1] != POOL_HOLD_TICKS else [])]
+    if credit is not None:
+        tail = [f"{bpct:g}", f"{fr:g}", f"{br:g}", f"c{100.0 * credit:g}"]
     if tail == [f"{pct:g}"]:
         tail = []
     canon = ":".join(["pdr", f"{pct:g}", *([str(hb)] if tail or hb != DEFAULT_HEARTBEAT_MS else []), *tail])
@@ -301,10 +319,11 @@ def _pdr(spec: str, params: list[str], dof: int, fs: float) -> Codec:
         raw,
         hb,
         RAW_BITS,
-        lambda: ReflectiveEncoder(raw, dof, pct, hb, bpct, (fr, br)),
-        lambda q, o: ReflectiveDecoder(raw, dof, q, o),
+        lambda: ReflectiveEncoder(raw, dof, pct, hb, bpct, (fr, br), pool, credit),
+        lambda q, o: ReflectiveDecoder(raw, dof, q, o, pool is not None, credit is not None),
         values=2,
         event_based=True,
+        extra_bytes=8 if pool is not None else 2 if credit is not None else 0,
     )
 
 

@@ -169,6 +169,9 @@ class Encoder:
     #: Set by a TDPA node before ``encode`` when its unreported input energy is due: an event-based
     #: encoder sends this tick (an energy-triggered update); periodic ones ignore it.
     urgent = False
+    #: J of its own side's receive budget the encoder has granted the direction it sends (cumulative;
+    #: ``pdr``'s POOL, ``teleop.passivity.EnergyGuard.grant``): the node adds it to its energy reports.
+    granted = 0.0
 
     def encode(self, x: Array) -> bytes | None:  # pragma: no cover - interface
         raise NotImplementedError
