@@ -136,6 +136,16 @@ class _Grow:
         return self._a[: self.n]
 
 
+def _keep_min_by_epochs(store: dict[tuple[int, int], float], values: Array, op: Block, to: Block) -> None:
+    """The minimum of ``values`` (per tick, NaN: none) kept per pair of the two receivers' epochs."""
+    fin = np.isfinite(values)
+    if fin.any():
+        pairs = np.stack([to["peer_epoch"][fin], op["peer_epoch"][fin]], axis=1)
+        for e_to, e_op in np.unique(pairs, axis=0).tolist():
+            sel = (to["peer_epoch"] == e_to) & (op["peer_epoch"] == e_op) & fin
+            _keep_min(store, (e_to, e_op), values[sel])
+
+
 class _Margin:
     """One direction's true margin, eq. (5), per receiver tick: the energy the sender's own log says
     it had put into the packets the receiver had accepted by then, minus the energy played since the
@@ -282,6 +292,7 @@ class _Fold:
         self.i_sim_window = 0.0
         self.fwd, self.bwd = _Margin(), _Margin()
         self.two_port: dict[tuple[int, int], float] = {}
+        self.two_port_clock: dict[tuple[int, int], float] = {}
         self.n = 0
         self.any_valid = False
         self.queue: deque[tuple[int, Block, Block]] = deque()
@@ -323,13 +334,15 @@ class _Fold:
                 self.bytes[d][name] += float(w[lo:hi].sum())
         self.i_sim_window += float(per_tick[: max(0, self.sim_ticks - k0)].sum())
         m_fwd, m_bwd = self.fwd.per_tick(to), self.bwd.per_tick(op)
-        both = m_fwd + m_bwd
-        fin = np.isfinite(both)
-        if fin.any():
-            pairs = np.stack([to["peer_epoch"][fin], op["peer_epoch"][fin]], axis=1)
-            for e_to, e_op in np.unique(pairs, axis=0).tolist():
-                sel = (to["peer_epoch"] == e_to) & (op["peer_epoch"] == e_op) & fin
-                _keep_min(self.two_port, (e_to, e_op), both[sel])
+        _keep_min_by_epochs(self.two_port, m_fwd + m_bwd, op, to)
+        # Eq. (4) on the session clock: each side's energy sent by tick k (reported or not) against
+        # what both played by tick k, as teleop.sim measures it.  The margins above count a sender's
+        # energy only once a packet carrying it was accepted, which a self-crediting pdr (cKAPPA)
+        # outruns by design: it plays on energy it is sending and has not reported yet.  This one
+        # trusts the handshake's clock offset (its error shifts the sides by a fraction of the RTT).
+        fwd_clock = op["energy_sent"] - to["energy_played_epoch"]
+        bwd_clock = to["energy_sent"] - op["energy_played_epoch"]
+        _keep_min_by_epochs(self.two_port_clock, fwd_clock + bwd_clock, op, to)
         self.signals.add(k, v_op=op["v"], v_to=to["v"], f_op=op["f"], f_to=to["f"])
         if self.delay is not None:
             self.delay.add(op["v"], to["v"], op["f"], to["f"])
@@ -376,6 +389,9 @@ class _Fold:
 
     def min_two_port(self) -> float | None:
         return self.two_port.get((self.fwd.last_epoch, self.bwd.last_epoch))
+
+    def min_two_port_clock(self) -> float | None:
+        return self.two_port_clock.get((self.fwd.last_epoch, self.bwd.last_epoch))
 
 
 def fold_logs(
@@ -570,6 +586,8 @@ def build(
         "rate_cap": {"forward": op.get("rate_cap"), "backward": to.get("rate_cap")},
         # Eq. (4): energy into the communication two-port, forward plus backward margin, per tick.
         "two_port_min_energy": fold.min_two_port(),
+        # The same on the session clock: every tick's energy in, reported or not (Fold._run).
+        "two_port_min_energy_clock": fold.min_two_port_clock(),
         "energy": {
             "forward": {
                 "sent": (op.get("energy") or {}).get("sent"),
@@ -768,6 +786,11 @@ def summary_text(rep: dict[str, Any], command: str = "teleop run") -> str:
     lines.append(
         f"  energy margin (sent - played) min: forward {_e(e['forward']['min_margin'])} J, "
         f"backward {_e(e['backward']['min_margin'])} J; two-port (eq. 4) {_e(rep['two_port_min_energy'])} J"
+        + (
+            f", on the session clock {_e(rep['two_port_min_energy_clock'])} J"
+            if rep.get("two_port_min_energy_clock") is not None
+            else ""
+        )
     )
     if "sim_skipped" in rep:
         lines.append(f"  teleop sim not re-run: {rep['sim_skipped']}")

@@ -32,6 +32,10 @@ def true_margin(sender: dict[str, Array], receiver: dict[str, Array]) -> Array:
     return np.where(ok, sent - played, np.nan)
 
 
+def _nanmin(x: Any) -> float | None:
+    return float(np.nanmin(x)) if np.isfinite(x).any() else None
+
+
 def figures(op_log: Path, to_log: Path, phases: list[tuple[str, float, float]], dt: float) -> dict[str, Any]:
     """Per-phase I and wire rates, each direction's minimum margin and the two-port's (eq. 4)."""
     _, a_op = read_log(op_log)
@@ -63,6 +67,11 @@ def figures(op_log: Path, to_log: Path, phases: list[tuple[str, float, float]], 
                 "backward": float(np.nanmin(m_bwd)) if np.isfinite(m_bwd).any() else None,
             },
             "two_port": float(np.nanmin(both)) if np.isfinite(both).any() else None,
+            # Eq. (4) on the session clock, tick against tick (what teleop.sim measures).
+            "two_port_clock": _nanmin(
+                (a_op["energy_sent"] - a_to["energy_played_epoch"])
+                + (a_to["energy_sent"] - a_op["energy_played_epoch"])
+            ),
             # The loop-timing histogram's ticks: those run, of the ticks both logs cover.
             "lateness_ticks": {
                 "operator": int(np.count_nonzero(~np.isnan(a_op["play_time_s"]))),
@@ -100,5 +109,9 @@ def assert_fold_matches(fold: Any, want: dict[str, Any]) -> None:
     assert (two is None) == (want["two_port"] is None)
     if two is not None:
         assert two == pytest.approx(want["two_port"], rel=1e-12, abs=1e-15)
+    clock = fold.min_two_port_clock()
+    assert (clock is None) == (want["two_port_clock"] is None)
+    if clock is not None:
+        assert clock == pytest.approx(want["two_port_clock"], rel=1e-12, abs=1e-15)
     for role, late in fold.lateness.items():
         assert late.ticks == want["lateness_ticks"][role], role

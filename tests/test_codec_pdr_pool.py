@@ -11,6 +11,7 @@ arbitrary signals, delays and losses, with both guards' in-band margins never ne
 from __future__ import annotations
 
 from collections import deque
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -189,3 +190,23 @@ def test_credit_in_the_sim_cuts_packets_and_stays_two_port_passive() -> None:
         assert s["passivity"][d]["violations"] == 0
         assert s["passivity"][d]["min_margin"] >= -1e-9
         assert s["wire"][d]["packets"] < 0.8 * ref["wire"][d]["packets"], d
+
+
+def test_a_real_self_crediting_session_is_passive_on_the_session_clock(tmp_path: Path) -> None:
+    """Two real processes with cKAPPA: the report's eq. (4) on the session clock (each side's energy
+    sent by a tick, reported or not) never goes negative, while the margins that count a sender's
+    energy only once a packet carrying it was accepted may, by design (teleop.report, Fold._run)."""
+    import json
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    r = subprocess.run(
+        [sys.executable, "-m", "teleop.cli", "run", "--codec", "pdr:0.8:100:0.8:30:30:c0.5",
+         "--duration", "4", "--out", str(out), "--no-plots", "--no-sim"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["two_port_min_energy_clock"] >= -1e-9
+    assert "on the session clock" in r.stdout
