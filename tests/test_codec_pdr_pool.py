@@ -17,26 +17,19 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from hypothesis.extra.numpy import arrays
 
 from teleop import wire
 from teleop.codecs import CodecError, make_codec
 from teleop.codecs.reflective import ReflectiveEncoder
 from teleop.passivity import EnergyGuard
 from teleop.sim import SimConfig, run_case
+from tests.test_codec_pdr import loops  # two waves per tick, DoF 1..3, beyond the range
 
 DT = 1e-3
 POOLED = "pdr:0.8:100:1:128:86:50"
 #: The self-credit point bench/frontier0.py --pool measures: bands 0.8 %, reserve scales 30 %, kappa 1 %.
 CREDIT = "pdr:0.8:100:0.8:30:30:c1"
 
-loops = st.integers(1, 3).flatmap(
-    lambda dof: arrays(
-        np.float64,
-        st.tuples(st.integers(1, 300), st.just(2), st.just(dof)),
-        elements=st.floats(-3.0, 3.0, allow_nan=False, allow_infinity=False),
-    )
-)
 
 
 def _pooled_loop(spec: str, x: np.ndarray, delay: int, keep: list[bool] | None) -> tuple[float, float, bool]:
