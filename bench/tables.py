@@ -833,10 +833,10 @@ def _repeats(doc: dict[str, Any]) -> str:
     return f" Run {len(r['cpu_met'])} times in a row: CPU targets met {cpu}; port tick {tick}."
 
 
-def frontier0() -> Table:
+def frontier0(source: str = "frontier0.json", command: str = "python -m bench.frontier0") -> Table:
     """The zero-delay frontier (issue 23 item 6): every case of ``bench.frontier0``, and whether the
-    winner is passive under the watchdog's matrix."""
-    b = Builder("frontier0.json")
+    winner is passive under the watchdog's matrix (``--pool``: by the two-port energy, eq. 4)."""
+    b = Builder(source)
     rows = []
     for i, c in enumerate(b.doc["cases"]):
         p = f"cases[{i}]"
@@ -857,17 +857,22 @@ def frontier0() -> Table:
         )
     t, w = b.doc["target"], b.doc["frontier"]
     passive = sum(1 for m in b.doc["matrix"] if m["passive"])
+    two_port = all("passive_two_port" in m for m in b.doc["matrix"])
+    per_direction = sum(1 for m in b.doc["matrix"] if m.get("passive_per_direction"))
+    judged = (
+        f" (judged by the two-port energy, eq. 4; per direction, eq. 5: {per_direction})" if two_port else ""
+    )
     return Table(
-        "frontier0",
-        "frontier0.json",
-        "python -m bench.frontier0",
+        source.removesuffix(".json").replace("_", "-"),
+        source,
+        command,
         ("codec", "passivity", "packets/s fwd / bwd", "I", "I_dc"),
         tuple(rows),
         note=f" Scenario `{b.doc['scenario']}`, {b.doc['duration']:g} s, 0 ms. Target: at most"
         f" {t['packets_per_s']:g} packets/s a direction at I <= {t['I']:.4g} (`{t['I_from']}`'s)."
         f" Frontier: `{w['codec']}`, {w['max_packets_per_s']:g} packets/s at most, target"
         f" {'met' if w['target_met'] else 'not met'}; passive in {passive} of {len(b.doc['matrix'])}"
-        " cases of the watchdog's impairment matrix.",
+        f" cases of the watchdog's impairment matrix{judged}.",
     )
 
 
@@ -875,6 +880,7 @@ TABLES: dict[str, Callable[[], Table]] = {
     "sweep": sweep,
     "fronts": fronts,
     "frontier0": frontier0,
+    "frontier0-pool": lambda: frontier0("frontier0_pool.json", "python -m bench.frontier0 --pool"),
     "flood": flood,
     "loop": loop,
     "transports": transports,
