@@ -5,6 +5,7 @@ memory); a log folder another user can write is refused.  Each case is one ``tel
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 from collections.abc import Iterator
@@ -219,3 +220,29 @@ def test_a_log_folder_the_stack_makes_is_private_whatever_the_umask(
     finally:
         os.umask(old)
     assert os.stat(logs).st_mode & 0o777 == 0o755
+
+
+
+@pytest.mark.parametrize(
+    "key", ["transport/auth/usrpwd/dictionary_file", "transport/link/tls/root_ca_certificate"]
+)
+@pytest.mark.parametrize("kind", ["fifo", "dev_zero", "directory"])
+def test_a_file_the_zenoh_config_names_is_refused_by_type(
+    key: str, kind: str, tmp_path: Path, fifo: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Zenoh opens these itself, before anything of ours runs: a FIFO named as the usrpwd
+    dictionary hung zenoh.open past SIGTERM; now make_config refuses it in one line."""
+    path, why = _inputs(tmp_path, fifo)[kind]
+    *parents, leaf = key.split("/")
+    nested: dict[str, object] = {leaf: str(path)}
+    for p in reversed(parents):
+        nested = {p: nested}
+    cfg = tmp_path / "named.json5"
+    cfg.write_text(json.dumps(nested))
+    with pytest.raises(ValueError, match=why):
+        make_config("peer", ["tcp/127.0.0.1:0"], None, str(cfg))
+    # The file is read when the session opens: the endpoint's one line, exit 1.
+    assert main(["operator", "--insecure", *ZENOH, "--zenoh-config", str(cfg)]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert err.startswith("teleop operator: error: ") and key in err and why in err, err

@@ -86,6 +86,21 @@ RT_QUEUE_BATCHES = 16  # Zenoh's maximum; its default of 2 dropped ~0.5 % at 1 k
 _RT_QUEUE = "transport/link/tx/queue/size/real_time"
 _MAX_MESSAGE = "transport/link/rx/max_message_size"
 _USRPWD = "transport/auth/usrpwd"
+#: Files a config names that Zenoh opens itself: each must be a regular file of bounded size, checked
+#: by its type before Zenoh sees it (a FIFO there hung zenoh.open past SIGTERM; /dev/zero never ends).
+_NAMED_FILES = (
+    f"{_USRPWD}/dictionary_file",
+    *(
+        f"transport/link/tls/{k}"
+        for k in (
+            "root_ca_certificate",
+            "listen_private_key",
+            "listen_certificate",
+            "connect_private_key",
+            "connect_certificate",
+        )
+    ),
+)
 #: Zenoh's largest message: our largest sample plus room for Zenoh's own headers.
 MAX_MESSAGE_BYTES = MAX_DATAGRAM_BYTES + 4096
 #: The inbox's bound in bytes (with the count, ``inbox_size``): a few tens of the largest samples.
@@ -173,6 +188,9 @@ def make_config(
             put(key, eps)
         elif unset(key):
             put(key, [])
+    for key in _NAMED_FILES:
+        if isinstance(path := _get(config, key), str):
+            read_regular(path, MAX_CONFIG_BYTES, f"Zenoh config {key}:")  # FileRefused: one line
     if unset(_RT_QUEUE):
         put(_RT_QUEUE, RT_QUEUE_BATCHES)
     max_msg = _get(config, _MAX_MESSAGE)
@@ -210,7 +228,7 @@ def _admit_key(config: Any, key: bytes, folder: str) -> Any:
     back after the open (the caller's config may open again, and the file is gone by then), or
     None if nothing was changed."""
     before = _get(config, _USRPWD)
-    if _get(config, "mode") != "peer" or any(v is not None for v in before.values()):
+    if not _ours_to_set(config):
         return None
     password = auth.zenoh_password(key)
     path = Path(folder) / "usrpwd"
@@ -221,12 +239,16 @@ def _admit_key(config: Any, key: bytes, folder: str) -> Any:
     return before
 
 
+def _ours_to_set(config: Any) -> bool:
+    """Whether the robot key's admission applies: peer mode, and the config sets no usrpwd of its own."""
+    return bool(_get(config, "mode") == "peer" and all(v is None for v in _get(config, _USRPWD).values()))
+
+
 def admission(config: Any, key: bytes | None) -> str:
     """Who may open a Zenoh link to a session opened with ``config`` and ``key`` (for ``ROLE.json``)."""
-    mode = _get(config, "mode")
-    if mode != "peer":
+    if _get(config, "mode") != "peer":
         return "the router's"
-    if any(v is not None for v in _get(config, _USRPWD).values()):
+    if not _ours_to_set(config):
         return "user-password of the config file"
     return "any peer" if key is None else "peers holding the robot key (user-password)"
 
