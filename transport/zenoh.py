@@ -188,8 +188,8 @@ def make_config(
             put(key, eps)
         elif unset(key):
             put(key, [])
-    for key in _NAMED_FILES:
-        if isinstance(path := _get(config, key), str):
+    for key in _NAMED_FILES:  # a missing one is left to Zenoh, which names it when it opens
+        if isinstance(path := _get(config, key), str) and os.path.exists(path):
             read_regular(path, MAX_CONFIG_BYTES, f"Zenoh config {key}:")  # FileRefused: one line
     if unset(_RT_QUEUE):
         put(_RT_QUEUE, RT_QUEUE_BATCHES)
