@@ -178,7 +178,7 @@ class ReflectiveEncoder(Encoder):
         self._c_own = 0.0  # e units this side credited its own guard: withheld from its reports
         self._c_peer = 0.0  # the peer's self-credit, as modelled here (e units)
         self._c_rep = (0.0, 0.0)  # (e_in, c_own) when the last report left: the invariant's origin
-        self._c_undo = (0.0, 0.0, 0.0)
+        self._c_undo = (0.0, 0.0)
         #: Ticks from the peer's send to the play here of its newest payload (the node sets it), and
         #: the peer's own, from its payloads: their sum is the round trip that pairs the peer's credit
         #: on its tick with this side's model it was playing then (1 tick at 0 ms in teleop.sim).
@@ -303,7 +303,7 @@ class ReflectiveEncoder(Encoder):
             if self.credit is not None:
                 self._m_hist[(self._n - 1) % CREDIT_HISTORY] = e_pred
             return None
-        self._c_undo = (self._c_rep[0], self._c_rep[1], self._c_own)
+        self._c_undo = self._c_rep
         self._undo = (
             self._val, self._slope, self._off, self._i, self._sent_once, self._e_budget, self._e_played, pred
         )  # fmt: skip
@@ -321,8 +321,6 @@ class ReflectiveEncoder(Encoder):
                 p = x * (1.0 - shrink * (1.0 - reserve / target))
             if guard is not None and self.pool is not None:
                 reserve = self._grant(guard, taken, xx)
-            if guard is not None and self.credit is not None:
-                reserve = max(self._e_in - self._c_own + self._c_peer - self._e_played, 0.0)
             if float(p.dot(p)) > reserve:  # eq. (10): the send tick plays at most the reserve
                 self.limited += 1
                 p = x * math.sqrt(reserve / xx)
@@ -411,10 +409,8 @@ class ReflectiveEncoder(Encoder):
         self._val, self._slope, self._off, self._i, self._sent_once = val, slope, off, i + 1, once
         self._e_budget = budget
         self._g_budget = self._g_undo  # a grant made stays taken at the guard; the next payload announces it
-        e_rep, c_rep, _ = self._c_undo
-        self._c_rep = (e_rep, c_rep)  # the report never left: the invariant keeps the older origin
+        self._c_rep = self._c_undo  # the report never left: the invariant keeps the older origin
         self._credit_on = self._on_undo  # nor did the state it announced
-        self._e_budget = budget
         # Without a payload so far the receiver plays zero; else the prediction it had.
         self.model = pred if once else np.zeros(self.dof)
         self._e_played = played + float(self.model.dot(self.model))
