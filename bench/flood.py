@@ -386,8 +386,11 @@ def main(argv: list[str] | None = None) -> int:
         auth.write_key_file(key_file, psk)
         runs: dict[str, list[dict[str, Any]]] = {}
 
+        def run(kind: str | None, rate: float, transport: str, sink: bool = False) -> dict[str, Any]:
+            return session(key_file, psk, kind, rate, a.duration, transport, a.udp_rcvbuf, a.pin, sink)
+
         def baseline(transport: str) -> None:
-            base = session(key_file, psk, None, 0, a.duration, transport, a.udp_rcvbuf, a.pin)
+            base = run(None, 0, transport)
             runs.setdefault(transport, []).append(base)
             print(
                 f"baseline ({transport}): lateness p99 {base['lateness_p99_us']} us, overruns"
@@ -401,19 +404,13 @@ def main(argv: list[str] | None = None) -> int:
             if transport not in runs:
                 baseline(transport)
             for rate in a.rates:
-                reps = [session(key_file, psk, kind, rate, a.duration, transport, a.udp_rcvbuf, a.pin)]
-                _print_case(reps[-1])
-                for _ in range(a.repeats - 1):
-                    reps.append(
-                        session(key_file, psk, kind, rate, a.duration, transport, a.udp_rcvbuf, a.pin)
-                    )
+                reps = []
+                for _ in range(a.repeats):
+                    reps.append(run(kind, rate, transport))
                     _print_case(reps[-1])
                 case = _combine(reps)
                 if a.control and transport == "udp":
-                    ctl = [
-                        session(key_file, psk, kind, rate, a.duration, transport, a.udp_rcvbuf, a.pin, True)
-                        for _ in range(a.repeats)
-                    ]
+                    ctl = [run(kind, rate, transport, sink=True) for _ in range(a.repeats)]
                     p99s = [r["lateness_p99_us"] for r in ctl if r["lateness_p99_us"] is not None]
                     case["control_p99_us"] = statistics.median(p99s) if p99s else None
                     case["control_p99_us_runs"] = p99s
