@@ -16,13 +16,21 @@ p99 and p99.9 and their ratio to the empty loop's, and the port's per-tick cost 
 (``bench.tick.bench_port_sides``, no I/O).  Targets: CPU at most 1.5x the floor at 2 and 6 DoF and
 2x at 64 DoF; the port's tick at most 15 us per side at 2 DoF with ``none``.
 
-    python -m bench.cpu [--duration S] [--out FILE]
+``--reference DIR`` (a checkout of another commit, such as ``git worktree add /tmp/ref <commit>``)
+also runs every case from DIR, right before or after this tree's (alternated case by case), with
+its own empty loop, and times its port the same way: each process then has its CPU and port tick
+as a ratio to the reference's, measured minutes apart on the same host.  On a shared VM whose
+noise moves the absolute figures by 10-20 % within an hour, that ratio is the figure that says
+whether a change made the loop cheaper.
+
+    python -m bench.cpu [--duration S] [--reference DIR] [--out FILE]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import statistics
 import subprocess
@@ -31,8 +39,6 @@ import tempfile
 import time
 from pathlib import Path
 from typing import Any
-
-from bench.tick import bench_port_sides
 
 CASES: tuple[tuple[str, int], ...] = (
     ("none", 2),
@@ -60,10 +66,19 @@ def run_floor(duration: float, tmp: Path, name: str) -> dict[str, Any]:
     return res
 
 
-def run_case(codec: str, dof: int, duration: float, tmp: Path) -> dict[str, Any]:
-    """One ``teleop run`` with an empty loop alongside; the two processes' loop figures and the empty's."""
-    name = f"{codec.replace(':', '')}-{dof}"
+def _tree_env(root: Path | None) -> tuple[Path | None, dict[str, str] | None]:
+    """The working folder and environment that run ``-m`` modules from ``root`` (None: this tree)."""
+    if root is None:
+        return None, None
+    return root, {**os.environ, "PYTHONPATH": str(root)}
+
+
+def run_case(codec: str, dof: int, duration: float, tmp: Path, root: Path | None = None) -> dict[str, Any]:
+    """One ``teleop run`` with an empty loop alongside; the two processes' loop figures and the empty's.
+    ``root``: run ``teleop`` from that checkout instead of this tree (the empty loop is this tree's)."""
+    name = f"{codec.replace(':', '')}-{dof}" + ("-ref" if root is not None else "")
     empty_json, run_dir = tmp / f"empty-{name}.json", tmp / f"run-{name}"
+    cwd, env = _tree_env(root)
     # The session needs ~1 s to start; start the empty loop so the two overlap almost fully.
     ref = subprocess.Popen(
         [
@@ -81,12 +96,42 @@ def run_case(codec: str, dof: int, duration: float, tmp: Path) -> dict[str, Any]
     )
     cmd = [sys.executable, "-m", "teleop.cli", "run", "--codec", codec, "--dof", str(dof)]
     cmd += ["--duration", str(duration), "--out", str(run_dir), "--no-plots", "--no-sim", "--no-live"]
-    r = subprocess.run(cmd, capture_output=True, text=True)
+    r = subprocess.run(cmd, capture_output=True, text=True, cwd=cwd, env=env)
     ref.wait(timeout=duration + 60)
     if r.returncode != 0:
-        sys.exit(f"teleop run {codec} {dof} DoF failed: {r.stderr}")
+        sys.exit(f"teleop run {codec} {dof} DoF failed{' (reference)' if root else ''}: {r.stderr}")
     rep = json.loads((run_dir / "report.json").read_text())
     return {"empty": json.loads(empty_json.read_text()), "report": rep}
+
+
+_PORT_SIDES = (
+    "import json, statistics, sys; from bench.tick import bench_port_sides; "
+    "o, t = bench_port_sides(sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), "
+    "scenario='protocol'); print(json.dumps([statistics.median(o), statistics.median(t)]))"
+)
+
+
+def port_tick(
+    codec: str, dof: int, ticks: int, repeats: int, root: Path | None = None
+) -> tuple[float, float]:
+    """Each side's port tick (median of ``repeats``, us), in a fresh interpreter of ``root``'s tree
+    (None: this one), so two trees' figures come from equal processes."""
+    cwd, env = _tree_env(root)
+    args = [codec, str(dof), str(ticks), str(repeats)]
+    cmd = [sys.executable, "-c", _PORT_SIDES, *args]
+    out = subprocess.run(cmd, capture_output=True, text=True, cwd=cwd, env=env, check=True).stdout
+    op, to = json.loads(out)
+    return float(op), float(to)
+
+
+def _vs_reference(r: dict[str, Any]) -> str:
+    return f"  x reference: CPU {r['cpu_ratio']:.2f}, port tick {r['port_tick_ratio']:.2f}"
+
+
+def _commit(root: Path) -> str:
+    """The commit checked out at ``root`` (or why it is not known)."""
+    r = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True)
+    return r.stdout.strip() if r.returncode == 0 else f"unknown ({r.stderr.strip()})"
 
 
 def main() -> None:
@@ -94,24 +139,37 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=10.0, help="seconds per session (default 10)")
     ap.add_argument("--tick-ticks", type=int, default=3000, help="ticks per repeat of the port timing")
     ap.add_argument("--tick-repeats", type=int, default=5)
+    ap.add_argument("--reference", type=Path, help="a checkout of another commit: every case run from it too")
     ap.add_argument("--out", default="bench/results/cpu.json")
     a = ap.parse_args()
+    root: Path | None = a.reference.resolve() if a.reference is not None else None
+    if root is not None and not (root / "teleop" / "cli").is_dir():
+        sys.exit(f"--reference {a.reference}: not a checkout of this project (no teleop/cli in it)")
     started = time.time()
+    refs: dict[tuple[str, int], dict[str, Any]] = {}
     with tempfile.TemporaryDirectory() as tmpdir:
         tmp = Path(tmpdir)
         floors = [run_floor(a.duration, tmp, "floor-before")]
         runs = []
-        for codec, dof in CASES:
+        for i, (codec, dof) in enumerate(CASES):
             print(f"teleop run {codec} {dof} DoF ...", flush=True)
+            if root is not None and i % 2 == 1:  # alternated: the reference first every other case
+                refs[codec, dof] = run_case(codec, dof, a.duration, tmp, root)
             runs.append((codec, dof, run_case(codec, dof, a.duration, tmp)))
+            if root is not None and i % 2 == 0:
+                refs[codec, dof] = run_case(codec, dof, a.duration, tmp, root)
         floors.append(run_floor(a.duration, tmp, "floor-after"))
     floor_cpu = statistics.fmean(s["cpu_fraction"] for f in floors for s in f["sides"])
     cases = []
     for codec, dof, r in runs:
         empty = r["empty"]
         pe_empty = empty["period_error_us"]
-        ops, tos = bench_port_sides(codec, dof, a.tick_ticks, a.tick_repeats, scenario="protocol")
-        tick_us = {"operator": statistics.median(ops), "teleoperator": statistics.median(tos)}
+        ticks = port_tick(codec, dof, a.tick_ticks, a.tick_repeats)
+        tick_us = dict(zip(ROLES, ticks, strict=True))
+        ref_tick_us: dict[str, float] = {}
+        if root is not None:
+            ref_ticks = port_tick(codec, dof, a.tick_ticks, a.tick_repeats, root)
+            ref_tick_us = dict(zip(ROLES, ref_ticks, strict=True))
         case: dict[str, Any] = {
             "codec": codec,
             "dof": dof,
@@ -133,6 +191,14 @@ def main() -> None:
                 "port_tick_us": tick_us[role],
                 "cpu_target_met": ratio <= cpu_target(dof),
             }
+            if root is not None:
+                ref_cpu = refs[codec, dof]["report"]["processes"][role]["loop"]["cpu_fraction"]
+                case[role]["reference"] = {
+                    "cpu_fraction": ref_cpu,
+                    "cpu_ratio": loop["cpu_fraction"] / ref_cpu,
+                    "port_tick_us": ref_tick_us[role],
+                    "port_tick_ratio": tick_us[role] / ref_tick_us[role],
+                }
         cases.append(case)
     tick_2 = next(c for c in cases if c["codec"] == "none" and c["dof"] == 2)
     targets = {
@@ -154,6 +220,12 @@ def main() -> None:
         "targets": targets,
         "wall_s": time.time() - started,
     }
+    if root is not None:
+        res["reference"] = {
+            "commit": _commit(root),
+            "what": "every case also run from this commit, alternated case by case; per process its"
+            " CPU and port tick, and this tree's as a ratio to them",
+        }
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=2) + "\n")
@@ -166,6 +238,7 @@ def main() -> None:
                 f"({x['cpu_ratio_to_floor']:.2f}x floor, target {c['cpu_target_ratio']:g}x)  "
                 f"p99 {x['period_error_us']['p99']:7.1f} us (empty {pe_empty['p99']:6.1f})  "
                 f"p99.9 {x['period_error_us']['p999']:7.1f} us  port tick {x['port_tick_us']:6.1f} us"
+                + (_vs_reference(x["reference"]) if "reference" in x else "")
             )
     print(
         f"targets: CPU {targets['cpu']['met']}/{targets['cpu']['of']}, port tick "
