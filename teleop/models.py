@@ -20,6 +20,7 @@ Section V models: the human exerts a velocity step and reacts to force through t
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
@@ -189,7 +190,7 @@ def _smooth_steps(t: float, knots: Sequence[tuple[float, float]], ramp: float) -
         if t < t0:
             break
         a = min(1.0, (t - t0) / ramp)
-        v = v + (target - v) * 0.5 * (1.0 - np.cos(np.pi * a)) if a < 1.0 else target
+        v = v + (target - v) * 0.5 * (1.0 - math.cos(math.pi * a)) if a < 1.0 else target
     return v
 
 
@@ -336,7 +337,9 @@ class ProtocolHuman:
     def push_profile(self, t: float) -> float:
         if t < self.plan.t_foam:  # free space: strokes of +-amplitude, ending at rest
             w = self._w
-            return float(self.plan.stroke_amp * w * np.sin(w * t))
+            # math.sin, not np.sin: the same libm result for a float (tests/test_fastpath.py), without
+            # numpy's scalar dispatch and a numpy float through the products (every tick).
+            return self.plan.stroke_amp * w * math.sin(w * t)
         return _smooth_steps(t, self._knots, 0.15)
 
     def reference(self, now: float) -> Array:

@@ -60,3 +60,11 @@ def test_encode_is_packb(
     fields = [wire.MAGIC, wire.VERSION, session, direction, seq, tick, t_us, codec_id, payload, float(energy)]
     body = msgpack.packb(fields, use_bin_type=True)
     assert wire.encode(p) == body + zlib.crc32(body).to_bytes(4, "little")
+
+
+@given(st.floats(-1e6, 1e6))
+def test_math_sin_cos_are_numpys_for_a_float(t: float) -> None:
+    """``teleop.models`` calls math.sin and math.cos on the 1 kHz path where it called np.sin and
+    np.cos on a Python float: numpy's float64 loop calls the same libm, so the bits agree."""
+    assert math.sin(t) == float(np.sin(t)) or (math.isnan(math.sin(t)) and math.isnan(float(np.sin(t))))
+    assert math.cos(t) == float(np.cos(t)) or (math.isnan(math.cos(t)) and math.isnan(float(np.cos(t))))

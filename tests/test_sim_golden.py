@@ -50,6 +50,14 @@ GOLDEN: dict[str, tuple[SimConfig, float, str]] = {
         0.02544233898123922,
         "563b06371d4851355c1b3661dd2728d6c5aa637f08ea808d06b4e012d90ddac0",
     ),
+    # The whole Section VI task (free space, foam, wall), a varied plan at 3 DoF: the human's push
+    # profile and the environment's contact branches, which the 2 s cases never reach.  Recorded
+    # from 1101014, before this case's hot-path changes.
+    "pdp-protocol-15s-varied": (
+        SimConfig(codec="pdp:1", dof=3, scenario="protocol", duration=15.0, variation=1.0, seed=3),
+        0.001160279259017192,
+        "203215cbbb9bec763883b06004a70a1969011278f5cfa4ecda7378da8e6b073d",
+    ),
     "tdpa-none-netem": (
         SimConfig(codec="none", netem_forward=NET, netem_backward=NET, seed=2, passivity="tdpa", **P),  # type: ignore[arg-type]
         0.025495322116358087,
