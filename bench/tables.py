@@ -676,6 +676,7 @@ def tick() -> Table:
 
 def cpu() -> Table:
     b = Builder("cpu.json")
+    ref: dict[str, Any] | None = b.doc.get("reference")
     rows: list[tuple[Cell, ...]] = [
         (
             "floor reference",
@@ -686,6 +687,7 @@ def cpu() -> Table:
             "-",
             "-",
             "-",
+            *(["-"] if ref else []),
         )
     ]
     for i, c in enumerate(b.doc["cases"]):
@@ -716,13 +718,32 @@ def cpu() -> Table:
                         ),
                     ),
                     b.one(f"{x}.port_tick_us", ".1f"),
+                    *(
+                        [
+                            (
+                                "{} / {}",
+                                (
+                                    b.fig(f"{x}.reference.cpu_ratio", ".2f"),
+                                    b.fig(f"{x}.reference.port_tick_ratio", ".2f"),
+                                ),
+                            )
+                        ]
+                        if ref
+                        else []
+                    ),
                 )
             )
     t = b.doc["targets"]
+    ref_note = (
+        f" The reference is commit `{ref['commit'][:7]}`, each case run from it in the same invocation"
+        " (alternated), its port tick in a fresh interpreter of its own tree."
+        if ref
+        else ""
+    )
     return Table(
         "cpu",
         "cpu.json",
-        "python -m bench.cpu",
+        "python -m bench.cpu" + (" --reference DIR" if ref else ""),
         (
             "codec",
             "DoF",
@@ -732,13 +753,14 @@ def cpu() -> Table:
             "period error p99, us (empty loop)",
             "p99.9, us (empty loop)",
             "port tick, us",
+            *(["x reference: CPU / port tick"] if ref else []),
         ),
         tuple(rows),
         note=(
             f" {b.doc['duration_s']:g} s sessions, `{b.doc['scenario']}` scenario, one invocation;"
             f" targets met: CPU {t['cpu']['met']} of {t['cpu']['of']},"
             f" port tick (15 us per side at 2 DoF, `none`) {t['port_tick_15us_none_2dof']['met']} of"
-            f" {t['port_tick_15us_none_2dof']['of']}.{_repeats(b.doc)}"
+            f" {t['port_tick_15us_none_2dof']['of']}.{ref_note}{_repeats(b.doc)}"
         ),
     )
 
@@ -802,7 +824,7 @@ def phases() -> Table:
 
 def cpu_ab() -> Table:
     """The early drain's A/B in cpu.json: each process's CPU before and after, runs alternated."""
-    b = Builder("cpu.json")
+    b = Builder("cpu_ab_early_drain.json")
     ab = b.doc["ab_early_drain"]["cases"]
     rows: list[tuple[Cell, ...]] = []
     for case, runs in ab.items():
@@ -815,7 +837,7 @@ def cpu_ab() -> Table:
         rows.append((f"`{codec}`", dof, role, *cells))
     return Table(
         "cpu-ab",
-        "cpu.json",
+        "cpu_ab_early_drain.json",
         "python -m bench.cpu (twice from each commit, alternated)",
         ("codec", "DoF", "process", "CPU before (each run)", "CPU after (each run)"),
         tuple(rows),
