@@ -5,7 +5,7 @@ Runs, one after the other:
 1. the floor reference (``bench.floor``: a pair of processes that sleep to 100 us before each
    deadline, spin the rest, seal a 40-byte body with keyed BLAKE2s, send it to the other over
    loopback UDP, drain and verify what arrived);
-2. ``teleop run`` (``protocol`` scenario, UDP, authenticated, no log) for ``none``, ``eds:50`` and
+2. ``teleop run`` (``protocol`` scenario, UDP, authenticated, log on) for ``none``, ``eds:50`` and
    ``pdp:1`` at 2 and 6 DoF and ``none`` at 64 DoF, each with an empty reference loop
    (``bench.loop``'s: the same scheduler with today's fixed 100 us spin and nothing to do) running
    alongside, so a stall of the shared host hits both;
