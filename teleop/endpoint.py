@@ -540,13 +540,17 @@ class Endpoint:
         elif self.params.until_stopped and self.peer_bye is not None:
             self._end(EndReason.PEER_BYE, now_ns)
 
+    def grace_needed(self, k: int) -> bool:
+        """Whether tick ``k`` would wait for its payload (:meth:`grace_until`), without counting a wait."""
+        port = self.port
+        if port is None or not self.grace_limit_ns or k < self._grace_resume:
+            return False
+        return not port.payload_ready(k) and port.node.counters.accepted > 0
+
     def grace_until(self, k: int, deadline_ns: int) -> int | None:
         """Grace: tick ``k``'s payload is due and not here yet; poll for it until the returned time
         rather than play a gap (None: do not wait).  Report the outcome with :meth:`grace_result`."""
-        port = self.port
-        if port is None or not self.grace_limit_ns or k < self._grace_resume:
-            return None
-        if port.payload_ready(k) or not port.node.counters.accepted:
+        if not self.grace_needed(k):
             return None
         self.grace["waits"] += 1
         return deadline_ns + self.grace_limit_ns

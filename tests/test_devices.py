@@ -167,6 +167,7 @@ def test_run_passes_each_device_to_its_own_side_only() -> None:
         connect_timeout=5.0,
         no_rt=True,
         asyncio=False,
+        tick_at="wake",
         live_view=None,
     )
     args.robot, args.hsi = "mujoco", "step"

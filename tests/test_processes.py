@@ -61,11 +61,19 @@ def _misses(rep: dict[str, Any]) -> int:
 
 
 @pytest.mark.parametrize(
-    "codec,per_dir,c_payload",
-    [("eds:50", 60, 50.0), ("none", 3000, 1.0), ("ids:2", 1500, 2.0), ("cq:8", 3000, 2.0)],
+    "codec,per_dir,c_payload,tick_at",
+    [
+        ("eds:50", 60, 50.0, "wake"),
+        ("none", 3000, 1.0, "wake"),
+        ("ids:2", 1500, 2.0, "wake"),
+        ("cq:8", 3000, 2.0, "wake"),
+        ("none", 3000, 1.0, "deadline"),  # each tick run from its deadline (the loop before issue 22's)
+    ],
 )
-def test_counts_and_compression(tmp_path: Path, codec: str, per_dir: int, c_payload: float) -> None:
-    r, rep = _run(tmp_path, "--codec", codec, "--duration", "3")
+def test_counts_and_compression(
+    tmp_path: Path, codec: str, per_dir: int, c_payload: float, tick_at: str
+) -> None:
+    r, rep = _run(tmp_path, "--codec", codec, "--duration", "3", "--tick-at", tick_at)
     assert r.returncode == 0, r.stderr
     assert rep["transport"] == "udp" and rep["codec"] == codec and rep["duration_s"] == 3.0
     for d, sender in (("forward", "operator"), ("backward", "teleoperator")):
@@ -96,6 +104,8 @@ def test_counts_and_compression(tmp_path: Path, codec: str, per_dir: int, c_payl
         # A scheduler that kept time (a bound, not a timing: a noisy host's stall moved the p50 to
         # 115 us in a fresh-clone CI run; bench.loop measures the timing).
         assert loop["period_error_us"]["p50"] < 500, role
+        # Datagrams leave once the loop reached the deadline, never before it (either mode).
+        assert loop["send_lateness_us"]["p50"] >= loop["lateness_us"]["p50"] >= 0, role
         assert not _alive(p["pid"]), f"{role} process {p['pid']} still running"
         summary = json.loads((tmp_path / "run" / "logs" / f"{role}.json").read_text())
         f = summary["received"]["filter"]  # the kernel socket filter followed the endpoint's admission

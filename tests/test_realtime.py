@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from transport.realtime import SpinLearner, Ticker
 
 
@@ -31,3 +33,21 @@ def test_a_ticker_with_equal_bounds_keeps_its_spin() -> None:
     assert t.learner is None and t.spin == 100_000
     t.start(0)
     assert Ticker(spin_ns=100_000).learner is not None
+
+
+def test_departures_are_timed_against_the_deadline_of_the_tick_they_belong_to() -> None:
+    """Ticker.departed: when each tick's datagrams left, minus its deadline, and the period error
+    between departures (the report's send_lateness_us and send_period_error_us)."""
+    now = [0]
+    t = Ticker(period_ns=1_000_000, spin_ns=0, min_spin_ns=0, clock=lambda: now[0])
+    t.start(0)
+    for k, leave in enumerate((30_000, 50_000, 20_000)):
+        now[0] = k * 1_000_000
+        assert t.spin_to_deadline() == k
+        now[0] += leave
+        t.departed(now[0])
+    s = t.stats().summary()
+    late = s["send_lateness_us"]
+    assert late == {"p50": 30.0, "p99": pytest.approx(49.6), "p999": pytest.approx(49.96), "max": 50.0}
+    assert s["send_period_error_us"]["max"] == 30.0  # 50 - 20: the third left 30 us less than a period after
+    assert s["period_error_us"]["max"] == 0.0  # every deadline was met on the dot

@@ -1,6 +1,7 @@
 """The runner's early drain (transport.session._Runner.drain_early): datagrams that arrived before
 the spin are fed in the spin's time while each one's expected cost ends before the limit; the rest
-wait, in order, for the drain at the deadline."""
+wait, in order, for the drain at the deadline.  And its early tick (``_Runner.tick_early``): the
+coming tick runs in the spin's time unless that would change what it computes."""
 
 from __future__ import annotations
 
@@ -63,3 +64,54 @@ def test_the_early_drain_learns_the_cost_of_a_datagram() -> None:
     r, ep = _runner([[(b"x", None, 0)] * 3], cost=1)
     r.drain_early(until_ns=EARLY_COST_START_NS - 1)  # the first guess alone does not fit
     assert ep.fed == [] and len(r._pending) == 3
+
+
+class _Ticker:
+    def __init__(self, k: int, deadline: int) -> None:
+        self.k, self.next_deadline = k, deadline
+
+
+class _TickingEndpoint:
+    """What tick_early asks of an endpoint: whether ticks are due, whose session, grace, tick."""
+
+    def __init__(self, grace: bool = False) -> None:
+        self.running, self.params, self.grace = True, object(), grace
+        self.ticked: list[tuple[int, int]] = []
+
+    def grace_needed(self, k: int) -> bool:
+        return self.grace
+
+    def tick(self, k: int, now_ns: int) -> None:
+        self.ticked.append((k, now_ns))
+
+
+def _ticking_runner(ep: _TickingEndpoint, now: int) -> Any:
+    r: Any = object.__new__(_Runner)
+    clock = _Clock()
+    clock.t = now
+    r.clock, r.ep = clock, ep
+    return r
+
+
+def test_the_coming_tick_runs_in_the_spins_time_when_nothing_it_needs_is_missing() -> None:
+    ep = _TickingEndpoint()
+    r = _ticking_runner(ep, now=900_000)
+    assert r.tick_early(_Ticker(7, 1_000_000), ep.params) == 7
+    assert ep.ticked == [(7, 900_000)]
+
+
+def test_the_tick_waits_for_its_deadline_when_early_would_change_it() -> None:
+    due_payload_missing = _TickingEndpoint(grace=True)  # grace at the deadline, as before
+    replaced = _TickingEndpoint()  # a takeover replaced the session while the loop slept
+    ended = _TickingEndpoint()
+    ended.running = False
+    late = _TickingEndpoint()  # woke at or past the deadline: the tick runs from it, as before
+    for ep, session, now in (
+        (due_payload_missing, due_payload_missing.params, 900_000),
+        (replaced, object(), 900_000),
+        (ended, ended.params, 900_000),
+        (late, late.params, 1_000_000),
+    ):
+        r = _ticking_runner(ep, now)
+        assert r.tick_early(_Ticker(7, 1_000_000), session) is None
+        assert ep.ticked == []

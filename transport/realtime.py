@@ -22,6 +22,13 @@ An *overrun* is a tick started more than one period late.  When the loop falls m
 ``max_catchup`` ticks behind (a stall: the VM's host stole the CPU), the missed ticks are *skipped*
 (counted) instead of run back to back, so the session clock stays true.
 
+**When the datagrams leave.**  The runner may run a tick before its deadline, in the time the
+spin would burn, and send its datagrams at the deadline (``transport.session``, ``--tick-at
+wake``), or run it from the deadline (``--tick-at deadline``).  The figures above are of the
+deadline instant either way; :meth:`Ticker.departed` adds the instant each tick's datagrams left
+(``send_lateness_us``, ``send_period_error_us``), which is what the peer sees of the loop's timing
+in both modes.
+
 Real-time priority (SCHED_FIFO) and 1 ns timer slack are requested where permitted; where not,
 ``setup_realtime`` returns warnings and the run goes on.  Under SCHED_FIFO a thread that never
 sleeps is throttled by the kernel, which is another reason to sleep most of the period.
@@ -92,8 +99,11 @@ class LoopStats:
     lateness_q: Quantiles | None = None
     period_error_q: Quantiles | None = None
     spin_ns: int = 0  # the spin in use at the end (learned, see SpinLearner)
+    send_lateness_q: Quantiles | None = None  # when each tick's datagrams left (Ticker.departed)
+    send_period_error_q: Quantiles | None = None
 
     def summary(self) -> dict[str, object]:
+        none = np.zeros(0, dtype=np.int64)
         return {
             "ticks": self.ticks,
             "overruns": self.overruns,
@@ -105,6 +115,8 @@ class LoopStats:
             "wall_s": self.wall_s,
             "cpu_fraction": self.cpu_s / self.wall_s if self.wall_s > 0 else 0.0,
             "spin_us": self.spin_ns / 1e3,
+            "send_lateness_us": _percentiles(self.send_lateness_q, none),
+            "send_period_error_us": _percentiles(self.send_period_error_q, none),
         }
 
 
@@ -193,6 +205,9 @@ class Ticker:
         self._late_q = Quantiles(lo=1.0, hi=1e12)
         self._perr_q = Quantiles(lo=1.0, hi=1e12)
         self.last_lateness_ns = 0
+        self._send_late_q = Quantiles(lo=1.0, hi=1e12)
+        self._send_perr_q = Quantiles(lo=1.0, hi=1e12)
+        self._last_departure = 0
         self._n = 0
         self._last_start = 0
         self._cpu0 = 0.0
@@ -251,6 +266,13 @@ class Ticker:
         self.k += 1
         return k
 
+    def departed(self, now: int) -> None:
+        """The datagrams of the tick :meth:`spin_to_deadline` last returned left at ``now``."""
+        self._send_late_q.add(now - self.t0 - (self.k - 1) * self.period)
+        if self._last_departure:
+            self._send_perr_q.add(now - self._last_departure - self.period)
+        self._last_departure = now
+
     def _record(self, late: int, now: int) -> None:
         self.last_lateness_ns = late
         self._late_q.add(late)
@@ -279,4 +301,6 @@ class Ticker:
             lateness_q=self._late_q,
             period_error_q=self._perr_q,
             spin_ns=self.spin,
+            send_lateness_q=self._send_late_q,
+            send_period_error_q=self._send_perr_q,
         )

@@ -437,6 +437,9 @@ def add_passivity_args(p: argparse.ArgumentParser, repeatable: bool = False) -> 
     )
 
 
+TICK_AT = ("wake", "deadline")
+
+
 def add_process_args(p: argparse.ArgumentParser) -> None:
     """Options of a process's loop, shared by `operator`, `teleoperator` and `run` (which passes them on)."""
     p.add_argument(
@@ -448,6 +451,14 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--no-rt", action="store_true", help="do not ask for SCHED_FIFO priority")
     p.add_argument("--asyncio", action="store_true", help="use the stdlib asyncio loop instead of uvloop")
+    p.add_argument(
+        "--tick-at",
+        choices=TICK_AT,
+        default="wake",
+        help="wake (default): run each tick as the loop wakes before its deadline, in the time its spin "
+        "would burn, and send at the deadline; deadline: run it from the deadline (a device read in the "
+        "tick is then sampled on the deadline instead of up to the spin before it)",
+    )
 
 
 def add_endpoint_args(p: argparse.ArgumentParser) -> None:

@@ -192,6 +192,7 @@ def _process_options(args: argparse.Namespace, logs: Path) -> list[str]:
     common = ["--log", str(logs), "--connect-timeout", str(args.connect_timeout), "--quiet"]
     common += ["--no-rt"] if args.no_rt else []
     common += ["--asyncio"] if args.asyncio else []
+    common += ["--tick-at", args.tick_at]
     return common
 
 

@@ -206,6 +206,7 @@ def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int
         connect_timeout=args.connect_timeout,
         rt_priority=None if args.no_rt else 10,
         use_uvloop=not args.asyncio,
+        tick_at=args.tick_at,
         quiet=args.quiet,
         live=args.live,
         grace_us=args.grace_us,
