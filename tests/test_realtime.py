@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import pytest
 
 from transport.realtime import SpinLearner, Ticker
@@ -46,7 +48,7 @@ def test_departures_are_timed_against_the_deadline_of_the_tick_they_belong_to() 
         assert t.spin_to_deadline() == k
         now[0] += leave
         t.departed(now[0])
-    s = t.stats().summary()
+    s: dict[str, Any] = t.stats().summary()
     late = s["send_lateness_us"]
     assert late == {"p50": 30.0, "p99": pytest.approx(49.6), "p999": pytest.approx(49.96), "max": 50.0}
     assert s["send_period_error_us"]["max"] == 30.0  # 50 - 20: the third left 30 us less than a period after
