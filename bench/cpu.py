@@ -187,14 +187,21 @@ def main() -> None:
                 "p99_ratio_to_empty": pe["p99"] / pe_empty["p99"] if pe_empty["p99"] > 0 else None,
                 "p999_ratio_to_empty": pe["p999"] / pe_empty["p999"] if pe_empty["p999"] > 0 else None,
                 "overruns": loop["overruns"],
+                "spin_us": loop.get("spin_us"),
+                # When the datagrams left (absent before --tick-at: a reference may lack it).
+                "send_period_error_us": loop.get("send_period_error_us"),
+                "send_lateness_us": loop.get("send_lateness_us"),
                 "skipped": loop["skipped"],
                 "port_tick_us": tick_us[role],
                 "cpu_target_met": ratio <= cpu_target(dof),
             }
             if root is not None:
-                ref_cpu = refs[codec, dof]["report"]["processes"][role]["loop"]["cpu_fraction"]
+                ref_loop = refs[codec, dof]["report"]["processes"][role]["loop"]
+                ref_cpu = ref_loop["cpu_fraction"]
                 case[role]["reference"] = {
                     "cpu_fraction": ref_cpu,
+                    "period_error_us": ref_loop["period_error_us"],
+                    "spin_us": ref_loop.get("spin_us"),
                     "cpu_ratio": loop["cpu_fraction"] / ref_cpu,
                     "port_tick_us": ref_tick_us[role],
                     "port_tick_ratio": tick_us[role] / ref_tick_us[role],
