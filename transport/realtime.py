@@ -103,7 +103,7 @@ class LoopStats:
     send_period_error_q: Quantiles | None = None
 
     def summary(self) -> dict[str, object]:
-        none = np.zeros(0, dtype=np.int64)
+        unkept = np.zeros(0, dtype=np.int64)  # departures are kept as percentiles only
         return {
             "ticks": self.ticks,
             "overruns": self.overruns,
@@ -115,8 +115,8 @@ class LoopStats:
             "wall_s": self.wall_s,
             "cpu_fraction": self.cpu_s / self.wall_s if self.wall_s > 0 else 0.0,
             "spin_us": self.spin_ns / 1e3,
-            "send_lateness_us": _percentiles(self.send_lateness_q, none),
-            "send_period_error_us": _percentiles(self.send_period_error_q, none),
+            "send_lateness_us": _percentiles(self.send_lateness_q, unkept),
+            "send_period_error_us": _percentiles(self.send_period_error_q, unkept),
         }
 
 

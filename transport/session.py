@@ -72,9 +72,9 @@ ADMIT_EVERY = 16
 #: The early drain (``_Runner.drain_early``) stops this long before the deadline, and starts from this
 #: guess of a datagram's cost to feed (then learns it).
 EARLY_MARGIN_NS = 10_000
+EARLY_COST_START_NS = 30_000
 #: With ``--tick-at wake``, ticks between two passes of the event loop (a signal waits at most this).
 PASS_EVERY = 8
-EARLY_COST_START_NS = 30_000
 
 
 class SessionError(TeleopError):
