@@ -718,19 +718,7 @@ def cpu() -> Table:
                         ),
                     ),
                     b.one(f"{x}.port_tick_us", ".1f"),
-                    *(
-                        [
-                            (
-                                "{} / {}",
-                                (
-                                    b.fig(f"{x}.reference.cpu_ratio", ".2f"),
-                                    b.fig(f"{x}.reference.port_tick_ratio", ".2f"),
-                                ),
-                            )
-                        ]
-                        if ref
-                        else []
-                    ),
+                    *_vs_reference(b, x, ref),
                 )
             )
     t = b.doc["targets"]
@@ -763,6 +751,14 @@ def cpu() -> Table:
             f" {t['port_tick_15us_none_2dof']['of']}.{ref_note}{_repeats(b.doc)}"
         ),
     )
+
+
+def _vs_reference(b: Builder, x: str, ref: dict[str, Any] | None) -> tuple[Cell, ...]:
+    """The cpu table's last cell, CPU and port tick as ratios to the reference's (none without one)."""
+    if not ref:
+        return ()
+    ratios = (b.fig(f"{x}.reference.cpu_ratio", ".2f"), b.fig(f"{x}.reference.port_tick_ratio", ".2f"))
+    return (("{} / {}", ratios),)
 
 
 def phases() -> Table:

@@ -326,8 +326,12 @@ class _Port:
         x = self.guard.admit(self.decoder.next())
         self.wave_in = x
         if self._tell_lag and getattr(self.decoder, "fresh", False):
-            self.encoder.rx_lag = max(int(self._now / self.dt + 0.5) - self._rx_tick, 0)  # type: ignore[attr-defined]
+            self.encoder.rx_lag = max(self._tick_of(self._now) - self._rx_tick, 0)  # type: ignore[attr-defined]
         return x
+
+    def _tick_of(self, now: float) -> int:
+        """The tick whose node time ``k dt`` is ``now`` (s, the session clock), rounded."""
+        return int(now / self.dt + 0.5)
 
     def _send(self, now: float, x: Array) -> wire.Packet | None:
         self.energy_sent += self.half_dt * float(x.dot(x))  # np.dot(x, x), the method: cheaper per tick
@@ -339,7 +343,7 @@ class _Port:
         payload = self.encoder.encode(x)
         if payload is None:
             return None
-        tick = int(now / self.dt + 0.5)  # from the session clock: stays true if the loop skips ticks
+        tick = self._tick_of(now)  # from the session clock: stays true if the loop skips ticks
         pkt = wire.Packet(
             self.session,
             self.tx_direction,

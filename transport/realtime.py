@@ -268,7 +268,7 @@ class Ticker:
 
     def departed(self, now: int) -> None:
         """The datagrams of the tick :meth:`spin_to_deadline` last returned left at ``now``."""
-        self._send_late_q.add(now - self.t0 - (self.k - 1) * self.period)
+        self._send_late_q.add(now - self.deadline(self.k - 1))
         if self._last_departure:
             self._send_perr_q.add(now - self._last_departure - self.period)
         self._last_departure = now

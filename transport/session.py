@@ -203,11 +203,11 @@ class _Runner:
         if self.ticker is not ticker:  # replaced while waiting
             return
         ticker.start(ep.t0_ns, ep.k0)
-        session = ep.params
+        session, wake = ep.params, o.tick_at == "wake"
         while ep.running and not self.stop.requested and self.ticker is ticker:
             ticker.sleep()  # until the spin before the deadline; then, in the spin's time,
             self.drain_early(ticker.next_deadline - EARLY_MARGIN_NS)  # what arrived so far,
-            early = self.tick_early(ticker, session) if o.tick_at == "wake" else None  # the tick too
+            early = self.tick_early(ticker, session) if wake else None  # and the tick itself
             k = ticker.spin_to_deadline()
             if early is not None:
                 self.send()  # its datagrams leave at its deadline
@@ -263,13 +263,11 @@ class _Runner:
         not the clock.  What changes is that a datagram arriving in the rest of the spin is filed
         under the next tick rather than this one, as if it had arrived that much later; the
         datagrams still leave on the deadline, no later than after a tick run from it."""
-        ep = self.ep
+        ep, now = self.ep, self.clock()
         k = ticker.k  # what spin_to_deadline returns next unless a stall skips ticks
-        if not ep.running or ep.params is not session or self.clock() >= ticker.next_deadline:
+        if not ep.running or ep.params is not session or now >= ticker.next_deadline or ep.grace_needed(k):
             return None
-        if ep.grace_needed(k):
-            return None
-        ep.tick(k, self.clock())
+        ep.tick(k, now)
         return k
 
     async def grace(self, k: int, ticker: Ticker) -> None:

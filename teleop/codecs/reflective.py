@@ -175,6 +175,7 @@ class ReflectiveEncoder(Encoder):
         self._p_in = 0.0  # the power this side plays (e units a tick), smoothed
         #: Self-credit (``cKAPPA``; the module docstring): kappa, armed by ``pair``.
         self.credit = credit
+        self._kk = (1.0 - credit) ** 2 if credit is not None else 0.0  # (1 - kappa)^2, used every tick
         self._c_own = 0.0  # e units this side credited its own guard: withheld from its reports
         self._c_peer = 0.0  # the peer's self-credit, as modelled here (e units)
         self._c_rep = (0.0, 0.0)  # (e_in, c_own) when the last report left: the invariant's origin
@@ -271,18 +272,20 @@ class ReflectiveEncoder(Encoder):
             # Whether to credit is decided on send ticks only and announced in the payload, so the
             # peer knows from which tick on (``_credit_on``); it models this side's credits likewise.
             self._on_next = bool(self._lags) and bool(rx.peer_lags) and hi <= CREDIT_MAX_RTT
-            if not rx.fresh and rx.peer_on and lo >= 1 and hi <= self._n - 1:
+            pairing = not rx.fresh and rx.peer_on and lo >= 1 and hi <= self._n - 1
+            if pairing or self._credit_on:  # both use what this side played, once a tick
                 d_rx = rx.played
+                p_rx = float(d_rx.dot(d_rx))
+            if pairing:
                 if lo == hi:
                     mm = float(self._m_hist[(self._n - 1 - lo) % CREDIT_HISTORY])
                 else:
                     idx = np.arange(self._n - 1 - hi, self._n - lo) % CREDIT_HISTORY
                     mm = float(self._m_hist[idx].min())
-                self._c_peer += min(self._kk * float(d_rx.dot(d_rx)), mm)
+                self._c_peer += min(self._kk * p_rx, mm)
             ceiling = self._e_budget + self._c_peer
-            d_rx = rx.played
             if self._credit_on:  # beyond CREDIT_MAX_RTT: per-direction accounting (eq. 5)
-                c_hold = min(self._kk * e_pred, float(d_rx.dot(d_rx)))
+                c_hold = min(self._kk * e_pred, p_rx)
         reason = send_reason(
             not self._sent_once or self._outside_band(x, pred),
             self._i >= self.heartbeat,
@@ -351,11 +354,6 @@ class ReflectiveEncoder(Encoder):
         # Pooled: the cumulative grant, for the peer's model of this side's budget (the guard reads
         # only the energy report, so a wrong value here costs transparency, never passivity).
         return out + struct.pack("<d", self.granted) if self.pool is not None else out
-
-    @property
-    def _kk(self) -> float:
-        assert self.credit is not None
-        return (1.0 - self.credit) ** 2
 
     def _self_credit(self, guard: EnergyGuard, c: float) -> None:
         """Credit this side's guard ``c`` (e units) of the energy it sent this tick and has not
