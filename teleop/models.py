@@ -74,16 +74,19 @@ class DiscreteLTI:
         self.b = bz / az[0]
         self.a = az / az[0]
         self.order = n
-        self.z = np.zeros((n, channels))
-        # Views of the first and last state rows, made once: advance reads and writes them every tick.
-        self._z_first: Array = self.z[0] if n else self.z
-        self._z_last: Array = self.z[-1] if n else self.z
-        # b[1..n], a[1..n] as columns, and scratch rows: advance builds every new state row in
-        # place (the products, their difference, then plus the old next row), four numpy calls
-        # whatever the order.
+        # The state, in one of two buffers: above first order, advance builds the new state in the
+        # other one and swaps (no copy back), so each buffer comes with its views made once: its
+        # first row (free), its last (first order writes it), all but its first (the old state's
+        # rows advance reads), all but its last (the new state's rows advance adds them to).
+        bufs = (np.zeros((n, channels)), np.zeros((n, channels)))
+        self._views = [(b, b[0] if n else b, b[-1] if n else b, b[1:], b[:-1]) for b in bufs]
+        self._cur = 0
+        self.z, self._z_first, self._z_last, self._z_tail, _ = self._views[0]
+        # b[1..n], a[1..n] as columns, and a scratch row set: advance builds every new state row
+        # (the products, their difference, then plus the old next row), four numpy calls whatever
+        # the order.
         self._b_col, self._a_col = self.b[1:, None].copy(), self.a[1:, None].copy()
-        self._t, self._t2 = np.zeros((n, channels)), np.zeros((n, channels))
-        self._t_head, self._z_tail = self._t[:-1], self.z[1:]
+        self._t2 = np.zeros((n, channels))
         # b[0], b[n], a[n] as arrays of one value per channel for advance: an array times them gives
         # the same IEEE products as times the scalar, at about half the cost (numpy converts a scalar
         # operand on every call; measured 2.4 -> 1.7 us an advance at 2 channels).
@@ -103,15 +106,16 @@ class DiscreteLTI:
         """Commit this tick's input; returns the output ``D u + free``."""
         y = self._b0 * u + (self._z_first if self.order else 0.0)
         if self.order > 1:
-            # Every row at once, into scratch: z[i] <- (b[i+1] u - a[i+1] y) + z[i+1] from the old
-            # z[i+1], and z[n-1] <- b[n] u - a[n] y; the same IEEE operations, in the same order,
-            # as the loop over i did.
-            t = self._t
+            # Every row at once, into the other buffer: z[i] <- (b[i+1] u - a[i+1] y) + z[i+1] from
+            # the old z[i+1], and z[n-1] <- b[n] u - a[n] y; the same IEEE operations, in the same
+            # order, as the loop over i did.
+            self._cur ^= 1
+            t, first, last, tail, head = self._views[self._cur]
             np.multiply(self._b_col, u, out=t)
             np.multiply(self._a_col, y, out=self._t2)
             np.subtract(t, self._t2, out=t)
-            np.add(self._t_head, self._z_tail, out=self._t_head)
-            self.z[...] = t
+            np.add(head, self._z_tail, out=head)
+            self.z, self._z_first, self._z_last, self._z_tail = t, first, last, tail
         elif self.order:
             np.subtract(self._bn * u, self._an * y, out=self._z_last)  # z[-1] = b[n] u - a[n] y
         return y if type(y) is np.ndarray else np.asarray(y, dtype=float)
@@ -328,6 +332,7 @@ class ProtocolHuman:
         self._y = np.full(dof, self.admittance.feedthrough)
         self._y.setflags(write=False)  # constant: the node may reuse what it derives from it
         self._ref = np.zeros(dof)
+        self._lateral = self._ref[1:]  # the lateral DoF's references, written in place
         # 2 pi f j of each lateral DoF j, made once: ((2 pi) f) j is what reference multiplied by
         # the time, left to right, so the products are the same bits.
         self._lateral_w = 2 * np.pi * self.plan.lateral_freq * np.arange(1, dof, dtype=np.float64)
@@ -345,11 +350,13 @@ class ProtocolHuman:
     def reference(self, now: float) -> Array:
         self._ref[0] = self.push_profile(now)
         if self.dof > 1:
-            p = self.plan
             # Starts from rest: a jump would ring the one-tick wave loop (docs/results/sim.md, Models).
-            # One array expression over DoF 1.. (the same IEEE operations per element as a loop of
-            # scalars, bit for bit, at one numpy call instead of one per DoF).
-            self._ref[1:] = p.lateral_amp * np.sin(self._lateral_w * now)
+            # lateral_amp sin(w_j now) over DoF 1.. in place, three numpy calls (the same IEEE
+            # operations per element as a loop of scalars, bit for bit).
+            lat = self._lateral
+            np.multiply(self._lateral_w, now, out=lat)
+            np.sin(lat, out=lat)
+            np.multiply(lat, self.plan.lateral_amp, out=lat)
         return self._ref
 
     def affine(self, now: float) -> tuple[Array, Array]:

@@ -18,9 +18,11 @@ class DirectEncoder(Encoder):
         self.shift = 1 << (RAW_BITS - bits)
 
     def encode(self, x: Array) -> bytes:
+        if self.shift == 1:  # none: the raw codes
+            return self.raw.packed16(x)
         q16 = self.raw.quantize(x)
         # Division toward zero (astype truncates), not floor: eq. (11) needs |Q(x)| <= |x|.
-        q = q16 if self.shift == 1 else (q16 / self.shift).astype(np.int64)
+        q = (q16 / self.shift).astype(np.int64)
         return pack(q, self.bits)
 
 

@@ -32,7 +32,7 @@ class EdsEncoder(Encoder):
         if not self._schedule.due(self.phase):
             return None
         if self.power:  # a power variable: plain zero-order hold, TDPA guards the energy
-            return pack(self.raw.quantize(x), 16)
+            return self.raw.packed16(x)
         budget = np.maximum(self._energy_in - self._energy_out, 0.0)
         want = self.k * x * x
         over = want > budget

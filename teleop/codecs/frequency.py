@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Array, Encoder, PlayoutDecoder, RawFormat, pack, unpack16
+from .base import Array, Encoder, PlayoutDecoder, RawFormat, unpack16
 
 MAX_FRAME = 1000  # ticks: a frame is buffered whole; longer ones would also add seconds of delay
 
@@ -53,7 +53,7 @@ class DctEncoder(Encoder):
             return None
         self._i = 0
         coeffs = self.basis @ self._frame  # (m, dof)
-        return pack(self.raw.quantize(coeffs.ravel()), 16)
+        return self.raw.packed16(coeffs.ravel())
 
 
 class DctDecoder(PlayoutDecoder):

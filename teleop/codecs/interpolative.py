@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Array, Encoder, PhasedSchedule, PlayoutDecoder, RawFormat, pack, unpack16
+from .base import Array, Encoder, PhasedSchedule, PlayoutDecoder, RawFormat, unpack16
 
 
 class IdsEncoder(Encoder):
@@ -36,7 +36,7 @@ class IdsEncoder(Encoder):
         mean = self._sum / (m if m >= self.k else np.sqrt(self.k * m))
         self._sum[:] = 0.0
         self._n = 0
-        return pack(self.raw.quantize(mean), 16)
+        return self.raw.packed16(mean)
 
 
 class IdsDecoder(PlayoutDecoder):
