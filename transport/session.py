@@ -15,6 +15,7 @@ logs are still written.
 from __future__ import annotations
 
 import asyncio
+import gc
 import os
 import signal
 import sys
@@ -296,6 +297,10 @@ class _Runner:
                 self.ticker = Ticker(period_ns=round(ev.params.dt * 1e9), spin_ns=o.spin_us * 1000)
                 self.tr.max_datagram = ep.max_datagram_bytes  # refused by length in the transport
                 self.warnings = setup_realtime(o.rt_priority) + self.tr.warnings
+                # Everything made so far (modules, endpoint, port) into the cyclic GC's permanent
+                # generation: a full collection during the ticks then walks only what the ticks
+                # made, not the ~30 000 objects of the imports (measured 10 ms, a skipped tick).
+                gc.freeze()
                 for w in self.warnings:
                     print(f"teleop {o.role}: warning: {w}", file=sys.stderr)
                 if self.log is not None:
