@@ -383,6 +383,14 @@ class Recorder:
         self.ticks_run = 0
         self._end = 0  # the open chunk's end (exclusive)
         self._cols: _Columns  # the open chunk's columns, made with it in _at
+        # ``defer`` (the real-time runner's): a chunk a tick closes is sealed by settle(), called
+        # once the tick's datagrams left, and the next chunk is made there too, not in the tick: a
+        # seal costs ~0.5-1 ms (the baseline's closed form, the compression window, the sink), which
+        # in the tick delayed one send a second by that much.  Off (teleop sim), a chunk is sealed
+        # in the tick that closes it; the chunks and figures are the same either way.
+        self.defer = False
+        self._pending: tuple[Chunk, _Columns, int] | None = None  # closed, to seal: its columns, next_k
+        self._next: tuple[Chunk, _Columns] | None = None  # made ahead by settle()
         tx.on_tick = self._tx_bytes
         rx.on_tick = self._rx_bytes
 
@@ -393,15 +401,43 @@ class Recorder:
         inlined, with the chunk's end kept in ``_end``."""
         c = self.chunk
         if c is None or k >= self._end:
-            if c is not None:
-                self._seal(c, k)
-            c = self.chunk = Chunk(k - k % self.chunk_ticks, self.chunk_ticks, self.dof)
-            self._end = c.k0 + c.size
-            self._cols = _Columns(c)
+            c = self._open(k)
         r = k - c.k0 if k > c.k0 else 0
         if r >= c.n:
             c.n = r + 1
         return c, r
+
+    def _open(self, k: int) -> Chunk:
+        """Close the open chunk (sealed now, or by :meth:`settle` if ``defer``) and open tick ``k``'s."""
+        c, k0 = self.chunk, k - k % self.chunk_ticks
+        if c is not None:
+            if self._pending is not None:  # settle() was not called since the last close
+                self._seal(*self._pending)
+                self._pending = None
+            if self.defer:
+                self._pending = (c, self._cols, k)
+            else:
+                self._seal(c, self._cols, k)
+        made, self._next = self._next, None
+        if made is not None and made[0].k0 == k0:
+            c, self._cols = made
+            self.chunk = c
+        else:
+            c = self.chunk = Chunk(k0, self.chunk_ticks, self.dof)
+            self._cols = _Columns(c)
+        self._end = c.k0 + c.size
+        return c
+
+    def settle(self) -> None:
+        """Work that can wait until the tick's datagrams left (``defer``): seal the chunk the tick
+        closed, and make the next one ahead of the tick that opens it."""
+        if self._pending is not None:
+            self._seal(*self._pending)
+            self._pending = None
+        c = self.chunk
+        if self.defer and self._next is None and c is not None:
+            nxt = Chunk(c.k0 + c.size, self.chunk_ticks, self.dof)
+            self._next = (nxt, _Columns(nxt))
 
     def _tx_bytes(self, k: int, wire: int, payload: int) -> None:
         r = self._at(k)[1]
@@ -446,10 +482,10 @@ class Recorder:
         c, r = self._at(k)
         c.lateness_ns[r] = late_ns
 
-    def _seal(self, c: Chunk, next_k: int | None) -> None:
+    def _seal(self, c: Chunk, cols: _Columns, next_k: int | None) -> None:
         """Baseline of the chunk's ticks (and of ticks skipped before ``next_k``), the sliding
-        compression window, then the chunk to the sink."""
-        self._cols.store_bytes(c)
+        compression window, then the chunk (its byte columns from ``cols``) to the sink."""
+        cols.store_bytes(c)
         if self.first >= 0:
             # The session goes on (next_k): every tick to the chunk's end counts; else to the last run.
             hi = c.k0 + c.size - 1 if next_k is not None else self.last
@@ -478,9 +514,13 @@ class Recorder:
 
     def seal(self) -> None:
         """The session is over: the current chunk to the sink (once)."""
+        if self._pending is not None:
+            self._seal(*self._pending)
+            self._pending = None
         if self.chunk is not None:
-            self._seal(self.chunk, None)
+            self._seal(self.chunk, self._cols, None)
             self.chunk = None
+        self._next = None
 
 
 class Port:
@@ -686,6 +726,11 @@ class Port:
         """Tick ``k``'s sample was produced by session time ``t``, before its datagrams left (for the
         true energy margin of ``teleop.report``)."""
         self.rec.sent(k, t)
+
+    def settle(self) -> None:
+        """What may wait until the tick's datagrams left: the real-time runner calls it after each
+        send (the record's chunk seal, :attr:`Recorder.defer`)."""
+        self.rec.settle()
 
     def loop_timing(self, k: int, lateness_ns: int) -> None:
         """How late the real-time loop started tick ``k`` (recorded with the tick)."""

@@ -121,6 +121,39 @@ def test_recorder_marks_the_ticks_that_ran() -> None:
     assert op.summary()["sent"]["baseline_packets"] == 11
 
 
+@settings(max_examples=20, deadline=None)
+@given(st.lists(st.integers(1, 1600), min_size=1, max_size=6), st.booleans())
+def test_a_deferred_seal_gives_the_same_record_and_figures(steps: list[int], settle: bool) -> None:
+    """The runner's ``defer`` (a closed chunk sealed by settle() after the send, the next one made
+    there) changes when the work is done, not what: the same chunks, arrays and summaries as a seal
+    in the tick, whether settle() runs after every tick or never, over gaps that skip chunks."""
+    ks = [sum(steps[: i + 1]) for i in range(len(steps))]
+    runs = []
+    for defer in (False, True):
+        op, to = _pair(ticks=ks[-1] + 1)
+        op.rec.defer = to.rec.defer = defer
+        for k in range(ks[-1] + 1):
+            if k not in ks and k % 7:  # the operator runs a few ticks, with gaps (a stalled loop)
+                continue
+            for d in op.tick(k, k * 1e-3):
+                to.receive(d, k * 1e-3, k)
+            if defer and settle:
+                op.settle()
+            for d in to.tick(k, k * 1e-3):
+                op.receive(d, k * 1e-3, k)
+            if defer and settle:
+                to.settle()
+        runs.append([(p.summary(), p.sink) for p in (op, to)])
+    for (s0, sink0), (s1, sink1) in zip(*runs, strict=True):
+        assert s0 == s1
+        assert isinstance(sink0, MemorySink) and isinstance(sink1, MemorySink)
+        assert [c.k0 for c in sink0.chunks] == [c.k0 for c in sink1.chunks]
+        a0, a1 = sink0.arrays(), sink1.arrays()
+        assert a0.keys() == a1.keys()
+        for name in a0:
+            np.testing.assert_array_equal(a0[name], a1[name], err_msg=name)
+
+
 def test_forged_tampered_and_replayed_datagrams_change_nothing() -> None:
     """Issue 11: nothing unauthenticated reaches the node, the link figures or the energy budget."""
     op, to = _pair(ticks=50)

@@ -126,9 +126,11 @@ class _Runner:
         """The port factory, called by the endpoint when a session starts: its sink is the log."""
         sink = self.records.open(params.session, start_ns)
         o = self.opts
-        return session_port(
+        port = session_port(
             o.role, params, k0, keys, header_bytes=self.tr.header_bytes, sink=sink, device=o.device
         )
+        port.rec.defer = True  # a closed chunk of the record is sealed after the send (settle)
+        return port
 
     # --- I/O ------------------------------------------------------------------------------------
     def drain(self) -> None:
@@ -241,6 +243,7 @@ class _Runner:
             if k % ADMIT_EVERY == 0:  # the kernel's filter follows the endpoint (transport.sockfilter)
                 self.tr.admit(ep.admission(self.clock()))
             assert ep.port is not None
+            ep.port.settle()  # the tick's datagrams left: what could wait for it (the record's seal)
             ep.port.loop_timing(k, ticker.last_lateness_ns)
             if self.log is not None:
                 self.watch.tick(self.log, ep.port, k, ep.session_time(self.clock()), ticker.overruns)
