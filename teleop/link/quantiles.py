@@ -73,11 +73,17 @@ class Quantiles:
         h[i] += 1
 
     def _to_bins(self) -> None:
+        """The exact samples into the bins at once, :meth:`_bin`'s rule in numpy over the array: a
+        Python loop over 65 536 samples stalled the caller ~40 ms (the loop's ticker holds four of
+        these, a link observer one: 65.5 s into a session, ~40 ticks of a 1 kHz loop each)."""
         s, self._samples = self._samples or array("d"), None
-        self._pos = np.zeros(self._bins)
-        self._neg = np.zeros(self._bins)
-        for x in s:
-            self._bin(x)
+        x = np.frombuffer(s, dtype=np.float64)
+        a = np.abs(x)
+        with np.errstate(divide="ignore"):  # log(0): the bin below lo, picked by the where
+            above = np.minimum(self._bins - 1, 1 + np.floor(np.log(a / self._lo) * self._inv_log))
+        i = np.where(a < self._lo, 0, above).astype(np.intp)
+        self._pos = np.bincount(i[x >= 0], minlength=self._bins).astype(np.float64)
+        self._neg = np.bincount(i[x < 0], minlength=self._bins).astype(np.float64)
 
     def _centers(self) -> Array:
         """A value for each bin: 0 below ``lo``, else the bin's geometric middle."""
