@@ -1,0 +1,164 @@
+"""The loop's long pauses that the stack makes, not the host (issue 22, the period-error target).
+
+A tick late by a millisecond is an overrun whatever caused it; on a shared VM most are the host's,
+but three were the stack's own: the cyclic GC (a generation-1 collection took ~1.1 ms, about one a
+second; a full one of the imports' objects ~10-20 ms), the record's chunk seal in the tick (~0.5-1
+ms once a second), and the loop's streaming percentiles giving up their exact samples 65.5 s into
+a session (four at once: 150-190 ms, hundreds of skipped ticks).  This runs ``teleop run`` (UDP,
+log on, ``none`` at 2 DoF, 70 s by default, so past tick 65 536) with a probe in each process
+(``bench._gc_probe``: every collection of the cyclic GC while it ticks) and reads each process's
+per-tick lateness from its MCAP log.  Per process: overruns, skipped ticks, the largest period
+error, ticks late by over 1 ms (and how many a minute), the largest lateness from tick 65 530 to
+65 830, and the GC's collections while ticking, per generation (count, longest).
+
+``--reference DIR`` (a checkout of another commit) runs the same from it, the order alternated
+round by round; the logs of both are read with this tree's reader (the same MCAP layout).
+
+    python -m bench.stalls [--duration S] [--rounds N] [--reference DIR] [--out FILE]
+
+Run it on a quiet host: what the host adds lands in the same figures (the GC's and the 65.5 s
+window's are the stack's alone).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from teleop.logfile import read_log
+
+ROOT = Path(__file__).resolve().parent.parent
+ROLES = ("operator", "teleoperator")
+#: Samples a ``teleop.link.quantiles.Quantiles`` keeps exactly (its default ``exact``): the ticker's
+#: fill at this tick.  The window read after it covers a stall and the loop's catch-up.
+QUANTILE_FILL = 1 << 16
+WINDOW = (QUANTILE_FILL - 6, QUANTILE_FILL + 294)
+SITE = """import os, sys
+if os.environ.get("TELEOP_GC_PROBE"):
+    sys.path.insert(0, {bench!r})
+    import _gc_probe
+    _gc_probe.install(os.environ["TELEOP_GC_PROBE"])
+"""
+
+
+def _commit(root: Path) -> str:
+    r = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True)
+    return r.stdout.strip() if r.returncode == 0 else f"unknown ({r.stderr.strip()})"
+
+
+def process_figures(
+    loop: dict[str, Any], lateness_ns: npt.NDArray[np.int64], gc_log: list[list[float]]
+) -> dict[str, Any]:
+    """One process's figures from its report's loop block, its log's lateness and the GC probe's file."""
+    late = np.asarray(lateness_ns, dtype=np.float64) / 1e3
+    window = late[WINDOW[0] : WINDOW[1]]
+    gens: dict[str, Any] = {}
+    for g in (0, 1, 2):
+        us = [d for gen, d in gc_log if gen == g]
+        gens[str(g)] = {"count": len(us), "max_us": max(us, default=0.0), "total_ms": sum(us) / 1e3}
+    minutes = late.size / 60_000
+    return {
+        "ticks": loop["ticks"],
+        "overruns": loop["overruns"],
+        "skipped": loop["skipped"],
+        "period_error_max_us": loop["period_error_us"]["max"],
+        "late_over_1ms": int((late > 1000).sum()),
+        "late_over_1ms_per_min": float((late > 1000).sum() / minutes) if minutes else 0.0,
+        "lateness_max_us": float(late.max()) if late.size else 0.0,
+        "at_quantile_fill": (
+            {"lateness_max_us": float(window.max()), "late_over_1ms": int((window > 1000).sum())}
+            if window.size
+            else None
+        ),
+        "gc_while_ticking": gens,
+    }
+
+
+def run_tree(root: Path, codec: str, dof: int, duration: float, tmp: Path, name: str) -> dict[str, Any]:
+    """One ``teleop run`` from ``root``'s tree with the GC probe; each process's figures."""
+    site, probe, run_dir = tmp / f"site-{name}", tmp / f"probe-{name}", tmp / f"run-{name}"
+    site.mkdir()
+    probe.mkdir()
+    (site / "sitecustomize.py").write_text(SITE.format(bench=str(ROOT / "bench")))
+    env = {**os.environ, "TELEOP_GC_PROBE": str(probe), "PYTHONPATH": os.pathsep.join([str(site), str(root)])}
+    cmd = [sys.executable, "-m", "teleop.cli", "run", "--codec", codec, "--dof", str(dof)]
+    cmd += ["--duration", str(duration), "--out", str(run_dir), "--no-plots", "--no-sim", "--no-live"]
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=root)
+    if r.returncode != 0:
+        sys.exit(f"teleop run from {root} failed: {r.stderr}")
+    report = json.loads((run_dir / "report.json").read_text())
+    out: dict[str, Any] = {}
+    for role in ROLES:
+        proc = report["processes"][role]
+        _, arrays = read_log(run_dir / "logs" / f"{role}.mcap")
+        gc_file = probe / f"gc-{proc['pid']}.json"
+        gc_log = json.loads(gc_file.read_text()) if gc_file.is_file() else []
+        out[role] = {"pid": proc["pid"], **process_figures(proc["loop"], arrays["lateness_ns"], gc_log)}
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m bench.stalls", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--duration", type=float, default=70.0, help="seconds per session (default 70)")
+    ap.add_argument("--codec", default="none")
+    ap.add_argument("--dof", type=int, default=2)
+    ap.add_argument("--rounds", type=int, default=1, help="sessions per tree (default 1)")
+    ap.add_argument("--reference", type=Path, help="a checkout of another commit, run alternately")
+    ap.add_argument("--out", default="bench/results/stalls.json")
+    a = ap.parse_args(argv)
+    if a.duration <= 0 or a.rounds < 1:
+        ap.error("--duration must be > 0 and --rounds >= 1")
+    ref = a.reference.resolve() if a.reference is not None else None
+    if ref is not None and not (ref / "teleop" / "cli").is_dir():
+        ap.error(f"--reference {a.reference}: not a checkout of this project (no teleop/cli in it)")
+    trees = [("this", ROOT)] + ([("reference", ref)] if ref is not None else [])
+    started = time.time()
+    runs = []
+    with tempfile.TemporaryDirectory(prefix="teleop-stalls-") as t:
+        for i in range(a.rounds):
+            for label, root in trees if i % 2 == 0 else trees[::-1]:
+                print(f"round {i + 1}: teleop run from {label} ...", flush=True)
+                figs = run_tree(root, a.codec, a.dof, a.duration, Path(t), f"{label}-{i}")
+                runs.append({"tree": label, "commit": _commit(root), "round": i, **figs})
+    doc = {
+        "what": "ticks the stack made late: overruns, the GC while ticking, the 65.5 s percentile fill",
+        "codec": a.codec,
+        "dof": a.dof,
+        "duration_s": a.duration,
+        "python": platform.python_version(),
+        "window_ticks": list(WINDOW),
+        "runs": runs,
+        "wall_s": round(time.time() - started, 1),
+    }
+    out = Path(a.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=2) + "\n")
+    for run in runs:
+        for role in ROLES:
+            x = run[role]
+            g = x["gc_while_ticking"]
+            fill = x["at_quantile_fill"] or {"lateness_max_us": float("nan")}
+            print(
+                f"{run['tree']:<9} {run['commit'][:7]} {role:<12} overruns {x['overruns']:4d}  skipped"
+                f" {x['skipped']:4d}  max period error {x['period_error_max_us'] / 1e3:7.1f} ms  late >1 ms"
+                f" {x['late_over_1ms_per_min']:6.1f}/min  at 65.5 s {fill['lateness_max_us'] / 1e3:7.1f} ms"
+                f"  GC while ticking {g['0']['count']}/{g['1']['count']}/{g['2']['count']}"
+                f" (longest {max(v['max_us'] for v in g.values()) / 1e3:.2f} ms)"
+            )
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
