@@ -24,6 +24,7 @@ noise moves the absolute figures by 10-20 % within an hour, that ratio is the fi
 whether a change made the loop cheaper.
 
     python -m bench.cpu [--duration S] [--reference DIR] [--out FILE]
+    python -m bench.cpu --out FILE --add-repeats MORE.json ...   (how often the targets held)
 """
 
 from __future__ import annotations
@@ -134,6 +135,38 @@ def _commit(root: Path) -> str:
     return r.stdout.strip() if r.returncode == 0 else f"unknown ({r.stderr.strip()})"
 
 
+def add_repeats(out: Path, others: list[Path]) -> None:
+    """Record in ``out`` (a bench.cpu result) how the targets fared in ``others`` (more runs of
+    it, made right after from the same tree): the ``repeats`` block its table's note reads."""
+    runs = []
+    for p in [out, *others]:
+        try:
+            r = json.loads(p.read_text())
+        except (OSError, ValueError) as e:
+            sys.exit(f"{p}: cannot read it as JSON ({e})")
+        if not isinstance(r, dict) or "cases" not in r or "targets" not in r:
+            sys.exit(f"{p}: not a bench.cpu result")
+        runs.append(r)
+    doc = runs[0]
+    doc["repeats"] = {
+        "what": f"bench.cpu run {len(others)} more times right after this file's run, without"
+        " --reference; this file is the first; targets met in each",
+        "cpu_met": [r["targets"]["cpu"]["met"] for r in runs],
+        "port_tick_met": [r["targets"]["port_tick_15us_none_2dof"]["met"] for r in runs],
+        "floor_cpu_fraction": [r["floor"]["cpu_fraction"] for r in runs],
+        "cpu_ratio_to_floor": [
+            {
+                f"{c['codec']} {c['dof']} {role}": round(c[role]["cpu_ratio_to_floor"], 3)
+                for c in r["cases"]
+                for role in ROLES
+            }
+            for r in runs
+        ],
+    }
+    out.write_text(json.dumps(doc, indent=2) + "\n")
+    print(f"{out}: CPU targets met {doc['repeats']['cpu_met']}, port tick {doc['repeats']['port_tick_met']}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=10.0, help="seconds per session (default 10)")
@@ -141,7 +174,17 @@ def main() -> None:
     ap.add_argument("--tick-repeats", type=int, default=5)
     ap.add_argument("--reference", type=Path, help="a checkout of another commit: every case run from it too")
     ap.add_argument("--out", default="bench/results/cpu.json")
+    ap.add_argument(
+        "--add-repeats",
+        nargs="+",
+        type=Path,
+        metavar="FILE",
+        help="run nothing: record in --out how the targets fared in these further runs' files",
+    )
     a = ap.parse_args()
+    if a.add_repeats:
+        add_repeats(Path(a.out), a.add_repeats)
+        return
     root: Path | None = a.reference.resolve() if a.reference is not None else None
     if root is not None and not (root / "teleop" / "cli").is_dir():
         sys.exit(f"--reference {a.reference}: not a checkout of this project (no teleop/cli in it)")
