@@ -818,6 +818,65 @@ def phases() -> Table:
     )
 
 
+def stalls() -> Table:
+    """bench.stalls: the ticks the stack itself made late, this tree against a reference."""
+    b = Builder("stalls.json")
+    rows: list[tuple[Cell, ...]] = []
+    for i, run in enumerate(b.doc["runs"]):
+        for role in ("operator", "teleoperator"):
+            x = f"runs[{i}].{role}"
+            g = f"{x}.gc_while_ticking"
+            fill = run[role]["at_quantile_fill"]
+            rows.append(
+                (
+                    f"{run['tree']} `{run['commit'][:7]}`",
+                    role,
+                    b.one(f"{x}.overruns", ".0f"),
+                    b.one(f"{x}.skipped", ".0f"),
+                    b.one(f"{x}.period_error_max_us", ".1f", scale=1e-3),
+                    b.one(f"{x}.late_over_1ms_per_min", ".1f"),
+                    (
+                        (
+                            "{} ({} skipped)",
+                            (
+                                b.fig(f"{x}.at_quantile_fill.longest_pause_us", ".1f", scale=1e-3),
+                                b.fig(f"{x}.at_quantile_fill.skipped", ".0f"),
+                            ),
+                        )
+                        if fill
+                        else "-"
+                    ),
+                    (
+                        "{} / {} / {}",
+                        tuple(b.fig(f"{g}.{gen}.count", ".0f") for gen in ("0", "1", "2")),
+                    ),
+                    ("{}", (b.fig([f"{g}.{gen}.max_us" for gen in ("0", "1", "2")], ".0f", "max"),)),
+                )
+            )
+    w0, w1 = b.doc["window_ticks"]
+    return Table(
+        "stalls",
+        "stalls.json",
+        "python -m bench.stalls --rounds 2 --reference DIR",
+        (
+            "tree",
+            "process",
+            "overruns",
+            "skipped",
+            "max period error (ms)",
+            "ticks late > 1 ms, per minute",
+            f"longest pause, ticks {w0}-{w1} (ms)",
+            "GC collections while ticking, gen 0 / 1 / 2",
+            "longest collection (us)",
+        ),
+        tuple(rows),
+        note=(
+            f" `teleop run` of `{b.doc['codec']}` at {b.doc['dof']} DoF, {b.doc['duration_s']:g} s"
+            " sessions, the trees alternated round by round; lateness from each process's MCAP log."
+        ),
+    )
+
+
 def cpu_ab() -> Table:
     """The early drain's A/B in cpu.json: each process's CPU before and after, runs alternated."""
     b = Builder("cpu_ab_early_drain.json")
@@ -914,6 +973,7 @@ TABLES: dict[str, Callable[[], Table]] = {
     "cpu": cpu,
     "phases": phases,
     "cpu-ab": cpu_ab,
+    "stalls": stalls,
 }
 
 
