@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from typing import Any
 
 import pytest
@@ -53,3 +55,34 @@ def test_departures_are_timed_against_the_deadline_of_the_tick_they_belong_to() 
     assert late == {"p50": 30.0, "p99": pytest.approx(49.6), "p999": pytest.approx(49.96), "max": 50.0}
     assert s["send_period_error_us"]["max"] == 30.0  # 50 - 20: the third left 30 us less than a period after
     assert s["period_error_us"]["max"] == 0.0  # every deadline was met on the dot
+
+
+_FREEZE_SCRIPT = """
+import gc, weakref
+from teleop.node import PortOptions
+from teleop.port import Port, make_node
+from transport.realtime import freeze_heap
+
+def port():
+    node = make_node("operator", scenario="protocol", dof=2, dt=1e-3, b=20.0, codec="none",
+                     full_scale=2.0, session=7, options=PortOptions())
+    return Port(node)
+
+old = weakref.ref(port().rec)  # a session's port is a cycle: only the cyclic GC frees it
+assert old() is not None
+freeze_heap()
+assert old() is None, "the earlier session's port was frozen, not freed"
+assert gc.get_freeze_count() > 1000  # the imports' objects
+live = weakref.ref(port().rec)  # made after the freeze: still the GC's to free
+gc.collect()
+assert live() is None
+print("ok")
+"""
+
+
+def test_freeze_heap_frees_an_earlier_sessions_port_then_freezes_the_rest() -> None:
+    """The runner freezes the heap at each session's start (a full collection during the ticks would
+    walk the imports' objects); a cycle frozen would never be freed, and a port is one, so it
+    collects first.  In a child process: freezing is process-wide."""
+    r = subprocess.run([sys.executable, "-c", _FREEZE_SCRIPT], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import gc
 import os
 import time
 from collections.abc import Callable
@@ -71,6 +72,18 @@ def setup_realtime(priority: int | None = 10, timer_slack_ns: int = 1) -> list[s
         except (PermissionError, OSError, AttributeError) as e:
             warnings.append(f"SCHED_FIFO priority {priority} not permitted ({e}); running at normal priority")
     return warnings
+
+
+def freeze_heap() -> None:
+    """Collect, then move every object into the cyclic GC's permanent generation (``gc.freeze``).
+
+    Why: a full collection during the ticks would walk the ~30 000 objects of the imports and the
+    session's setup (measured 10 ms in-process, a skipped tick); frozen, it walks only what the
+    ticks made (0.6 us).  Collected first, because a frozen cycle is never freed, and an earlier
+    session's port is one (its counters call back into its recorder): each takeover would leak one.
+    Costs a full collection (~10-20 ms the first time), so it is for before the first tick."""
+    gc.collect()
+    gc.freeze()
 
 
 def percentiles_us(samples_ns: npt.NDArray[np.int64]) -> dict[str, float]:

@@ -15,7 +15,6 @@ logs are still written.
 from __future__ import annotations
 
 import asyncio
-import gc
 import os
 import signal
 import sys
@@ -50,7 +49,7 @@ from teleop.summary import ProcessSummary, SessionSummary
 from .base import Addr, Transport
 from .mcaplog import McapLog
 from .options import EndpointOptions, ZenohOptions, new_session_id
-from .realtime import LoopStats, Ticker, setup_realtime
+from .realtime import LoopStats, Ticker, freeze_heap, setup_realtime
 from .records import RecordError, Records
 from .udp import UdpTransport, new_event_loop
 from .watch import LogWatch, status_line
@@ -300,10 +299,7 @@ class _Runner:
                 self.ticker = Ticker(period_ns=round(ev.params.dt * 1e9), spin_ns=o.spin_us * 1000)
                 self.tr.max_datagram = ep.max_datagram_bytes  # refused by length in the transport
                 self.warnings = setup_realtime(o.rt_priority) + self.tr.warnings
-                # Everything made so far (modules, endpoint, port) into the cyclic GC's permanent
-                # generation: a full collection during the ticks then walks only what the ticks
-                # made, not the ~30 000 objects of the imports (measured 10 ms, a skipped tick).
-                gc.freeze()
+                freeze_heap()  # before the first tick: the GC walks only what the ticks make
                 for w in self.warnings:
                     print(f"teleop {o.role}: warning: {w}", file=sys.stderr)
                 if self.log is not None:
