@@ -25,10 +25,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -37,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from bench._phase_probe import PHASES
+from bench._probed_run import probed_run
 from bench.tick import _port_pair, port_side_ticks
 from transport.realtime import Ticker
 
@@ -107,18 +106,8 @@ def run_case(codec: str, dof: int, duration: float, tmp: Path) -> dict[str, Any]
     site.mkdir()
     probe.mkdir()
     (site / "sitecustomize.py").write_text(SITE)
-    env = {
-        **os.environ,
-        "TELEOP_PHASES": str(probe),
-        "PYTHONPATH": os.pathsep.join([str(site), str(ROOT), os.environ.get("PYTHONPATH", "")]),
-    }
     out = tmp / f"run-{codec.replace(':', '')}"
-    cmd = [sys.executable, "-m", "teleop.cli", "run", "--codec", codec, "--dof", str(dof)]
-    cmd += ["--duration", str(duration), "--out", str(out), "--no-plots", "--no-sim", "--no-live"]
-    r = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT)
-    if r.returncode != 0:
-        sys.exit(f"teleop run {codec} failed: {r.stderr}")
-    report = json.loads((out / "report.json").read_text())
+    report = probed_run(ROOT, site, {"TELEOP_PHASES": str(probe)}, codec, dof, duration, out)
     case: dict[str, Any] = {
         "codec": codec,
         "dof": dof,

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import subprocess
 import sys
@@ -38,6 +37,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from bench._probed_run import probed_run
 from teleop.logfile import read_log
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -103,13 +103,8 @@ def run_tree(root: Path, codec: str, dof: int, duration: float, tmp: Path, name:
     site.mkdir()
     probe.mkdir()
     (site / "sitecustomize.py").write_text(SITE.format(bench=str(ROOT / "bench")))
-    env = {**os.environ, "TELEOP_GC_PROBE": str(probe), "PYTHONPATH": os.pathsep.join([str(site), str(root)])}
-    cmd = [sys.executable, "-m", "teleop.cli", "run", "--codec", codec, "--dof", str(dof)]
-    cmd += ["--duration", str(duration), "--out", str(run_dir), "--no-plots", "--no-sim", "--no-live"]
-    r = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=root)
-    if r.returncode != 0:
-        sys.exit(f"teleop run from {root} failed: {r.stderr}")
-    report = json.loads((run_dir / "report.json").read_text())
+    probe_env = {"TELEOP_GC_PROBE": str(probe)}
+    report = probed_run(root, site, probe_env, codec, dof, duration, run_dir)
     out: dict[str, Any] = {}
     for role in ROLES:
         proc = report["processes"][role]
