@@ -124,8 +124,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reference", type=Path, help="a checkout of another commit, run alternately")
     ap.add_argument("--out", default="bench/results/stalls.json")
     a = ap.parse_args(argv)
-    if a.duration <= 0 or a.rounds < 1:
-        ap.error("--duration must be > 0 and --rounds >= 1")
+    if not 0 < a.duration < float("inf") or a.rounds < 1:
+        ap.error("--duration must be a number of seconds > 0, and --rounds an integer >= 1")
     ref = a.reference.resolve() if a.reference is not None else None
     if ref is not None and not (ref / "teleop" / "cli").is_dir():
         ap.error(f"--reference {a.reference}: not a checkout of this project (no teleop/cli in it)")
