@@ -877,6 +877,31 @@ def stalls() -> Table:
     )
 
 
+def float_path() -> Table:
+    """bench.float_path: the operator node's tick at 2 DoF, numpy against plain floats."""
+    b = Builder("float_path.json")
+    same = b.doc["bit_identical_ticks"]
+    rows: tuple[tuple[Cell, ...], ...] = tuple(
+        (
+            label,
+            b.one(f"paced_us.{key}", ".1f"),
+            b.one(f"hot_us.{key}", ".1f"),
+        )
+        for label, key in (("the node's tick (numpy)", "numpy"), ("the same in plain floats", "floats"))
+    )
+    return Table(
+        "float-path",
+        "float_path.json",
+        "python -m bench.float_path",
+        ("operator tick, 2 DoF, `none`", "paced at 1 kHz, first after the sleep (us)", "back to back (us)"),
+        rows,
+        note=(
+            f" {b.doc['ticks']} ticks, run in lockstep on the same inputs; the same bits every tick"
+            f" (velocity, force, wave out, energy, payload): {min(same.values())} of {b.doc['ticks']}."
+        ),
+    )
+
+
 def cpu_ab() -> Table:
     """The early drain's A/B in cpu.json: each process's CPU before and after, runs alternated."""
     b = Builder("cpu_ab_early_drain.json")
@@ -974,6 +999,7 @@ TABLES: dict[str, Callable[[], Table]] = {
     "phases": phases,
     "cpu-ab": cpu_ab,
     "stalls": stalls,
+    "float-path": float_path,
 }
 
 
