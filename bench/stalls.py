@@ -5,7 +5,7 @@ host's, but some were the stack's own: the cyclic GC (set off by the playout buf
 tuples; a collection while ticking took up to ~0.5 ms, and a full one would walk every object of
 the imports, ~10 ms in-process), the record's chunk seal in the tick (~0.5-1 ms once a second), and
 the loop's streaming percentiles giving up their exact samples 65.5 s into a session (four at once
-in the ticker: 150-270 ms, hundreds of skipped ticks).  This runs ``teleop run`` (UDP, log on,
+in the ticker: 150-280 ms, hundreds of skipped ticks).  This runs ``teleop run`` (UDP, log on,
 ``none`` at 2 DoF, 70 s by default, so past tick 65 536) with a probe in each process
 (``bench._gc_probe``: every collection of the cyclic GC while it ticks) and reads each process's
 per-tick record from its MCAP log.  Per process: overruns, skipped ticks, the largest period
