@@ -23,6 +23,7 @@ from typing import Any
 _acc: dict[str, int] = {}
 _calls: dict[str, int] = {}
 _clock = time.thread_time_ns
+_ticking = [False]  # inside the runner's ticks: only then is a phase counted
 
 
 def _wrap(cls: Any, name: str, key: str) -> None:
@@ -30,6 +31,8 @@ def _wrap(cls: Any, name: str, key: str) -> None:
 
     @functools.wraps(f)
     def timed(*a: Any, **k: Any) -> Any:
+        if not _ticking[0]:  # the handshake's, the session start's (its GC freeze), the linger's
+            return f(*a, **k)
         t = _clock()
         try:
             return f(*a, **k)
@@ -51,9 +54,11 @@ def _awrap(cls: Any, name: str, key: str) -> None:
     @functools.wraps(f)
     async def timed(*a: Any, **k: Any) -> Any:
         t, p = _clock(), time.process_time_ns()
+        _ticking[0] = True
         try:
             return await f(*a, **k)
         finally:
+            _ticking[0] = False
             _count(key, _clock() - t)
             _acc[key + "_process"] = _acc.get(key + "_process", 0) + time.process_time_ns() - p
 
@@ -69,8 +74,8 @@ def _clock_read_ns(n: int = 20_000) -> float:
 
 #: (module, class, method, phase, async).  ``ticks`` is the whole ticking (its CPU minus the phases is
 #: the event loop's pass, a grace wait's sleeps and the loop's own lines); ``sleep`` is the sleep's CPU
-#: (the system call), ``spin`` the spin's.  The socket's reads and the endpoint's receives include
-#: the few outside the ticks (the handshake's, the linger's).
+#: (the system call), ``spin`` the spin's.  Every phase is counted inside the ticks only (the
+#: handshake's reads, the session start's events and the linger's are not the loop's).
 PHASES = (
     ("transport.session", "_Runner", "ticks", "ticks", True),
     ("transport.realtime", "Ticker", "sleep", "sleep", False),
