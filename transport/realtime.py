@@ -81,7 +81,8 @@ def freeze_heap() -> None:
     session's setup (measured 10 ms in-process, a skipped tick); frozen, it walks only what the
     ticks made (0.6 us).  Collected first, because a frozen cycle is never freed, and an earlier
     session's port is one (its counters call back into its recorder): each takeover would leak one.
-    Costs a full collection (~10-20 ms the first time), so it is for before the first tick."""
+    Costs a full collection of what is not frozen yet: ~17 ms the first time (the imports), ~0.1 ms
+    at a session's start after that, so the runner calls it once before the handshake too."""
     gc.collect()
     gc.freeze()
 
