@@ -378,7 +378,6 @@ class SessionParams(Channel):
         }
 
 
-
 @dataclass(frozen=True)
 class Pins:
     """What a teleoperator was configured with: a hello must match every field that is not None
@@ -723,6 +722,7 @@ class OperatorHandshake:
         self._start_deadline = 0
         self.answers = 0
         self.hellos_sent = 0
+        self.starts_sent = 0
         self.done = False
         self.error: str | None = None
         self.failure: Failure | None = None  # why, when ``error`` is set
@@ -856,13 +856,25 @@ class OperatorHandshake:
             else:
                 return []
         if now_ns >= self._start_deadline:
-            self.error, self.failure = "did not confirm the start", Failure.START_UNCONFIRMED
+            self.error, self.failure = self._unconfirmed(), Failure.START_UNCONFIRMED
             return []
         if now_ns >= self._next_start:
             self._next_start = now_ns + self.start_resend_ns
+            self.starts_sent += 1
             assert self.tx_sealer is not None
             return [self.tx_sealer.seal(encode(Start(self.params.session, self.start_ns + self.offset_ns)))]
         return []
+
+    def _unconfirmed(self) -> str:
+        """The start's failure, with what this side saw: whether its starts left, and what it refused
+        (a started it could not open or parse would be there; none at all: none arrived in time)."""
+        seen = [f"{self.starts_sent} start(s) sent"]
+        if self.unauthenticated:
+            last = self.last_unauthenticated
+            seen.append(f"{self.unauthenticated} datagram(s) refused unverified, the last: {last}")
+        if self.rejected:
+            seen.append(f"{self.rejected} refused, the last: {self.last_rejection}")
+        return f"did not confirm the start ({'; '.join(seen)})"
 
     def next_timer(self) -> int:
         """When :meth:`poll` must be called next (ns, this clock); meaningless once finished."""

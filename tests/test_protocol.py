@@ -1081,7 +1081,7 @@ def test_the_operator_proceeds_at_the_timeout_with_some_answers() -> None:
             starts.append((now, m))
             counters.append(auth.peek(d))
         now = op.next_timer()
-    assert op.error == "did not confirm the start"
+    assert op.error == "did not confirm the start (13 start(s) sent)"  # and it refused nothing
     assert op.answers == 1 and op.offset_ns == 5 * S and op.rtt_ns == 6 * MS
     t_first = starts[0][0]
     assert t_first == T0 + S and op.start_ns == t_first + 300 * MS
@@ -1796,3 +1796,21 @@ def test_one_recording_replayed_from_many_ports_evicts_nobody() -> None:
     assert len(candidates(to)) == 2
     assert one(to.receive(start_of(7, NONCE_OP), OP, T0 + 2), OP, session_key=True) == Started(7)
     assert to.done and to.peer == OP
+
+
+def test_an_unconfirmed_start_says_what_the_operator_refused_meanwhile() -> None:
+    """The start's failure names what this side saw (the intermittent 'did not confirm the start'
+    of a loaded host: did a started come and fail to verify, or did none come in time?)."""
+    op = operator(timeout_s=1)
+    h = first_hello(op)
+    op.receive(op_hs(encode(welcome(h.t_ns, T0 + 5 * S + 3 * MS, T0 + 5 * S + 3 * MS))), T0 + 6 * MS)
+    now = T0 + 6 * MS
+    forged = auth.Sealer(bytes(32), SESSION, BACKWARD).seal(encode(Started(7)))  # another key
+    while not op.finished:
+        if op.poll(now) and op.starts_sent == 1:
+            op.receive(forged, now)
+        now = op.next_timer()
+    assert op.failure == protocol.Failure.START_UNCONFIRMED
+    assert op.error == (
+        "did not confirm the start (13 start(s) sent; 1 datagram(s) refused unverified, the last: tag)"
+    )
