@@ -80,8 +80,12 @@ def test_counts_and_compression(
         w = rep["wire"][d]
         skipped = rep["processes"][sender]["loop"]["skipped"]  # a host stall: those ticks send nothing
         # The teleoperator's iDS/eDS send phase follows its playout target (PROTOCOL 3.5): a target
-        # the host's jitter moves can move one send across the session's end, once per move.
-        moved = 2 if d == "backward" and codec.split(":")[0] in ("ids", "eds") else 0
+        # the host's jitter moves can move sends across the session's end; the phase cannot move
+        # further than the target's highest (forward playout, ticks), each K of it one send.
+        moved = 0
+        if d == "backward" and codec.split(":")[0] in ("ids", "eds"):
+            k = int(codec.split(":")[1])
+            moved = 2 + int(rep["playout"]["forward"]["target_ms"]["max"]) // k
         assert per_dir - skipped - moved <= w["packets"] <= per_dir + moved  # the codec's rate, at the socket
         # The uncompressed stream: every tick of the session (a stall that skips past the end: fewer).
         assert 3000 - skipped <= w["baseline_packets"] <= 3000
