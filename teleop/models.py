@@ -29,6 +29,12 @@ import numpy as np
 import numpy.typing as npt
 from numpy.polynomial import polynomial as P
 
+# Imported with this module, not on the first draw: numpy loads numpy.random lazily, and a first
+# draw happens while a teleoperator answers an operator's start.  On a cold first run (its ~10
+# extension modules read from disk) that took ~180 ms of the operator's 250 ms start window, and
+# the start failed ("did not confirm the start").
+from numpy.random import default_rng
+
 from .errors import LocalError
 from .limits import MAX_VARIATION
 
@@ -254,7 +260,7 @@ class ProtocolPlan:
         """The plan of run ``seed`` at ``variation`` (0: the scripted plan, bit for bit)."""
         if not 0.0 <= variation <= MAX_VARIATION:
             raise ModelError(f"variation must be in 0..{MAX_VARIATION:g}, got {variation!r}")
-        u = np.random.default_rng([seed, _HUMAN_STREAM]).uniform(-1.0, 1.0, 20) * variation
+        u = default_rng([seed, _HUMAN_STREAM]).uniform(-1.0, 1.0, 20) * variation
         t_foam = 5.0 + 0.25 * u[2]
         half_periods = max(1, round(2.0 * 0.5 * (1.0 + 0.2 * u[1]) * t_foam))
         return cls(
