@@ -140,6 +140,8 @@ def add_repeats(out: Path, others: list[Path]) -> None:
     it, made right after from the same tree): the ``repeats`` block its table's note reads."""
     runs = []
     for p in [out, *others]:
+        if not p.is_file():  # a FIFO would block the read, a directory fail it
+            sys.exit(f"{p}: not a regular file (a bench.cpu result is a JSON file)")
         try:
             r = json.loads(p.read_text())
         except (OSError, ValueError) as e:
