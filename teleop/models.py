@@ -40,6 +40,9 @@ from .limits import MAX_VARIATION
 
 Array = npt.NDArray[np.float64]
 
+#: Up to this many channels a :class:`DiscreteLTI` runs on floats, channel by channel (``lanes``).
+FLOAT_LANES = 6
+
 
 class ModelError(LocalError):
     """A model's parameters are invalid."""
@@ -52,7 +55,9 @@ class DiscreteLTI:
     python-control); ``H`` must be proper.
     """
 
-    def __init__(self, num: Sequence[float], den: Sequence[float], dt: float, channels: int) -> None:
+    def __init__(
+        self, num: Sequence[float], den: Sequence[float], dt: float, channels: int, lanes: bool | None = None
+    ) -> None:
         if dt <= 0:
             raise ModelError(f"dt must be > 0, got {dt}")
         num_a = np.trim_zeros(np.asarray(num, dtype=float), "f")
@@ -80,6 +85,16 @@ class DiscreteLTI:
         self.b = bz / az[0]
         self.a = az / az[0]
         self.order = n
+        # At a few channels the state is plain floats, per channel (``lanes``): the same recursion in
+        # Python arithmetic costs ~1.4 us an advance at 2 channels, third order, against ~5.7 us for
+        # the numpy calls on two-element arrays (issue 22); above FLOAT_LANES channels numpy's cost
+        # per call is the cheaper one.  The same IEEE operations in the same order, so the same bits
+        # (tests/test_models.py holds the two equal).
+        self.lanes = channels <= FLOAT_LANES if lanes is None else lanes
+        self._bl, self._al = self.b.tolist(), self.a.tolist()
+        self._zl = [[0.0] * n for _ in range(channels)]  # lanes: each channel's state rows
+        self._zero = np.zeros(channels)
+        self._zero.setflags(write=False)
         # The state, in one of two buffers: above first order, advance builds the new state in the
         # other one and swaps (no copy back), so each buffer comes with its views made once: its
         # first row (free), its last (first order writes it), all but its first (the old state's
@@ -106,10 +121,18 @@ class DiscreteLTI:
 
     def free(self) -> Array:
         """The part of this tick's output that the state alone determines."""
-        return self._z_first if self.order else np.zeros(self.z.shape[1])
+        if self.lanes:
+            return np.array(self.free_lanes()) if self.order else self._zero
+        return self._z_first if self.order else self._zero
+
+    def free_lanes(self) -> list[float]:
+        """:meth:`free` as floats, one per channel (``lanes`` only)."""
+        return [z[0] for z in self._zl] if self.order else [0.0] * len(self._zl)
 
     def advance(self, u: Array) -> Array:
         """Commit this tick's input; returns the output ``D u + free``."""
+        if self.lanes:
+            return np.array(self.step(u.tolist()))
         y = self._b0 * u + (self._z_first if self.order else 0.0)
         if self.order > 1:
             # Every row at once, into the other buffer: z[i] <- (b[i+1] u - a[i+1] y) + z[i+1] from
@@ -125,6 +148,28 @@ class DiscreteLTI:
         elif self.order:
             np.subtract(self._bn * u, self._an * y, out=self._z_last)  # z[-1] = b[n] u - a[n] y
         return y if type(y) is np.ndarray else np.asarray(y, dtype=float)
+
+    def commit(self, u: Array) -> None:
+        """:meth:`advance` without making its output (what the models call every tick)."""
+        if self.lanes:
+            self.step(u.tolist())
+        else:
+            self.advance(u)
+
+    def step(self, u: list[float]) -> list[float]:
+        """:meth:`advance` on floats, channel by channel (``lanes`` only): per channel
+        ``y = b0 u + z0``, ``z[i] <- (b[i+1] u - a[i+1] y) + z[i+1]``, ``z[n-1] <- b[n] u - a[n] y``."""
+        b, a, n = self._bl, self._al, self.order
+        b0, bn, an = b[0], b[n], a[n]
+        out = []
+        for uc, z in zip(u, self._zl, strict=True):
+            y = b0 * uc + (z[0] if n else 0.0)
+            for i in range(n - 1):
+                z[i] = (b[i + 1] * uc - a[i + 1] * y) + z[i + 1]
+            if n:
+                z[n - 1] = bn * uc - an * y
+            out.append(y)
+        return out
 
 
 class Human(Protocol):
@@ -173,7 +218,7 @@ class StepHuman:
         return self.reference(now) - self.admittance.free(), self._y
 
     def advance(self, now: float, v: Array, f: Array) -> None:
-        self.admittance.advance(f)
+        self.admittance.commit(f)
 
 
 class LtiEnvironment:
@@ -190,18 +235,29 @@ class LtiEnvironment:
         return self.impedance.free(), self._z
 
     def advance(self, now: float, v: Array, f: Array) -> None:
-        self.impedance.advance(v)
+        self.impedance.commit(v)
 
 
-def _smooth_steps(t: float, knots: Sequence[tuple[float, float]], ramp: float) -> float:
-    """Piecewise-constant profile ``[(t_start, value), ...]`` with raised-cosine ramps of ``ramp`` s."""
-    v = 0.0
-    for t0, target in knots:
+def _smooth_steps(
+    t: float, knots: Sequence[tuple[float, float]], ramp: float, first: int = -1
+) -> tuple[float, int]:
+    """Piecewise-constant profile ``[(t_start, value), ...]`` with raised-cosine ramps of ``ramp`` s.
+
+    Returns the value at ``t`` and the last knot whose ramp had ended by ``t``: a later call may pass
+    it as ``first`` for any time not before ``t``.  Why: a knot whose ramp has ended sets the value to
+    its target exactly, whatever came before, so the loop may start there and give the same bits;
+    from the start it walks every knot, ~2.4 us a tick after 5 s of the task (issue 22)."""
+    v, settled = (0.0, -1) if first < 0 else (knots[first][1], first)
+    for i in range(first + 1, len(knots)):
+        t0, target = knots[i]
         if t < t0:
             break
         a = min(1.0, (t - t0) / ramp)
-        v = v + (target - v) * 0.5 * (1.0 - math.cos(math.pi * a)) if a < 1.0 else target
-    return v
+        if a < 1.0:
+            v = v + (target - v) * 0.5 * (1.0 - math.cos(math.pi * a))
+        else:
+            v, settled = target, i
+    return v, settled
 
 
 # MAX_VARIATION (teleop.limits), twice the documented spread, keeps every varied plan's knots in
@@ -342,7 +398,9 @@ class ProtocolHuman:
         # 2 pi f j of each lateral DoF j, made once: ((2 pi) f) j is what reference multiplied by
         # the time, left to right, so the products are the same bits.
         self._lateral_w = 2 * np.pi * self.plan.lateral_freq * np.arange(1, dof, dtype=np.float64)
+        self._lateral_wl = self._lateral_w.tolist()
         self._knots = self.plan.knots()
+        self._settled, self._settled_at = -1, -math.inf  # _smooth_steps' resume point, and its time
         self._w = 2 * np.pi * self.plan.stroke_freq
 
     def push_profile(self, t: float) -> float:
@@ -351,7 +409,11 @@ class ProtocolHuman:
             # math.sin, not np.sin: the same libm result for a float (tests/test_fastpath.py), without
             # numpy's scalar dispatch and a numpy float through the products (every tick).
             return self.plan.stroke_amp * w * math.sin(w * t)
-        return _smooth_steps(t, self._knots, 0.15)
+        # Resumed from the last knot settled by an earlier tick, unless time went back (a caller's).
+        first = self._settled if t >= self._settled_at else -1
+        v, self._settled = _smooth_steps(t, self._knots, 0.15, first)
+        self._settled_at = t
+        return v
 
     def reference(self, now: float) -> Array:
         self._ref[0] = self.push_profile(now)
@@ -365,11 +427,21 @@ class ProtocolHuman:
             np.multiply(lat, self.plan.lateral_amp, out=lat)
         return self._ref
 
+    def reference_lanes(self, now: float) -> list[float]:
+        """:meth:`reference` as floats: ``math.sin`` gives ``np.sin``'s bits for a float64 (numpy's
+        own loop is correctly rounded like libm's here; tests/test_models.py holds them equal)."""
+        amp = self.plan.lateral_amp
+        return [self.push_profile(now), *[math.sin(w * now) * amp for w in self._lateral_wl]]
+
     def affine(self, now: float) -> tuple[Array, Array]:
-        return self.reference(now) - self.admittance.free(), self._y
+        lti = self.admittance
+        if lti.lanes:
+            ref, free = self.reference_lanes(now), lti.free_lanes()
+            return np.array([r - z for r, z in zip(ref, free, strict=True)]), self._y
+        return self.reference(now) - lti.free(), self._y
 
     def advance(self, now: float, v: Array, f: Array) -> None:
-        self.admittance.advance(f)
+        self.admittance.commit(f)
 
 
 class ProtocolEnvironment:

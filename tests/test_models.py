@@ -8,7 +8,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from teleop.models import DiscreteLTI, LtiEnvironment, ModelError, StepHuman
+from teleop.models import (
+    FLOAT_LANES,
+    DiscreteLTI,
+    LtiEnvironment,
+    ModelError,
+    ProtocolHuman,
+    ProtocolPlan,
+    StepHuman,
+    _smooth_steps,
+)
 
 DT = 1e-3
 
@@ -75,3 +84,60 @@ def test_step_human_reference() -> None:
 def test_improper_rejected(num: tuple[float, ...], den: tuple[float, ...]) -> None:
     with pytest.raises(ModelError, match="proper"):
         DiscreteLTI(num, den, DT, 1)
+
+
+# --- the float lanes (issue 22): the same bits as the numpy path -------------------------------
+TFS = [
+    ((2.5,), (1.0,)),  # order 0: a pure gain
+    ((1.0,), (1.0, 1.0)),
+    ((1.0, 0.0), (1.0, 0.5)),
+    ((1.0, 0.0), (1.0, 2.0, 100.0)),
+    ((1.0, 2020.0, 0.0), (20.0, 2400.0, 46000.0, 600000.0)),  # the protocol human's third order
+]
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    hnp.arrays(np.float64, st.tuples(st.integers(1, 60), st.integers(1, 8)), elements=st.floats(-1e6, 1e6)),
+    st.sampled_from(TFS),
+)
+def test_lanes_give_the_numpy_paths_bits(
+    u: np.ndarray, tf: tuple[tuple[float, ...], tuple[float, ...]]
+) -> None:
+    """DiscreteLTI on floats, channel by channel, is the numpy recursion to the bit: output, free
+    response and state, on any input, at every order (the sim goldens cover the models' own inputs)."""
+    ch = u.shape[1]
+    fl, ar = DiscreteLTI(*tf, DT, ch, lanes=True), DiscreteLTI(*tf, DT, ch, lanes=False)
+    for row in u:
+        assert fl.free().tobytes() == ar.free().tobytes()
+        assert fl.advance(row).tobytes() == ar.advance(row).tobytes()
+    fl.commit(u[0])
+    ar.commit(u[0])
+    assert fl.free_lanes() == ar.free().tolist()
+
+
+def test_lanes_by_channel_count() -> None:
+    """Floats up to FLOAT_LANES channels, numpy above (where one call per row is cheaper)."""
+    assert DiscreteLTI((1.0,), (1.0, 1.0), DT, FLOAT_LANES).lanes
+    assert not DiscreteLTI((1.0,), (1.0, 1.0), DT, FLOAT_LANES + 1).lanes
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 7), st.lists(st.floats(0.0, 400.0), min_size=1, max_size=50))
+def test_protocol_reference_lanes_are_reference(dof: int, times: list[float]) -> None:
+    """math.sin per lateral DoF gives np.sin's bits (the lanes' reference against the numpy one)."""
+    h = ProtocolHuman(dof, DT, plan=ProtocolPlan.draw(3, 1.0))
+    for t in times:
+        assert h.reference_lanes(t) == h.reference(t).tolist()
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(0, 2**16), st.lists(st.floats(0.0, 30.0), min_size=1, max_size=80))
+def test_smooth_steps_resumed_is_from_the_start(seed: int, times: list[float]) -> None:
+    """The push profile resumed from the last settled knot is the profile from the first knot, bit
+    for bit, for times in any order (a time before the last one starts from the first knot again)."""
+    h = ProtocolHuman(1, DT, plan=ProtocolPlan.draw(seed, 1.0))
+    knots = h.plan.knots()
+    for t in sorted(times) + times:
+        if t >= h.plan.t_foam:  # before it, the free-space strokes
+            assert h.push_profile(t) == _smooth_steps(t, knots, 0.15)[0]
