@@ -474,20 +474,25 @@ class ProtocolEnvironment:
         self.gap = wall_gap
         self.x = np.zeros(dof)
         self.wall: float | None = None
-        self._f0 = np.zeros(dof)
-        self._z = np.zeros(dof)
+        # Out of contact the map is one of two constants, returned as the same read-only arrays
+        # every tick: no writes, and the node makes what it derives from Z once per phase
+        # (TeleoperatorNode._den).  In contact, fresh arrays each tick.
+        self._free, self._z_free, self._z_foam = np.zeros(dof), np.zeros(dof), np.full(dof, float(foam))
+        for a in (self._free, self._z_free, self._z_foam):
+            a.setflags(write=False)
 
     def affine(self, now: float) -> tuple[Array, Array]:
-        self._f0[:] = 0.0
-        self._z[:] = self.foam if now >= self.t_foam else 0.0
+        z = self._z_foam if now >= self.t_foam else self._z_free
         if now >= self.t_wall:
             if self.wall is None:
                 self.wall = float(self.x[0]) + self.gap
             pen = self.x[0] - self.wall
             if pen > 0:
-                self._f0[0] = self.k * pen
-                self._z[0] += self.k * self.dt + self.c
-        return self._f0, self._z
+                f0, z = np.zeros_like(self._free), z.copy()
+                f0[0] = self.k * pen
+                z[0] += self.k * self.dt + self.c
+                return f0, z
+        return self._free, z
 
     def advance(self, now: float, v: Array, f: Array) -> None:
         self.x += v * self.dt

@@ -13,6 +13,7 @@ from teleop.models import (
     DiscreteLTI,
     LtiEnvironment,
     ModelError,
+    ProtocolEnvironment,
     ProtocolHuman,
     ProtocolPlan,
     StepHuman,
@@ -141,3 +142,19 @@ def test_smooth_steps_resumed_is_from_the_start(seed: int, times: list[float]) -
     for t in sorted(times) + times:
         if t >= h.plan.t_foam:  # before it, the free-space strokes
             assert h.push_profile(t) == _smooth_steps(t, knots, 0.15)[0]
+
+
+def test_protocol_environment_out_of_contact_is_constant() -> None:
+    """Out of contact the environment's map is the same read-only arrays every tick (so the node
+    derives ``b + Z`` once per phase); in contact it is fresh arrays, and the shared ones unchanged."""
+    env = ProtocolEnvironment(2, DT)
+    a, b = env.affine(1.0), env.affine(1.001)
+    assert a[0] is b[0] and a[1] is b[1] and not a[1].flags.writeable
+    foam = env.affine(6.0)
+    assert foam[1].tolist() == [env.foam, env.foam] and foam[1] is env.affine(6.001)[1]
+    env.affine(10.0)  # places the wall gap ahead of x
+    assert env.wall is not None
+    env.x[0] = env.wall + 0.01  # pressed in
+    f0, z = env.affine(10.001)
+    assert f0[0] == env.k * (env.x[0] - env.wall) and z[0] == env.foam + (env.k * DT + env.c)
+    assert z is not foam[1] and foam[1].tolist() == [env.foam, env.foam]
