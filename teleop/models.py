@@ -41,7 +41,10 @@ from .limits import MAX_VARIATION
 Array = npt.NDArray[np.float64]
 
 #: Up to this many channels a :class:`DiscreteLTI` runs on floats, channel by channel (``lanes``).
-FLOAT_LANES = 6
+#: Where the two cost the same, third order (cachegrind, instructions an advance): floats 21 k at 2
+#: channels, 33 k at 4, 50 k at 6; numpy 33-44 k at any of them.  ``bench.instructions``: the whole
+#: 2-DoF tick 5 % fewer with floats, the 6-DoF one 0.5-1 % more (so 4, not 6).
+FLOAT_LANES = 4
 
 
 class ModelError(LocalError):
@@ -87,8 +90,8 @@ class DiscreteLTI:
         self.order = n
         # At a few channels the state is plain floats, per channel (``lanes``): the same recursion in
         # Python arithmetic costs ~1.4 us an advance at 2 channels, third order, against ~5.7 us for
-        # the numpy calls on two-element arrays (issue 22); above FLOAT_LANES channels numpy's cost
-        # per call is the cheaper one.  The same IEEE operations in the same order, so the same bits
+        # the numpy calls on two-element arrays (issue 22); above FLOAT_LANES channels numpy's fixed
+        # cost per call is the cheaper one.  The same IEEE operations in the same order, so the same bits
         # (tests/test_models.py holds the two equal).
         self.lanes = channels <= FLOAT_LANES if lanes is None else lanes
         self._bl, self._al = self.b.tolist(), self.a.tolist()
