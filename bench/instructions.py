@@ -4,7 +4,8 @@ Why: on a shared VM the CPU figures of ``bench.cpu`` and the microseconds of ``b
 10-20 % within minutes (the same unchanged side moved 38 -> 55 us between two runs of one hour), so a
 change worth 5 % cannot be told from noise by timing it.  The instructions a tick executes do not
 depend on the neighbours: cachegrind counts every one (``I refs``) on a simulated CPU, the same count
-on every run of the same code and inputs (``PYTHONHASHSEED`` fixed).  They are not time (a cache
+on every run of the same code and inputs (``PYTHONHASHSEED`` fixed) to within ~0.2 % over the
+default span.  They are not time (a cache
 miss after the loop's sleep costs more than ten instructions; ``bench.phases`` measures that), but
 a tick that executes fewer instructions for the same bits did less work.
 
@@ -59,7 +60,10 @@ class BenchError(Exception):
 
 def instructions(codec: str, dof: int, ticks: int, root: Path | None) -> int:
     """Instructions cachegrind counted in one process that builds the two ports and runs ``ticks``."""
-    env = {**os.environ, "PYTHONHASHSEED": "0"}
+    # OpenBLAS's idle worker thread polls, and cachegrind counts what it runs in proportion to the
+    # run's emulated time, not its work (~8 k instructions a tick); one thread, none idle.  The dot
+    # of a few elements runs on the calling thread either way (the same kernel, the same bits).
+    env = {**os.environ, "PYTHONHASHSEED": "0", "OPENBLAS_NUM_THREADS": "1"}
     if root is not None:
         env["PYTHONPATH"] = str(root)
     cmd = ["valgrind", "--tool=cachegrind", "--cache-sim=no", "--cachegrind-out-file=/dev/null"]
