@@ -93,6 +93,7 @@ class PlayoutBuffer:
         self.auto_floor = auto_floor
         self.max_extra = math.ceil(MAX_EXTRA_MS * 1e-3 / dt)
         self.extra = self.fixed if self.mode != "auto" else auto_floor
+        self._on, self._auto = self.mode != "off", self.mode == "auto"  # the per-payload tests
         # (send tick, seq, n, packet): all held payloads share the current target, so they are
         # released in send order, and a change of target moves them all alike.
         self._heap: list[tuple[int, int, int, wire.Packet]] = []
@@ -141,26 +142,34 @@ class PlayoutBuffer:
         return None if a is None else a + self.extra
 
     def _observe(self, a: int, k: int) -> None:
-        b = min(max(a - TRANSIT_LO, 0), len(self._hist) - 1)
-        self._hist[b] += 1
+        # Every payload's path (issue 22): the clamps as comparisons, not min(max()); the names
+        # read once; mode tested by the flag made at construction.
+        hist = self._hist
+        b = a - TRANSIT_LO
+        if b < 0:
+            b = 0
+        elif b > HIST_TICKS - TRANSIT_LO:
+            b = HIST_TICKS - TRANSIT_LO
+        hist[b] += 1
         wk, wb = self._window_k, self._window_b
         wk.append(k)
         wb.append(b)
-        while wk[0] <= k - AUTO_WINDOW:
+        old = k - AUTO_WINDOW
+        while wk[0] <= old:
             wk.popleft()
-            self._hist[wb.popleft()] -= 1
-        if self._a_min is None:
-            self._a_min = a
-        if self.mode == "auto":
-            self._note_bucket(k, max(a - self._a_min, 0))
+            hist[wb.popleft()] -= 1
+        a_min = self._a_min
+        if a_min is None:
+            a_min = self._a_min = a
+        if self._auto:
+            self._note_bucket(k, a - a_min if a > a_min else 0)
         # The quantiles are looked at only when they may have moved: a payload below the lowest
         # transit or later than the allowance, or every CHECK_EVERY ticks.
-        late = a - self._a_min > self.extra
-        if not (a < self._a_min or late or k >= self._next_check):
+        if not (a < a_min or a - a_min > self.extra or k >= self._next_check):
             return
         self._next_check = k + CHECK_EVERY
         self._a_min = self._low_quantile(a)
-        if self.mode != "auto":
+        if not self._auto:
             return
         need = self._bucket_allowance()
         if need > self.extra:
@@ -173,13 +182,14 @@ class PlayoutBuffer:
     def _note_bucket(self, k: int, late: int) -> None:
         """The latest payload of each BUCKET ticks of the window (auto mode)."""
         b = k // BUCKET
-        if self._buckets and self._buckets[-1][0] == b:
-            if late > self._buckets[-1][1]:
-                self._buckets[-1] = (b, late)
-        else:
-            self._buckets.append((b, late))
-        while self._buckets[0][0] <= b - AUTO_WINDOW // BUCKET:
-            self._buckets.popleft()
+        buckets = self._buckets
+        if buckets and (last := buckets[-1])[0] == b:
+            if late > last[1]:
+                buckets[-1] = (b, late)
+            return  # the oldest bucket left when this one was opened
+        buckets.append((b, late))
+        while buckets[0][0] <= b - AUTO_WINDOW // BUCKET:
+            buckets.popleft()
 
     def _bucket_allowance(self) -> int:
         """The allowance that every 100 ms bucket of the window met but the OUTLIER_BUCKETS worst.
@@ -205,23 +215,28 @@ class PlayoutBuffer:
 
     def add(self, pkt: wire.Packet, k: int) -> list[wire.Packet]:
         """A payload taken during tick ``k``; returns what to hand to the node now."""
-        if not self.enabled:
+        if not self._on:
             return [pkt]
         st = self.stats
-        if pkt.tick > k + FUTURE_LIMIT:
+        tick = pkt.tick
+        if tick > k + FUTURE_LIMIT:
             st.future += 1
             return [pkt]
-        a = k - pkt.tick
-        before = self.target()  # lateness is judged against the target this payload was due under
-        self._observe(a, k)
-        if pkt.tick < self._max_seen_tick:
+        # Lateness is judged against the target this payload was due under (target(), inlined).
+        a_min = self._a_min
+        before = None if a_min is None else a_min + self.extra
+        self._observe(k - tick, k)
+        if tick < self._max_seen_tick:
             st.reordered_fixed += 1
-        self._max_seen_tick = max(self._max_seen_tick, pkt.tick)
-        d = self.target() if before is None else before
-        assert d is not None
-        if pkt.tick + d < k:
+        else:
+            self._max_seen_tick = tick
+        if before is None:  # the first payload: _observe has set a_min
+            a_min = self._a_min
+            assert a_min is not None
+            before = a_min + self.extra
+        if tick + before < k:
             st.late += 1
-        heapq.heappush(self._heap, (pkt.tick, pkt.seq, self._n, pkt))
+        heapq.heappush(self._heap, (tick, pkt.seq, self._n, pkt))
         self._n += 1
         if len(self._heap) > MAX_HELD:
             st.overflow += 1
@@ -229,20 +244,25 @@ class PlayoutBuffer:
         return []
 
     def _pop(self, k: int) -> wire.Packet:
-        _, _, _, pkt = heapq.heappop(self._heap)
+        pkt = heapq.heappop(self._heap)[3]
         self.stats.released += 1
-        self.delay_hist[min(max(k - pkt.tick, 0), HIST_TICKS)] += 1
-        self.target_hist[min(max(self.target() or 0, 0), HIST_TICKS)] += 1
-        self.extra_hist[min(self.extra, self.max_extra)] += 1
+        delay = k - pkt.tick
+        self.delay_hist[HIST_TICKS if delay > HIST_TICKS else delay if delay > 0 else 0] += 1
+        a_min, extra = self._a_min, self.extra
+        d = 0 if a_min is None else a_min + extra  # target(), None as 0
+        self.target_hist[HIST_TICKS if d > HIST_TICKS else d if d > 0 else 0] += 1
+        self.extra_hist[extra if extra < self.max_extra else self.max_extra] += 1
         return pkt
 
     def due(self, k: int) -> list[wire.Packet]:
         """Payloads whose release tick has come, in send order."""
-        if not self._heap:  # most ticks (and every tick with the buffer off): nothing held
+        heap = self._heap
+        if not heap:  # most ticks (and every tick with the buffer off): nothing held
             return []
         out = []
-        d = self.target()
-        while self._heap and self._heap[0][0] + (d or 0) <= k:
+        a_min = self._a_min
+        until = k - (0 if a_min is None else a_min + self.extra)  # released: send tick + target <= k
+        while heap and heap[0][0] <= until:
             out.append(self._pop(k))
         return out
 
