@@ -902,6 +902,36 @@ def float_path() -> Table:
     )
 
 
+def instructions() -> Table:
+    """bench.instructions: both ports' instructions a tick under cachegrind, against a reference."""
+    b = Builder("instructions.json")
+    ref = b.doc.get("reference")
+    rows: list[tuple[Cell, ...]] = []
+    for i, c in enumerate(b.doc["cases"]):
+        cells: list[Cell] = [f"`{c['codec']}`", str(c["dof"]), b.one(f"cases[{i}].tree.per_tick", ".0f")]
+        if ref is not None:
+            cells += [
+                b.one(f"cases[{i}].reference.per_tick", ".0f"),
+                b.one(f"cases[{i}].ratio_to_reference", ".3f"),
+            ]
+        rows.append(tuple(cells))
+    lo, hi = b.doc["ticks"]
+    header: tuple[str, ...] = ("codec", "DoF", "this tree, instructions a tick")
+    if ref is not None:
+        header += (f"reference `{str(ref['commit'])[:7]}`", "ratio")
+    return Table(
+        "instructions",
+        "instructions.json",
+        "python -m bench.instructions --reference DIR",
+        header,
+        tuple(rows),
+        note=(
+            f" Both ports (receive, tick, sent) of the `{b.doc['scenario']}` task, ticks {lo}-{hi},"
+            " counted by Valgrind's cachegrind: the same count on every run of the same code."
+        ),
+    )
+
+
 def cpu_ab() -> Table:
     """The early drain's A/B in cpu.json: each process's CPU before and after, runs alternated."""
     b = Builder("cpu_ab_early_drain.json")
@@ -1000,6 +1030,7 @@ TABLES: dict[str, Callable[[], Table]] = {
     "cpu-ab": cpu_ab,
     "stalls": stalls,
     "float-path": float_path,
+    "instructions": instructions,
 }
 
 
