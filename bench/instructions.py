@@ -35,18 +35,11 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-CASES: tuple[tuple[str, int], ...] = (
-    ("none", 2),
-    ("eds:50", 2),
-    ("pdp:1", 2),
-    ("none", 6),
-    ("eds:50", 6),
-    ("pdp:1", 6),
-    ("none", 64),
-)
+from bench.cpu import CASES  # the CPU bench's cases: the two tables read side by side
+
 #: The default span: ticks 2000-7000 of the protocol task cross from free space into the foam (5 s).
 FROM_TICKS, TO_TICKS = 2000, 7000
-MAX_TICKS = 60_000  # the task's 15 s are all of it (a cachegrind run of 60 000 ticks takes ~5 min)
+MAX_TICKS = 60_000  # 60 s of the task (its last push ends at 15 s); a 7000-tick count took ~50 s here
 _CHILD = (
     "import sys; from bench.tick import _port_pair, port_side_ticks; "
     "n = int(sys.argv[3]); port_side_ticks(*_port_pair(sys.argv[1], int(sys.argv[2]), n + 10, 'protocol'), n)"
