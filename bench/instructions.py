@@ -114,6 +114,9 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--to must be at least 100 ticks after --from, got {a.lo}..{a.hi}")
     if a.reference is not None and not (a.reference / "bench" / "tick.py").is_file():
         ap.error(f"--reference {a.reference}: not a checkout of this project (no bench/tick.py)")
+    out = Path(a.out)
+    if (out.exists() and not out.is_file()) or out.is_symlink():
+        ap.error(f"--out {a.out}: not a regular file (a results file is written there)")
     if shutil.which("valgrind") is None:
         ap.error("needs valgrind on PATH (Debian: apt-get install valgrind)")
     t0 = time.monotonic()
@@ -133,8 +136,8 @@ def main(argv: list[str] | None = None) -> int:
         **res,
         "wall_s": time.monotonic() - t0,
     }
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(doc, indent=1) + "\n")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=1) + "\n")
     for c in doc["cases"]:
         ratio = f"  x{c['ratio_to_reference']:.3f} of the reference" if "reference" in c else ""
         print(f"{c['codec']:<7} {c['dof']:>2} DoF  {c['tree']['per_tick']:10.0f} instructions a tick{ratio}")

@@ -64,3 +64,17 @@ def test_a_real_count_is_the_same_twice() -> None:
     b = instructions.per_tick("eds:50", 2, 100, 300, None)["per_tick"]
     assert 20_000 < a < 2_000_000
     assert abs(a - b) < 0.01 * a
+
+
+def test_out_must_be_a_regular_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A folder, a FIFO (writing would block) or a link (never followed) as --out: one line, before
+    any counting."""
+    fifo, link = tmp_path / "fifo", tmp_path / "link"
+    os.mkfifo(fifo)
+    link.symlink_to(tmp_path / "elsewhere.json")
+    for out in (tmp_path, fifo, link):
+        with pytest.raises(SystemExit) as e:
+            instructions.main(["--out", str(out)])
+        assert e.value.code == 2
+        assert "not a regular file" in capsys.readouterr().err
+    assert not (tmp_path / "elsewhere.json").exists()
