@@ -57,6 +57,21 @@ def test_the_early_drain_stops_before_the_limit_and_the_deadline_drain_feeds_the
     assert ep.fed == [bytes([i]) for i in range(10)] + [b"late"] and r._pending == []
 
 
+def test_after_an_early_tick_what_the_early_drain_left_is_fed_without_another_read() -> None:
+    """``feed_pending`` (the wake path after a tick run early): the datagrams the early drain read
+    and left, in order, and the socket not read again (what waits there is the next wake's)."""
+    got = [(bytes([i]), ("h", 1), i) for i in range(6)]
+    r, ep = _runner([got, [(b"next tick's", ("h", 1), 99)]], cost=20_000)
+    r.drain_early(until_ns=60_000)
+    early = len(ep.fed)
+    assert 1 <= early < 6
+    r.feed_pending()
+    assert ep.fed == [bytes([i]) for i in range(6)] and r._pending == []
+    assert r.tr.batches == [[(b"next tick's", ("h", 1), 99)]]  # not read
+    r.feed_pending()  # nothing left: a no-op
+    assert len(ep.fed) == 6
+
+
 def test_the_early_drain_learns_the_cost_of_a_datagram() -> None:
     r, ep = _runner([[(b"x", None, 0)] * 50], cost=2_000)
     r.drain_early(until_ns=10**9)
