@@ -92,6 +92,7 @@ class _TickingEndpoint:
     def __init__(self, grace: bool = False) -> None:
         self.running, self.params, self.grace = True, object(), grace
         self.ticked: list[tuple[int, int]] = []
+        self.fed: list[bytes] = []
 
     def grace_needed(self, k: int) -> bool:
         return self.grace
@@ -99,12 +100,17 @@ class _TickingEndpoint:
     def tick(self, k: int, now_ns: int) -> None:
         self.ticked.append((k, now_ns))
 
+    def receive_datagram(self, data: bytes, addr: Any, t_rx: int) -> None:
+        self.fed.append(data)
+        if data == b"due payload":
+            self.grace = False
 
-def _ticking_runner(ep: _TickingEndpoint, now: int) -> Any:
+
+def _ticking_runner(ep: _TickingEndpoint, now: int, pending: tuple[bytes, ...] = ()) -> Any:
     r: Any = object.__new__(_Runner)
     clock = _Clock()
     clock.t = now
-    r.clock, r.ep = clock, ep
+    r.clock, r.ep, r._pending = clock, ep, [(d, ("h", 1), 0) for d in pending]
     return r
 
 
@@ -130,3 +136,17 @@ def test_the_tick_waits_for_its_deadline_when_early_would_change_it() -> None:
         r = _ticking_runner(ep, now)
         assert r.tick_early(_Ticker(7, 1_000_000), session) is None
         assert ep.ticked == []
+
+
+def test_a_due_payload_the_early_drain_left_is_fed_and_the_tick_still_runs_early() -> None:
+    """A late wake-up leaves the early drain no budget, so the due payload may wait in ``_pending``:
+    tick_early feeds it (in order, with what came before it) rather than send the tick to the
+    deadline; a payload still missing after that goes to the deadline's grace, as before."""
+    ep = _TickingEndpoint(grace=True)
+    r = _ticking_runner(ep, now=900_000, pending=(b"older", b"due payload"))
+    assert r.tick_early(_Ticker(7, 1_000_000), ep.params) == 7
+    assert ep.fed == [b"older", b"due payload"] and r._pending == [] and ep.ticked == [(7, 900_000)]
+    missing = _TickingEndpoint(grace=True)
+    r = _ticking_runner(missing, now=900_000, pending=(b"not it",))
+    assert r.tick_early(_Ticker(7, 1_000_000), missing.params) is None
+    assert missing.fed == [b"not it"] and missing.ticked == []
