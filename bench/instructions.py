@@ -35,7 +35,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from bench.cpu import CASES  # the CPU bench's cases: the two tables read side by side
+from bench.cpu import CASES, _commit  # the CPU bench's cases: the two tables read side by side
 
 #: The default span: ticks 2000-7000 of the protocol task cross from free space into the foam (5 s).
 FROM_TICKS, TO_TICKS = 2000, 7000
@@ -88,11 +88,6 @@ def run(lo: int, hi: int, reference: Path | None) -> dict[str, Any]:
     return {"cases": cases}
 
 
-def _commit(root: Path | None) -> str | None:
-    r = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=root)
-    return r.stdout.strip() if r.returncode == 0 else None
-
-
 def _ticks(text: str) -> int:
     try:
         n = int(text)
@@ -131,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
         "ticks": [a.lo, a.hi],
         "python": platform.python_version(),
         "machine": platform.machine(),
-        "commit": _commit(None),
+        "commit": _commit(Path.cwd()),
         **({"reference": {"path": str(a.reference), "commit": _commit(a.reference)}} if a.reference else {}),
         **res,
         "wall_s": time.monotonic() - t0,

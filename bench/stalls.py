@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import subprocess
 import sys
 import tempfile
 import time
@@ -38,6 +37,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bench._probed_run import probed_run
+from bench.cpu import _commit
 from teleop.logfile import read_log
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -52,11 +52,6 @@ if os.environ.get("TELEOP_GC_PROBE"):
     import _gc_probe
     _gc_probe.install(os.environ["TELEOP_GC_PROBE"])
 """
-
-
-def _commit(root: Path) -> str:
-    r = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True)
-    return r.stdout.strip() if r.returncode == 0 else f"unknown ({r.stderr.strip()})"
 
 
 def process_figures(

@@ -94,10 +94,12 @@ class DiscreteLTI:
         # cost per call is the cheaper one.  The same IEEE operations in the same order, so the same bits
         # (tests/test_models.py holds the two equal).
         self.lanes = channels <= FLOAT_LANES if lanes is None else lanes
-        self._bl, self._al = self.b.tolist(), self.a.tolist()
-        self._zl = [[0.0] * n for _ in range(channels)]  # lanes: each channel's state rows
         self._zero = np.zeros(channels)
         self._zero.setflags(write=False)
+        if self.lanes:  # each channel's state rows, and the coefficients, as floats
+            self._bl, self._al = self.b.tolist(), self.a.tolist()
+            self._zl = [[0.0] * n for _ in range(channels)]
+            return
         # The state, in one of two buffers: above first order, advance builds the new state in the
         # other one and swaps (no copy back), so each buffer comes with its views made once: its
         # first row (free), its last (first order writes it), all but its first (the old state's

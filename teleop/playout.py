@@ -127,7 +127,7 @@ class PlayoutBuffer:
 
     @property
     def enabled(self) -> bool:
-        return self.mode != "off"
+        return self._on
 
     @property
     def held(self) -> int:
