@@ -33,6 +33,7 @@ import argparse
 import json
 import os
 import platform
+import shutil
 import statistics
 import subprocess
 import sys
@@ -102,6 +103,15 @@ def run_case(codec: str, dof: int, duration: float, tmp: Path, root: Path | None
     if r.returncode != 0:
         sys.exit(f"teleop run {codec} {dof} DoF failed{' (reference)' if root else ''}: {r.stderr}")
     rep = json.loads((run_dir / "report.json").read_text())
+    if missing := [role for role in ROLES if not rep["processes"].get(role)]:
+        # A process exited 0 and its log has no summary: a fault to find, not a case to skip.
+        keep = Path(tempfile.mkdtemp(prefix=f"teleop-cpu-{name}-"))
+        shutil.copytree(run_dir, keep, dirs_exist_ok=True)
+        sys.exit(
+            f"teleop run {codec} {dof} DoF{' (reference)' if root else ''}: the report has no figures of "
+            f"the {' and the '.join(missing)} (its log has no summary); the run is kept in {keep}\n"
+            f"its output: {r.stdout}\n{r.stderr}"
+        )
     return {"empty": json.loads(empty_json.read_text()), "report": rep}
 
 

@@ -1,0 +1,44 @@
+"""``bench.cpu``: a run whose report lacks a process's figures stops the bench with the case named
+and the run kept (it crashed with a TypeError minutes into a run, its evidence deleted)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from bench import cpu
+
+
+def test_a_report_without_a_process_stops_the_bench_and_keeps_the_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    class Empty:  # the empty loop alongside
+        def __init__(self, cmd: list[str], **kw: Any) -> None:
+            Path(cmd[cmd.index("--empty-only") + 1]).write_text(json.dumps({"period_error_us": {}}))
+
+        def wait(self, timeout: float | None = None) -> int:
+            return 0
+
+    def run(cmd: list[str], **kw: Any) -> subprocess.CompletedProcess[str]:
+        out = Path(cmd[cmd.index("--out") + 1])
+        out.mkdir(parents=True)
+        procs: dict[str, Any] = {"operator": None, "teleoperator": {"loop": {}}}
+        (out / "report.json").write_text(json.dumps({"processes": procs, "summary_missing": ["operator"]}))
+        return subprocess.CompletedProcess(cmd, 0, "  operator     SUMMARY MISSING", "")
+
+    monkeypatch.setattr("bench.cpu.subprocess.Popen", Empty)
+    monkeypatch.setattr("bench.cpu.subprocess.run", run)
+    monkeypatch.setattr("bench.cpu.tempfile.mkdtemp", lambda prefix: str(tmp_path / f"{prefix}kept"))
+    with pytest.raises(SystemExit) as e:
+        cpu.run_case("none", 2, 1.0, tmp_path)
+    msg = str(e.value)
+    assert msg.startswith("teleop run none 2 DoF: the report has no figures of the operator ")
+    assert "SUMMARY MISSING" in msg
+    kept = tmp_path / "teleop-cpu-none-2-kept"
+    assert f"kept in {kept}" in msg and (kept / "report.json").is_file()
+    shutil.rmtree(kept)
