@@ -31,7 +31,7 @@ from teleop.link.counters import DirectionCounters
 from teleop.link.quantiles import MOVE_PER_ADD, Quantiles
 from teleop.node import PortOptions
 from teleop.port import MemorySink, Port, make_node
-from transport.mcaplog import PER_TICK_TOPICS, TOPICS, McapLog, read_log
+from transport.mcaplog import PER_TICK_TOPICS, TOPICS, McapLog, promote_writer, read_log
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
 
@@ -205,6 +205,63 @@ def test_the_writer_process_yields_to_the_loops(tmp_path: Path) -> None:
     finally:
         log.close()
     assert log.error is None
+
+
+def test_the_writer_finishes_at_the_processs_priority_once_no_loop_ticks(tmp_path: Path) -> None:
+    """At the close the writer's threads leave SCHED_IDLE (with the privilege that takes): on a
+    host whose cores other work keeps busy, an idle writer's backlog kept the process alive for
+    tens of seconds after the session ended."""
+    log = McapLog(tmp_path / "operator.mcap", "operator", wall0_ns=0)
+    try:
+        pid = log._proc.pid
+        deadline = time.monotonic() + 30
+        while os.sched_getscheduler(pid) != os.SCHED_IDLE and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert os.sched_getscheduler(pid) == os.SCHED_IDLE
+        if os.geteuid() != 0:
+            assert promote_writer(log._proc) is False  # refused without CAP_SYS_NICE: stays idle
+            assert os.sched_getscheduler(pid) == os.SCHED_IDLE
+            return
+        assert promote_writer(log._proc) is True
+        tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+        assert tids and all(os.sched_getscheduler(t) == os.SCHED_OTHER for t in tids)
+        nice = os.getpriority(os.PRIO_PROCESS, 0)
+        assert all(os.getpriority(os.PRIO_PROCESS, t) == nice for t in tids)
+    finally:
+        log.close()
+    assert log.error is None
+
+
+def test_a_replaced_sessions_log_keeps_its_writer_idle(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The log of a session a takeover replaced closes while the next session ticks: its writer
+    stays under SCHED_IDLE; a session that ended with nothing after it promotes its writer."""
+    from transport import records as rec
+
+    calls: list[bool] = []
+
+    class Log:
+        path = None
+        messages = dropped_chunks = 0
+        live_port = error = None
+
+        def event(self, *a: Any) -> None:
+            pass
+
+        def close(self, summary: Any = None, timeout: float = 0.0, promote: bool = True) -> None:
+            calls.append(promote)
+
+    class Summary:
+        process = type("P", (), {"log": None})()
+
+        def document(self, **kw: Any) -> dict[str, Any]:
+            return {}
+
+    r = rec.Records("operator", None, None, "127.0.0.1")
+    for session, replaced in ((1, True), (2, False)):
+        r.logs[session] = Log()  # type: ignore[assignment]
+        r.end(Summary(), session, 1.0, "why", replaced)  # type: ignore[arg-type]
+    r.wait_finished()
+    assert calls == [False, True]
 
 
 def test_mcap_log_channels_counts_and_contents(tmp_path: Path) -> None:

@@ -480,11 +480,19 @@ class McapLog:
             self.error = f"the log writer process died ({how}); later chunks are not in the log"
             print(f"teleop {self.role}: error: {self.error}", file=sys.stderr, flush=True)
 
-    def close(self, summary: dict[str, Any] | None = None, timeout: float = 120.0) -> None:
-        """Write what is queued and the summary, finish the file, wait for the writer."""
+    def close(
+        self, summary: dict[str, Any] | None = None, timeout: float = 120.0, promote: bool = True
+    ) -> None:
+        """Write what is queued and the summary, finish the file, wait for the writer.
+
+        ``promote``: no loop ticks any more (the caller says so: a replaced session's log closes
+        while the next session ticks, and keeps its writer idle), so the writer's backlog is
+        written at normal priority (:func:`promote_writer`)."""
         if self._closed:
             return
         self._closed = True
+        if promote:
+            promote_writer(self._proc)
         if summary is not None:
             self._q.put(("msg", ("summary", float(summary.get("end_t", 0.0)), summary)))
         self._q.put(("stop", None))
@@ -503,6 +511,33 @@ class McapLog:
                     self._live_port = int(d["live_port"])
         if self._proc.returncode != 0:  # died before it could say why (kill -9, a crash)
             self._writer_died()
+
+
+def promote_writer(proc: subprocess.Popen[bytes]) -> bool:
+    """Every thread of the writer back to ``SCHED_OTHER`` at this process's niceness; False where
+    that is refused.
+
+    Why: the writer yields to the loops under ``SCHED_IDLE`` (:func:`_writer_main`), so on a host
+    whose cores are busy with other work at normal priority it gets a fraction of a percent of a
+    core, and what it has not written by the end of the session then takes tens of seconds: the
+    process did not exit 20 s after SIGTERM with two busy loops on a 2-core host (measured).  Once
+    no loop ticks, the backlog is the only thing left to do.  Leaving ``SCHED_IDLE`` and lowering
+    the niceness need ``CAP_SYS_NICE`` (root; or a high enough ``RLIMIT_NICE``): the priority
+    a real-time loop (``--rt-priority``) needs anyway.  Without it the writer stays idle and the
+    close waits as before.  The threads are the writer's own (``/proc/PID/task``, a child not yet
+    reaped, so the ids are its): foxglove's encoder threads compress too."""
+    try:
+        tids = [int(t) for t in os.listdir(f"/proc/{proc.pid}/task")]
+    except (OSError, ValueError):  # no procfs, or the writer has exited
+        return False
+    done, nice = True, os.getpriority(os.PRIO_PROCESS, 0)  # not above the process it serves
+    for tid in tids:
+        try:
+            os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+            os.setpriority(os.PRIO_PROCESS, tid, nice)
+        except (OSError, AttributeError):  # refused (no privilege), a thread that just ended
+            done = False
+    return done
 
 
 def _read(stdin: Any) -> tuple[str, Any] | None:

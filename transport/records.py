@@ -82,16 +82,17 @@ class Records:
         if log is not None:
             log.event(t_end, "session_end", why)
         if replaced:  # the next session already runs: finish this one's files beside it
-            done = threading.Thread(target=self._finish, args=(s, log, t_end), name="finish-log")
+            done = threading.Thread(target=self._finish, args=(s, log, t_end, True), name="finish-log")
             done.start()
             self._finishing.append(done)
         else:
-            self._finish(s, log, t_end)
+            self._finish(s, log, t_end, False)
 
-    def _finish(self, s: SessionSummary, log: McapLog | None, t_end: float) -> None:
+    def _finish(self, s: SessionSummary, log: McapLog | None, t_end: float, replaced: bool) -> None:
         assert s.process is not None
         if log is not None:
-            log.close(s.document(end_t=t_end))  # waits for the writer
+            # Waits for the writer; at normal priority unless the next session ticks (replaced).
+            log.close(s.document(end_t=t_end), promote=not replaced)
             s.process.log = LogFigures(
                 mcap=log.path.name if log.path is not None else None,
                 messages=log.messages,
