@@ -215,25 +215,36 @@ def _one(topic: str, payloads: list[bytes]) -> dict[str, Any]:
 
 def read_summary(path: Path) -> dict[str, Any]:
     """The ``/ROLE/summary`` message (empty if the process did not finish its log: killed).  It is
-    logged last, so the walk decompresses only the chunks that may hold it: the last one, and
-    all of them only if that one does not name the summary's channel.  Damage is :class:`LogError`."""
+    logged last, so the walk decompresses only the chunks that may hold it and its channel: the
+    last two, and all of them only if those do not have it.  Damage is :class:`LogError`.
+
+    Why two: the writer declares a channel (its Channel record) in the chunk it is filling when the
+    channel's first message comes, and only then closes that chunk if it is over its size and puts
+    the message in the next one (``mcap``'s ``Writer::write``), so the summary's channel can sit one
+    chunk before the summary.  Reading the last chunk alone missed it there, and a report then said
+    the summary was missing (once in about a hundred sessions).  A file whose writer did not finish
+    it (killed) and whose last two chunks do not declare the channel has no summary: read as is,
+    without decompressing the rest."""
     topic = f"/{_role(path)}/summary"
     with _walk(path) as walk:
-        last = b""
+        prev, last = b"", b""
         for op, body in walk.records():
             if op == _OP_CHUNK:
-                last = body
+                prev, last = last, body
             elif op == _OP_MESSAGE and walk.channels.get(_U16.unpack_from(body, 0)[0]) == topic:
                 return _one(topic, [body[22:]])
-        if last and (got := _chunk_payloads(walk.chunk_records(last), walk.channels).get(topic)):
-            return _one(topic, got)
-        if topic not in walk.channels.values():
+        # In file order, so that a channel the earlier one declares names the later one's messages.
+        tail = [_chunk_payloads(walk.chunk_records(c), walk.channels) for c in (prev, last) if c]
+        for got in reversed(tail):
+            if payloads := got.get(topic):
+                return _one(topic, payloads[-1:])
+        if walk.truncated and topic not in walk.channels.values():
             return {}
-    with _walk(path) as walk:  # the summary's channel was declared in an earlier chunk
+    found: list[bytes] = []
+    with _walk(path) as walk:  # declared, or a finished file: in an earlier chunk, if anywhere
         for chunk in walk.payloads():
-            if got := chunk.get(topic):
-                return _one(topic, got)
-    return {}
+            found = chunk.get(topic, found)[-1:]
+    return _one(topic, found) if found else {}
 
 
 def read_session(path: Path) -> dict[str, Any]:

@@ -30,6 +30,77 @@ TELEOP = [sys.executable, "-m", "teleop.cli"]
 LINK = ["--duration", "1", "--netem-forward"]
 
 
+# --- the summary, wherever the writer put it -----------------------------------------------------
+def _mcap(path: Path, chunk_size: int, declare_first: bool = False, finish: bool = True) -> None:
+    """A log like the writer process's (foxglove's writer, zstd chunks): the session message, 50
+    events, the summary.  ``declare_first``: the summary's channel is used once at the start (a
+    channel declared long before its message); ``finish``: the footer is written (not: killed)."""
+    import foxglove
+    from foxglove.mcap import MCAPCompression, MCAPWriteOptions
+
+    from transport.mcaplog import SCHEMAS
+
+    ctx = foxglove.Context()
+    opts = MCAPWriteOptions(compression=MCAPCompression.Zstd, chunk_size=chunk_size)
+    w = foxglove.open_mcap(str(path), context=ctx, writer_options=opts)
+    ch = {n: foxglove.Channel(f"/operator/{n}", schema=SCHEMAS[n], context=ctx) for n in SCHEMAS}
+    ch["session"].log(json.dumps({"params": {"session": 7}}).encode(), log_time=0)
+    if declare_first:
+        ch["summary"].log(json.dumps({"early": True}).encode(), log_time=0)
+    for i in range(50):
+        ch["events"].log(json.dumps({"t": i, "event": "e", "detail": "x" * 40}).encode(), log_time=i)
+    if finish:
+        ch["summary"].log(json.dumps({"params": {"session": 7}, "end_t": 1.0}).encode(), log_time=99)
+        w.close()
+    else:
+        del w  # no summary, no footer: as a writer killed mid-session leaves it
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+
+def _chunks_declaring_and_holding(path: Path, topic: str) -> tuple[list[int], list[int]]:
+    """Which chunks hold ``topic``'s Channel record and which its messages (file order)."""
+    from teleop.logfile import _OP_CHUNK, _chunk_payloads, _walk
+
+    with _walk(path) as walk:
+        bodies = [body for op, body in walk.records() if op == _OP_CHUNK]
+        channels: dict[int, str] = dict(walk.channels)
+        declared, holding = [], []
+        for i, body in enumerate(bodies):
+            known = topic in channels.values()
+            got = _chunk_payloads(walk.chunk_records(body), channels)
+            declared += [i] if not known and topic in channels.values() else []
+            holding += [i] if topic in got else []
+    return declared, holding
+
+
+def test_the_summary_is_read_when_its_channel_is_declared_a_chunk_before_it(tmp_path: Path) -> None:
+    """The writer declares a channel in the chunk it is filling, then closes that chunk if full and
+    logs the message in the next: the summary's channel one chunk before the summary.  Read from
+    the last chunk alone, such a log's summary was missing (a report said so once in ~100 runs)."""
+    path = tmp_path / "operator.mcap"
+    _mcap(path, chunk_size=1)  # every chunk full after one message: the split every time
+    declared, holding = _chunks_declaring_and_holding(path, "/operator/summary")
+    assert len(declared) == 1 and holding == [declared[0] + 1]  # the layout this test is about
+    assert read_summary(path) == {"params": {"session": 7}, "end_t": 1.0}
+
+
+def test_the_summary_is_found_when_its_channel_was_declared_long_before(tmp_path: Path) -> None:
+    """A finished file whose last two chunks do not declare the summary's channel is read whole,
+    and the summary is the channel's last message (the one logged last)."""
+    path = tmp_path / "operator.mcap"
+    _mcap(path, chunk_size=1, declare_first=True)
+    declared, holding = _chunks_declaring_and_holding(path, "/operator/summary")
+    assert len(declared) == 1 and declared[0] + 2 < holding[-1]  # out of the last two chunks' reach
+    assert read_summary(path) == {"params": {"session": 7}, "end_t": 1.0}
+
+
+def test_a_killed_writers_log_has_no_summary(tmp_path: Path) -> None:
+    path = tmp_path / "operator.mcap"
+    _mcap(path, chunk_size=1, finish=False)
+    assert read_summary(path) == {}
+    assert read_session(path)["params"]["session"] == 7
+
+
 # --- files in the log folder --------------------------------------------------------------------
 def test_a_symlink_planted_in_the_log_folder_is_never_written_through(tmp_path: Path) -> None:
     victim = tmp_path / "victim"
