@@ -140,9 +140,14 @@ def _vs_reference(r: dict[str, Any]) -> str:
 
 
 def _commit(root: Path) -> str:
-    """The commit checked out at ``root`` (or why it is not known)."""
+    """The commit checked out at ``root`` (or why it is not known), and whether tracked files
+    differ from it: a figure measured on uncommitted changes says so."""
     r = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True)
-    return r.stdout.strip() if r.returncode == 0 else f"unknown ({r.stderr.strip()})"
+    if r.returncode != 0:
+        return f"unknown ({r.stderr.strip()})"
+    status = ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"]
+    st = subprocess.run(status, capture_output=True, text=True)
+    return r.stdout.strip() + (" with uncommitted changes" if st.stdout.strip() else "")
 
 
 def add_repeats(out: Path, others: list[Path]) -> None:
@@ -272,6 +277,7 @@ def main() -> None:
     }
     res: dict[str, Any] = {
         "what": "CPU per process of teleop run against the floor reference, same invocation, same host",
+        "commit": _commit(Path(__file__).resolve().parent.parent),  # the tree measured
         "duration_s": a.duration,
         "scenario": "protocol",
         "python": platform.python_version(),

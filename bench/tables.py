@@ -722,6 +722,9 @@ def cpu() -> Table:
                 )
             )
     t = b.doc["targets"]
+    commit = b.doc.get("commit")  # the measured tree's (absent before bench.cpu recorded it)
+    dirty = " with uncommitted changes" if commit and "uncommitted" in commit else ""
+    tree_note = f" Measured from commit `{commit[:7]}`{dirty}." if commit else ""
     ref_note = (
         f" The reference is commit `{ref['commit'][:7]}`, each case run from it in the same invocation"
         " (alternated), its port tick in a fresh interpreter of its own tree."
@@ -748,7 +751,7 @@ def cpu() -> Table:
             f" {b.doc['duration_s']:g} s sessions, `{b.doc['scenario']}` scenario, one invocation;"
             f" targets met: CPU {t['cpu']['met']} of {t['cpu']['of']},"
             f" port tick (15 us per side at 2 DoF, `none`) {t['port_tick_15us_none_2dof']['met']} of"
-            f" {t['port_tick_15us_none_2dof']['of']}.{ref_note}{_repeats(b.doc)}"
+            f" {t['port_tick_15us_none_2dof']['of']}.{tree_note}{ref_note}{_repeats(b.doc)}"
         ),
     )
 

@@ -42,3 +42,21 @@ def test_a_report_without_a_process_stops_the_bench_and_keeps_the_run(
     kept = tmp_path / "teleop-cpu-none-2-kept"
     assert f"kept in {kept}" in msg and (kept / "report.json").is_file()
     shutil.rmtree(kept)
+
+
+def test_the_commit_of_a_measured_tree_says_when_it_has_uncommitted_changes(tmp_path: Path) -> None:
+    def git(*args: str) -> str:
+        return subprocess.run(
+            ["git", "-C", str(tmp_path), *args], check=True, capture_output=True, text=True
+        ).stdout
+
+    git("init", "-q")
+    (tmp_path / "f.py").write_text("x = 1\n")
+    git("add", "f.py")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "m")
+    head = git("rev-parse", "HEAD").strip()
+    (tmp_path / "new.txt").write_text("untracked: not the measured code\n")
+    assert cpu._commit(tmp_path) == head
+    (tmp_path / "f.py").write_text("x = 2\n")
+    assert cpu._commit(tmp_path) == f"{head} with uncommitted changes"
+    assert cpu._commit(tmp_path / "no-such").startswith("unknown (")
