@@ -243,7 +243,8 @@ def read_summary(path: Path) -> dict[str, Any]:
     found: list[bytes] = []
     with _walk(path) as walk:  # declared, or a finished file: in an earlier chunk, if anywhere
         for chunk in walk.payloads():
-            found = chunk.get(topic, found)[-1:]
+            if msgs := chunk.get(topic):
+                found = msgs[-1:]  # the last one: the summary is logged last
     return _one(topic, found) if found else {}
 
 
