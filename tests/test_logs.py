@@ -31,7 +31,7 @@ from teleop.link.counters import DirectionCounters
 from teleop.link.quantiles import MOVE_PER_ADD, Quantiles
 from teleop.node import PortOptions
 from teleop.port import MemorySink, Port, make_node
-from transport.mcaplog import PER_TICK_TOPICS, TOPICS, McapLog, promote_writer, read_log
+from transport.mcaplog import PER_TICK_TOPICS, TOPICS, McapLog, read_log
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
 
@@ -219,10 +219,10 @@ def test_the_writer_finishes_at_the_processs_priority_once_no_loop_ticks(tmp_pat
             time.sleep(0.05)
         assert os.sched_getscheduler(pid) == os.SCHED_IDLE
         if os.geteuid() != 0:
-            assert promote_writer(log._proc) is False  # refused without CAP_SYS_NICE: stays idle
+            assert log.promote() is False  # refused without CAP_SYS_NICE: stays idle
             assert os.sched_getscheduler(pid) == os.SCHED_IDLE
             return
-        assert promote_writer(log._proc) is True
+        assert log.promote() is True
         tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
         assert tids and all(os.sched_getscheduler(t) == os.SCHED_OTHER for t in tids)
         nice = os.getpriority(os.PRIO_PROCESS, 0)
@@ -232,12 +232,16 @@ def test_the_writer_finishes_at_the_processs_priority_once_no_loop_ticks(tmp_pat
     assert log.error is None
 
 
-def test_a_replaced_sessions_log_keeps_its_writer_idle(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_replaced_sessions_log_keeps_its_writer_idle_until_no_loop_ticks() -> None:
     """The log of a session a takeover replaced closes while the next session ticks: its writer
-    stays under SCHED_IDLE; a session that ended with nothing after it promotes its writer."""
+    stays under SCHED_IDLE until the process waits for it at the end, when it is promoted; a
+    session that ended with nothing after it promotes its writer at the close."""
+    import threading
+
     from transport import records as rec
 
-    calls: list[bool] = []
+    calls: list[str] = []
+    promoted = threading.Event()
 
     class Log:
         path = None
@@ -247,8 +251,15 @@ def test_a_replaced_sessions_log_keeps_its_writer_idle(monkeypatch: pytest.Monke
         def event(self, *a: Any) -> None:
             pass
 
+        def promote(self) -> bool:
+            calls.append("promote")
+            promoted.set()
+            return True
+
         def close(self, summary: Any = None, timeout: float = 0.0, promote: bool = True) -> None:
-            calls.append(promote)
+            calls.append(f"close promote={promote}")
+            if not promote:  # a backlog the idle writer cannot finish while the host is busy
+                assert promoted.wait(10)
 
     class Summary:
         process = type("P", (), {"log": None})()
@@ -257,11 +268,13 @@ def test_a_replaced_sessions_log_keeps_its_writer_idle(monkeypatch: pytest.Monke
             return {}
 
     r = rec.Records("operator", None, None, "127.0.0.1")
-    for session, replaced in ((1, True), (2, False)):
-        r.logs[session] = Log()  # type: ignore[assignment]
-        r.end(Summary(), session, 1.0, "why", replaced)  # type: ignore[arg-type]
+    r.logs[1] = Log()  # type: ignore[assignment]
+    r.end(Summary(), 1, 1.0, "replaced", True)  # type: ignore[arg-type]
+    r.logs[2] = Log()  # type: ignore[assignment]
+    r.end(Summary(), 2, 1.0, "bye", False)  # type: ignore[arg-type]
+    assert sorted(calls) == ["close promote=False", "close promote=True"]  # nothing promoted yet
     r.wait_finished()
-    assert calls == [False, True]
+    assert calls[-1] == "promote" and calls.count("promote") == 1
 
 
 def test_mcap_log_channels_counts_and_contents(tmp_path: Path) -> None:

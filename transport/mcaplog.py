@@ -480,6 +480,10 @@ class McapLog:
             self.error = f"the log writer process died ({how}); later chunks are not in the log"
             print(f"teleop {self.role}: error: {self.error}", file=sys.stderr, flush=True)
 
+    def promote(self) -> bool:
+        """The writer to normal priority, once no loop ticks (:func:`promote_writer`)."""
+        return promote_writer(self._proc)
+
     def close(
         self, summary: dict[str, Any] | None = None, timeout: float = 120.0, promote: bool = True
     ) -> None:
@@ -492,7 +496,7 @@ class McapLog:
             return
         self._closed = True
         if promote:
-            promote_writer(self._proc)
+            self.promote()
         if summary is not None:
             self._q.put(("msg", ("summary", float(summary.get("end_t", 0.0)), summary)))
         self._q.put(("stop", None))

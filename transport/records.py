@@ -43,7 +43,7 @@ class Records:
         self.role, self.log_dir = role, log_dir
         self.live_view, self.live_view_host = live_view, live_view_host
         self.logs: dict[int, McapLog | None] = {}  # session id -> its log (a takeover opens the next)
-        self._finishing: list[threading.Thread] = []
+        self._finishing: list[tuple[threading.Thread, McapLog | None]] = []
         # The writer process starts now, so that it has imported before the loop starts.
         self._writer: subprocess.Popen[bytes] | None = spawn_writer() if self.wanted else None
 
@@ -84,7 +84,7 @@ class Records:
         if replaced:  # the next session already runs: finish this one's files beside it
             done = threading.Thread(target=self._finish, args=(s, log, t_end, True), name="finish-log")
             done.start()
-            self._finishing.append(done)
+            self._finishing.append((done, log))
         else:
             self._finish(s, log, t_end, False)
 
@@ -104,8 +104,12 @@ class Records:
             logdir.save_summary(self.log_dir, self.role, s.document())
 
     def wait_finished(self) -> None:
-        """Until replaced sessions' logs are finished (blocking: run it off the event loop)."""
-        for t in self._finishing:
+        """Until replaced sessions' logs are finished (blocking: run it off the event loop).  No loop
+        ticks any more: their writers, kept idle while the next session ticked, finish at normal
+        priority (:func:`transport.mcaplog.promote_writer`)."""
+        for t, log in self._finishing:
+            if log is not None and t.is_alive():
+                log.promote()
             t.join()
 
     def close(self) -> None:
