@@ -1,12 +1,15 @@
 """Wave variables stay bit-identical while TDPA is added beside them (issue 23).
 
-The figures were printed by ``teleop sim``'s ``run_case`` before ``--passivity`` existed; any change
-to the wave path (node, guard, codecs, wire) that moves one digit fails here.
+The figures were printed by ``teleop sim``'s ``run_case`` before ``--passivity`` existed, on
+OpenBLAS's SkylakeX kernels; any change to the wave path (node, guard, codecs, wire) that moves one
+digit fails here.  On its Haswell kernels the lossy ``pdp:1`` case differs in the last bits, and
+then in one packet (``tests/blas.py``): recorded there from the same code.
 """
 
 from __future__ import annotations
 
 from teleop.sim import SimConfig, run_case
+from tests.blas import golden_kernel
 
 NET = "delay 20ms 5ms loss 5%"
 GOLDEN = [
@@ -24,8 +27,15 @@ GOLDEN = [
 ]
 
 
+ON_HASWELL = {  # recorded at ae61552 on an AMD EPYC host with OPENBLAS_CORETYPE=Haswell
+    "pdp:1": (0.18232578955740164, 0.0, 0.20550795277457276, 0.19858574134172252, 0.00175784002422832, 612),
+}
+
+
 def test_wave_figures_unchanged() -> None:
-    for cfg, want in GOLDEN:
+    kernel = golden_kernel()
+    for cfg, recorded in GOLDEN:
+        want = ON_HASWELL.get(cfg.codec, recorded) if kernel == "Haswell" else recorded
         s = run_case(cfg).summary
         got = (
             s["I"],
