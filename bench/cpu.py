@@ -278,6 +278,9 @@ def main() -> None:
     res: dict[str, Any] = {
         "what": "CPU per process of teleop run against the floor reference, same invocation, same host",
         "commit": _commit(Path(__file__).resolve().parent.parent),  # the tree measured
+        # Some hosts pin OpenBLAS's kernels (OPENBLAS_CORETYPE, OPENBLAS_L2_SIZE): they change the
+        # numpy calls' cost, so a run says which it had.
+        "openblas_env": {k: v for k, v in sorted(os.environ.items()) if k.startswith("OPENBLAS_")},
         "duration_s": a.duration,
         "scenario": "protocol",
         "python": platform.python_version(),
