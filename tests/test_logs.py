@@ -232,6 +232,32 @@ def test_the_writer_finishes_at_the_processs_priority_once_no_loop_ticks(tmp_pat
     assert log.error is None
 
 
+@pytest.mark.parametrize("promoted", [False, True])
+def test_a_close_that_waits_for_an_idle_writer_says_why(
+    promoted: bool, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """Without the privilege to promote the writer, a close that waits on it (here: the writer
+    stopped for a second) prints one line saying why; promoted, the same wait prints none."""
+    import threading
+
+    from transport import mcaplog
+
+    monkeypatch.setattr(mcaplog, "promote_writer", lambda proc: promoted)
+    monkeypatch.setattr(mcaplog, "SLOW_CLOSE_S", 0.2)
+    log = McapLog(tmp_path / "operator.mcap", "operator", wall0_ns=0)
+    os.kill(log._proc.pid, signal.SIGSTOP)
+    resume = threading.Timer(1.0, os.kill, (log._proc.pid, signal.SIGCONT))
+    resume.start()
+    try:
+        log.close()
+    finally:
+        resume.join()
+    err = capfd.readouterr().err
+    said = err.count("teleop operator: finishing the log: its writer runs at idle priority")
+    assert said == (0 if promoted else 1)
+    assert log.error is None
+
+
 def test_a_replaced_sessions_log_keeps_its_writer_idle_until_no_loop_ticks() -> None:
     """The log of a session a takeover replaced closes while the next session ticks: its writer
     stays under SCHED_IDLE until the process waits for it at the end, when it is promoted; a

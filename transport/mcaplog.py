@@ -102,6 +102,7 @@ __all__ = [
 NICE = 10  # the writer process's niceness (on top of SCHED_IDLE, or instead where refused)
 LIVE_BATCH = 5  # live-view ticks per queued item
 QUEUE_ITEMS = 256  # items (chunks are 1 s each at 1 kHz, live batches 10 a second) in flight
+SLOW_CLOSE_S = 2.0  # a close still waiting this long for an idle writer says why, once
 
 _NUM = {"type": "number"}
 _INT = {"type": "integer"}
@@ -495,17 +496,26 @@ class McapLog:
         if self._closed:
             return
         self._closed = True
-        if promote:
-            self.promote()
-        if summary is not None:
-            self._q.put(("msg", ("summary", float(summary.get("end_t", 0.0)), summary)))
-        self._q.put(("stop", None))
-        self._thread.join(timeout)
-        try:  # closes the writer's stdin (end of input), then waits for it
-            out, _ = self._proc.communicate(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            self._proc.kill()
-            out, _ = self._proc.communicate()
+        # Where the promotion is refused (no CAP_SYS_NICE), an idle writer on a busy host may take
+        # a while: a process that lingers after its session ended says why rather than look hung.
+        slow = None
+        if promote and not self.promote():
+            slow = threading.Timer(SLOW_CLOSE_S, self._say_slow)
+            slow.daemon = True
+            slow.start()
+        try:
+            if summary is not None:
+                self._q.put(("msg", ("summary", float(summary.get("end_t", 0.0)), summary)))
+            self._q.put(("stop", None))
+            self._thread.join(timeout)
+            try:  # closes the writer's stdin (end of input), then waits for it
+                out, _ = self._proc.communicate(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                out, _ = self._proc.communicate()
+        finally:
+            if slow is not None:
+                slow.cancel()
         for line in out.decode(errors="replace").splitlines():
             with contextlib.suppress(ValueError):
                 d = json.loads(line)
@@ -515,6 +525,14 @@ class McapLog:
                     self._live_port = int(d["live_port"])
         if self._proc.returncode != 0:  # died before it could say why (kill -9, a crash)
             self._writer_died()
+
+    def _say_slow(self) -> None:
+        print(
+            f"teleop {self.role}: finishing the log: its writer runs at idle priority and the host is"
+            " busy (with CAP_SYS_NICE it would finish at normal priority)",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 def promote_writer(proc: subprocess.Popen[bytes]) -> bool:
