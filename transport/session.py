@@ -279,16 +279,18 @@ class _Runner:
         k = ticker.k  # what spin_to_deadline returns next unless a stall skips ticks
         if not ep.running or ep.params is not session or now >= ticker.next_deadline:
             return None
-        if self._pending and ep.grace_needed(k):
+        if ep.grace_needed(k):
+            if not self._pending:
+                return None
             # Its payload may be among what the early drain read and left (a host that wakes late
             # leaves the drain no time in its budget): fed now, each datagram is filed as it would
             # be at the deadline, and the tick runs here rather than after an event-loop pass, a
             # read and the grace check at the deadline (counted on this host: 2478 and 587 ticks
             # of 6000 went there, nearly all for this).
             self.feed_pending()
+            if ep.grace_needed(k):
+                return None
             now = self.clock()
-        if ep.grace_needed(k):
-            return None
         ep.tick(k, now)
         return k
 
