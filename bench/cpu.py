@@ -42,6 +42,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from teleop.cli.args import float_range, int_range
+
 CASES: tuple[tuple[str, int], ...] = (
     ("none", 2),
     ("eds:50", 2),
@@ -186,9 +188,20 @@ def add_repeats(out: Path, others: list[Path]) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--duration", type=float, default=10.0, help="seconds per session (default 10)")
-    ap.add_argument("--tick-ticks", type=int, default=3000, help="ticks per repeat of the port timing")
-    ap.add_argument("--tick-repeats", type=int, default=5)
+    # Checked here, in one line, not minutes later by a child's traceback (nan reached bench.floor).
+    ap.add_argument(
+        "--duration",
+        type=float_range("--duration", 1.0, 600.0, "s"),
+        default=10.0,
+        help="seconds per session (default 10)",
+    )
+    ap.add_argument(
+        "--tick-ticks",
+        type=int_range("--tick-ticks", 100, 1_000_000),
+        default=3000,
+        help="ticks per repeat of the port timing",
+    )
+    ap.add_argument("--tick-repeats", type=int_range("--tick-repeats", 1, 1000), default=5)
     ap.add_argument("--reference", type=Path, help="a checkout of another commit: every case run from it too")
     ap.add_argument("--out", default="bench/results/cpu.json")
     ap.add_argument(

@@ -60,3 +60,26 @@ def test_the_commit_of_a_measured_tree_says_when_it_has_uncommitted_changes(tmp_
     (tmp_path / "f.py").write_text("x = 2\n")
     assert cpu._commit(tmp_path) == f"{head} with uncommitted changes"
     assert cpu._commit(tmp_path / "no-such").startswith("unknown (")
+
+
+@pytest.mark.parametrize(
+    ("args", "said"),
+    [
+        (["--duration", "nan"], "--duration must be a finite number, got 'nan'"),
+        (["--duration", "1e999"], "--duration must be a finite number"),
+        (["--duration", "0"], "--duration must be 1 to 600 s"),
+        (["--tick-ticks", "-5"], "--tick-ticks must be an integer 100..1000000"),
+        (["--tick-repeats", "1e3"], "--tick-repeats must be an integer 1..1000"),
+    ],
+)
+def test_bad_arguments_are_refused_in_one_line_before_anything_runs(
+    args: list[str], said: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A nan duration reached bench.floor and ended minutes later in a child's traceback."""
+    monkeypatch.setattr("sys.argv", ["cpu.py", *args])
+    monkeypatch.setattr("bench.cpu.run_floor", lambda *a: pytest.fail("ran the floor"))
+    with pytest.raises(SystemExit) as e:
+        cpu.main()
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert said in err and "Traceback" not in err
