@@ -50,6 +50,7 @@ from . import auth, protocol, wire
 from .link import Addr
 from .port import Port, PortKeys
 from .protocol import Failure, SessionParams
+from .settings import Envelope
 from .summary import EndpointSummary, RejoinFigures
 
 __all__ = [
@@ -320,7 +321,7 @@ class Endpoint:
         self._to_hs: protocol.TeleoperatorHandshake | None = None
         self._takeover: protocol.TeleoperatorHandshake | None = None
         self._expect = protocol.Pins()
-        self._limits = protocol.LocalLimits()
+        self._limits = Envelope()
         self._cookie_secret = rng(32)
         self._limiter = HandshakeLimiter()
         # The longest datagram of each key kind (index: auth.HANDSHAKE, auth.SESSION); the session
@@ -360,14 +361,14 @@ class Endpoint:
         *,
         now_ns: int,
         psk: bytes,
-        local_limits: protocol.LocalLimits | None = None,
+        local_limits: Envelope | None = None,
         **kw: Any,
     ) -> Endpoint:
         """The teleoperator's endpoint: it waits for an operator whose hello suits ``expect`` (fields
         of :class:`SessionParams`; None: the operator's choice, within ``local_limits``)."""
         ep = cls("teleoperator", make_port, now_ns=now_ns, psk=psk, **kw)
         ep._expect = protocol.Pins.of(expect)
-        ep._limits = local_limits or protocol.LocalLimits()
+        ep._limits = local_limits or Envelope()
         ep._to_hs = ep._new_to_handshake(now_ns)
         return ep
 
@@ -621,6 +622,10 @@ class Endpoint:
         self._rx_k = k0
         self._max_len[auth.SESSION] = wire.max_session_datagram_bytes(params.dof)
         self.port = self._make_port(params, k0, keys, start_ns)
+        if self.role == "teleoperator":
+            # Whatever the factory built, the robot runs inside its own envelope: saturated
+            # commands and an energy guard bounded by its limits, never the operator's numbers.
+            self.port.node.confine(self._limits)
         if k0:
             self.port.node.joined_late()
         self.state = State.STARTING

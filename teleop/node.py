@@ -38,6 +38,7 @@ transmitted wave is scaled by ``c``, so the safe state only removes energy.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -54,7 +55,7 @@ from .passivity import (
     series_damper,
 )
 from .ratecap import RateCap
-from .settings import DEFAULTS, Channel
+from .settings import DEFAULTS, Channel, Envelope
 from .wave import WaveImpedance
 
 SPARSE_MARGIN_S = 0.010  # s: how late the payload after a lost one may be before the link is lost
@@ -78,6 +79,12 @@ TDPA_TO_BANDWIDTH = 5.0
 #: compensator in spirit: only surplus energy moves the robot back to where the operator is).
 TDPA_DRIFT_GAIN = 2.0
 TDPA_DRIFT_MAX_V = 0.05
+#: A device's output beyond these is implausible, a fault like a non-finite value: the node holds
+#: the last good output for that tick (``device_stale``).  Per DoF: N, m/s; a gain (the
+#: HSI's admittance ``Y``, the robot's impedance ``Z``) must be finite, >= 0 and below ``_GAIN``.
+PLAUSIBLE_FORCE_N = 1e5
+PLAUSIBLE_VELOCITY = 1e3
+_PLAUSIBLE_GAIN = 1e12
 
 
 @dataclass
@@ -92,6 +99,8 @@ class PortCounters:
     wrong_codec: int = 0
     stale: int = 0  # duplicate or older than one already accepted
     gaps: int = 0  # sequence numbers never seen (lost, or still in flight)
+    device_stale: int = 0  # ticks the device's output was non-finite or implausible: the last good held
+    saturated: int = 0  # robot: ticks its command was saturated to its envelope (teleop.settings.Envelope)
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)
@@ -209,6 +218,15 @@ class _Port:
         self.f = np.zeros(dof)
         self.wave_out = np.zeros(dof)
         self.wave_in = np.zeros(dof)
+        # The device's last good output (held while it gives nonsense), and a read-only gain
+        # already found sane (a built-in device's constant feedthrough: checked once).
+        self._shape = (dof,)
+        self._device_good: tuple[Array, Array] = (np.zeros(dof), np.zeros(dof))
+        self._gain_ok: Array | None = None
+        # The robot's envelope (:meth:`confine`): none until a robot confines its node.
+        self.confined = False
+        self.max_velocity = self.max_force = math.inf
+        self._vmax2 = self._fmax2 = math.inf
 
     def _make_guard(
         self, dt: float, opts: PortOptions, wave: WaveImpedance, tx: Codec, rx: Codec
@@ -216,6 +234,42 @@ class _Port:
         # Saturated waves carry at most 1/2 dof RANGE^2 W: the most any genuine report can grow by.
         max_power = 0.5 * wave.dof * rx.raw.full_scale**2
         return EnergyGuard(dt, controller=opts.controller, max_power=max_power)
+
+    def _envelope_power(self, env: Envelope) -> float:
+        """W the robot's own limits let a genuine report grow by: waves at its range (eq. 5)."""
+        return 0.5 * self.wave.dof * env.max_range**2
+
+    def confine(self, env: Envelope) -> None:
+        """Run this (robot's) node inside ``env``: its command saturated to ``max_velocity`` and
+        ``max_force`` per DoF, and its energy guard bounded by the envelope, never by the numbers
+        the operator proposed (DESIGN.md: the robot is sovereign).  Called as the session starts."""
+        self.confined = True
+        self.max_velocity, self.max_force = env.max_velocity, env.max_force
+        self._vmax2, self._fmax2 = env.max_velocity**2, env.max_force**2
+        self.guard.bound(self._envelope_power(env))
+
+    def _device(self, out: tuple[Array, Array], limit: float) -> tuple[Array, Array]:
+        """The device's ``affine`` output if it is sane, else the last sane one (counted): a
+        non-finite or implausible value never reaches the port's solve nor the energy books."""
+        a, g = out
+        # NaN, inf and an absurd value all fail the one comparison (NaN propagates through max).
+        if (
+            a.shape == self._shape
+            and float(np.max(np.abs(a))) <= limit
+            and (g is self._gain_ok or self._gain_sane(g))
+        ):
+            self._device_good = out
+            return out
+        self.counters.device_stale += 1
+        return self._device_good
+
+    def _gain_sane(self, g: Array) -> bool:
+        if getattr(g, "shape", None) != self._shape:
+            return False
+        ok = float(np.min(g)) >= 0.0 and float(np.max(g)) < _PLAUSIBLE_GAIN
+        if ok and not g.flags.writeable:
+            self._gain_ok = g
+        return ok
 
     @property
     def energy_played(self) -> float:
@@ -417,7 +471,7 @@ class OperatorNode(_Port):
         w = self.wave
         c = self._supervise(now)
         h_l = self._play()
-        v0, y = self.human.affine(now)
+        v0, y = self._device(self.human.affine(now), PLAUSIBLE_VELOCITY)
         ys, den = self._gains(y, c)
         v = (v0 + ys * h_l) / den
         f = _scaled(w.hsi_force(v, h_l), c)
@@ -467,12 +521,40 @@ class TeleoperatorNode(_Port):
         w = self.wave
         c = self._supervise(now)
         g_r = self._play()
-        f0, z = self.environment.affine(now)
+        f0, z = self._device(self.environment.affine(now), PLAUSIBLE_FORCE_N)
         v = _scaled(w.sqrt2b * g_r - f0, c) / self._den(z, c)  # the robot is commanded c v
-        f = f0 + z * v
+        f = f_wave = f0 + z * v
+        if self.confined and (float(np.dot(v, v)) > self._vmax2 or float(np.dot(f, f)) > self._fmax2):
+            v, f, f_wave = self._saturate(v, f0, z, f)
         self.environment.advance(now, v, f)
         self.v, self.f = v, f
-        return self._send(now, _scaled(w.to_wave_out(g_r, f), c))
+        return self._send(now, _scaled(w.to_wave_out(g_r, f_wave), c))
+
+    def _saturate(self, v: Array, f0: Array, z: Array, f: Array) -> tuple[Array, Array, Array]:
+        """The command ``v`` saturated to the envelope per DoF: at most ``max_velocity``, and no
+        faster into a contact than keeps its force within ``max_force`` (slowed, never reversed).
+
+        Returns ``(v, F, F_wave)``, ``F_wave`` being the force the outgoing wave is made from.  It
+        is passive: where the robot's force has the sign of the command it was slowed from, the
+        channel sees the port it solved for and the saturation absorbs ``(v_w - v) F >= 0``
+        (``v_w``, the port's velocity, lies beyond ``v`` in the same direction); where the force
+        opposes it, the wave returns as it came (``F_wave = 0``: nothing taken from the channel,
+        nothing given to it), and what the environment pushes into the robot is not passed on."""
+        vmax, fmax = self.max_velocity, self.max_force
+        vs = np.clip(v, -vmax, vmax)
+        fs = f0 + z * vs
+        push = (np.abs(fs) > fmax) & (fs * v > 0.0)
+        if push.any():
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                back = np.where(z > 0.0, (np.sign(fs) * fmax - f0) / np.where(z > 0.0, z, 1.0), 0.0)
+            back = np.where((back * vs > 0.0) & (np.abs(back) < np.abs(vs)), back, 0.0)
+            vs = np.where(push, back, vs)
+            fs = f0 + z * vs
+        changed = vs != v
+        if not changed.any():
+            return v, f, f
+        self.counters.saturated += 1
+        return vs, fs, np.where(changed & (fs * v < 0.0), 0.0, fs)
 
 
 class _TdpaPort(_Port):
@@ -491,6 +573,11 @@ class _TdpaPort(_Port):
         # headroom for a device moving beyond the velocity range (its power is real, only not sent).
         max_power = 4.0 * wave.dof * tx.raw.full_scale * rx.raw.full_scale
         return TdpaGuard(dt, controller=opts.controller, max_power=max_power)
+
+    def _envelope_power(self, env: Envelope) -> float:
+        """W the robot's own limits let a genuine report grow by: its port at full velocity and
+        force, with the same headroom as :meth:`_make_guard`."""
+        return 4.0 * self.wave.dof * env.max_velocity * env.max_force
 
     @property
     def tdpa(self) -> TdpaGuard:
@@ -534,7 +621,7 @@ class TdpaOperatorNode(_TdpaPort, OperatorNode):
         c = self._supervise(now)
         f_r = self.decoder.next()
         self.wave_in = f_r
-        v0, y = self.human.affine(now)
+        v0, y = self._device(self.human.affine(now), PLAUSIBLE_VELOCITY)
         beta0 = self.hsi_damping * c
         v, f, p, removed, acted = parallel_damper(v0, y, c * f_r, self._allowed(), beta0)
         self.human.advance(now, v, f)
@@ -561,7 +648,7 @@ class TdpaTeleoperatorNode(_TdpaPort, TeleoperatorNode):
         c = self._supervise(now)
         v_r = self.decoder.next()
         self.wave_in = v_r
-        f0, z = self.environment.affine(now)
+        f0, z = self._device(self.environment.affine(now), PLAUSIBLE_FORCE_N)
         # The robot behind its position controller, massless: F = K e' + B (v_d - v) = f0 + Z v with
         # e' = e + (v_d - v) dt, so F = K e + G (v_d - v), G = K dt + B; seen from the network it is
         # again an impedance F = f0' + Z' v_d (f0' = (G f0 + Z K e) / (G + Z), Z' = G Z / (G + Z)).
@@ -579,7 +666,15 @@ class TdpaTeleoperatorNode(_TdpaPort, TeleoperatorNode):
         n = float(np.sqrt(np.dot(corr, corr)))
         if n > TDPA_DRIFT_MAX_V:
             corr *= TDPA_DRIFT_MAX_V / n
-        v_d, f, p, removed, acted = series_damper(v_ref + corr, f0, z, self._allowed())
+        cmd = v_ref + corr
+        if self.confined and float(np.dot(cmd, cmd)) > self._vmax2:
+            # The envelope's speed, per DoF: a slower command only ever removes energy (the observer
+            # books the port's real power), and the drift compensator asks the rest back in budget.
+            held = np.clip(cmd, -self.max_velocity, self.max_velocity)
+            if (held != cmd).any():
+                self.counters.saturated += 1
+                cmd = held
+        v_d, f, p, removed, acted = series_damper(cmd, f0, z, self._allowed())
         self.drift += (v_ref - v_d) * self.dt
         v = v_d - (f - ke) / g
         self.coupling_error += (v_d - v) * self.dt

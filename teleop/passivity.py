@@ -73,6 +73,7 @@ class EnergyGuard:
         # fills at ``max_power`` (saturated waves: 1/2 dof RANGE^2 W, all the wire format can carry)
         # up to ``burst_s`` of it (reports bunched by jitter); a report beyond it is clamped.
         self.max_power = max_power
+        self.burst_s = burst_s
         self._depth = max_power * burst_s
         self._allowance = self._depth
         self._t_allowance: float | None = None
@@ -87,6 +88,13 @@ class EnergyGuard:
         # given to the other direction, announced in this side's own reports (``grant``).
         self.granted_out = 0.0
         self.granted_origin = 0.0
+
+    def bound(self, max_power: float) -> None:
+        """Bound the peer's reports by ``max_power`` W from now on (a robot's own limits, set as its
+        session starts, before any report): the token bucket starts full at its new depth."""
+        self.max_power = max_power
+        self._depth = max_power * self.burst_s
+        self._allowance = self._depth
 
     def sent(self, energy: float, now: float = 0.0) -> None:
         """A packet reported the sender's cumulative energy (reordered reports never lower it);

@@ -50,7 +50,7 @@ from teleop.node import PortOptions
 from teleop.passivity import ON_LOSS
 from teleop.ratecap import MAX_RATE_BPS, MIN_RATE_BPS
 from teleop.scenarios import SCENARIOS
-from teleop.settings import Channel
+from teleop.settings import SETTINGS, Channel, Envelope
 from teleop.wave import WaveImpedance
 
 from .errors import RemoteError
@@ -356,32 +356,20 @@ class SessionParams(Channel):
         return dataclasses.replace(p, codec=spec, playout=playout)
 
     def to_msg(self) -> dict[str, Any]:
+        """The hello's parameters: every setting of ``teleop.settings.SETTINGS`` under its key, in
+        the table's order.  The optional ones (:data:`WIRE_ABSENT`) are sent only when set, so a
+        session without them is byte-for-byte what it was before they existed."""
         return {
-            "session": self.session,
-            "codec": self.codec,
-            "scenario": self.scenario,
-            "dof": self.dof,
-            "b": self.b,
-            "range": self.full_scale,
-            "duration": self.duration,
-            "dt": self.dt,
-            "phase": self.phase,
-            "netem_forward": self.netem_forward,
-            "netem_backward": self.netem_backward,
-            "seed": self.seed,
-            "on_loss": self.on_loss,
-            "controller": self.controller,
-            "link_timeout": self.link_timeout,
-            # Optional on the wire: sent only when set, so a session without a cap is byte-for-byte
-            # what it was before the cap existed.
-            **{k: getattr(self, k) for k, absent in WIRE_ABSENT.items() if getattr(self, k) != absent},
+            s.key: getattr(self, s.field)
+            for s in SETTINGS
+            if s.field not in WIRE_ABSENT or getattr(self, s.field) != WIRE_ABSENT[s.field]
         }
 
 
 @dataclass(frozen=True)
 class Pins:
     """What a teleoperator was configured with: a hello must match every field that is not None
-    (the rest are the operator's to choose, within :class:`LocalLimits`)."""
+    (the rest are the operator's to choose, within :class:`Envelope`)."""
 
     codec: str | None = None  # canonical spec
     scenario: str | None = None
@@ -391,6 +379,7 @@ class Pins:
     duration: float | None = None
     netem_forward: str | None = None
     netem_backward: str | None = None
+    rate_cap: float | None = None
 
     @classmethod
     def of(cls, expect: Pins | Mapping[str, object]) -> Pins:
@@ -912,30 +901,6 @@ class _Candidate:
         self.addrs.append(addr)
 
 
-@dataclass(frozen=True)
-class LocalLimits:
-    """What this teleoperator affords whatever an operator proposes (the local side's limits win).
-
-    Unpinned fields of ``expect`` are the operator's to choose, but only within these: an operator
-    must not be able to raise the robot's wave range or impedance, which bound the power it may be
-    commanded with (P <= b * range**2 per DoF)."""
-
-    max_range: float = limits.MAX_RANGE
-    max_b: float = limits.MAX_B
-    max_dof: int = limits.MAX_DOF
-
-    def check(self, p: SessionParams) -> str | None:
-        """The first parameter of ``p`` beyond these limits, said as a reject reason, or None."""
-        for name, got, hi, flag in (
-            ("range", p.full_scale, self.max_range, "--max-range"),
-            ("b", p.b, self.max_b, "--max-b"),
-            ("dof", p.dof, self.max_dof, "--dof"),
-        ):
-            if got > hi:
-                return f"{name} {_num(got)} exceeds this teleoperator's limit {_num(hi)} ({flag})"
-        return None
-
-
 def _unpack_control(body: bytes) -> object:
     """The msgpack object of a control body, under the limits of :func:`parse` (raises on garbage)."""
     return msgpack.unpackb(
@@ -990,7 +955,7 @@ class TeleoperatorHandshake:
     ``cookie_secret`` (the endpoint always gives one): a hello without a valid cookie for its source
     address is answered with a small :class:`Retry` and leaves no state, so hellos recorded and
     replayed from another address never reach the candidates.  ``limits``: what this side affords
-    (:class:`LocalLimits`).  ``defer_t3``: welcomes wait in :meth:`datagrams_to_send` to be stamped
+    (:class:`Envelope`).  ``defer_t3``: welcomes wait in :meth:`datagrams_to_send` to be stamped
     with NTP's reply time t3 as they leave (a sans-I/O caller has no clock to hand in).
     """
 
@@ -1004,7 +969,7 @@ class TeleoperatorHandshake:
         psk: bytes = auth.INSECURE_KEY,
         nonce: bytes = bytes(auth.NONCE_BYTES),
         cookie_secret: bytes | None = None,
-        local_limits: LocalLimits | None = None,
+        local_limits: Envelope | None = None,
         defer_t3: bool = False,
     ) -> None:
         self.expect = Pins.of(expect).pinned()
@@ -1039,7 +1004,7 @@ class TeleoperatorHandshake:
         self.unauthenticated = 0  # datagrams whose tag did not verify: dropped, never answered
         self.last_unauthenticated = ""
         self.cookie_secret = cookie_secret
-        self.local_limits = local_limits or LocalLimits()
+        self.local_limits = local_limits or Envelope()
         self.retries_sent = 0  # hellos without a valid cookie, answered with a retry, nothing kept
         self.defer_t3 = defer_t3
         self._drafts: list[tuple[Welcome, Addr]] = []  # welcomes waiting for their t3 (defer_t3)

@@ -39,7 +39,7 @@ from . import devices, metrics, scenarios, wire
 from .codecs import Codec, make_codec
 from .node import PortOptions
 from .port import ConstantDelayLink, MemorySink, Port, make_node, make_shim, wire_block
-from .settings import Channel
+from .settings import DEFAULT_ENVELOPE, Channel, Envelope
 
 if TYPE_CHECKING:
     from .protocol import SessionParams
@@ -72,6 +72,7 @@ class SimConfig(Channel):
     playout_floor: tuple[int, int] = (0, 0)
     hsi: str | None = None  # --hsi spec (teleop.devices); None: the scenario's human
     robot: str | None = None  # --robot spec; None: the scenario's environment
+    envelope: Envelope | None = None  # the robot's (teleop.settings); None: :meth:`robot_envelope`
 
     @classmethod
     def of_session(cls, p: SessionParams, **sim: Any) -> SimConfig:
@@ -120,6 +121,15 @@ class SimConfig(Channel):
 
     def port_options(self) -> PortOptions:
         return PortOptions.of(self)
+
+    def robot_envelope(self) -> Envelope:
+        """The robot's envelope in this run: ``envelope``, else a default robot's widened to admit
+        this run's own settings (``Envelope.admitting``), as ``teleop run`` starts its
+        teleoperator: what a real robot started for this run's settings runs inside."""
+        if self.envelope is not None:
+            return self.envelope
+        assert self.full_scale is not None and self.b is not None and self.dof is not None, "resolved() first"
+        return DEFAULT_ENVELOPE.admitting(self)  # type: ignore[arg-type]
 
     def shims(self) -> dict[str, Link | None]:
         """One shim per direction: the netem spec if given, else ``delay_ms`` of constant delay."""
@@ -177,6 +187,8 @@ def _ports(cfg: SimConfig) -> tuple[Port, Port, Codec]:
             seed=cfg.seed,
             variation=cfg.variation,
         )
+        if role == "teleoperator":
+            node.confine(cfg.robot_envelope())
         window = max(1, round(cfg.window_ms / 1e3 / cfg.dt))
         ports.append(
             Port(

@@ -125,6 +125,18 @@ CASES: list[tuple[list[str], str]] = [
     (["teleoperator", *LISTEN, "--name", "bad/name"], "a robot name is 1 to 64 of the characters"),
     (["operator", *PEER, "--robot-name", "x" * 65], "a robot name is 1 to 64 of the characters"),
     (["teleoperator", *LISTEN, "--max-range", "nan"], "max range must be a finite number"),
+    (["teleoperator", *LISTEN, "--insecure", "--min-b", "30"], "--min-b 30 exceeds --max-b 20"),
+    (["teleoperator", *LISTEN, "--insecure", "--b", "0.5", "--min-b", "1"], "--b 0.5 is below --min-b 1"),
+    (["teleoperator", *LISTEN, "--insecure", "--range", "3", "--max-range", "2"], "--range 3 is beyond"),
+    (
+        ["teleoperator", *LISTEN, "--insecure", "--allow-passivity", "wave,magic"],
+        "--allow-passivity 'wave,magic': must name some of wave, tdpa",
+    ),
+    (["teleoperator", *LISTEN, "--insecure", "--allow-on-loss", ""], "--allow-on-loss '': must name some of"),
+    (["teleoperator", *LISTEN, "--max-link-timeout", "20000"], "max link timeout must be 1 to 10000 ms"),
+    (["teleoperator", *LISTEN, "--max-velocity", "inf"], "max velocity must be a finite number"),
+    (["teleoperator", *LISTEN, "--max-force", "-1"], "max force must be > 0"),
+    (["teleoperator", *LISTEN, "--max-playout", "900"], "max playout must be >= 0 and <= 500 ms"),
     (
         ["conformance", "teleoperator", "--insecure", "--peer", "127.0.0.1:9", "--duration", "-5"],
         "duration must be 0.5 to 60 s",

@@ -27,6 +27,7 @@ from teleop.endpoint import (
     SessionStarted,
     State,
 )
+from teleop.settings import Envelope
 from teleop.summary import SessionSummary
 
 from .vnet import EVE, MS, OP, PSK, TO, TO_B, Host, VirtualNet, params
@@ -352,7 +353,7 @@ def test_lost_start_and_started_are_resent_and_a_lost_bye_still_ends_the_session
 
 def test_a_peer_cannot_raise_the_robots_range_beyond_its_local_limit() -> None:
     net = VirtualNet(1.0)
-    to = net.teleoperator(limits=protocol.LocalLimits(max_range=2.0))
+    to = net.teleoperator(limits=Envelope(max_range=2.0))
     op = net.operator(params(full_scale=1e6))
     net.seconds(2.0)
     (f,) = op.of(Failed)

@@ -38,7 +38,7 @@ def _params(session: int = SESSION, duration: float = TICKS / 1000) -> protocol.
         scenario="protocol",
         dof=2,
         b=20.0,
-        full_scale=16.0,
+        full_scale=2.0,
         duration=duration,
     )
 

@@ -19,7 +19,8 @@ from teleop import auth
 from teleop.endpoint import Endpoint, Event, SessionStarted, session_port
 from teleop.link import Addr
 from teleop.port import Port, PortKeys
-from teleop.protocol import LocalLimits, SessionParams
+from teleop.protocol import SessionParams
+from teleop.settings import Envelope
 
 PSK = bytes(range(32))
 OP, TO, TO_B, EVE = ("10.0.0.1", 5000), ("10.0.0.2", 7000), ("10.0.0.3", 7000), ("10.0.0.66", 6666)
@@ -43,9 +44,9 @@ def params(session: int = 7, duration: float = 3.0, **kw: Any) -> SessionParams:
     return SessionParams(**{**base, **kw}).validate()
 
 
-def port_factory(role: str) -> Callable[[SessionParams, int, PortKeys, int], Port]:
+def port_factory(role: str, device: str | None = None) -> Callable[[SessionParams, int, PortKeys, int], Port]:
     def make(p: SessionParams, k0: int, keys: PortKeys, start_ns: int) -> Port:
-        return session_port(role, p, k0, keys, header_bytes=28, playout_floor=1)
+        return session_port(role, p, k0, keys, header_bytes=28, playout_floor=1, device=device)
 
     return make
 
@@ -117,12 +118,13 @@ class VirtualNet:
         name: str = "robot",
         offset_ns: int = 5_000_000_000,
         expect: dict[str, Any] | None = None,
-        limits: LocalLimits | None = None,
+        limits: Envelope | None = None,
+        device: str | None = None,
         **kw: Any,
     ) -> Host:
         ep = Endpoint.teleoperator(
             expect or {},
-            port_factory("teleoperator"),
+            port_factory("teleoperator", device),
             now_ns=self.now + offset_ns,
             psk=auth.robot_key(PSK, name),
             local_limits=limits,

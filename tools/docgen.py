@@ -1,4 +1,5 @@
-"""Generated parts of the docs: the CLI reference (from the argparse parsers), the Section VI
+"""Generated parts of the docs: the CLI reference (from the argparse parsers), the session's
+settings table (``teleop.settings.SETTINGS``), the Section VI
 experiment tables (from ``docs/experiment/*/experiment.json``) and the benchmark tables (from
 ``bench/results/*.json``, see :mod:`bench.tables`).  Nothing here is typed by hand.
 
@@ -24,6 +25,7 @@ if str(ROOT) not in sys.path:  # bench/ is not an installed package
 from bench import tables  # noqa: E402
 from teleop.cli.parser import build_parser  # noqa: E402
 from teleop.experiment import format_paired, format_table  # noqa: E402
+from teleop.settings import settings_table  # noqa: E402
 
 #: The experiments shown in docs/results/experiment.md: folder under docs/experiment/ -> command.
 EXPERIMENTS = {
@@ -125,6 +127,9 @@ def write_all(outdir: Path) -> list[Path]:
     cli = outdir / "cli.md"
     tables.write_if_changed(cli, cli_reference())
     written.append(cli)
+    session_settings = outdir / "settings.md"  # the one settings table (teleop.settings.SETTINGS)
+    tables.write_if_changed(session_settings, settings_table())
+    written.append(session_settings)
     # Images the pages show that live outside docs/ (mkdocs serves only docs/).
     pareto = outdir / "pareto.png"
     source = ROOT / "bench" / "results" / "sweep" / "pareto.png"

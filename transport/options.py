@@ -10,7 +10,7 @@ from pathlib import Path
 
 from teleop import auth
 from teleop.link import Addr
-from teleop.protocol import LocalLimits
+from teleop.settings import Envelope
 
 from .udp import DEFAULT_RCVBUF_BYTES
 
@@ -42,7 +42,7 @@ class EndpointOptions:
     live_view: int | None = None  # serve the Foxglove WebSocket live view on this port (0: any free)
     live_view_host: str = "127.0.0.1"
     robot_name: str = auth.DEFAULT_ROBOT_NAME  # the robot this operator names / this robot is
-    local_limits: LocalLimits = field(default_factory=LocalLimits)  # teleoperator: what it affords
+    local_limits: Envelope = field(default_factory=Envelope)  # teleoperator: what it affords
     udp_rcvbuf: int = DEFAULT_RCVBUF_BYTES  # the UDP socket's receive buffer asked for (transport.udp)
 
 

@@ -11,8 +11,11 @@ import argparse
 import os
 from typing import Any
 
-from ..limits import MAX_B, MAX_RANGE
+from ..limits import MAX_B, MAX_LINK_TIMEOUT_S, MAX_RANGE, MIN_LINK_TIMEOUT_S
+from ..passivity import ON_LOSS
+from ..playout import MAX_EXTRA_MS
 from ..scenarios import SCENARIOS
+from ..settings import DEFAULT_ENVELOPE, PASSIVITY
 from .args import (
     CliError,
     Subcommands,
@@ -25,16 +28,15 @@ from .args import (
     add_robot_name_arg,
     add_session_args,
     add_transport_args,
+    float_range,
+    nonneg_float,
     positive_float,
+    rate_cap,
     session_id,
     udp_addr,
     zenoh_config_file,
 )
 from .settings import check_duration, check_robot, endpoint_options, netem, session_params
-
-#: What a teleoperator affords by default: the largest range and impedance of a built-in scenario.
-DEFAULT_MAX_RANGE = max(sc.full_scale for sc in SCENARIOS.values())
-DEFAULT_MAX_B = max(sc.b for sc in SCENARIOS.values())
 
 
 def cmd_operator(args: argparse.Namespace) -> int:
@@ -75,24 +77,63 @@ def cmd_teleoperator(args: argparse.Namespace) -> int:
         duration=args.duration,
         netem_forward=netem(args, "forward") or None,
         netem_backward=netem(args, "backward") or None,
+        rate_cap=args.rate_cap,
     )
+    envelope = robot_envelope(args)  # before the endpoint: a bad limit stops here, in one line
     opts = endpoint_options(args, "teleoperator", args.listen or ("127.0.0.1", 0))
-    opts.local_limits = local_limits(args)
+    opts.local_limits = envelope
     return run_endpoint(opts, None, pins)
 
 
-def local_limits(args: argparse.Namespace) -> Any:
-    """What this robot affords whatever an operator proposes: --max-range/--max-b (a pinned --range
-    or --b is its own limit), and --dof if given."""
-    from ..protocol import LocalLimits
+def _names(text: str | None, allowed: tuple[str, ...], flag: str) -> tuple[str, ...] | None:
+    """A comma-separated subset of ``allowed`` (None: not given); CliError says what is allowed."""
+    if text is None:
+        return None
+    names = tuple(dict.fromkeys(n.strip() for n in text.split(",") if n.strip()))
+    bad = [n for n in names if n not in allowed]
+    if bad or not names:
+        raise CliError(f"{flag} {text!r}: must name some of {', '.join(allowed)}, comma-separated")
+    return names
 
-    max_range = args.max_range if args.max_range is not None else max(DEFAULT_MAX_RANGE, args.range or 0.0)
-    max_b = args.max_b if args.max_b is not None else max(DEFAULT_MAX_B, args.b or 0.0)
-    if args.range is not None and args.range > max_range:
-        raise CliError(f"--range {args.range:g} exceeds --max-range {max_range:g}")
-    if args.b is not None and args.b > max_b:
-        raise CliError(f"--b {args.b:g} exceeds --max-b {max_b:g}")
-    return LocalLimits(max_range=max_range, max_b=max_b)
+
+def robot_envelope(args: argparse.Namespace) -> Any:
+    """This robot's envelope (``teleop.settings.Envelope``), what it affords whatever an operator
+    proposes: each limit from its flag, else the default; a pinned --range or --b widens the
+    default limit to it (a robot is never refused its own setting), and one given beyond an
+    explicit limit is an error."""
+    from ..settings import Envelope
+
+    e = DEFAULT_ENVELOPE
+
+    def widened(
+        given: float | None, pinned: float | None, default: float, flag: str, pin: str, hi: bool
+    ) -> float:
+        if given is None:
+            return default if pinned is None else (max(default, pinned) if hi else min(default, pinned))
+        if pinned is not None and (pinned > given if hi else pinned < given):
+            raise CliError(f"{pin} {pinned:g} is {'beyond' if hi else 'below'} {flag} {given:g}")
+        return given
+
+    max_range = widened(args.max_range, args.range, e.max_range, "--max-range", "--range", True)
+    max_b = widened(args.max_b, args.b, e.max_b, "--max-b", "--b", True)
+    min_b = widened(args.min_b, args.b, e.min_b, "--min-b", "--b", False)
+    if min_b > max_b:
+        raise CliError(f"--min-b {min_b:g} exceeds --max-b {max_b:g}")
+    try:
+        return Envelope(
+            max_range=max_range,
+            min_b=min_b,
+            max_b=max_b,
+            passivity=_names(args.allow_passivity, PASSIVITY, "--allow-passivity") or e.passivity,
+            on_loss=_names(args.allow_on_loss, ON_LOSS, "--allow-on-loss") or e.on_loss,
+            allow_no_controller=args.allow_no_controller,
+            max_link_timeout=args.max_link_timeout / 1e3,
+            max_playout_ms=args.max_playout,
+            max_velocity=args.max_velocity,
+            max_force=args.max_force,
+        )
+    except ValueError as err:
+        raise CliError(str(err)) from None
 
 
 def cmd_router(args: argparse.Namespace) -> int:
@@ -173,28 +214,125 @@ def add_teleoperator_parser(sub: Subcommands) -> None:
         t, "--name", "this robot's name; operators reach it with --robot-name NAME. Give each robot its own"
     )
     add_session_args(t, None, None)
-    t.add_argument(
-        "--max-range",
-        type=positive_float("max range", MAX_RANGE, "sqrt(W)"),
-        default=None,
-        metavar="R",
-        help="the largest wave range an operator may choose when --range is not given "
-        f"(default {DEFAULT_MAX_RANGE:g}, the built-in scenarios' largest)",
-    )
-    t.add_argument(
-        "--max-b",
-        type=positive_float("max b", MAX_B, "N s/m"),
-        default=None,
-        metavar="B",
-        help="the largest wave impedance an operator may choose when --b is not given "
-        f"(default {DEFAULT_MAX_B:g})",
-    )
+    add_envelope_args(t)
     add_device_args(t, ("robot",))
     add_netem_specs(t, teleoperator=True)
     add_endpoint_args(t)
     add_key_args(t, "required unless --insecure")
     add_transport_args(t)
     t.set_defaults(func=cmd_teleoperator)
+
+
+def envelope_flags(env: Any) -> list[str]:
+    """The teleoperator's flags that make :func:`robot_envelope` give ``env`` (only those that
+    differ from the default): how ``teleop run`` tells its robot what it admits."""
+    e = DEFAULT_ENVELOPE
+    out: list[str] = []
+    for name, flag, scale in (
+        ("max_range", "--max-range", 1.0),
+        ("min_b", "--min-b", 1.0),
+        ("max_b", "--max-b", 1.0),
+        ("max_link_timeout", "--max-link-timeout", 1e3),
+        ("max_playout_ms", "--max-playout", 1.0),
+        ("max_velocity", "--max-velocity", 1.0),
+        ("max_force", "--max-force", 1.0),
+    ):
+        if getattr(env, name) != getattr(e, name):
+            out += [flag, repr(getattr(env, name) * scale)]
+    for name, flag in (("passivity", "--allow-passivity"), ("on_loss", "--allow-on-loss")):
+        if getattr(env, name) != getattr(e, name):
+            out += [flag, ",".join(getattr(env, name))]
+    if env.allow_no_controller:
+        out.append("--allow-no-controller")
+    return out
+
+
+def add_envelope_args(t: argparse.ArgumentParser) -> None:
+    """The robot's envelope (``teleop.settings.Envelope``, the rules of ``SETTINGS``): what it
+    affords whatever a key-holding operator proposes; a proposal beyond it is refused."""
+    e = DEFAULT_ENVELOPE
+    g = t.add_argument_group(
+        "the robot's envelope (a proposal beyond it is refused in one line naming the field and the "
+        "limit; see docs/guides/passivity.md)"
+    )
+    g.add_argument(
+        "--rate-cap",
+        type=rate_cap,
+        default=None,
+        metavar="RATE",
+        help="accept only an operator proposing this rate cap (netem's units, e.g. 64kbit)",
+    )
+    g.add_argument(
+        "--max-range",
+        type=positive_float("max range", MAX_RANGE, "sqrt(W)"),
+        default=None,
+        metavar="R",
+        help="the largest wave range an operator may choose, CQ's RANGE included "
+        f"(default {e.max_range:g}, or --range if larger)",
+    )
+    g.add_argument(
+        "--min-b",
+        type=positive_float("min b", MAX_B, "N s/m"),
+        default=None,
+        metavar="B",
+        help="the smallest wave impedance an operator may choose: a small b turns a small wave into a "
+        f"fast motion (default {e.min_b:g}, or --b if smaller)",
+    )
+    g.add_argument(
+        "--max-b",
+        type=positive_float("max b", MAX_B, "N s/m"),
+        default=None,
+        metavar="B",
+        help=f"the largest wave impedance an operator may choose (default {e.max_b:g}, or --b if larger)",
+    )
+    g.add_argument(
+        "--max-link-timeout",
+        type=float_range("max link timeout", MIN_LINK_TIMEOUT_S * 1e3, MAX_LINK_TIMEOUT_S * 1e3, "ms"),
+        default=e.max_link_timeout * 1e3,
+        metavar="MS",
+        help="the longest link timeout an operator may ask: how long this robot acts on a silent link "
+        f"(default {e.max_link_timeout * 1e3:g})",
+    )
+    g.add_argument(
+        "--max-playout",
+        type=nonneg_float("max playout", MAX_EXTRA_MS, "ms"),
+        default=e.max_playout_ms,
+        metavar="MS",
+        help=f"the largest fixed playout delay an operator may ask (default {e.max_playout_ms:g})",
+    )
+    g.add_argument(
+        "--allow-passivity",
+        metavar="LIST",
+        default=None,
+        help=f"the architectures this robot runs, comma-separated (default {','.join(e.passivity)})",
+    )
+    g.add_argument(
+        "--allow-on-loss",
+        metavar="LIST",
+        default=None,
+        help="the reconstructions this robot plays on a loss, comma-separated "
+        f"(default {','.join(e.on_loss)}; without the controller only zero)",
+    )
+    g.add_argument(
+        "--allow-no-controller",
+        action="store_true",
+        help="let an operator turn the passivity controller off (refused otherwise)",
+    )
+    g.add_argument(
+        "--max-velocity",
+        type=positive_float("max velocity", 1e3, "m/s"),
+        default=e.max_velocity,
+        metavar="M_S",
+        help=f"the fastest this robot is ever commanded, m/s per DoF (default {e.max_velocity:g})",
+    )
+    g.add_argument(
+        "--max-force",
+        type=positive_float("max force", 1e5, "N"),
+        default=e.max_force,
+        metavar="N",
+        help="the largest contact force this robot pushes to, N per DoF: it is slowed, never reversed, "
+        f"beyond it (default {e.max_force:g})",
+    )
 
 
 def add_router_parser(sub: Subcommands) -> None:

@@ -29,6 +29,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
+from ..settings import DEFAULT_ENVELOPE, SETTINGS, Setting
 from .args import (
     MAX_PORT,
     CliError,
@@ -42,6 +43,7 @@ from .args import (
     add_session_args,
     int_range,
 )
+from .endpoints import envelope_flags
 from .report import write_report
 from .settings import check_robot, private_dir, read_key, session_params, writable_dir
 
@@ -181,7 +183,9 @@ def build_commands(args: argparse.Namespace, params: Any, logs: Path, key: RunKe
         *(("--netem-forward", params.netem_forward) if params.netem_forward else ()),
         *(("--netem-backward", params.netem_backward) if params.netem_backward else ()),
     ]
-    to_cmd = [*TELEOP, "teleoperator", *net.teleoperator, *robot, *netem, *view_to, *common]
+    # The user chose these settings for both sides: the robot's envelope admits exactly them.
+    envelope = envelope_flags(DEFAULT_ENVELOPE.admitting(params))
+    to_cmd = [*TELEOP, "teleoperator", *net.teleoperator, *robot, *netem, *envelope, *view_to, *common]
     live = [] if args.no_live else ["--live"]
     op_cmd = [*TELEOP, "operator", *net.operator, *live, *hsi, *view_op, *_session_options(params), *common]
     return Commands(net, to_cmd, op_cmd)
@@ -206,21 +210,22 @@ def _live_view_options(args: argparse.Namespace) -> tuple[list[str], list[str]]:
     return ["--live-view", str(port)], ["--live-view", str(port + 1 if port else 0)]
 
 
+def _as_flag(s: Setting, v: Any) -> list[str]:
+    """One setting of the table as the operator's option (floats by repr: no rounding)."""
+    assert s.flag is not None
+    if s.field == "controller":
+        return [] if v else [s.flag]
+    if s.field == "rate_cap":
+        return [s.flag, f"{v!r}bit"] if v else []
+    if s.field == "link_timeout":
+        return [s.flag, repr(v * 1e3)]
+    return [s.flag, v if isinstance(v, str) else repr(v) if isinstance(v, float) else str(v)]
+
+
 def _session_options(params: Any) -> list[str]:
-    """The operator's options that make it propose exactly ``params`` (floats by repr: no rounding)."""
-    return [
-        *("--session", str(params.session), "--codec", params.codec, "--scenario", params.scenario),
-        *("--dof", str(params.dof), "--b", repr(params.b), "--range", repr(params.full_scale)),
-        *("--duration", repr(params.duration), "--phase", repr(params.phase)),
-        *("--netem-forward", params.netem_forward, "--netem-backward", params.netem_backward),
-        *("--seed", str(params.seed), "--on-loss", params.on_loss),
-        *("--link-timeout", repr(params.link_timeout * 1e3)),
-        *(("--rate-cap", f"{params.rate_cap!r}bit") if params.rate_cap else ()),
-        *("--playout", params.playout),
-        *("--variation", repr(params.variation)),
-        *([] if params.controller else ["--no-controller"]),
-        *(("--passivity", params.passivity) if params.passivity != "wave" else ()),
-    ]
+    """The operator's options that make it propose exactly ``params``: every setting of the table
+    (``teleop.settings.SETTINGS``) that has an operator flag."""
+    return [a for s in SETTINGS if s.flag is not None for a in _as_flag(s, getattr(params, s.field))]
 
 
 def _die_with_parent() -> None:

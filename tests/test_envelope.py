@@ -1,0 +1,292 @@
+"""The robot is sovereign (issue 34): its envelope refuses unsafe proposals, saturates what it is
+commanded, bounds its energy guard by its own limits, and a device's nonsense never reaches the
+books.  Virtual time and the simulation only; the command line's side is in test_cli_validation."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from teleop.endpoint import Failed, Failure, HelloRejected, SessionEnded
+from teleop.node import TeleoperatorNode
+from teleop.port import make_node
+from teleop.protocol import SessionParams
+from teleop.settings import DEFAULT_ENVELOPE, SETTINGS, Envelope, settings_table
+from teleop.sim import SimConfig, run_case
+from teleop.wave import WaveImpedance
+
+from .vnet import VirtualNet, params
+
+
+def _refused(p: SessionParams, env: Envelope = DEFAULT_ENVELOPE) -> str:
+    why = env.check(p)
+    assert why is not None, f"{p} was not refused"
+    return why
+
+
+# --- the rules, one by one ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("change", "field", "flag"),
+    [
+        ({"full_scale": 2.5}, "range", "--max-range"),
+        ({"codec": "cq:16:1000"}, "codec", "--max-range"),  # CQ's RANGE, the 170 m/s attack
+        ({"b": 0.001}, "b", "--min-b"),
+        ({"b": 200.0}, "b", "--max-b"),
+        ({"link_timeout": 10.0}, "link_timeout", "--max-link-timeout"),
+        ({"controller": False, "on_loss": "zero"}, "controller", "--allow-no-controller"),
+        ({"playout": "300"}, "playout", "--max-playout"),
+        ({"dt": 0.002}, "dt", "period"),
+    ],
+)
+def test_each_unsafe_proposal_is_refused_naming_the_field_and_the_limit(
+    change: dict[str, Any], field: str, flag: str
+) -> None:
+    why = _refused(params(**change))
+    assert why.startswith(field) and flag in why
+    assert "\n" not in why
+
+
+def test_cq_range_under_tdpa_is_held_to_the_robots_power_ranges() -> None:
+    why = _refused(params(codec="cq:16:50", passivity="tdpa", full_scale=2.0))
+    assert why.startswith("codec") and "--max-range" in why
+    assert DEFAULT_ENVELOPE.check(params(codec="cq:16", passivity="tdpa")) is None
+
+
+def test_choices_are_the_robots() -> None:
+    env = Envelope(passivity=("wave",), on_loss=("zero", "conceal"))
+    assert "--allow-passivity" in _refused(params(passivity="tdpa"), env)
+    assert "--allow-on-loss" in _refused(params(on_loss="hold"), env)
+    # Without the controller only zero, even where the robot lets the controller go.
+    lax = Envelope(allow_no_controller=True)
+    assert "without the passivity controller" in _refused(params(controller=False, on_loss="hold"), lax)
+    assert lax.check(params(controller=False, on_loss="zero")) is None
+
+
+def test_a_proposal_within_the_envelope_passes() -> None:
+    assert DEFAULT_ENVELOPE.check(params()) is None
+    assert DEFAULT_ENVELOPE.check(params(scenario="step", b=1.0, codec="ids:2", link_timeout=0.25)) is None
+
+
+def test_an_envelope_with_nonsense_limits_is_refused() -> None:
+    for bad in ({"max_range": math.nan}, {"min_b": 30.0}, {"max_velocity": -1.0}, {"passivity": ()}):
+        with pytest.raises(ValueError):
+            Envelope(**bad)
+
+
+# --- one settings table -------------------------------------------------------------------------
+
+
+def test_the_hello_carries_exactly_the_tables_keys_in_its_order() -> None:
+    p = params(rate_cap=64e3, playout="2", variation=0.5, passivity="tdpa", codec="pdp:1")
+    msg = p.to_msg()
+    assert list(msg) == [s.key for s in SETTINGS]
+    assert SessionParams.from_msg(msg) == p
+    # every field a session agrees on is in the table, once
+    fields = {f.name for f in dataclasses.fields(SessionParams)}
+    assert sorted(s.field for s in SETTINGS) == sorted(fields)
+
+
+def test_the_docs_table_is_generated_from_it() -> None:
+    table = settings_table()
+    for s in SETTINGS:
+        assert f"| {s.field} | `{s.key}` |" in table
+    assert "--max-link-timeout" in table and "250 ms" in table
+
+
+# --- in session: refused in one line on both sides ---------------------------------------------
+
+
+def test_a_refused_proposal_is_one_line_on_both_sides() -> None:
+    net = VirtualNet(1.0)
+    to = net.teleoperator()
+    op = net.operator(params(codec="cq:16:1000"))
+    net.seconds(2.0)
+    (f,) = op.of(Failed)
+    assert f.reason == Failure.REJECTED and "--max-range" in f.detail and "\n" not in f.detail
+    assert not to.started()
+    (rejected,) = to.of(HelloRejected)
+    assert rejected.why.startswith("codec cq:16:1000") and "\n" not in rejected.why
+
+
+def test_an_operator_that_dies_leaves_the_robot_commanded_no_longer_than_its_cap() -> None:
+    """The operator asks the longest link timeout the robot allows, then dies: the robot's
+    coupling is gone within that cap plus its fade, and it played no energy that was not sent."""
+    env = Envelope(max_link_timeout=0.1)
+    net = VirtualNet(1.0)
+    to = net.teleoperator(limits=env)
+    refused = net.operator(params(link_timeout=10.0), addr=("127.0.0.1", 40001))
+    net.seconds(1.0)
+    assert refused.of(Failed) and "--max-link-timeout" in refused.of(Failed)[0].detail
+    net.kill(refused.addr)
+    op = net.operator(params(link_timeout=0.1, duration=0.0))
+    net.seconds(2.0)
+    assert to.started()
+    net.kill(op.addr)
+    died = net.now
+    node = to.ep.port.node  # type: ignore[union-attr]
+    # eds:50: one payload interval (50 ms) + the timeout + the sparse margin, then the fade (0.1 s)
+    bound_s = 0.05 + max(env.max_link_timeout, 0.05 + 0.010) + 0.1
+    while node.coupling > 0.0:
+        net.seconds(0.001)
+        assert (net.now - died) / 1e9 <= bound_s + 0.002, "the robot still acts on a dead link"
+    assert to.ep.port.node.guard.margin >= -1e-12  # type: ignore[union-attr]
+
+
+# --- saturation is passive ----------------------------------------------------------------------
+
+_f = st.floats(-50.0, 50.0, allow_nan=False)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    g=st.lists(_f, min_size=3, max_size=3),
+    f0=st.lists(st.floats(-200.0, 200.0, allow_nan=False), min_size=3, max_size=3),
+    z=st.lists(st.floats(0.0, 500.0, allow_nan=False), min_size=3, max_size=3),
+    b=st.floats(1.0, 20.0),
+    vmax=st.floats(0.01, 2.0),
+    fmax=st.floats(0.1, 100.0),
+)
+def test_saturation_is_passive_and_within_the_envelope(
+    g: list[float], f0: list[float], z: list[float], b: float, vmax: float, fmax: float
+) -> None:
+    node = make_node(
+        "teleoperator",
+        scenario="protocol",
+        dof=3,
+        dt=1e-3,
+        b=b,
+        codec="none",
+        full_scale=2.0,
+        session=1,
+        options=params().port_options(),
+    )
+    node.confine(Envelope(max_velocity=vmax, max_force=fmax, min_b=1.0, max_b=20.0))
+    w = WaveImpedance.of(b, 3)
+    ga, f0a, za = np.array(g), np.array(f0), np.array(z)
+    v = (w.sqrt2b * ga - f0a) / (w.b + za)  # the port's solve at full coupling (teleop.node)
+    f = f0a + za * v
+    assert isinstance(node, TeleoperatorNode)
+    vs, fs, fw = node._saturate(v, f0a, za, f)
+    h = w.to_wave_out(ga, fw)
+    # per DoF: what the channel gives the port covers what the robot gives its environment
+    assert np.all(0.5 * (ga**2 - h**2) >= vs * fs - 1e-9 * (1 + np.abs(vs * fs)))
+    assert np.all(np.abs(vs) <= vmax * (1 + 1e-12))
+    assert np.all((np.abs(vs) <= np.abs(v)) & (vs * v >= 0.0))  # slowed, never reversed
+    pushing = fs * vs > 0.0
+    assert np.all(~pushing | (np.abs(fs) <= fmax * (1 + 1e-9)))
+
+
+@pytest.mark.parametrize("passivity", ["wave", "tdpa"])
+def test_the_robot_stays_within_its_velocity_when_the_operator_pushes_past_it(passivity: str) -> None:
+    env = Envelope(max_range=0.5, max_velocity=0.3, max_force=50.0)
+    codec = "none" if passivity == "wave" else "pdp:1"
+    r = run_case(SimConfig(codec=codec, scenario="step", full_scale=0.5, passivity=passivity, envelope=env))
+    assert float(np.max(np.abs(r.trace.v_to))) <= 0.3 + 1e-12
+    assert r.summary["counters"]["teleoperator"]["saturated"] > 0
+    assert r.summary["passive"]
+
+
+def test_the_robots_guard_is_bounded_by_its_own_range_not_the_sessions() -> None:
+    node = make_node(
+        "teleoperator",
+        scenario="protocol",
+        dof=2,
+        dt=1e-3,
+        b=20.0,
+        codec="none",
+        full_scale=2.0,
+        session=1,
+        options=params().port_options(),
+    )
+    node.confine(Envelope(max_range=1.0))
+    assert node.guard.max_power == pytest.approx(0.5 * 2 * 1.0**2)
+
+
+# --- a device is a peer we do not trust either ----------------------------------------------------
+
+
+@pytest.mark.parametrize("passivity", ["wave", "tdpa"])
+@pytest.mark.parametrize("side", ["robot", "hsi"])
+def test_a_device_that_says_nan_costs_only_the_ticks_it_covers(side: str, passivity: str) -> None:
+    bad = "300,301,700,1200"
+    device = f"tests.faulty_devices:Faulty{'Robot' if side == 'robot' else 'Hsi'}:{bad}"
+    codec = "eds:50" if passivity == "wave" else "pdp:1"
+    base = SimConfig(codec=codec, scenario="protocol", duration=2.0, passivity=passivity)
+    faulty = (
+        dataclasses.replace(base, robot=device) if side == "robot" else dataclasses.replace(base, hsi=device)
+    )
+    r = run_case(faulty)
+    clean = run_case(base)
+    role = "teleoperator" if side == "robot" else "operator"
+    assert r.summary["counters"][role]["device_stale"] == 4
+    assert r.summary["passive"] and math.isfinite(r.summary["I"])
+    for key in ("v_hsi", "f_hsi", "v_to", "f_to", "margin_fwd", "margin_bwd"):
+        assert np.all(np.isfinite(getattr(r.trace, key)))
+    # The link never noticed: every packet the clean run carried was carried and accepted.
+    for role_ in ("operator", "teleoperator"):
+        assert r.summary["counters"][role_]["malformed"] == 0
+    assert (
+        r.summary["directions"]["forward"]["packets"]
+        > 0.9 * clean.summary["directions"]["forward"]["packets"]
+    )
+    for d in ("forward", "backward"):
+        assert r.summary["passivity"][d]["link_lost_events"] == 0
+
+
+def test_a_robot_that_says_nan_in_a_session_keeps_the_link() -> None:
+    """In a two-endpoint session (virtual time): NaN and inf from the robot's device neither lose
+    the link nor make a book NaN; the operator accepts every backward packet."""
+    net = VirtualNet(1.0)
+    to = net.teleoperator(device="tests.faulty_devices:FaultyRobot:500,501,900")
+    op = net.operator(params(duration=2.0))
+    net.seconds(4.0)
+    for h in (op, to):
+        (ended,) = h.of(SessionEnded)
+        s: Any = ended.summary
+        assert s.completed
+    port = to.ep.port
+    assert port is not None and port.node.counters.device_stale == 3
+    assert math.isfinite(port.node.energy_sent) and math.isfinite(op.ep.port.node.guard.margin)  # type: ignore[union-attr]
+    assert op.ep.port.node.counters.malformed == 0  # type: ignore[union-attr]
+    assert op.ep.port.node.guard.report.link_lost_events == 0  # type: ignore[union-attr]
+
+
+# --- teleop run: both children from the table -----------------------------------------------------
+
+
+def test_run_hands_its_children_the_table_and_its_robot_admits_exactly_that(tmp_path: Any) -> None:
+    """``teleop run``'s user chose the settings for both sides: the operator child proposes every
+    setting of the table as given, and the robot child's envelope admits them (and, with the
+    defaults, nothing wider)."""
+    from teleop.cli.endpoints import robot_envelope
+    from teleop.cli.parser import build_parser
+    from teleop.cli.run import TELEOP, RunKey, build_commands
+    from teleop.cli.settings import session_params
+
+    argv = ["run", "--range", "16", "--b", "0.5", "--no-controller", "--link-timeout", "1000"]
+    argv += ["--playout", "300", "--codec", "cq:8", "--rate-cap", "64kbit", "--passivity", "tdpa"]
+    args = build_parser().parse_args(argv)
+    params = session_params(args, 9)
+    assert DEFAULT_ENVELOPE.check(params) is not None  # a default robot would refuse these
+    cmds = build_commands(args, params, tmp_path, RunKey(["--insecure"], "insecure", "0"))
+    op = build_parser().parse_args(cmds.operator[len(TELEOP) :])
+    assert session_params(op, 9) == params
+    to = build_parser().parse_args(cmds.teleoperator[len(TELEOP) :])
+    env = robot_envelope(to)
+    assert env.check(params) is None
+    assert env == DEFAULT_ENVELOPE.admitting(params)
+    plain = build_commands(
+        build_parser().parse_args(["run"]),
+        session_params(build_parser().parse_args(["run"]), 9),
+        tmp_path,
+        RunKey(["--insecure"], "insecure", "0"),
+    )
+    assert robot_envelope(build_parser().parse_args(plain.teleoperator[len(TELEOP) :])) == DEFAULT_ENVELOPE
