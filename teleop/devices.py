@@ -105,6 +105,18 @@ def _mujoco(dof: int, dt: float, arg: str | None, seed: int = 0, variation: floa
     return MujocoRobot(dof=dof, dt=dt, arg=arg, foam_at=plan.t_foam, wall_at=plan.t_wall)
 
 
+def _franka(dof: int, dt: float, arg: str | None, **_: Any) -> Device:
+    from .franka import FrankaRobot  # imports pylibfranka: only a teleoperator that asks pays for it
+
+    return FrankaRobot(dof=dof, dt=dt, arg=arg)
+
+
+def _franka_check(arg: str | None, dof: int) -> None:
+    from .franka import check as franka_check
+
+    franka_check(arg, dof)
+
+
 def _mujoco_check(arg: str | None, dof: int) -> None:
     from .mujoco_robot import check_scene
 
@@ -125,6 +137,12 @@ BUILTIN: dict[str, dict[str, Builtin]] = {
             "mujoco[:SCENE.xml]",
             "MuJoCo end effector, default scene: free space, foam, wall",
             _mujoco_check,
+        ),
+        "franka": Builtin(
+            _franka,
+            "franka:HOST[:OPTIONS]",
+            "Franka arm (FR3, Panda) through pylibfranka, Cartesian impedance, paced by the robot",
+            _franka_check,
         ),
     },
 }
