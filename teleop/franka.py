@@ -473,6 +473,14 @@ class FrankaRobot:
             self.fault = f"{self._stale_run} robot states in a row were not finite"
         self._fresh = False
 
+    def hold(self) -> None:
+        """Answer a read without a tick (the robot ran ahead of the session clock): the set-point
+        stays where it is, the impedance is commanded from the fresh state."""
+        if self.ctl is None or not self._fresh:
+            return
+        self._write(self._torque() if self._good else self._tau, finished=False)
+        self._fresh = False
+
     def _torque(self) -> Array:
         o = self.opts
         f = o.stiffness * (self.x_d - self._x) - o.damping * self._xdot
