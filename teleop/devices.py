@@ -105,6 +105,18 @@ def _mujoco(dof: int, dt: float, arg: str | None, seed: int = 0, variation: floa
     return MujocoRobot(dof=dof, dt=dt, arg=arg, foam_at=plan.t_foam, wall_at=plan.t_wall)
 
 
+def _franka(dof: int, dt: float, arg: str | None, **_: Any) -> Device:
+    from .franka import FrankaRobot  # imports pylibfranka: only a teleoperator that asks pays for it
+
+    return FrankaRobot(dof=dof, dt=dt, arg=arg)
+
+
+def _franka_check(arg: str | None, dof: int) -> None:
+    from .franka import check as franka_check
+
+    franka_check(arg, dof)
+
+
 def _mujoco_check(arg: str | None, dof: int) -> None:
     from .mujoco_robot import check_scene
 
@@ -125,6 +137,12 @@ BUILTIN: dict[str, dict[str, Builtin]] = {
             "mujoco[:SCENE.xml]",
             "MuJoCo end effector, default scene: free space, foam, wall",
             _mujoco_check,
+        ),
+        "franka": Builtin(
+            _franka,
+            "franka:HOST[:OPTIONS]",
+            "Franka arm (FR3, Panda) through pylibfranka, Cartesian impedance, paced by the robot",
+            _franka_check,
         ),
     },
 }
@@ -240,7 +258,16 @@ def make(role: str, spec: str, dof: int, dt: float, seed: int = 0, variation: fl
 
 
 def describe(dev: dict[str, Any]) -> str | None:
-    """One line on a device that keeps an observer of its own port (the MuJoCo robot), else None."""
+    """One line on a device that keeps an observer of its own port (the MuJoCo robot, a Franka arm),
+    else None."""
+    if dev.get("robot") == "franka":
+        return (
+            f"robot {dev['spec']}: success rate {dev['control_command_success_rate']:.3f} "
+            f"(min {dev['min_success_rate']:.3f}), missed robot ticks {dev['missed_robot_ticks']}, "
+            f"stale reads {dev['stale_reads']}, drift {1e3 * dev['drift_m']:.1f} mm "
+            f"(max {1e3 * dev['max_drift_m']:.1f}), port energy min {dev['min_port_energy_J']:.3e} J, "
+            f"reflex {dev['reflex'] or 'none'}"
+        )
     if "min_port_energy_J" not in dev:
         return None
     pen = ", ".join(f"{k} {1e3 * v:.1f} mm" for k, v in dev.get("max_penetration_m", {}).items())

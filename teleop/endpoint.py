@@ -177,6 +177,8 @@ class EndReason(enum.Enum):
     STOPPED = "stopped"  # stopped locally (a signal)
     PEER_BYE = "peer_bye"  # an open session whose peer said bye
     REPLACED = "replaced"  # teleoperator: a new operator took the silent one's place
+    DEVICE_FAULT = "device_fault"  # this side's device ended the session (a reflex): bye says why
+    PEER_FAULT = "peer_fault"  # the peer's device ended it: its bye said why
 
 
 @dataclass(frozen=True)
@@ -298,6 +300,7 @@ class Endpoint:
         self._stopped = False
         self._ended: EndReason | None = None
         self.peer_bye: protocol.Bye | None = None
+        self.fault_why = ""  # what this side's device said when it ended the session (fault)
         self.foreign = 0
         self._handshake_info: dict[str, Any] = {}
         self.peer_nonce: bytes | None = None  # operator: the teleoperator's, from the welcome it took
@@ -498,6 +501,16 @@ class Endpoint:
         elif self.state == State.LINGER:
             self._linger(now_ns)
 
+    def fault(self, now_ns: int, why: str) -> None:
+        """This side's device ended the session (a robot's reflex): the session lingers and ends, and
+        its bye carries ``why`` so the peer can say it.  Nothing is ticked after it."""
+        self.fault_why = why
+        self._stopped = True
+        if self.state in (State.STARTING, State.RUNNING):
+            self._end(EndReason.DEVICE_FAULT, now_ns)
+        elif self.state == State.HANDSHAKE:
+            self.state = State.CLOSED
+
     def stop(self, now_ns: int) -> None:
         """Stop locally (a signal): the session lingers and ends (:class:`SessionEnded`)."""
         self._stopped = True
@@ -540,6 +553,8 @@ class Endpoint:
             self._end(EndReason.COMPLETED, now_ns)
         elif self.params.until_stopped and self.peer_bye is not None:
             self._end(EndReason.PEER_BYE, now_ns)
+        elif self.peer_bye is not None and self.peer_bye.why:
+            self._end(EndReason.PEER_FAULT, now_ns)
 
     def grace_needed(self, k: int) -> bool:
         """Whether tick ``k`` would wait for its payload (:meth:`grace_until`), without counting a wait."""
@@ -833,6 +848,7 @@ class Endpoint:
         self._stopped = False
         self._ended = None
         self.peer_bye = None
+        self.fault_why = ""
         self.replaced = False
         self.foreign = 0
         self.own_offers_ignored = self.busy_rejects = self.retries_sent = 0
@@ -868,7 +884,9 @@ class Endpoint:
                 self._out.append((data, self._peer()))
             if port.next_due() is None or now_ns >= self._linger_end + LINGER_SHIM_GRACE_NS:
                 shim = port.shim_stats()
-                bye = protocol.Bye(params.session, port.produced(), shim["dropped_by_limit"] if shim else 0)
+                bye = protocol.Bye(
+                    params.session, port.produced(), shim["dropped_by_limit"] if shim else 0, self.fault_why
+                )
                 # Sealed one by one: each copy its own counter (a byte-identical copy is a replay).
                 self._out += [(port.seal(bye), self._peer()) for _ in range(BYE_COPIES)]
                 self._bye_sent = True
@@ -920,6 +938,7 @@ class Endpoint:
                 peer_produced=bye.produced if bye else None,
                 peer_dropped_by_limit=bye.dropped_by_limit if bye else 0,
             ),
+            fault=self.fault_why or (bye.why if bye is not None else ""),
         )
 
 

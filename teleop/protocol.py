@@ -487,12 +487,14 @@ class Started:
 
 @dataclass(frozen=True)
 class Bye:
-    """Either way at the end: packets the sender's node produced, and those its shim tail-dropped."""
+    """Either way at the end: packets the sender's node produced, and those its shim tail-dropped;
+    ``why``: non-empty when the sender's device ended the session (a robot's reflex), printed by the peer."""
 
     kind: ClassVar[str] = "bye"
     session: int
     produced: int
     dropped_by_limit: int
+    why: str = ""
 
 
 Message: TypeAlias = Hello | Welcome | Reject | Retry | Start | Started | Bye
@@ -528,6 +530,8 @@ def encode(msg: Message) -> bytes:
         fields = {"session": msg.session}
     else:
         fields = {"session": msg.session, "produced": msg.produced, "dropped_by_limit": msg.dropped_by_limit}
+        if msg.why:
+            fields["why"] = msg.why[: limits.MAX_REASON_LEN]
     out: bytes = msgpack.packb({"t": msg.kind, "v": PROTOCOL_VERSION, **fields}, use_bin_type=True)
     return out
 
@@ -611,7 +615,15 @@ def _parse_fields(kind: str, m: Mapping[str, object], local_netem: Collection[st
         return Start(session, _timestamp(m, "start_ns"), _bool(m, "rejoin", False))
     if kind == "started":
         return Started(session)
-    return Bye(session, _int(m, "produced", 0, MAX_COUNT), _int(m, "dropped_by_limit", 0, MAX_COUNT))
+    why = m.get("why", "")
+    if not isinstance(why, str):
+        raise ProtocolError(f"why must be a string, {_got(why)}")
+    return Bye(
+        session,
+        _int(m, "produced", 0, MAX_COUNT),
+        _int(m, "dropped_by_limit", 0, MAX_COUNT),
+        why[: limits.MAX_REASON_LEN],
+    )
 
 
 def parse(data: bytes, *, local_netem: Collection[str] = ()) -> Message:

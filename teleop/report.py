@@ -711,6 +711,11 @@ def summary_text(rep: dict[str, Any], command: str = "teleop run") -> str:
             f"skipped {lp['skipped']:>3}  period error p50 {pe['p50']:6.1f}  p99 {pe['p99']:7.1f}  "
             f"p99.9 {pe['p999']:7.1f}  max {pe['max']:7.0f} us  CPU {100 * lp['cpu_fraction']:4.1f}%  "
             f"late packets waited for {pr['grace']['waits']}, missed {pr['grace']['missed']}"
+            + (
+                f"  paced by its device: missed deadlines {lp['missed_deadlines']}"
+                if lp.get("device_paced")
+                else ""
+            )
         )
     for d, w in (rep["wire"] or {}).items():
         lines.append(

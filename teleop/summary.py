@@ -50,6 +50,7 @@ class EndpointSummary:
     params: SessionParams
     handshake: dict[str, Any]  # clock_offset_ns and handshake_rtt_us, or joined_late
     port: dict[str, Any]  # teleop.port.Port.summary: sent, received, link_received, ...
+    fault: str = ""  # why a device ended the session (this side's, or the peer's bye said), else ""
 
 
 @dataclass(frozen=True)
@@ -104,6 +105,7 @@ class SessionSummary:
             "completed": e.completed,
             "end": e.end,
             "peer_said_bye": e.peer_said_bye,
+            **({"fault": e.fault} if e.fault else {}),
             "first_tick": e.first_tick,
             "replaced_by_new_session": e.replaced_by_new_session,
             "rejoin": dataclasses.asdict(e.rejoin),

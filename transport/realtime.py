@@ -22,6 +22,12 @@ An *overrun* is a tick started more than one period late.  When the loop falls m
 ``max_catchup`` ticks behind (a stall: the VM's host stole the CPU), the missed ticks are *skipped*
 (counted) instead of run back to back, so the session clock stays true.
 
+**Device-paced.**  A device with its own clock (a real arm: libfranka's read returns once per
+robot millisecond) may pace the loop instead of the timer: the runner blocks in the device's
+``wait`` and then asks :meth:`Ticker.paced` which session tick to run.  Tick numbers still follow
+``t0 + k * period``; a tick of the clock the device skipped is a *missed deadline* (counted, never
+run), and no tick runs twice.
+
 **When the datagrams leave.**  The runner may run a tick before its deadline, in the time the
 spin would burn, and send its datagrams at the deadline (``transport.session``, ``--tick-at
 wake``), or run it from the deadline (``--tick-at deadline``).  The figures above are of the
@@ -115,6 +121,9 @@ class LoopStats:
     spin_ns: int = 0  # the spin in use at the end (learned, see SpinLearner)
     send_lateness_q: Quantiles | None = None  # when each tick's datagrams left (Ticker.departed)
     send_period_error_q: Quantiles | None = None
+    missed_deadlines: int = 0  # device-paced: session ticks the device's clock skipped
+    device_ahead: int = 0  # device-paced: device ticks over a tick ahead of the clock (held, no tick)
+    device_paced: bool = False
 
     def summary(self) -> dict[str, object]:
         unkept = np.zeros(0, dtype=np.int64)  # departures are kept as percentiles only
@@ -131,6 +140,15 @@ class LoopStats:
             "spin_us": self.spin_ns / 1e3,
             "send_lateness_us": _percentiles(self.send_lateness_q, unkept),
             "send_period_error_us": _percentiles(self.send_period_error_q, unkept),
+            **(
+                {
+                    "device_paced": True,
+                    "missed_deadlines": self.missed_deadlines,
+                    "device_ahead": self.device_ahead,
+                }
+                if self.device_paced
+                else {}
+            ),
         }
 
 
@@ -213,6 +231,9 @@ class Ticker:
         self.t0 = 0
         self.overruns = 0
         self.skipped = 0
+        self.missed = 0  # device-paced: ticks of the session clock the device did not come for
+        self.ahead = 0  # device-paced: device ticks that came over a tick before the session clock
+        self.device_paced = False
         self._keep = capacity > 0
         self._lateness = np.zeros(max(capacity, 1024) if self._keep else 0, dtype=np.int64)
         self._perr = np.zeros_like(self._lateness)
@@ -280,6 +301,27 @@ class Ticker:
         self.k += 1
         return k
 
+    def paced(self, now: int) -> int | None:
+        """Device-paced mode: a device's servo tick (libfranka's ``readOnce``) came at ``now``; returns
+        the session tick to run.  The tick number still follows the session clock: the tick due
+        nearest ``now``, or the next one if that already ran (never a tick twice); ticks of the clock
+        the device did not come for are *missed deadlines*, counted (``missed``), never run.  None:
+        the device is more than a tick ahead of the clock (counted, ``ahead``): no tick now."""
+        due = (now - self.t0 + self.period // 2) // self.period
+        k = self.k
+        if k > due + 1:
+            self.ahead += 1
+            return None
+        if due > k:
+            self.missed += int(due - k)
+            k = int(due)
+        late = now - (self.t0 + k * self.period)
+        if late > self.period:
+            self.overruns += 1
+        self._record(late, now)
+        self.k = k + 1
+        return k
+
     def departed(self, now: int) -> None:
         """The datagrams of the tick :meth:`spin_to_deadline` last returned left at ``now``."""
         self._send_late_q.add(now - self.deadline(self.k - 1))
@@ -317,4 +359,7 @@ class Ticker:
             spin_ns=self.spin,
             send_lateness_q=self._send_late_q,
             send_period_error_q=self._send_perr_q,
+            missed_deadlines=self.missed,
+            device_ahead=self.ahead,
+            device_paced=self.device_paced,
         )

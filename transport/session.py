@@ -75,6 +75,8 @@ EARLY_MARGIN_NS = 10_000
 EARLY_COST_START_NS = 30_000
 #: With ``--tick-at wake``, ticks between two passes of the event loop (a signal waits at most this).
 PASS_EVERY = 8
+#: A device-paced session ends with a fault when its device has not ticked for this long.
+DEVICE_SILENT_S = 1.0
 
 
 class SessionError(TeleopError):
@@ -214,6 +216,13 @@ class _Runner:
             return
         ticker.start(ep.t0_ns, ep.k0)
         session, wake = ep.params, o.tick_at == "wake"
+        device = self._paced_device()
+        if device is not None:
+            try:
+                await self.paced_ticks(ticker, device)
+            finally:
+                self._close_device(device)
+            return
         while ep.running and not self.stop.requested and self.ticker is ticker:
             ticker.sleep()  # until the spin before the deadline; then, in the spin's time,
             self.drain_early(ticker.next_deadline - EARLY_MARGIN_NS)  # what arrived so far,
@@ -262,6 +271,89 @@ class _Runner:
             self.events()
         if self.ticker is ticker:
             self._stats = ticker.stats()  # the ticking only, not the linger
+
+    def _paced_device(self) -> Any:
+        """This session's device if it paces the loop (``paced = True`` and ``wait(timeout_s)``)."""
+        port = self.ep.port
+        dev = getattr(port.node, "device", None) if port is not None else None
+        if getattr(dev, "paced", False) is True and callable(getattr(dev, "wait", None)):
+            return dev
+        return None
+
+    def _close_device(self, device: Any) -> None:
+        """The session's ticks are over: the device ends its motion (a real arm stops without a
+        reflex).  A device's close must be safe twice and after a fault."""
+        close = getattr(device, "close", None)
+        if callable(close):
+            try:
+                close()
+            except DeviceError as e:
+                self.warnings.append(f"device close: {e}")
+
+    async def paced_ticks(self, ticker: Ticker, device: Any) -> None:
+        """Tick on the device's clock: block in ``device.wait`` (a robot's next millisecond), then run
+        the session tick the clock says (:meth:`Ticker.paced`: a tick the device skipped is a missed
+        deadline, never run twice).  No grace and no early tick: the device waits for its command.
+        A device fault (:class:`DeviceError` from ``wait``) ends the session with a bye saying why;
+        nothing is ticked, so nothing is commanded, after it."""
+        ep, o, session = self.ep, self.opts, self.ep.params
+        ticker.device_paced = True
+        timeout = max(0.01, 100 * ticker.period / 1e9)
+        silent, n, next_status = 0.0, 0, ep.k0 - ep.k0 % 1000 + 999
+        status = getattr(device, "status", None)
+        hold = getattr(device, "hold", None)
+        first = ticker.deadline(ep.k0) - ticker.period  # the device starts a tick before the first
+        while ep.running and not self.stop.requested and self.ticker is ticker and self.clock() < first:
+            await self.idle(first)
+        while ep.running and not self.stop.requested and self.ticker is ticker:
+            try:
+                came = device.wait(timeout)
+            except DeviceError as e:
+                ep.fault(self.clock(), str(e))
+                print(f"teleop {o.role}: device fault: {e}", file=sys.stderr, flush=True)
+                self.send()
+                self.events()
+                break
+            if not came:
+                silent += timeout
+                if silent >= DEVICE_SILENT_S:
+                    ep.fault(self.clock(), f"the device did not tick for {silent:.1f} s")
+                    self.send()
+                    self.events()
+                    break
+                await asyncio.sleep(0)
+                continue
+            silent = 0.0
+            now = self.clock()
+            k = ticker.paced(now)
+            if k is None:  # the device runs ahead of the session clock: it holds, no tick
+                if callable(hold):
+                    hold()
+                continue
+            self.drain()
+            ep.tick(k, now)
+            self.send()
+            ticker.departed(self.clock())
+            if ep.params is not session:  # a takeover replaced the session
+                break
+            n += 1
+            if n % PASS_EVERY == 0:
+                await asyncio.sleep(0)  # signals
+            if n % ADMIT_EVERY == 0:
+                self.tr.admit(ep.admission(self.clock()))
+            assert ep.port is not None
+            ep.port.settle()
+            ep.port.loop_timing(k, ticker.last_lateness_ns)
+            if self.log is not None:
+                self.watch.tick(self.log, ep.port, k, ep.session_time(self.clock()), ticker.overruns)
+            if o.live and k >= next_status:  # once a second of the session clock (k may jump)
+                next_status = ((k - 999) // 1000 + 1) * 1000 + 999
+                line = status_line(o.role, ep.port, k, ticker.overruns, o.insecure)
+                extra = f", missed deadlines {ticker.missed}" + (f", {status()}" if callable(status) else "")
+                print(line + extra, file=sys.stderr, flush=True)
+            self.events()
+        if self.ticker is ticker:
+            self._stats = ticker.stats()
 
     def tick_early(self, ticker: Ticker, session: SessionParams | None) -> int | None:
         """Run the coming tick now, in the time the spin before its deadline would burn; the caller
@@ -380,6 +472,10 @@ class _Runner:
         replaced = ev.reason == EndReason.REPLACED
         t_end = (self.clock() - self._starts.pop(session, self.ep.start_ns)) / 1e9
         why = {EndReason.PEER_BYE: "peer said bye", EndReason.STOPPED: f"signal {self.stop.signal}"}
+        if ev.reason == EndReason.PEER_FAULT:
+            print(
+                f"teleop {o.role}: the peer's device ended the session: {ev.summary.fault}", file=sys.stderr
+            )
         if self.log is self.records.logs.get(session):
             self.log = None
         self.records.end(s, session, t_end, why.get(ev.reason, ev.reason.value), replaced)
@@ -468,6 +564,8 @@ def run_endpoint(opts: EndpointOptions, params: SessionParams | None = None, pin
             f"received {port['received']['packets']}",
             file=sys.stderr,
         )
+    if summary.endpoint.fault:  # a device ended the session (this side's or the peer's): said above
+        return 1
     if proc.stopped_by_signal is not None and not summary.endpoint.params.until_stopped:
         return 128 + proc.stopped_by_signal
     return 0  # a session without a fixed end stopped by a signal ended as it should

@@ -1,0 +1,438 @@
+"""``--robot franka``: options and limits against a fake arm (no process), then the device and a whole
+session against franky-sim (a real server process on loopback, a real pylibfranka client)."""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import math
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from teleop import devices
+from teleop.devices import DeviceError
+from teleop.franka import FrankaRobot, RobotFault, parse_arg
+
+TELEOP = [sys.executable, "-m", "teleop.cli"]
+SIM = Path(sys.executable).with_name("franky-sim")
+LOCK = Path("/tmp/teleop-franky-sim.lock")  # one franky-sim per host: tests of every worktree queue here
+
+
+# --- a fake arm: enough of pylibfranka's surface for the device's arithmetic and its faults ---------
+class _Mode:
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def __str__(self) -> str:
+        return f"RobotMode.{self.name}"
+
+
+class _State:
+    def __init__(self, z: float = 0.5, mode: str = "Move") -> None:
+        pose = np.eye(4)
+        pose[:3, 3] = [0.5, 0.0, z]
+        self.O_T_EE = pose.T.reshape(-1).tolist()  # column-major, as libfranka
+        self.q = [0.0] * 7
+        self.dq = [0.0] * 7
+        self.tau_J = [0.0] * 7
+        self.tau_J_d = [0.0] * 7
+        self.O_F_ext_hat_K = [0.0, 0.0, 5.0, 0.0, 0.0, 0.0]
+        self.robot_mode = _Mode(mode)
+        self.control_command_success_rate = 1.0
+        self.current_errors = ""
+        self.last_motion_errors = ""
+
+
+class _Duration:
+    def to_sec(self) -> float:
+        return 0.001
+
+
+class _ControlException(RuntimeError):
+    pass
+
+
+class _Torques:
+    def __init__(self, tau: list[float]) -> None:
+        self.tau_J = tau
+        self.motion_finished = False
+
+
+class _Lib:
+    Torques = _Torques
+
+
+class _Model:
+    def zero_jacobian(self, s: _State) -> list[float]:
+        j = np.zeros((6, 7))
+        j[:3, :3] = np.eye(3)  # the first three joints move the end-effector along x, y, z
+        j[3:, 3:6] = np.eye(3)
+        return j.T.reshape(-1).tolist()
+
+    def coriolis(self, s: _State) -> list[float]:
+        return [0.0] * 7
+
+    def gravity(self, s: _State) -> list[float]:
+        return [0.0] * 7
+
+
+class _Control:
+    def __init__(self, arm: _FakeArm) -> None:
+        self.arm = arm
+
+    def readOnce(self) -> tuple[_State, _Duration]:  # pylibfranka's name
+        if self.arm.reflex:
+            raise _ControlException("libfranka: Move command aborted: motion aborted by reflex! [reflex]")
+        return self.arm.next_state, _Duration()
+
+    def writeOnce(self, cmd: _Torques) -> None:
+        self.arm.written.append(cmd)
+
+
+class _FakeArm:
+    def __init__(self) -> None:
+        self.next_state = _State()
+        self.written: list[_Torques] = []
+        self.reflex = False
+        self.recovered = 0
+
+    def read_once(self) -> _State:
+        return self.next_state
+
+    def automatic_error_recovery(self) -> None:
+        self.recovered += 1
+        self.next_state = _State()
+
+    def set_collision_behavior(self, *a: Any) -> None:
+        pass
+
+    def load_model(self) -> _Model:
+        return _Model()
+
+    def start_torque_control(self) -> _Control:
+        return _Control(self)
+
+
+def _fake(arg: str = "127.0.0.1", dof: int = 3) -> tuple[FrankaRobot, _FakeArm]:
+    arm = _FakeArm()
+    return FrankaRobot(dof, 0.001, arg, robot=arm, lib=_Lib()), arm
+
+
+def _step(dev: FrankaRobot, now: float, v: list[float]) -> np.ndarray:
+    dev.wait(0.1)
+    f0, z = dev.affine(now)
+    vv = np.array(v)
+    dev.advance(now, vv, f0 + z * vv)
+    return f0
+
+
+@pytest.mark.parametrize(
+    ("arg", "dof", "error"),
+    [
+        (None, 3, "needs the robot's address"),
+        ("127.0.0.1", 4, "drives 1 to 3 DoF"),
+        ("127.0.0.1", 0, "drives 1 to 3 DoF"),
+        ("bad host!", 1, "is not an IPv4 address or a host name"),
+        ("999.1.1.1", 1, "is not an IPv4 address or a host name"),
+        ("127.0.0.1:stifness=3", 1, "unknown option 'stifness'; allowed: stiffness, damping"),
+        ("127.0.0.1:stiffness=1e9", 1, "stiffness must be in [0, 3000], got '1e9'"),
+        ("127.0.0.1:stiffness=nan", 1, "stiffness must be in [0, 3000]"),
+        ("127.0.0.1:damping=x", 1, "damping must be a number, got 'x'"),
+        ("127.0.0.1:force=magic", 1, "force must be one of spring, ext, joints"),
+        ("127.0.0.1:rt=soft", 1, "rt must be one of auto, enforce, ignore"),
+        ("127.0.0.1:max_velocity", 1, "option 'max_velocity' needs a value"),
+        ("127.0.0.1:cutoff=5,cutoff=6", 1, "option 'cutoff' given twice"),
+        ("127.0.0.1:recover=no", 1, "recover is a flag"),
+        ("[::1", 1, "an IPv6 address goes in brackets"),
+    ],
+)
+def test_a_bad_spec_is_one_line_before_any_session(arg: str | None, dof: int, error: str) -> None:
+    spec = "franka" if arg is None else f"franka:{arg}"
+    with pytest.raises(DeviceError) as e:
+        devices.check(spec, "robot", dof)
+    assert error in str(e.value) and "\n" not in str(e.value)
+
+
+def test_options_parse_with_commas_or_colons() -> None:
+    host, o = parse_arg("127.0.0.1:stiffness=300,damping=30:force=joints,recover")
+    assert host == "127.0.0.1"
+    assert (o.stiffness, o.damping, o.force, o.recover) == (300.0, 30.0, "joints", True)
+    host, o = parse_arg("[::1]:max_stale=5")
+    assert host == "::1" and o.max_stale == 5
+    assert parse_arg("panda.local")[0] == "panda.local"
+
+
+def test_v_moves_the_setpoint_along_its_axis_capped_and_the_spring_reads_on_the_environment() -> None:
+    dev, _ = _fake("127.0.0.1:max_velocity=0.1,max_offset=0.2,cutoff=500", dof=3)
+    for k in range(100):  # 0.1 s at 1 m/s asked along z: capped to 0.1 m/s
+        _step(dev, k * 0.001, [0.0, 0.0, -1.0])
+    assert dev.x_d - dev.x0 == pytest.approx([0.0, 0.0, -0.01], abs=1e-9)  # 100 ticks of 1 ms at 0.1 m/s
+    assert dev.saturated["velocity"] == 100
+    f = _step(dev, 0.1, [0.0, 0.0, 0.0])  # the arm (fake) did not move: the spring pulls down
+    assert f[2] < -3.0 and abs(f[0]) < 1e-9  # on the environment, along the push: F . v > 0
+    assert dev.summary()["port_energy_J"] > 0
+
+
+def test_the_setpoint_stays_within_max_offset_of_the_arm() -> None:
+    dev, _ = _fake("127.0.0.1:max_velocity=1,max_offset=0.01", dof=1)
+    for k in range(200):
+        _step(dev, k * 0.001, [1.0])
+    assert float(np.linalg.norm(dev.x_d - dev.x0)) == pytest.approx(0.01)
+    assert dev.saturated["offset"] > 0 and dev.max_drift == pytest.approx(0.01)
+
+
+def test_torque_rate_is_limited_per_millisecond() -> None:
+    dev, arm = _fake("127.0.0.1:max_torque_rate=0.1,max_velocity=1,max_offset=0.2", dof=1)
+    for k in range(50):
+        _step(dev, k * 0.001, [1.0])
+    taus = np.array([c.tau_J for c in arm.written])
+    assert np.max(np.abs(np.diff(taus, axis=0))) <= 0.1 + 1e-12 and dev.saturated["torque_rate"] > 0
+
+
+def test_a_non_finite_state_is_stale_the_last_force_is_held_and_counted() -> None:
+    dev, arm = _fake("127.0.0.1:force=ext,cutoff=500,max_stale=3", dof=3)
+    for k in range(50):
+        good = _step(dev, k * 0.001, [0.0, 0.0, 0.0])
+    assert good[2] == pytest.approx(-5.0, rel=0.01)  # -O_F_ext_hat_K: the force on the environment
+    bad = _State()
+    bad.q = [math.nan] * 7
+    arm.next_state = bad
+    f = _step(dev, 0.05, [0.0, 0.0, 0.0])
+    assert np.array_equal(f, good) and dev.stale == 1
+    assert arm.written[-1].tau_J == arm.written[-2].tau_J  # the last torque, again
+    nan_force = _State()
+    nan_force.O_F_ext_hat_K = [math.inf] * 6
+    arm.next_state = nan_force
+    assert np.array_equal(_step(dev, 0.051, [0.0, 0.0, 0.0]), good) and dev.stale == 2
+    arm.next_state = bad
+    _step(dev, 0.052, [0.0, 0.0, 0.0])
+    _step(dev, 0.053, [0.0, 0.0, 0.0])
+    _step(dev, 0.054, [0.0, 0.0, 0.0])
+    with pytest.raises(RobotFault, match="3 robot states in a row were not finite"):
+        dev.wait(0.1)
+
+
+def test_a_reflex_is_a_robot_fault_in_one_line_and_nothing_is_commanded_after_it() -> None:
+    dev, arm = _fake()
+    _step(dev, 0.0, [0.0, 0.0, 0.0])
+    arm.reflex = True
+    arm.next_state = _State(mode="Reflex")
+    arm.next_state.last_motion_errors = "[joint_reflex]"
+    with pytest.raises(RobotFault) as e:
+        dev.wait(0.1)
+    assert "reflex" in str(e.value) and "\n" not in str(e.value)
+    n = len(arm.written)
+    dev.advance(0.002, np.zeros(3), np.zeros(3))
+    dev.close()
+    dev.close()
+    assert len(arm.written) == n and dev.summary()["reflex"]
+
+
+def test_a_robot_in_reflex_at_the_start_needs_recover() -> None:
+    arm = _FakeArm()
+    arm.next_state = _State(mode="Reflex")
+    with pytest.raises(DeviceError, match="add the option recover"):
+        FrankaRobot(3, 0.001, "127.0.0.1", robot=arm, lib=_Lib())
+    FrankaRobot(3, 0.001, "127.0.0.1:recover", robot=arm, lib=_Lib())
+    assert arm.recovered == 1
+
+
+def test_close_finishes_the_motion_once() -> None:
+    dev, arm = _fake()
+    _step(dev, 0.0, [0.0, 0.0, 0.0])
+    dev.close()
+    dev.close()
+    assert [c.motion_finished for c in arm.written] == [False, True]
+
+
+# --- against franky-sim -----------------------------------------------------------------------------
+try:
+    import pylibfranka
+
+    HAVE_PYLIBFRANKA = True
+except ImportError:  # the only reason to skip: the client library is not installed
+    HAVE_PYLIBFRANKA = False
+needs_pylibfranka = pytest.mark.skipif(
+    not HAVE_PYLIBFRANKA, reason="import pylibfranka failed: pip install 'teleop[franka]'"
+)
+
+
+@pytest.fixture(scope="module")
+def franky_sim() -> Iterator[str]:
+    """One franky-sim server for the module (one per host: a lock file queues other runs), started
+    and waited for by its "Connect to the server" line, killed at the end."""
+    if not SIM.exists():
+        pytest.fail(f"{SIM} is missing: pip install 'teleop[franka]'")
+    with open(LOCK, "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        p = subprocess.Popen(
+            [str(SIM), "-s", "mujoco"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1
+        )
+        try:
+            assert p.stdout is not None
+            deadline, seen = time.monotonic() + 120, []
+            for line in p.stdout:
+                seen.append(line)
+                if "Connect to the server" in line:
+                    break
+                if time.monotonic() > deadline:
+                    break
+            else:
+                pytest.fail(f"franky-sim exited: {''.join(seen)[-500:]}")
+            if not any("Connect to the server" in s for s in seen):
+                pytest.fail(f"franky-sim did not start in 120 s: {''.join(seen)[-500:]}")
+            yield "127.0.0.1"
+        finally:
+            p.kill()
+            p.wait(10)
+
+
+def _run_device(dev: FrankaRobot, seconds: float, v: list[float], t0: float) -> tuple[float, np.ndarray]:
+    """Tick the device on its own clock for ``seconds`` of the robot's time (franky-sim's runs slower
+    than the wall clock when its client is slow) at ``v``; returns (time, last force)."""
+    t, f = t0, np.zeros(dev.dof)
+    start = dev.reads
+    vv = np.array(v)
+    while (dev.reads - start) * 0.001 < seconds:
+        dev.wait(0.1)
+        t = t0 + (dev.reads - start) * 0.001
+        f, z = dev.affine(t)
+        dev.advance(t, vv, f + z * vv)
+    return t, f
+
+
+def _pos(dev: FrankaRobot) -> np.ndarray:
+    return np.asarray(dev._x - dev.x0)  # the measured end-effector from the origin (test only)
+
+
+@pytest.mark.integration
+@needs_pylibfranka
+def test_the_device_against_franky_sim(franky_sim: str) -> None:
+    dev = devices.make("robot", f"franka:{franky_sim}:force=spring", 3, 0.001)
+    assert isinstance(dev, FrankaRobot)
+    try:
+        # Up first (the server keeps the arm where the last client left it): along z only, ~v t.
+        # Settle first: on franky-sim the arm sags about 1 cm when the torque loop takes over (a load
+        # its gravity model does not carry, against K): the displacements are measured from there.
+        t, _ = _run_device(dev, 1.0, [0.0, 0.0, 0.0], 0.0)
+        base = _pos(dev)
+        t, _ = _run_device(dev, 1.0, [0.0, 0.0, 0.05], t)
+        up = _pos(dev) - base
+        sp = dev.x_d - dev.x0
+        assert sp[2] == pytest.approx(0.05, rel=0.01)  # the set-point moved v t (the robot's t)
+        assert up[2] > 0.02 and abs(up[0]) < 0.01 and abs(up[1]) < 0.005  # the arm follows, lagging
+        # v = 0: it stops at about v t and holds there.
+        t, _ = _run_device(dev, 1.0, [0.0, 0.0, 0.0], t)
+        held = _pos(dev)
+        # About v t: franky-sim's arm stops short by ~20% (a steady-state error against K, under
+        # investigation: see docs/guides/franka.md), so "about" is 30% here.
+        assert held[2] - base[2] == pytest.approx(0.05, rel=0.3)
+        t, _ = _run_device(dev, 0.5, [0.0, 0.0, 0.0], t)
+        assert float(np.linalg.norm(_pos(dev) - held)) < 0.002
+        # Along x.
+        t, _ = _run_device(dev, 0.6, [0.05, 0.0, 0.0], t)
+        t, _ = _run_device(dev, 1.0, [0.0, 0.0, 0.0], t)
+        moved = _pos(dev) - held
+        assert moved[0] == pytest.approx(0.03, rel=0.3) and abs(moved[1]) < 0.005 and abs(moved[2]) < 0.008
+        # Free space: about no force.  Down into the floor: the force on it reads along the push.
+        _, free = _run_device(dev, 0.3, [0.0, 0.0, 0.0], t)
+        assert float(np.linalg.norm(free)) < 2.0
+        t, f = _run_device(dev, 4.0, [0.0, 0.0, -0.25], t)
+        assert dev.x0[2] + _pos(dev)[2] < 0.05  # at the floor (z ~ 0.01 m)
+        assert f[2] < -10.0 and abs(f[2]) <= dev.opts.max_force + 1e-6  # pushing down: F_z < 0, F.v > 0
+        s = dev.summary()
+        assert s["control_command_success_rate"] == 1.0 and s["stale_reads"] == 0 and s["reflex"] is None
+        _run_device(dev, 3.0, [0.0, 0.0, 0.25], t)  # back up for the next test
+    finally:
+        dev.close()
+        dev.close()
+    state = pylibfranka.Robot(franky_sim, pylibfranka.RealtimeConfig.kIgnore).read_once()
+    assert str(state.robot_mode).endswith("Idle") and max(abs(x) for x in state.dq) < 0.05
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.mark.integration
+@needs_pylibfranka
+def test_a_session_driving_franky_sim(franky_sim: str, tmp_path: Path) -> None:
+    port = _free_port()
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    to = subprocess.Popen(
+        [
+            *TELEOP,
+            "teleoperator",
+            "--robot",
+            f"franka:{franky_sim}",
+            "--dof",
+            "3",
+            "--insecure",
+            "--listen",
+            f"127.0.0.1:{port}",
+            "--log",
+            str(tmp_path),
+            "--quiet",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    with contextlib.ExitStack() as stack:
+        stack.callback(to.kill)  # a no-op once it exited
+        op = subprocess.run(
+            [
+                *TELEOP,
+                "operator",
+                "--dof",
+                "3",
+                "--insecure",
+                "--peer",
+                f"127.0.0.1:{port}",
+                "--duration",
+                "10",
+                "--log",
+                str(tmp_path),
+                "--quiet",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env=env,
+        )
+        _, to_err = to.communicate(timeout=60)
+    assert op.returncode == 0, op.stderr
+    assert to.returncode == 0, to_err
+    role = json.loads((tmp_path / "teleoperator.json").read_text())
+    dev, loop = role["device"], role["loop"]
+    assert role["completed"] and "fault" not in role
+    assert dev["robot"] == "franka" and dev["reflex"] is None and dev["stale_reads"] == 0
+    assert dev["control_command_success_rate"] == 1.0
+    assert dev["min_port_energy_J"] > -1e-6  # the robot's port: passive
+    assert dev["max_drift_m"] <= dev["max_offset_m"] + 1e-9
+    assert loop["device_paced"] and loop["ticks"] + loop["missed_deadlines"] >= 9990
+    rep = subprocess.run(
+        [*TELEOP, "report", str(tmp_path), "--no-plots", "--no-sim", "--out", str(tmp_path / "r")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+    )
+    assert rep.returncode == 0, rep.stderr
+    assert "robot franka:127.0.0.1: success rate 1.000" in rep.stdout
+    assert "paced by its device: missed deadlines" in rep.stdout
+    state = pylibfranka.Robot(franky_sim, pylibfranka.RealtimeConfig.kIgnore).read_once()
+    assert str(state.robot_mode).endswith("Idle") and not str(state.current_errors).strip("[]")
