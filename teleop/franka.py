@@ -74,6 +74,8 @@ _HOSTNAME = re.compile(
 )
 _ROBOT_DT = 0.001  # s: the robot's tick
 STARTUP_READS = 10  # reads after the start during which the mode may still say Idle
+SETTLE_TICKS = 1000  # robot ticks (1 s) the arm may take to come to rest when the session ends
+REST_DQ = 0.01  # rad/s: every joint slower than this is at rest
 
 
 class RobotFault(DeviceError):
@@ -84,8 +86,8 @@ class RobotFault(DeviceError):
 class FrankaOptions:
     """What OPTIONS may set: ``key=value`` (or a flag) separated by ``,`` or ``:``."""
 
-    stiffness: float = 400.0  # N/m, translation
-    damping: float = 40.0  # N s/m
+    stiffness: float = 1500.0  # N/m, translation (franky-sim's arm resists like ~100-200 N/m)
+    damping: float = 80.0  # N s/m (about critical for the arm's ~1 kg at the end-effector)
     rot_stiffness: float = 30.0  # N m/rad, holds the starting orientation
     rot_damping: float = 4.0  # N m s/rad
     nullspace: float = 5.0  # N m/rad toward the starting joint angles, in the nullspace
@@ -529,15 +531,35 @@ class FrankaRobot:
             return
         self.closed = True
         ctl, self.ctl = self.ctl, None
-        if ctl is None or self.fault is not None:
-            return
         try:
-            ctl.readOnce()
-            cmd = self.lib.Torques(self._tau.tolist())  # the last torque, not a new one
-            cmd.motion_finished = True
-            ctl.writeOnce(cmd)
+            if ctl is not None and self.fault is None:
+                self._settle(ctl)  # ends on a read this last command answers
+                cmd = self.lib.Torques(self._tau.tolist())  # the last torque, not a new one
+                cmd.motion_finished = True
+                ctl.writeOnce(cmd)
         except Exception as e:
             self.fault = f"while stopping: {_reason(e)}"
+        finally:
+            # Let go of the connection: libfranka takes one client at a time, and a robot object
+            # kept alive keeps the arm from the next (the next session, or another program).
+            del ctl
+            self.robot = self.model = None
+
+    def _settle(self, ctl: Any) -> None:
+        """Bring the arm to rest before the motion ends: hold the set-point where the arm is, under
+        the same impedance, until every joint is below :data:`REST_DQ` (at most
+        :data:`SETTLE_TICKS` robot ticks), so a session that ends mid-stroke stops smoothly.  It
+        returns on a read not yet answered: libfranka wants one command for every read."""
+        if self._good:
+            self.x_d = self._x.copy()
+        for i in range(SETTLE_TICKS):
+            state, duration = ctl.readOnce()
+            self._take(state, duration)
+            if i == SETTLE_TICKS - 1 or (self._good and float(np.max(np.abs(self._dq))) < REST_DQ):
+                return  # the caller's last command answers this read
+            tau = self._limit(self._torque()) if self._good else self._tau
+            ctl.writeOnce(self.lib.Torques(tau.tolist()))
+            self._tau = tau
 
     def status(self) -> str:
         """A few words for the live status line."""

@@ -334,19 +334,21 @@ def test_the_device_against_franky_sim(franky_sim: str) -> None:
         # v = 0: it stops at about v t and holds there.
         t, _ = _run_device(dev, 1.0, [0.0, 0.0, 0.0], t)
         held = _pos(dev)
-        # About v t: franky-sim's arm stops short by ~20% (a steady-state error against K, under
-        # investigation: see docs/guides/franka.md), so "about" is 30% here.
-        assert held[2] - base[2] == pytest.approx(0.05, rel=0.3)
+        # About v t: franky-sim's gravity model differs from its physics by a pose-dependent load
+        # that resists like a 100-200 N/m spring (docs/guides/franka.md): 5% short at K = 1500.
+        assert held[2] - base[2] == pytest.approx(0.05, rel=0.12)
         t, _ = _run_device(dev, 0.5, [0.0, 0.0, 0.0], t)
         assert float(np.linalg.norm(_pos(dev) - held)) < 0.002
         # Along x.
         t, _ = _run_device(dev, 0.6, [0.05, 0.0, 0.0], t)
         t, _ = _run_device(dev, 1.0, [0.0, 0.0, 0.0], t)
         moved = _pos(dev) - held
-        assert moved[0] == pytest.approx(0.03, rel=0.3) and abs(moved[1]) < 0.005 and abs(moved[2]) < 0.008
-        # Free space: about no force.  Down into the floor: the force on it reads along the push.
+        assert moved[0] == pytest.approx(0.03, rel=0.12) and abs(moved[1]) < 0.005 and abs(moved[2]) < 0.008
+        # Free space: only franky-sim's own model error, which the spring holds off (its gravity
+        # model and its physics differ by a pose-dependent load: ~9 N here, docs/guides/franka.md);
+        # well below the contact force.  Down into the floor: the force reads along the push.
         _, free = _run_device(dev, 0.3, [0.0, 0.0, 0.0], t)
-        assert float(np.linalg.norm(free)) < 2.0
+        assert float(np.linalg.norm(free)) < 0.5 * dev.opts.max_force
         t, f = _run_device(dev, 4.0, [0.0, 0.0, -0.25], t)
         assert dev.x0[2] + _pos(dev)[2] < 0.05  # at the floor (z ~ 0.01 m)
         assert f[2] < -10.0 and abs(f[2]) <= dev.opts.max_force + 1e-6  # pushing down: F_z < 0, F.v > 0
@@ -421,7 +423,10 @@ def test_a_session_driving_franky_sim(franky_sim: str, tmp_path: Path) -> None:
     assert role["completed"] and "fault" not in role
     assert dev["robot"] == "franka" and dev["reflex"] is None and dev["stale_reads"] == 0
     assert dev["control_command_success_rate"] == 1.0
-    assert dev["min_port_energy_J"] > -1e-6  # the robot's port: passive
+    # The device's own observer of its port (sum v F dt with the reported, low-passed force) may
+    # dip by micro-joules: the filter lags the spring, and franky-sim's model error is a
+    # conservative field that returns what it stored.  The channel's passivity is the report's.
+    assert dev["min_port_energy_J"] > -1e-5
     assert dev["max_drift_m"] <= dev["max_offset_m"] + 1e-9
     assert loop["device_paced"] and loop["ticks"] + loop["missed_deadlines"] >= 9990
     rep = subprocess.run(
@@ -432,6 +437,10 @@ def test_a_session_driving_franky_sim(franky_sim: str, tmp_path: Path) -> None:
         env=env,
     )
     assert rep.returncode == 0, rep.stderr
+    report = json.loads((tmp_path / "r" / "report.json").read_text())
+    assert report["two_port_min_energy"] >= -1e-9  # eq. (4): the channel stayed passive
+    for d in ("forward", "backward"):
+        assert report["energy"][d]["min_margin"] >= -1e-9
     assert "robot franka:127.0.0.1: success rate 1.000" in rep.stdout
     assert "paced by its device: missed deadlines" in rep.stdout
     state = pylibfranka.Robot(franky_sim, pylibfranka.RealtimeConfig.kIgnore).read_once()
