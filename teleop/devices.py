@@ -41,6 +41,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from .errors import LocalError
+from .limits import MAX_DOF
 from .models import Array, LtiEnvironment, ProtocolEnvironment, ProtocolHuman, ProtocolPlan, StepHuman
 
 ROLES = ("hsi", "robot")
@@ -71,6 +72,7 @@ class Builtin:
     usage: str  # how it is named on the command line, e.g. "mujoco[:SCENE.xml]"
     description: str
     check: Callable[[str | None, int], None] | None = None  # checks ARG (and a DoF) before a session
+    max_dof: int = MAX_DOF  # the most DoF it drives: a robot refuses a session with more (its envelope)
 
 
 def _no_arg(name: str, arg: str | None) -> None:
@@ -137,12 +139,14 @@ BUILTIN: dict[str, dict[str, Builtin]] = {
             "mujoco[:SCENE.xml]",
             "MuJoCo end effector, default scene: free space, foam, wall",
             _mujoco_check,
+            max_dof=3,
         ),
         "franka": Builtin(
             _franka,
             "franka:HOST[:OPTIONS]",
             "Franka arm (FR3, Panda) through pylibfranka, Cartesian impedance, paced by the robot",
             _franka_check,
+            max_dof=3,
         ),
     },
 }
@@ -242,6 +246,13 @@ def check(spec: str, role: str, dof: int = 1) -> DeviceSpec:
     elif builtin is not None and ds.arg is not None:
         raise DeviceError(f"{role} {name!r} takes no argument, got {spec!r}")
     return ds
+
+
+def max_dof(spec: str | None, role: str) -> int:
+    """The most DoF the device named by ``spec`` drives (a built-in's own bound; a third-party
+    device's is not known before it is built: :data:`MAX_DOF`)."""
+    builtin = BUILTIN[role].get((spec or "").partition(":")[0])
+    return builtin.max_dof if builtin is not None else MAX_DOF
 
 
 def builtin_only(spec: str | None, role: str) -> str | None:

@@ -137,7 +137,7 @@ class Envelope:
     max_range: float = 2.0  # sqrt(W): the largest wave range of any codec the robot plays (CQ's RANGE too)
     min_b: float = 1.0  # N s/m: a low impedance turns a small wave into a fast motion (v = sqrt(2/b) g)
     max_b: float = 20.0  # N s/m: a high one into a large force (F = sqrt(2 b) g)
-    max_dof: int = limits.MAX_DOF
+    max_dof: int = limits.MAX_DOF  # the robot device's own (teleop.devices.max_dof)
     dt: float = 0.001  # s: the robot's own period; a session runs at it or not at all
     passivity: tuple[str, ...] = ("wave", "tdpa")  # the architectures this robot runs
     on_loss: tuple[str, ...] = ON_LOSS  # the reconstructions it plays on a loss
@@ -405,7 +405,7 @@ SETTINGS: tuple[Setting, ...] = (
 ROBOT_FLAGS: dict[str, tuple[str, ...]] = {
     "range": ("--max-range",),
     "b": ("--min-b", "--max-b"),
-    "dof": ("--dof",),
+    "dof": ("--robot",),
     "link_timeout": ("--max-link-timeout",),
 }
 

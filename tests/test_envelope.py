@@ -60,6 +60,14 @@ def test_cq_range_under_tdpa_is_held_to_the_robots_power_ranges() -> None:
     assert DEFAULT_ENVELOPE.check(params(codec="cq:16", passivity="tdpa")) is None
 
 
+def test_a_dof_beyond_the_robot_device_is_refused_not_a_crash() -> None:
+    from teleop.devices import max_dof
+
+    why = _refused(params(dof=6), Envelope(max_dof=max_dof("mujoco", "robot")))
+    assert why.startswith("dof 6 exceeds this robot's limit 3") and "--robot" in why
+    assert max_dof("franka:127.0.0.1", "robot") == 3 and max_dof(None, "robot") == 64
+
+
 def test_choices_are_the_robots() -> None:
     env = Envelope(passivity=("wave",), on_loss=("zero", "conceal"))
     assert "--allow-passivity" in _refused(params(passivity="tdpa"), env)

@@ -119,8 +119,11 @@ def robot_envelope(args: argparse.Namespace) -> Any:
     min_b = widened(args.min_b, args.b, e.min_b, "--min-b", "--b", False)
     if min_b > max_b:
         raise CliError(f"--min-b {min_b:g} exceeds --max-b {max_b:g}")
+    from ..devices import max_dof
+
     try:
         return Envelope(
+            max_dof=max_dof(args.robot, "robot"),
             max_range=max_range,
             min_b=min_b,
             max_b=max_b,
