@@ -141,7 +141,9 @@ class Envelope:
     dt: float = 0.001  # s: the robot's own period; a session runs at it or not at all
     passivity: tuple[str, ...] = ("wave", "tdpa")  # the architectures this robot runs
     on_loss: tuple[str, ...] = ON_LOSS  # the reconstructions it plays on a loss
-    allow_no_controller: bool = False  # the passivity controller is never off unless this robot says so
+    # The reconstructions it plays with the passivity controller off: none (the default) refuses the
+    # controller off; a robot that allows it names which (zero is passive; hold and conceal are not).
+    uncontrolled_on_loss: tuple[str, ...] = ()
     max_link_timeout: float = 0.25  # s: the longest it keeps acting on a silent link
     max_playout_ms: float = 200.0  # ms: the largest fixed playout delay it adds
     max_velocity: float = 1.5  # m/s per DoF: what it is ever commanded
@@ -160,6 +162,11 @@ class Envelope:
             raise ValueError(f"passivity must be some of {', '.join(PASSIVITY)}, got {self.passivity!r}")
         if not set(self.on_loss) <= set(ON_LOSS) or not self.on_loss:
             raise ValueError(f"on_loss must be some of {', '.join(ON_LOSS)}, got {self.on_loss!r}")
+        if not set(self.uncontrolled_on_loss) <= set(ON_LOSS):
+            raise ValueError(
+                f"uncontrolled_on_loss must be some of {', '.join(ON_LOSS)}, "
+                f"got {self.uncontrolled_on_loss!r}"
+            )
 
     def check(self, p: Proposal) -> str | None:
         """The first proposed setting outside this envelope, said as a reject reason (the field,
@@ -185,14 +192,18 @@ class Envelope:
                 f"passivity {p.passivity} is not allowed by this robot, which runs "
                 f"{', '.join(self.passivity)} (--allow-passivity)"
             )
-        if not p.controller and not self.allow_no_controller:
+        if not p.controller and not self.uncontrolled_on_loss:
             return "controller off is not allowed by this robot (--allow-no-controller)"
-        allowed = self.on_loss if p.controller else tuple(o for o in self.on_loss if o == "zero")
+        allowed = self.on_loss if p.controller else self.uncontrolled_on_loss
         if p.on_loss not in allowed:
-            why = "" if p.controller else " without the passivity controller"
+            if p.controller:
+                return (
+                    f"on_loss {p.on_loss} is not allowed by this robot; it allows "
+                    f"{', '.join(allowed)} (--allow-on-loss)"
+                )
             return (
-                f"on_loss {p.on_loss} is not allowed by this robot{why}; it allows "
-                f"{', '.join(allowed) or 'none'} (--allow-on-loss)"
+                f"on_loss {p.on_loss} is not allowed by this robot without the passivity controller; "
+                f"it allows {', '.join(allowed)} there (--allow-no-controller)"
             )
         if p.playout not in ("off", "auto") and float(p.playout) > self.max_playout_ms:
             return (
@@ -226,7 +237,9 @@ class Envelope:
             dt=p.dt,
             passivity=tuple(dict.fromkeys((*self.passivity, p.passivity))),
             on_loss=tuple(dict.fromkeys((*self.on_loss, p.on_loss))),
-            allow_no_controller=self.allow_no_controller or not p.controller,
+            uncontrolled_on_loss=self.uncontrolled_on_loss
+            if p.controller
+            else tuple(dict.fromkeys((*self.uncontrolled_on_loss, p.on_loss))),
             max_link_timeout=max(self.max_link_timeout, p.link_timeout),
             max_playout_ms=max(self.max_playout_ms, float(p.playout) if fixed else 0.0),
         )
@@ -349,7 +362,7 @@ SETTINGS: tuple[Setting, ...] = (
         "on_loss",
         None,
         True,
-        "one of --allow-on-loss (default all); only zero without the controller",
+        "one of --allow-on-loss (default all); without the controller one of --allow-no-controller's",
         "--on-loss",
         ("--allow-on-loss",),
     ),
@@ -358,7 +371,7 @@ SETTINGS: tuple[Setting, ...] = (
         "controller",
         None,
         True,
-        "refused off unless the robot says --allow-no-controller",
+        "refused off unless the robot says --allow-no-controller [LIST] (default zero)",
         "--no-controller",
         ("--allow-no-controller",),
     ),

@@ -72,10 +72,14 @@ def test_choices_are_the_robots() -> None:
     env = Envelope(passivity=("wave",), on_loss=("zero", "conceal"))
     assert "--allow-passivity" in _refused(params(passivity="tdpa"), env)
     assert "--allow-on-loss" in _refused(params(on_loss="hold"), env)
-    # Without the controller only zero, even where the robot lets the controller go.
-    lax = Envelope(allow_no_controller=True)
+    # Without the controller only what the robot named there: zero unless it said more.
+    lax = Envelope(uncontrolled_on_loss=("zero",))
     assert "without the passivity controller" in _refused(params(controller=False, on_loss="hold"), lax)
     assert lax.check(params(controller=False, on_loss="zero")) is None
+    assert (
+        Envelope(uncontrolled_on_loss=("zero", "hold")).check(params(controller=False, on_loss="hold"))
+        is None
+    )
 
 
 def test_a_proposal_within_the_envelope_passes() -> None:

@@ -29,6 +29,7 @@ from teleop.endpoint import Endpoint, SessionEnded, SessionStarted, State, sessi
 from teleop.link import Addr
 from teleop.port import Port, PortKeys
 from teleop.protocol import SessionParams
+from teleop.settings import DEFAULT_ENVELOPE
 
 QUIET_S = 0.3  # how long "no answer" is waited for
 PROBE_TIMEOUT_S = 2.0
@@ -78,12 +79,13 @@ class Result:
 
 
 def params_for(session: int, codec: str, duration: float) -> SessionParams:
-    """The session proposed to a teleoperator: 2 DoF, the protocol scenario, and a link timeout of 1 s
-    (a loaded host's stall must not put the peer into link loss, where a hello means a takeover and
-    the busy rule no longer applies)."""
+    """The session proposed to a teleoperator: 2 DoF, the protocol scenario, and a link timeout of
+    0.25 s, the longest a robot affords by default (teleop.settings.Envelope): a loaded host's stall
+    must not put the peer into link loss, where a hello means a takeover and the busy rule no
+    longer applies."""
     return SessionParams(
         session=session, codec=codec, scenario="protocol", dof=2, b=20.0, full_scale=2.0, duration=duration,
-        link_timeout=1.0,
+        link_timeout=DEFAULT_ENVELOPE.max_link_timeout,
     ).validate()  # fmt: skip
 
 
@@ -353,9 +355,7 @@ def _data_checks(r: Result, d: _DataCheck, codec: str, ticks: int) -> None:
         "3.1",
         "MUST",
         "seq counts the packets produced: each above the last, all below the bye's produced",
-        d.first_seq is not None
-        and d.seq_not_rising == 0
-        and (produced is None or d.last_seq < produced),
+        d.first_seq is not None and d.seq_not_rising == 0 and (produced is None or d.last_seq < produced),
         f"first {d.first_seq}, highest {d.last_seq}, produced {produced}, {d.packets} arrived,"
         f" gaps {d.seq_gaps}, not rising {d.seq_not_rising}",
     )

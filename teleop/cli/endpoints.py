@@ -129,7 +129,7 @@ def robot_envelope(args: argparse.Namespace) -> Any:
             max_b=max_b,
             passivity=_names(args.allow_passivity, PASSIVITY, "--allow-passivity") or e.passivity,
             on_loss=_names(args.allow_on_loss, ON_LOSS, "--allow-on-loss") or e.on_loss,
-            allow_no_controller=args.allow_no_controller,
+            uncontrolled_on_loss=_names(args.allow_no_controller, ON_LOSS, "--allow-no-controller") or (),
             max_link_timeout=args.max_link_timeout / 1e3,
             max_playout_ms=args.max_playout,
             max_velocity=args.max_velocity,
@@ -245,8 +245,8 @@ def envelope_flags(env: Any) -> list[str]:
     for name, flag in (("passivity", "--allow-passivity"), ("on_loss", "--allow-on-loss")):
         if getattr(env, name) != getattr(e, name):
             out += [flag, ",".join(getattr(env, name))]
-    if env.allow_no_controller:
-        out.append("--allow-no-controller")
+    if env.uncontrolled_on_loss:
+        out += ["--allow-no-controller", ",".join(env.uncontrolled_on_loss)]
     return out
 
 
@@ -314,12 +314,17 @@ def add_envelope_args(t: argparse.ArgumentParser) -> None:
         metavar="LIST",
         default=None,
         help="the reconstructions this robot plays on a loss, comma-separated "
-        f"(default {','.join(e.on_loss)}; without the controller only zero)",
+        f"(default {','.join(e.on_loss)}; without the controller: --allow-no-controller's)",
     )
     g.add_argument(
         "--allow-no-controller",
-        action="store_true",
-        help="let an operator turn the passivity controller off (refused otherwise)",
+        nargs="?",
+        const="zero",
+        default=None,
+        metavar="LIST",
+        help="let an operator turn the passivity controller off (refused otherwise), with the "
+        "reconstructions named, comma-separated (default zero, the passive one; hold and conceal "
+        "generate energy without the controller)",
     )
     g.add_argument(
         "--max-velocity",
