@@ -1,0 +1,102 @@
+"""Records nobody can plant or lose (issue 36).
+
+The "another user" cases run as root and act as ``nobody`` in a subprocess (``setpriv``): a symlink
+planted as the log folder, or on the way to it, gets nothing written through it; a log planted in a
+shared folder is not used by ``teleop report``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from teleop import files
+from teleop.cli import main
+from transport import logdir
+
+NOBODY = ["setpriv", "--reuid=nobody", "--regid=nogroup", "--clear-groups"]
+as_root = pytest.mark.skipif(
+    os.geteuid() != 0 or shutil.which("setpriv") is None,
+    reason="acting as another user (nobody) needs root and setpriv",
+)
+
+
+def as_nobody(*argv: str) -> None:
+    """Run ``argv`` as user nobody (it must succeed)."""
+    subprocess.run([*NOBODY, *argv], check=True, capture_output=True, timeout=30)
+
+
+@pytest.fixture
+def shared() -> Iterator[Path]:
+    """A folder others can reach (in /tmp: pytest's own is 0700), removed afterwards."""
+    base = Path(tempfile.mkdtemp(prefix="teleop-records-", dir="/tmp"))
+    base.chmod(0o755)
+    try:
+        yield base
+    finally:
+        shutil.rmtree(base, ignore_errors=True)
+
+
+def _one_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2, err
+    assert "Traceback" not in err and err.startswith("teleop: error: "), err
+    assert len(err.strip().splitlines()) == 1, err
+    return err
+
+
+# --- 1. the log folder is the one the user named -------------------------------------------------
+@as_root
+@pytest.mark.parametrize("parent_mode", [0o777, 0o1777])  # world-writable, and sticky as /tmp
+@pytest.mark.parametrize("where", ["folder", "on the way"])
+def test_a_symlink_another_user_planted_gets_nothing_written_through_it(
+    shared: Path, parent_mode: int, where: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    victim = shared / "victim"  # root's, 755: nobody cannot write it, root can
+    victim.mkdir()
+    parent = shared / "parent"
+    parent.mkdir()
+    parent.chmod(parent_mode)
+    as_nobody("ln", "-s", str(victim), str(parent / "logs"))
+    logs = parent / "logs" if where == "folder" else parent / "logs" / "deeper"
+    if where == "on the way":
+        (victim / "deeper").mkdir()
+    cmd = ["teleoperator", "--listen", "127.0.0.1:0", "--insecure", "--log", str(logs)]
+    err = _one_line(cmd, capsys)
+    if parent_mode & 0o1000:  # the parent passes (sticky), the symlink of nobody's does not
+        assert f"{parent / 'logs'} is a symlink of uid" in err and "nothing is written through it" in err
+    else:
+        assert f"the folder {parent} on the way is writable by other users (mode 777)" in err
+    with pytest.raises(files.FileRefused):  # the writer's own walk refuses it too
+        logdir.reserve(logs, "teleoperator", 7)
+    assert sorted(p.name for p in victim.rglob("*")) == (["deeper"] if where == "on the way" else [])
+
+
+@as_root
+def test_a_folder_on_the_way_owned_by_another_user_is_refused(shared: Path) -> None:
+    theirs = shared / "theirs"
+    theirs.mkdir()
+    os.chown(theirs, 65534, -1)
+    with pytest.raises(files.FileRefused, match=r"theirs on the way is owned by uid 65534"):
+        logdir.reserve(theirs / "logs", "operator", 1)
+    assert not (theirs / "logs").exists()
+
+
+def test_a_symlink_of_this_users_own_in_a_private_folder_is_followed(tmp_path: Path) -> None:
+    """As /var/run -> /run: a link only this user or root could have placed is not a plant."""
+    real = tmp_path / "real"
+    real.mkdir()
+    (tmp_path / "via").symlink_to("real")
+    got = logdir.reserve(tmp_path / "via" / "logs", "operator", 3)
+    assert (real / "logs" / "operator.mcap").exists() and got.mcap.name == "operator.mcap"
+    assert logdir.write_summary(got.summary, {"ok": 1}) is None
+    assert (real / "logs" / "operator.json").exists()
+    assert os.stat(real / "logs").st_mode & 0o777 == 0o755
