@@ -30,6 +30,7 @@ __all__ = [
     "PER_TICK_TOPICS",
     "TOPICS",
     "LogError",
+    "UntrustedLog",
     "find_pair",
     "iter_messages",
     "iter_ticks",
@@ -184,13 +185,39 @@ def _walk(path: Path) -> Iterator[_Walk]:
         if not stat.S_ISREG(st.st_mode):
             raise LogError("not a regular file (a log is one)")
         with open(path, "rb", opener=_nonblocking) as f:
+            _trusted(os.fstat(f.fileno()), path)
             yield _Walk(f, path)
+    except UntrustedLog as e:
+        raise UntrustedLog(f"{path}: {e}") from None
     except LogError as e:
         raise LogError(f"{path}: {e}") from None
     except (ZstdError, struct.error, UnicodeDecodeError) as e:  # damaged
         raise LogError(f"{path}: not a readable MCAP file ({type(e).__name__}: {e})") from None
     except OSError as e:
         raise LogError(f"{path}: {e.strerror or e}") from None
+
+
+class UntrustedLog(LogError):
+    """A log that another user could have planted: owned by someone else than this user or root,
+    in a folder others can write (sticky or not)."""
+
+
+def _trusted(st: os.stat_result, path: Path) -> None:
+    """:class:`UntrustedLog` for a file (its ``fstat``: the file opened, not a name swapped since)
+    owned by another user than this one or root in a folder others can write.
+
+    Why: a sticky folder (as /tmp) stops others from replacing our files, not from adding theirs:
+    a newer ``operator-SID.mcap`` of another user's, for the same session, was taken as the
+    session's log (and its figures: backward violations 0 -> 1785, measured)."""
+    me = os.geteuid()
+    if st.st_uid in (0, me):
+        return
+    folder = os.stat(path.parent)
+    if folder.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        raise UntrustedLog(
+            f"owned by uid {st.st_uid}, not by this user ({me}) or root, in a folder others can "
+            "write: not used (another user could have planted it)"
+        )
 
 
 def _nonblocking(path: str, flags: int) -> int:
@@ -460,10 +487,13 @@ def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, li
     """The operator's and the teleoperator's log of one session in ``log_dir`` (``ROLE.mcap``,
     ``ROLE-*.mcap``: restarts add files, never replace one), paired by session id: ``session``, or
     else the session of the newest log that has both.  Where a role has several logs of the session
-    (a restarted process that rejoined), the newest is taken.  Returns the two paths and notes on
+    (a restarted process that rejoined, or a planted one), :class:`LogError` names them: a report
+    never picks one silently.  A log another user could have planted (:class:`UntrustedLog`) is
+    ignored and named in the notes.  Returns the two paths and notes on
     what else the folder holds; :class:`LogError` when no pair is found."""
     found: dict[int, dict[str, list[tuple[int, Path]]]] = {}
     errors: dict[str, str] = {}
+    ignored: list[str] = []
     for role in ROLES:
         paths = sorted({*log_dir.glob(f"{role}.mcap"), *log_dir.glob(f"{role}-*.mcap")})
         if not paths:
@@ -474,6 +504,10 @@ def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, li
                 if not stat.S_ISREG(st.st_mode):
                     raise LogError(f"{path}: not a regular file (a log is one)")
                 sid, _, _ = log_session(path)
+            except UntrustedLog as e:  # flagged and ignored: the figures are the genuine logs'
+                ignored.append(f"ignored {e}")
+                errors.setdefault(role, str(e))
+                continue
             except LogError as e:
                 errors.setdefault(role, str(e))
                 continue
@@ -501,9 +535,11 @@ def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, li
     pick = {}
     for role in ROLES:
         logs = sorted(both[chosen][role])
-        pick[role] = logs[-1][1]
         if len(logs) > 1:
-            notes.append(
-                f"{role}: {len(logs)} logs of session {chosen}, the newest taken ({pick[role].name})"
+            names = ", ".join(p.name for _, p in logs[:4]) + (", ..." if len(logs) > 4 else "")
+            raise LogError(
+                f"{log_dir} holds {len(logs)} {role} logs of session {chosen} ({names}): a report "
+                "reads one of each role; move the others out of the folder (a restarted process's)"
             )
-    return pick["operator"], pick["teleoperator"], notes
+        pick[role] = logs[0][1]
+    return pick["operator"], pick["teleoperator"], notes + ignored

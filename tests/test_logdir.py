@@ -530,3 +530,74 @@ def test_a_process_killed_mid_session_leaves_a_log_the_report_reads(tmp_path: Pa
     assert "operator     SUMMARY MISSING" in r.stdout
     rep = json.loads((tmp_path / "report.json").read_text())
     assert rep["summary_missing"] == ["operator"] and rep["transparency"]["ticks_compared"] >= 1000
+
+
+# --- issue 36: a report reads only logs it can trust ---------------------------------------------
+@pytest.mark.integration
+@pytest.mark.skipif(os.geteuid() != 0, reason="planting a log as another user (nobody) needs root")
+def test_a_log_another_user_planted_in_a_shared_folder_is_not_used(genuine: Path, tmp_path: Path) -> None:
+    """A sticky folder (as /tmp) stops others replacing our logs, not adding theirs: nobody's newer
+    operator log of the same session, with other figures, is flagged and ignored."""
+    import shutil
+    import tempfile
+
+    base = Path(tempfile.mkdtemp(prefix="teleop-shared-", dir="/tmp"))  # nobody must reach it
+    try:
+        base.chmod(0o755)
+        logs = base / "logs"
+        logs.mkdir()
+        for role in ("operator", "teleoperator"):
+            (logs / f"{role}.mcap").write_bytes((genuine / f"{role}.mcap").read_bytes())
+        honest = _report(logs, "--no-sim", "--out", str(tmp_path / "honest"))
+        assert honest.returncode == 0, honest.stderr
+        logs.chmod(0o1777)
+        sid = read_summary(genuine / "operator.mcap")["params"]["session"]
+
+        def louder(topic: str, m: dict[str, Any]) -> dict[str, Any]:
+            if topic.endswith("/signals"):
+                m["v"] = [10 * x for x in m["v"]]
+            return m
+
+        crafted = base / "crafted.mcap"  # (nobody cannot read pytest's folders)
+        _rewrite(genuine / "operator.mcap", crafted, louder)
+        crafted.chmod(0o644)
+        planted = logs / f"operator-{sid}.mcap"
+        subprocess.run(
+            [
+                "setpriv",
+                "--reuid=nobody",
+                "--regid=nogroup",
+                "--clear-groups",
+                "cp",
+                str(crafted),
+                str(planted),
+            ],
+            check=True,
+            timeout=30,
+        )
+        assert (
+            planted.stat().st_uid != 0
+            and planted.stat().st_mtime_ns > (logs / "operator.mcap").stat().st_mtime_ns
+        )
+        r = _report(logs, "--no-sim", "--out", str(tmp_path / "shared"))
+        assert r.returncode == 0, r.stderr
+        assert f"note: ignored {planted}: owned by uid" in r.stdout
+        rep = json.loads((tmp_path / "shared" / "report.json").read_text())
+        want = json.loads((tmp_path / "honest" / "report.json").read_text())
+        assert rep["logs"]["operator"] == "operator.mcap"
+        assert rep["transparency"] == want["transparency"] and rep["phases"] == want["phases"]
+    finally:
+        shutil.rmtree(base, ignore_errors=True)
+
+
+@pytest.mark.integration
+def test_two_logs_of_one_session_and_role_are_an_error_naming_both(genuine: Path, tmp_path: Path) -> None:
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    for role in ("operator", "teleoperator"):
+        (logs / f"{role}.mcap").write_bytes((genuine / f"{role}.mcap").read_bytes())
+    sid = read_summary(genuine / "operator.mcap")["params"]["session"]
+    (logs / f"teleoperator-{sid}.mcap").write_bytes((genuine / "teleoperator.mcap").read_bytes())
+    r = _report(logs, "--no-sim")
+    _one_line(r, f"holds 2 teleoperator logs of session {sid} (")
+    assert f"teleoperator-{sid}.mcap" in r.stderr and "(teleoperator.mcap" in r.stderr
