@@ -66,7 +66,10 @@ def iter_messages(path: Path, topics: list[str] | None = None) -> Iterator[tuple
 
     with path.open("rb") as f:
         for _, channel, message in make_reader(f).iter_messages(topics=topics):
-            yield channel.topic, json.loads(message.data)
+            try:
+                yield channel.topic, json.loads(message.data)
+            except RecursionError:
+                raise LogError(f"{path}: a {channel.topic} message nests deeper than JSON is read") from None
 
 
 class LogError(RemoteError):
@@ -81,6 +84,10 @@ MAX_CHUNK_BYTES = 8 << 20  # a chunk's records, uncompressed (the writer's are a
 MAX_RECORD_BYTES = MAX_CHUNK_BYTES + (1 << 20)  # any record in the data section
 MAX_MESSAGE_BYTES = 1 << 20  # a summary or session message (a few kB)
 MAX_TICK_MESSAGE_BYTES = 16 << 10  # a per-tick message (about 3 kB at teleop.limits.MAX_DOF)
+MAX_JSON_DEPTH = 32  # levels of nesting in a summary or session message (this stack writes about 5)
+#: A per-tick number beyond this (a petabyte, eleven days in ns, an energy no arm holds) is damage:
+#: squared or summed it would overflow to inf in the report's figures.
+MAX_TICK_VALUE = 1e15
 
 
 class _Walk:
@@ -228,13 +235,30 @@ def _role(path: Path) -> str:
     return path.stem.split("-", 1)[0]
 
 
+def _depth(m: Any) -> int:
+    """How deeply ``m`` (parsed JSON) nests, walked without recursion; it stops past the bound."""
+    deepest, todo = 0, [(m, 1)]
+    while todo:
+        x, d = todo.pop()
+        if isinstance(x, dict | list):
+            deepest = max(deepest, d)
+            if d > MAX_JSON_DEPTH:
+                break
+            todo.extend((v, d + 1) for v in (x.values() if isinstance(x, dict) else x))
+    return deepest
+
+
 def _one(topic: str, payloads: list[bytes]) -> dict[str, Any]:
     if len(payloads[0]) > MAX_MESSAGE_BYTES:
         raise LogError(f"{topic}: a message of {len(payloads[0])} bytes (at most {MAX_MESSAGE_BYTES})")
     try:
         m = json.loads(payloads[0])
+    except RecursionError:  # a C-level recursion limit, not damage the parser reports itself
+        raise LogError(f"{topic}: JSON nested deeper than {MAX_JSON_DEPTH} levels") from None
     except ValueError as e:
         raise LogError(f"{topic} is not JSON ({e})") from None
+    if _depth(m) > MAX_JSON_DEPTH:  # the report and report.json walk it recursively
+        raise LogError(f"{topic}: JSON nested deeper than {MAX_JSON_DEPTH} levels")
     if not isinstance(m, dict):
         raise LogError(f"{topic} is not a JSON object")
     return m
@@ -336,10 +360,18 @@ def _columns(topic: str, payloads: list[bytes]) -> dict[str, npt.NDArray[Any]]:
                 raise ValueError(f"{field} is not a {'list' if kind == 'vec' else 'number'} in every message")
             if kind == "vec" and cols[name].shape[1] > MAX_DOF:
                 raise ValueError(f"{field} has {cols[name].shape[1]} values (at most {MAX_DOF} DoF)")
+    except RecursionError:
+        raise LogError(f"a /ROLE/{topic} message nests deeper than JSON is read") from None
     except (ValueError, TypeError, KeyError, OverflowError) as e:
         raise LogError(
             f"a /ROLE/{topic} message does not follow its schema: {type(e).__name__}: {e}"
         ) from None
+    for field, name, _ in _FIELDS[topic]:
+        if (np.abs(cols[name]) > MAX_TICK_VALUE).any():  # NaN (null) compares False: no value
+            bad = float(cols[name][np.abs(cols[name]) > MAX_TICK_VALUE].flat[0])
+            raise LogError(
+                f"a /ROLE/{topic} message has {field} = {bad!r} (at most {MAX_TICK_VALUE:g} in size)"
+            )
     k = cols["k"]
     if k.size and (k.min() < 0 or np.any(np.diff(k) <= 0)):
         raise LogError(f"/ROLE/{topic}: tick numbers must increase from 0 (got {k[:8].tolist()}...)")
