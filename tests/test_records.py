@@ -7,11 +7,15 @@ shared folder is not used by ``teleop report``.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
+import signal
 import subprocess
+import sys
 import tempfile
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -100,3 +104,53 @@ def test_a_symlink_of_this_users_own_in_a_private_folder_is_followed(tmp_path: P
     assert logdir.write_summary(got.summary, {"ok": 1}) is None
     assert (real / "logs" / "operator.json").exists()
     assert os.stat(real / "logs").st_mode & 0o777 == 0o755
+
+
+# --- 5. the run key never lands on disk -----------------------------------------------------------
+TELEOP = [sys.executable, "-m", "teleop.cli"]
+
+
+def _wait_for(ready: Callable[[], bool], what: str, timeout: float = 60.0) -> None:
+    give_up = time.monotonic() + timeout
+    while not ready():
+        assert time.monotonic() < give_up, f"gave up waiting for {what}"
+        time.sleep(0.05)
+
+
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (from /proc)."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            with contextlib.suppress(OSError):
+                if int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                    out.append(int(d.name))
+    return out
+
+
+@pytest.mark.integration
+def test_kill_9_of_teleop_run_leaves_no_key_behind(tmp_path: Path) -> None:
+    """The children authenticate with the run's key (their logs open once the handshake verified),
+    then ``teleop run`` is killed: nothing of the key is left in TMPDIR (it was never there)."""
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    logs = tmp_path / "out" / "logs"
+    argv = [*TELEOP, "run", "--out", str(tmp_path / "out"), "--duration", "60", "--no-plots", "--no-live"]
+    run = subprocess.Popen(argv, env={**os.environ, "TMPDIR": str(tmp)}, stdout=subprocess.DEVNULL)
+    kids: list[int] = []
+    try:
+        both = ("operator.mcap", "teleoperator.mcap")
+        _wait_for(lambda: all((logs / n).exists() for n in both), "both processes in session")
+        kids = _children(run.pid)
+        assert len(kids) == 2
+        run.kill()
+        run.wait()
+        _wait_for(lambda: not any(Path(f"/proc/{k}").exists() for k in kids), "the children to end")
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.wait()
+        for k in kids:  # (they die with their parent: PR_SET_PDEATHSIG)
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(k, signal.SIGKILL)
+    assert list(tmp.rglob("*")) == []
