@@ -353,9 +353,7 @@ def _data_checks(r: Result, d: _DataCheck, codec: str, ticks: int) -> None:
         "3.1",
         "MUST",
         "seq counts the packets produced: each above the last, all below the bye's produced",
-        d.first_seq is not None
-        and d.seq_not_rising == 0
-        and (produced is None or d.last_seq < produced),
+        d.first_seq is not None and d.seq_not_rising == 0 and (produced is None or d.last_seq < produced),
         f"first {d.first_seq}, highest {d.last_seq}, produced {produced}, {d.packets} arrived,"
         f" gaps {d.seq_gaps}, not rising {d.seq_not_rising}",
     )

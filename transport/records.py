@@ -20,7 +20,7 @@ from teleop.port import Chunk
 from teleop.summary import LogFigures, SessionSummary
 
 from . import logdir
-from .mcaplog import McapLog, spawn_writer, wall_clock_of
+from .mcaplog import MAX_AHEAD_TICKS, McapLog, spawn_writer, wall_clock_of
 
 
 class RecordError(TeleopError):
@@ -69,6 +69,7 @@ class Records:
                 live_host=self.live_view_host,
                 process=writer,
                 file_id=(files.dev, files.ino) if files is not None else None,
+                max_ahead_ticks=MAX_AHEAD_TICKS,
             )
         except (OSError, RuntimeError, ValueError) as e:  # a folder others can write, the port is taken
             raise RecordError(f"cannot open the log or the live view: {e}") from None

@@ -47,7 +47,7 @@ from teleop.protocol import PROTOCOL_VERSION, Pins, SessionParams
 from teleop.summary import ProcessSummary, SessionSummary
 
 from .base import Addr, Transport
-from .mcaplog import McapLog
+from .mcaplog import LOG_CHUNK_TICKS, McapLog
 from .options import EndpointOptions, ZenohOptions, new_session_id
 from .realtime import LoopStats, Ticker, freeze_heap, setup_realtime
 from .records import RecordError, Records
@@ -133,6 +133,7 @@ class _Runner:
             o.role, params, k0, keys, header_bytes=self.tr.header_bytes, sink=sink, device=o.device
         )
         port.rec.defer = True  # a closed chunk of the record is sealed after the send (settle)
+        port.rec.chunk_ticks = LOG_CHUNK_TICKS  # sealed 4 times a second: what a kill -9 loses
         return port
 
     # --- I/O ------------------------------------------------------------------------------------
