@@ -8,9 +8,11 @@ shared folder is not used by ``teleop report``.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -18,6 +20,7 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from teleop import files
@@ -154,3 +157,78 @@ def test_kill_9_of_teleop_run_leaves_no_key_behind(tmp_path: Path) -> None:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(k, signal.SIGKILL)
     assert list(tmp.rglob("*")) == []
+
+
+# --- 3. what a kill -9 loses on a loaded host ------------------------------------------------------
+HOG = "import time\nend = time.monotonic() + 60\nwhile time.monotonic() < end:\n    pass"
+
+
+def _wall0_ns(path: Path, topic: str) -> int:
+    """The wall-clock time of the session's tick 0 in a log (a message's log time less its ``t``)."""
+    from mcap.reader import make_reader
+
+    with path.open("rb") as f:
+        for _, _, message in make_reader(f).iter_messages(topics=[topic]):
+            return int(message.log_time - round(json.loads(message.data)["t"] * 1e9))
+    raise AssertionError(f"no {topic} message in {path}")
+
+
+@pytest.mark.integration
+def test_kill_9_of_the_robot_beside_cpu_hogs_loses_at_most_the_stated_bound(tmp_path: Path) -> None:
+    """Two CPU hogs (one per core of this 2-core host) beside a session; the robot is killed
+    5 s in.  Its log holds every tick it ran up to the bound (LOG_CHUNK_TICKS + MAX_AHEAD_TICKS),
+    a hole in its ticks is a stall the loop logged (an overrun), never a dropped chunk, and its
+    console says what happened in one line, with no traceback."""
+    from teleop.logfile import iter_messages, iter_ticks
+    from transport.mcaplog import LOG_CHUNK_TICKS, MAX_AHEAD_TICKS
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    logs = tmp_path / "logs"
+    common = ["--insecure", "--quiet", "--log", str(logs)]
+    err = tmp_path / "teleoperator.err"
+    procs: list[subprocess.Popen[bytes]] = []
+    try:
+        procs += [subprocess.Popen([sys.executable, "-c", HOG]) for _ in range(2)]
+        with err.open("wb") as f:
+            to = subprocess.Popen(
+                [*TELEOP, "teleoperator", "--listen", f"127.0.0.1:{port}", *common], stderr=f
+            )
+        procs.append(to)
+        op = subprocess.Popen(
+            [*TELEOP, "operator", "--peer", f"127.0.0.1:{port}", "--duration", "60", *common]
+        )
+        procs.append(op)
+        mcap = logs / "teleoperator.mcap"
+        _wait_for(mcap.exists, "the robot's session")
+        session_at = time.monotonic()
+        writer = [
+            k for k in _children(to.pid) if b"transport.mcaplog" in Path(f"/proc/{k}/cmdline").read_bytes()
+        ]
+        assert len(writer) == 1
+        _wait_for(lambda: time.monotonic() > session_at + 5.0, "5 s of session")  # (a deadline, not data)
+        to.kill()
+        killed_ns = time.time_ns()
+        to.wait()
+        # The writer reads what its pipe holds and finishes the file, hogs or not.
+        _wait_for(lambda: not Path(f"/proc/{writer[0]}").exists(), "the robot's log writer to finish")
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+            p.wait()
+    lines = err.read_text().strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err.read_text(), lines
+    assert "ended without closing its log (killed?)" in lines[0]
+    ran = np.concatenate([k0 + np.flatnonzero(b["ran"]) for k0, b in iter_ticks(mcap, ("signals",))])
+    events = [m for _, m in iter_messages(mcap, ["/teleoperator/events"])]
+    assert not [m for m in events if m["event"] == "log_dropped"]
+    overruns = {int(m["detail"].split()[1].rstrip(":")) for m in events if m["event"] == "overrun"}
+    for gap in np.flatnonzero(np.diff(ran) > 1):  # ticks the loop skipped in a stall, said as such
+        resumed = int(ran[gap + 1])
+        assert overruns & set(range(resumed, resumed + 3)), (int(ran[gap]), resumed)
+    ran_by_kill = (killed_ns - _wall0_ns(mcap, "/teleoperator/signals")) / 1e6  # 1 kHz
+    lost = ran_by_kill - int(ran[-1])
+    print(f"kill -9 beside two CPU hogs: {lost:.0f} ticks lost (bound {LOG_CHUNK_TICKS + MAX_AHEAD_TICKS})")
+    assert ran[0] == 0 and lost <= LOG_CHUNK_TICKS + MAX_AHEAD_TICKS
