@@ -177,7 +177,7 @@ def _wall0_ns(path: Path, topic: str) -> int:
 def test_kill_9_of_the_robot_beside_cpu_hogs_loses_at_most_the_stated_bound(tmp_path: Path) -> None:
     """Two CPU hogs (one per core of this 2-core host) beside a session; the robot is killed
     5 s in.  Its log holds every tick it ran up to the bound (LOG_CHUNK_TICKS + MAX_AHEAD_TICKS),
-    a hole in its ticks is a stall the loop logged (an overrun), never a dropped chunk, and its
+    a hole in its ticks is a stall the loop logged (``stall``), never a dropped chunk, and its
     console says what happened in one line, with no traceback."""
     from teleop.logfile import iter_messages, iter_ticks
     from transport.mcaplog import LOG_CHUNK_TICKS, MAX_AHEAD_TICKS
@@ -224,10 +224,10 @@ def test_kill_9_of_the_robot_beside_cpu_hogs_loses_at_most_the_stated_bound(tmp_
     ran = np.concatenate([k0 + np.flatnonzero(b["ran"]) for k0, b in iter_ticks(mcap, ("signals",))])
     events = [m for _, m in iter_messages(mcap, ["/teleoperator/events"])]
     assert not [m for m in events if m["event"] == "log_dropped"]
-    overruns = {int(m["detail"].split()[1].rstrip(":")) for m in events if m["event"] == "overrun"}
+    stalls = {int(m["detail"].split()[1].rstrip(":")) for m in events if m["event"] == "stall"}
     for gap in np.flatnonzero(np.diff(ran) > 1):  # ticks the loop skipped in a stall, said as such
         resumed = int(ran[gap + 1])
-        assert overruns & set(range(resumed, resumed + 3)), (int(ran[gap]), resumed)
+        assert resumed in stalls, (int(ran[gap]), resumed, sorted(stalls))
     ran_by_kill = (killed_ns - _wall0_ns(mcap, "/teleoperator/signals")) / 1e6  # 1 kHz
     lost = ran_by_kill - int(ran[-1])
     print(f"kill -9 beside two CPU hogs: {lost:.0f} ticks lost (bound {LOG_CHUNK_TICKS + MAX_AHEAD_TICKS})")

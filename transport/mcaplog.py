@@ -52,8 +52,9 @@ topic                       rate       fields
                                        ``watchdog`` (violations, controller, dissipated energy)
 ``/ROLE/events``            as they    ``t``, ``event`` (``session_start``, ``link_lost``,
                             happen     ``link_restored``, ``peer_restarted``, ``auth_rejected``,
-                                       ``replayed``, ``overrun``, ``log_dropped``,
-                                       ``session_end``), ``detail``
+                                       ``replayed``, ``overrun``, ``stall`` (ticks
+                                       skipped), ``log_dropped``, ``session_end``),
+                                       ``detail``
 ``/ROLE/session``           once       the session's parameters, role, pid, start time; ``traces``:
                                        SHA-256 and size of a ``trace FILE`` link's file
 ``/ROLE/summary``           once       the process's summary (what ``ROLE.json`` holds)

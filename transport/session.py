@@ -255,7 +255,9 @@ class _Runner:
             ep.port.settle()  # the tick's datagrams left: what could wait for it (the record's seal)
             ep.port.loop_timing(k, ticker.last_lateness_ns)
             if self.log is not None:
-                self.watch.tick(self.log, ep.port, k, ep.session_time(self.clock()), ticker.overruns)
+                self.watch.tick(
+                    self.log, ep.port, k, ep.session_time(self.clock()), ticker.overruns, ticker.skipped
+                )
             if o.live and k % 1000 == 999:
                 print(
                     status_line(o.role, ep.port, k, ticker.overruns, o.insecure), file=sys.stderr, flush=True
