@@ -177,9 +177,8 @@ def open_dir(path: str | os.PathLike[str], what: str = "log folder", create: boo
                         raise
                     lst = os.stat(part, dir_fd=fd, follow_symlinks=False)
                     if not stat.S_ISLNK(lst.st_mode):
-                        raise FileRefused(
-                            f"{what} {name}: {here} is {_kind(lst.st_mode)}, not a folder"
-                        ) from None
+                        kind = "a file" if stat.S_ISREG(lst.st_mode) else _kind(lst.st_mode)
+                        raise FileRefused(f"{what} {name}: {here} is {kind}, not a folder") from None
                     # Its folder passed (only this user or root may rename in it, or it is sticky): a
                     # symlink there is whoever made it's, and only this user's or root's is followed.
                     if lst.st_uid not in (0, me):
