@@ -196,9 +196,10 @@ def test_kill_9_of_the_robot_beside_cpu_hogs_loses_at_most_the_stated_bound(tmp_
                 [*TELEOP, "teleoperator", "--listen", f"127.0.0.1:{port}", *common], stderr=f
             )
         procs.append(to)
-        op = subprocess.Popen(
-            [*TELEOP, "operator", "--peer", f"127.0.0.1:{port}", "--duration", "60", *common]
-        )
+        with (tmp_path / "operator.err").open("wb") as f:
+            op = subprocess.Popen(
+                [*TELEOP, "operator", "--peer", f"127.0.0.1:{port}", "--duration", "60", *common], stderr=f
+            )
         procs.append(op)
         mcap = logs / "teleoperator.mcap"
         _wait_for(mcap.exists, "the robot's session")
@@ -213,11 +214,14 @@ def test_kill_9_of_the_robot_beside_cpu_hogs_loses_at_most_the_stated_bound(tmp_
         to.wait()
         # The writer reads what its pipe holds and finishes the file, hogs or not.
         _wait_for(lambda: not Path(f"/proc/{writer[0]}").exists(), "the robot's log writer to finish")
+        op.send_signal(signal.SIGINT)  # the operator, its robot gone, is stopped as a user would
+        op.wait(timeout=60)
     finally:
         for p in procs:
             if p.poll() is None:
                 p.kill()
             p.wait()
+    assert "Traceback" not in (tmp_path / "operator.err").read_text()
     lines = err.read_text().strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in err.read_text(), lines
     assert "ended without closing its log (killed?)" in lines[0]
