@@ -169,8 +169,10 @@ def open_dir(path: str | os.PathLike[str], what: str = "log folder", create: boo
                     with contextlib.suppress(FileExistsError):
                         os.mkdir(part, 0o700, dir_fd=fd)
                         made = os.open(part, _DIR_FLAGS, dir_fd=fd)
-                        os.fchmod(made, 0o755)
-                        os.close(made)
+                        try:
+                            os.fchmod(made, 0o755)
+                        finally:
+                            os.close(made)
                     child = os.open(part, _DIR_FLAGS, dir_fd=fd)
                 except OSError as e:
                     if e.errno not in (errno.ELOOP, errno.ENOTDIR):
