@@ -30,6 +30,7 @@ __all__ = [
     "PER_TICK_TOPICS",
     "TOPICS",
     "LogError",
+    "UntrustedLog",
     "find_pair",
     "iter_messages",
     "iter_ticks",
@@ -65,7 +66,10 @@ def iter_messages(path: Path, topics: list[str] | None = None) -> Iterator[tuple
 
     with path.open("rb") as f:
         for _, channel, message in make_reader(f).iter_messages(topics=topics):
-            yield channel.topic, json.loads(message.data)
+            try:
+                yield channel.topic, json.loads(message.data)
+            except RecursionError:
+                raise LogError(f"{path}: a {channel.topic} message nests deeper than JSON is read") from None
 
 
 class LogError(RemoteError):
@@ -80,6 +84,10 @@ MAX_CHUNK_BYTES = 8 << 20  # a chunk's records, uncompressed (the writer's are a
 MAX_RECORD_BYTES = MAX_CHUNK_BYTES + (1 << 20)  # any record in the data section
 MAX_MESSAGE_BYTES = 1 << 20  # a summary or session message (a few kB)
 MAX_TICK_MESSAGE_BYTES = 16 << 10  # a per-tick message (about 3 kB at teleop.limits.MAX_DOF)
+MAX_JSON_DEPTH = 32  # levels of nesting in a summary or session message (this stack writes about 5)
+#: A per-tick number beyond this (a petabyte, eleven days in ns, an energy no arm holds) is damage:
+#: squared or summed it would overflow to inf in the report's figures.
+MAX_TICK_VALUE = 1e15
 
 
 class _Walk:
@@ -184,13 +192,39 @@ def _walk(path: Path) -> Iterator[_Walk]:
         if not stat.S_ISREG(st.st_mode):
             raise LogError("not a regular file (a log is one)")
         with open(path, "rb", opener=_nonblocking) as f:
+            _trusted(os.fstat(f.fileno()), path)
             yield _Walk(f, path)
+    except UntrustedLog as e:
+        raise UntrustedLog(f"{path}: {e}") from None
     except LogError as e:
         raise LogError(f"{path}: {e}") from None
     except (ZstdError, struct.error, UnicodeDecodeError) as e:  # damaged
         raise LogError(f"{path}: not a readable MCAP file ({type(e).__name__}: {e})") from None
     except OSError as e:
         raise LogError(f"{path}: {e.strerror or e}") from None
+
+
+class UntrustedLog(LogError):
+    """A log that another user could have planted: owned by someone else than this user or root,
+    in a folder others can write (sticky or not)."""
+
+
+def _trusted(st: os.stat_result, path: Path) -> None:
+    """:class:`UntrustedLog` for a file (its ``fstat``: the file opened, not a name swapped since)
+    owned by another user than this one or root in a folder others can write.
+
+    Why: a sticky folder (as /tmp) stops others from replacing our files, not from adding theirs:
+    a newer ``operator-SID.mcap`` of another user's, for the same session, was taken as the
+    session's log (and its figures: backward violations 0 -> 1785, measured)."""
+    me = os.geteuid()
+    if st.st_uid in (0, me):
+        return
+    folder = os.stat(path.parent)
+    if folder.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        raise UntrustedLog(
+            f"owned by uid {st.st_uid}, not by this user ({me}) or root, in a folder others can "
+            "write: not used (another user could have planted it)"
+        )
 
 
 def _nonblocking(path: str, flags: int) -> int:
@@ -201,13 +235,30 @@ def _role(path: Path) -> str:
     return path.stem.split("-", 1)[0]
 
 
+def _depth(m: Any) -> int:
+    """How deeply ``m`` (parsed JSON) nests, walked without recursion; it stops past the bound."""
+    deepest, todo = 0, [(m, 1)]
+    while todo:
+        x, d = todo.pop()
+        if isinstance(x, dict | list):
+            deepest = max(deepest, d)
+            if d > MAX_JSON_DEPTH:
+                break
+            todo.extend((v, d + 1) for v in (x.values() if isinstance(x, dict) else x))
+    return deepest
+
+
 def _one(topic: str, payloads: list[bytes]) -> dict[str, Any]:
     if len(payloads[0]) > MAX_MESSAGE_BYTES:
         raise LogError(f"{topic}: a message of {len(payloads[0])} bytes (at most {MAX_MESSAGE_BYTES})")
     try:
         m = json.loads(payloads[0])
+    except RecursionError:  # a C-level recursion limit, not damage the parser reports itself
+        raise LogError(f"{topic}: JSON nested deeper than {MAX_JSON_DEPTH} levels") from None
     except ValueError as e:
         raise LogError(f"{topic} is not JSON ({e})") from None
+    if _depth(m) > MAX_JSON_DEPTH:  # the report and report.json walk it recursively
+        raise LogError(f"{topic}: JSON nested deeper than {MAX_JSON_DEPTH} levels")
     if not isinstance(m, dict):
         raise LogError(f"{topic} is not a JSON object")
     return m
@@ -309,10 +360,18 @@ def _columns(topic: str, payloads: list[bytes]) -> dict[str, npt.NDArray[Any]]:
                 raise ValueError(f"{field} is not a {'list' if kind == 'vec' else 'number'} in every message")
             if kind == "vec" and cols[name].shape[1] > MAX_DOF:
                 raise ValueError(f"{field} has {cols[name].shape[1]} values (at most {MAX_DOF} DoF)")
+    except RecursionError:
+        raise LogError(f"a /ROLE/{topic} message nests deeper than JSON is read") from None
     except (ValueError, TypeError, KeyError, OverflowError) as e:
         raise LogError(
             f"a /ROLE/{topic} message does not follow its schema: {type(e).__name__}: {e}"
         ) from None
+    for field, name, _ in _FIELDS[topic]:
+        if (np.abs(cols[name]) > MAX_TICK_VALUE).any():  # NaN (null) compares False: no value
+            bad = float(cols[name][np.abs(cols[name]) > MAX_TICK_VALUE].flat[0])
+            raise LogError(
+                f"a /ROLE/{topic} message has {field} = {bad!r} (at most {MAX_TICK_VALUE:g} in size)"
+            )
     k = cols["k"]
     if k.size and (k.min() < 0 or np.any(np.diff(k) <= 0)):
         raise LogError(f"/ROLE/{topic}: tick numbers must increase from 0 (got {k[:8].tolist()}...)")
@@ -460,10 +519,13 @@ def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, li
     """The operator's and the teleoperator's log of one session in ``log_dir`` (``ROLE.mcap``,
     ``ROLE-*.mcap``: restarts add files, never replace one), paired by session id: ``session``, or
     else the session of the newest log that has both.  Where a role has several logs of the session
-    (a restarted process that rejoined), the newest is taken.  Returns the two paths and notes on
+    (a restarted process that rejoined, or a planted one), :class:`LogError` names them: a report
+    never picks one silently.  A log another user could have planted (:class:`UntrustedLog`) is
+    ignored and named in the notes.  Returns the two paths and notes on
     what else the folder holds; :class:`LogError` when no pair is found."""
     found: dict[int, dict[str, list[tuple[int, Path]]]] = {}
     errors: dict[str, str] = {}
+    ignored: list[str] = []
     for role in ROLES:
         paths = sorted({*log_dir.glob(f"{role}.mcap"), *log_dir.glob(f"{role}-*.mcap")})
         if not paths:
@@ -474,6 +536,10 @@ def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, li
                 if not stat.S_ISREG(st.st_mode):
                     raise LogError(f"{path}: not a regular file (a log is one)")
                 sid, _, _ = log_session(path)
+            except UntrustedLog as e:  # flagged and ignored: the figures are the genuine logs'
+                ignored.append(f"ignored {e}")
+                errors.setdefault(role, str(e))
+                continue
             except LogError as e:
                 errors.setdefault(role, str(e))
                 continue
@@ -501,9 +567,11 @@ def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, li
     pick = {}
     for role in ROLES:
         logs = sorted(both[chosen][role])
-        pick[role] = logs[-1][1]
         if len(logs) > 1:
-            notes.append(
-                f"{role}: {len(logs)} logs of session {chosen}, the newest taken ({pick[role].name})"
+            names = ", ".join(p.name for _, p in logs[:4]) + (", ..." if len(logs) > 4 else "")
+            raise LogError(
+                f"{log_dir} holds {len(logs)} {role} logs of session {chosen} ({names}): a report "
+                "reads one of each role; move the others out of the folder (a restarted process's)"
             )
-    return pick["operator"], pick["teleoperator"], notes
+        pick[role] = logs[0][1]
+    return pick["operator"], pick["teleoperator"], notes + ignored

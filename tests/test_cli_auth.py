@@ -190,24 +190,33 @@ def _key_path(cmd: list[str]) -> Path:
     return Path(cmd[cmd.index("--key-file") + 1])
 
 
-def test_run_makes_a_private_key_for_both_children_and_removes_it(tmp_path: Path) -> None:
+def _in_memory(path: Path) -> bool:
+    """Whether ``path`` (``/proc/self/fd/N``) is the run's key in an anonymous memory file."""
+    try:
+        return os.readlink(path).startswith("/memfd:teleop-run-key")
+    except OSError:
+        return False
+
+
+def test_run_makes_a_private_key_for_both_children_in_memory(tmp_path: Path) -> None:
     args = _run_args(tmp_path)
     params = session_params(args, 1234)
     with run_key(args) as key:
         cmds = build_commands(args, params, tmp_path / "logs", key)
         path = _key_path(cmds.teleoperator)
         assert _key_path(cmds.operator) == path and path.is_absolute()
-        assert stat.S_IMODE(path.stat().st_mode) == 0o600
-        assert stat.S_IMODE(path.parent.stat().st_mode) == 0o700
-        assert path.parent.stat().st_uid == path.stat().st_uid == os.geteuid()
+        assert _in_memory(path) and key.pass_fds == (int(path.name),)  # never on disk
+        assert stat.S_IMODE(path.stat().st_mode) == 0o600 and path.stat().st_uid == os.geteuid()
         assert key.source == "ephemeral" and key.key_id == auth.key_id(auth.read_key_file(path))
+        with pytest.raises(PermissionError):  # sealed: nobody changes it under the children
+            os.write(key.pass_fds[0], b"0")
         assert "--insecure" not in cmds.teleoperator + cmds.operator
         # what each child makes of its command line: the same key, authenticated
         for cmd, role in ((cmds.teleoperator, "teleoperator"), (cmds.operator, "operator")):
             assert cmd[3] == role
             child = build_parser().parse_args(cmd[3:])
             assert child.key_file == str(path) and child.insecure is False
-    assert not path.exists() and not path.parent.exists()
+    assert not _in_memory(path)
 
 
 def test_each_run_has_its_own_key(tmp_path: Path) -> None:
@@ -265,9 +274,10 @@ def test_run_removes_its_key_however_it_ends(
         pytest.skip("SIGTERM is handled by the test runner")
     seen: list[Path] = []
 
-    def spawn(cmd: list[str]) -> Any:
+    def spawn(cmd: list[str], pass_fds: tuple[int, ...] = ()) -> Any:
         path = _key_path(cmd)
         assert stat.S_IMODE(path.stat().st_mode) == 0o600  # there while the children start
+        assert pass_fds == (int(path.name),) and _in_memory(path)
         seen.append(path)
         if how == "error":
             raise Boom
@@ -288,4 +298,4 @@ def test_run_removes_its_key_however_it_ends(
             main(argv)
         assert e.value.code == 128 + signal.SIGTERM
         assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # the handler is put back
-    assert len(seen) == 1 and not seen[0].exists() and not seen[0].parent.exists()
+    assert len(seen) == 1 and not _in_memory(seen[0])

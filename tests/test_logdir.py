@@ -244,9 +244,11 @@ def genuine(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out / "logs"
 
 
-def _rewrite(src: Path, dst: Path, edit: Callable[[str, dict[str, Any]], dict[str, Any] | None]) -> None:
+def _rewrite(
+    src: Path, dst: Path, edit: Callable[[str, dict[str, Any]], dict[str, Any] | bytes | None]
+) -> None:
     """``src`` copied to ``dst`` with the reference writer, each message through ``edit``
-    (None: dropped)."""
+    (None: dropped; bytes: the message as is, JSON or not)."""
     from mcap.reader import make_reader
     from mcap.writer import Writer
 
@@ -261,12 +263,16 @@ def _rewrite(src: Path, dst: Path, edit: Callable[[str, dict[str, Any]], dict[st
             if channel.topic not in ids:
                 schema = w.register_schema(name=channel.topic, encoding="jsonschema", data=b"{}")
                 ids[channel.topic] = w.register_channel(channel.topic, "json", schema)
-            w.add_message(ids[channel.topic], message.log_time, json.dumps(m).encode(), message.publish_time)
+            data = m if isinstance(m, bytes) else json.dumps(m).encode()
+            w.add_message(ids[channel.topic], message.log_time, data, message.publish_time)
         w.finish()  # type: ignore[no-untyped-call]
 
 
 def _copy(
-    genuine: Path, tmp: Path, role: str, edit: Callable[[str, dict[str, Any]], dict[str, Any] | None]
+    genuine: Path,
+    tmp: Path,
+    role: str,
+    edit: Callable[[str, dict[str, Any]], dict[str, Any] | bytes | None],
 ) -> Path:
     """The genuine pair in a new folder, ``role``'s log rewritten through ``edit``."""
     logs = tmp / "logs"
@@ -530,3 +536,163 @@ def test_a_process_killed_mid_session_leaves_a_log_the_report_reads(tmp_path: Pa
     assert "operator     SUMMARY MISSING" in r.stdout
     rep = json.loads((tmp_path / "report.json").read_text())
     assert rep["summary_missing"] == ["operator"] and rep["transparency"]["ticks_compared"] >= 1000
+
+
+# --- issue 36: a report reads only logs it can trust ---------------------------------------------
+@pytest.mark.integration
+@pytest.mark.skipif(os.geteuid() != 0, reason="planting a log as another user (nobody) needs root")
+def test_a_log_another_user_planted_in_a_shared_folder_is_not_used(genuine: Path, tmp_path: Path) -> None:
+    """A sticky folder (as /tmp) stops others replacing our logs, not adding theirs: nobody's newer
+    operator log of the same session, with other figures, is flagged and ignored."""
+    import shutil
+    import tempfile
+
+    base = Path(tempfile.mkdtemp(prefix="teleop-shared-", dir="/tmp"))  # nobody must reach it
+    try:
+        base.chmod(0o755)
+        logs = base / "logs"
+        logs.mkdir()
+        for role in ("operator", "teleoperator"):
+            (logs / f"{role}.mcap").write_bytes((genuine / f"{role}.mcap").read_bytes())
+        honest = _report(logs, "--no-sim", "--out", str(tmp_path / "honest"))
+        assert honest.returncode == 0, honest.stderr
+        logs.chmod(0o1777)
+        sid = read_summary(genuine / "operator.mcap")["params"]["session"]
+
+        def louder(topic: str, m: dict[str, Any]) -> dict[str, Any]:
+            if topic.endswith("/signals"):
+                m["v"] = [10 * x for x in m["v"]]
+            return m
+
+        crafted = base / "crafted.mcap"  # (nobody cannot read pytest's folders)
+        _rewrite(genuine / "operator.mcap", crafted, louder)
+        crafted.chmod(0o644)
+        planted = logs / f"operator-{sid}.mcap"
+        subprocess.run(
+            [
+                "setpriv",
+                "--reuid=nobody",
+                "--regid=nogroup",
+                "--clear-groups",
+                "cp",
+                str(crafted),
+                str(planted),
+            ],
+            check=True,
+            timeout=30,
+        )
+        assert (
+            planted.stat().st_uid != 0
+            and planted.stat().st_mtime_ns > (logs / "operator.mcap").stat().st_mtime_ns
+        )
+        r = _report(logs, "--no-sim", "--out", str(tmp_path / "shared"))
+        assert r.returncode == 0, r.stderr
+        assert f"note: ignored {planted}: owned by uid" in r.stdout
+        rep = json.loads((tmp_path / "shared" / "report.json").read_text())
+        want = json.loads((tmp_path / "honest" / "report.json").read_text())
+        assert rep["logs"]["operator"] == "operator.mcap"
+        assert rep["transparency"] == want["transparency"] and rep["phases"] == want["phases"]
+    finally:
+        shutil.rmtree(base, ignore_errors=True)
+
+
+@pytest.mark.integration
+def test_two_logs_of_one_session_and_role_are_an_error_naming_both(genuine: Path, tmp_path: Path) -> None:
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    for role in ("operator", "teleoperator"):
+        (logs / f"{role}.mcap").write_bytes((genuine / f"{role}.mcap").read_bytes())
+    sid = read_summary(genuine / "operator.mcap")["params"]["session"]
+    (logs / f"teleoperator-{sid}.mcap").write_bytes((genuine / "teleoperator.mcap").read_bytes())
+    r = _report(logs, "--no-sim")
+    _one_line(r, f"holds 2 teleoperator logs of session {sid} (")
+    assert f"teleoperator-{sid}.mcap" in r.stderr and "(teleoperator.mcap" in r.stderr
+
+
+# --- issue 36: hostile logs give one line ----------------------------------------------------------
+def _nested(topic: str, depth: int, only: int | None = 5) -> Callable[[str, dict[str, Any]], Any]:
+    """``topic``'s message (a per-tick one: tick ``only``'s) with a list nested ``depth`` deep."""
+
+    done: list[bool] = []  # the first message at or after tick ``only``: a stall may skip that one
+
+    def edit(t: str, m: dict[str, Any]) -> Any:
+        if t.endswith(f"/{topic}") and not done and (only is None or m.get("k", -1) >= only):
+            done.append(True)
+            return json.dumps(m).encode()[:-1] + b', "x": ' + b"[" * depth + b"]" * depth + b"}"
+        return m
+
+    return edit
+
+
+def _number(topic: str, field: str, value: Any) -> Callable[[str, dict[str, Any]], Any]:
+    done: list[bool] = []  # the first message from tick 2500 on: a stall may skip that one
+
+    def edit(t: str, m: dict[str, Any]) -> Any:
+        if t.endswith(f"/{topic}") and not done and m.get("k", -1) >= 2500:
+            done.append(True)
+            m[field] = [value] * len(m[field]) if isinstance(m[field], list) else value
+            if value == "DIGITS":  # 5000 digits: more than Python reads as an int
+                return json.dumps(m).replace('"DIGITS"', "1" + "0" * 5000).encode()
+        return m
+
+    return edit
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize(
+    ("edit", "says"),
+    [
+        (_nested("summary", 100_000, None), "/operator/summary: JSON nested deeper than 32 levels"),
+        (_nested("summary", 40, None), "/operator/summary: JSON nested deeper than 32 levels"),
+        (_nested("signals", 5000), "a /ROLE/signals message nests deeper than JSON is read"),
+        (_nested("energy", 5000), "a /ROLE/energy message nests deeper than JSON is read"),
+        (_number("signals", "v", 1e308), "a /ROLE/signals message has v = 1e+308 (at most 1e+15"),
+        (_number("signals", "f", float("-inf")), "has f = -inf (at most 1e+15"),
+        (_number("energy", "sent", 1e308), "a /ROLE/energy message has sent = 1e+308"),
+        (_number("energy", "peer_epoch", 1e300), "has peer_epoch = 1e+300"),
+        (_number("wire", "tx_wire", 1e308), "a /ROLE/wire message has tx_wire = 1e+308"),
+        (_number("loop", "lateness_ns", -1e308), "has lateness_ns = -1e+308"),
+        (_number("loop", "k", 1e308), "does not follow its schema: OverflowError"),
+        (_number("signals", "v", "DIGITS"), "does not follow its schema"),  # beyond Python's int
+    ],
+)
+def test_a_crafted_log_is_one_line_never_a_traceback_or_a_warning(
+    genuine: Path, tmp_path: Path, edit: Callable[[str, dict[str, Any]], Any], says: str
+) -> None:
+    import warnings
+
+    logs = _copy(genuine, tmp_path, "operator", edit)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a RuntimeWarning (overflow) fails the test
+        _one_line(_report(logs, "--no-sim"), says)
+
+
+@pytest.mark.integration
+def test_extreme_numbers_in_a_summary_are_values_without_a_warning(genuine: Path, tmp_path: Path) -> None:
+    import warnings
+
+    def huge(topic: str, m: dict[str, Any]) -> dict[str, Any]:
+        if topic.endswith("/summary"):
+            m["energy"] = dict.fromkeys(m["energy"], 1e308)
+            m["handshake_rtt_us"] = -1e308
+            m["pid"] = "\x1b[2J\nnot a line of its own"  # printed: its control characters escaped
+        return m
+
+    logs = _copy(genuine, tmp_path, "operator", huge)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = _report(logs, "--no-sim")
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    assert "\x1b" not in r.stdout and "pid \\x1b[2J" in r.stdout  # shown, not obeyed
+
+
+@pytest.mark.integration
+def test_a_file_name_with_control_characters_stays_one_line(genuine: Path, tmp_path: Path) -> None:
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    for role in ("operator", "teleoperator"):
+        (logs / f"{role}.mcap").write_bytes((genuine / f"{role}.mcap").read_bytes())
+    (logs / "operator-\x1b[31m\nplanted.mcap").write_bytes((genuine / "operator.mcap").read_bytes())
+    r = _report(logs, "--no-sim")
+    _one_line(r, "holds 2 operator logs of session")
+    assert "operator-\\x1b[31m\\x0aplanted.mcap" in r.stderr and "\x1b" not in r.stderr

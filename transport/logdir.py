@@ -4,8 +4,10 @@ Why: a restart with the same ``--log`` (systemd's ``Restart=on-failure``) used t
 crashed run's ``ROLE.mcap`` and ``ROLE.json``, two robots sharing a folder wrote one file, a planted
 symlink was written through, and a full disk left ``ROLE.json`` empty.  Here:
 
-* :func:`reserve` refuses a folder another user can write (``teleop.files.check_private_dir``) and
-  creates the run's MCAP file with ``O_CREAT | O_EXCL | O_NOFOLLOW``: ``ROLE.mcap`` when free, else
+* :func:`reserve` opens the folder where the user named it, never through a symlink another user
+  could have placed on the way, and refuses one another user can write (``teleop.files.open_dir``);
+  it creates the run's MCAP file relative to that folder's descriptor with
+  ``O_CREAT | O_EXCL | O_NOFOLLOW``: ``ROLE.mcap`` when free, else
   ``ROLE-SESSION.mcap``, else ``ROLE-SESSION-2.mcap`` ...  The writer process then opens exactly that
   file (same device and inode, still empty: ``teleop.files.open_reserved``).  Two processes of a role
   can never get one name; ``ROLE.json`` takes the MCAP file's stem.
@@ -25,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from teleop.files import FileRefused, check_private_dir, create_new, is_exists
+from teleop.files import FileRefused, create_new, is_exists, open_dir
 
 __all__ = ["MAX_RUNS", "LogFiles", "reserve", "save_summary", "write_summary"]
 
@@ -47,25 +49,35 @@ def _names(role: str, session: int) -> list[str]:
     return [role, f"{role}-{session}", *(f"{role}-{session}-{n}" for n in range(2, MAX_RUNS))]
 
 
+def _lexists(name: str, dir_fd: int) -> bool:
+    try:
+        os.stat(name, dir_fd=dir_fd, follow_symlinks=False)
+    except FileNotFoundError:
+        return False
+    return True
+
+
 def reserve(log_dir: Path, role: str, session: int) -> LogFiles:
     """Create this run's empty MCAP file under a name no earlier run holds; :class:`FileRefused`
     (a ValueError) for a folder another user can write, OSError if the file cannot be made."""
-    check_private_dir(log_dir)
-    for stem in _names(role, session):
-        mcap, summary = log_dir / f"{stem}.mcap", log_dir / f"{stem}.json"
-        if os.path.lexists(summary):  # an earlier run's summary without its log: keep the pair apart
-            continue
-        try:
-            fd = create_new(mcap)
-        except OSError as e:
-            if is_exists(e):
+    dfd = open_dir(log_dir, create=True)
+    try:
+        for stem in _names(role, session):
+            if _lexists(f"{stem}.json", dfd):  # an earlier run's summary without its log: keep apart
                 continue
-            raise
-        try:
-            st = os.fstat(fd)
-        finally:
-            os.close(fd)
-        return LogFiles(mcap, summary, st.st_dev, st.st_ino)
+            try:
+                fd = create_new(f"{stem}.mcap", dir_fd=dfd)
+            except OSError as e:
+                if is_exists(e):
+                    continue
+                raise
+            try:
+                st = os.fstat(fd)
+            finally:
+                os.close(fd)
+            return LogFiles(log_dir / f"{stem}.mcap", log_dir / f"{stem}.json", st.st_dev, st.st_ino)
+    finally:
+        os.close(dfd)
     raise FileRefused(f"log folder {log_dir}: {MAX_RUNS} logs of {role} session {session} already")
 
 
@@ -73,22 +85,28 @@ def write_summary(path: Path, summary: dict[str, Any]) -> str | None:
     """Write ``summary`` as JSON at ``path``, which must not exist: to a new temporary file first,
     then linked into place (never over a file, never through a symlink).  Returns None, or what went
     wrong in one line (a full disk, the name taken): the caller says so and goes on."""
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
+    tmp = f".{path.name}.{secrets.token_hex(4)}.tmp"
     try:
-        fd = create_new(tmp)
+        dfd = open_dir(path.parent)  # the folder the user named, not where a link points now
+    except FileRefused as e:
+        return str(e)
+    try:
+        fd = create_new(tmp, dir_fd=dfd)
     except OSError as e:
+        os.close(dfd)
         return f"cannot write {path}: {e.strerror or e}"
     try:
         with os.fdopen(fd, "wb") as f:
             f.write((json.dumps(summary, indent=2) + "\n").encode())
             f.flush()
             os.fsync(f.fileno())
-        os.link(tmp, path)  # EEXIST rather than replace
+        os.link(tmp, path.name, src_dir_fd=dfd, dst_dir_fd=dfd)  # EEXIST rather than replace
     except OSError as e:  # ENOSPC, EDQUOT, EIO; EEXIST if another process took the name
         return f"cannot write {path}: {e.strerror or e}"
     finally:
         with contextlib.suppress(OSError):
-            os.unlink(tmp)
+            os.unlink(tmp, dir_fd=dfd)
+        os.close(dfd)
     return None
 
 

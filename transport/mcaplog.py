@@ -1,16 +1,23 @@
 """Streamed logs in MCAP, and the live view: the real-time runner's sink for the port's record.
 
 Why MCAP: it is what the field records into and replays (ROS 2 bags, Foxglove, PlotJuggler), it is
-chunked and indexed, so a file written as a session runs is readable at any length, and a crash loses
-at most the chunk in flight.  Why foxglove-sdk's writer (PyPI ``foxglove-sdk``): one library writes
-the file and serves the same channels live over the Foxglove WebSocket protocol (``--live-view``);
-its Rust core compresses (zstd) and writes.  Tests read files with the reference ``mcap``
-library; ``teleop report`` streams them with :func:`iter_ticks` (the ``mcap`` library's record
+chunked and indexed, so a file written as a session runs is readable at any length.  Why
+foxglove-sdk's writer (PyPI ``foxglove-sdk``): one library writes the file and serves the same
+channels live over the Foxglove WebSocket protocol (``--live-view``); its Rust core compresses
+(zstd) and writes.  Tests read files with the reference ``mcap`` library; ``teleop report``
+streams them with :func:`iter_ticks` (the ``mcap`` library's record
 reader and decompression, its own split of each chunk's records: three times faster).
 
-**Who pays.** The port hands a sealed chunk (1000 ticks) to :meth:`McapLog.write`, which only puts
-it on a bounded queue (an item that finds the queue full is dropped; dropped chunks are counted).
-A sender thread pickles each item into the stdin of a writer *process* (``python -m
+**What a kill -9 loses.** The port of a real-time session seals its record every
+:data:`LOG_CHUNK_TICKS` ticks (250 ms at 1 kHz) and hands it to :meth:`McapLog.write`, which puts it
+on a queue the process holds at most :data:`MAX_AHEAD_TICKS` ticks of (750 ms; a chunk beyond that
+is dropped, counted, and logged as a ``log_dropped`` event).  A sender thread moves each item into a
+pipe enlarged to :data:`PIPE_BYTES`, whose contents outlive the process: the writer reads them to
+the end, then finishes the file.  A kill -9 of the process therefore loses at most 1 s of ticks (the
+unsealed chunk and what the process held), however far behind the writer was; the writer keeps up
+on a loaded host by leaving ``SCHED_IDLE`` while its pipe fills (:meth:`McapLog._keep_up`).
+
+**Who pays.** A sender thread pickles each item into the stdin of a writer *process* (``python -m
 transport.mcaplog``), which turns chunks into messages, compresses and writes them, and serves the
 live view.  A process, not a thread: measured with a writer thread in the same process
 (bench/soak.py, first version), the loop's p99 period error was about 2x that without the log, since
@@ -45,7 +52,9 @@ topic                       rate       fields
                                        ``watchdog`` (violations, controller, dissipated energy)
 ``/ROLE/events``            as they    ``t``, ``event`` (``session_start``, ``link_lost``,
                             happen     ``link_restored``, ``peer_restarted``, ``auth_rejected``,
-                                       ``replayed``, ``overrun``, ``session_end``), ``detail``
+                                       ``replayed``, ``overrun``, ``stall`` (ticks
+                                       skipped), ``log_dropped``, ``session_end``),
+                                       ``detail``
 ``/ROLE/session``           once       the session's parameters, role, pid, start time; ``traces``:
                                        SHA-256 and size of a ``trace FILE`` link's file
 ``/ROLE/summary``           once       the process's summary (what ``ROLE.json`` holds)
@@ -101,7 +110,21 @@ __all__ = [
 
 NICE = 10  # the writer process's niceness (on top of SCHED_IDLE, or instead where refused)
 LIVE_BATCH = 5  # live-view ticks per queued item
-QUEUE_ITEMS = 256  # items (chunks are 1 s each at 1 kHz, live batches 10 a second) in flight
+QUEUE_ITEMS = 256  # items (chunks, live batches 10 a second, events) in flight
+#: Ticks a port's chunk holds in a real-time session (``transport.session``): sealed and handed to
+#: the writer four times a second, so a kill -9 of the process loses at most this much unsealed.
+LOG_CHUNK_TICKS = 250
+#: Ticks of sealed chunks the process itself may hold ahead of the writer's pipe (0.75 s at 1 kHz):
+#: what a kill -9 loses on top of the unsealed chunk.  Beyond it a chunk is dropped and counted
+#: (``log.dropped_chunks``): the writer is that far behind, and the loop never waits for it.
+MAX_AHEAD_TICKS = 750
+#: The pipe to the writer, enlarged so that a sealed chunk leaves the process at once: what sits in
+#: the pipe survives a kill -9 of the process (the writer reads it to the end, then finishes the
+#: file).  About 20 s of record at 2 DoF; where the kernel refuses it, ``pipe-max-size``.
+PIPE_BYTES = 4 << 20
+#: The writer runs under SCHED_IDLE until its pipe holds more than BEHIND of its size, then at its
+#: process's own priority until it holds less than CAUGHT_UP (:meth:`McapLog._keep_up`).
+BEHIND, CAUGHT_UP = 1 / 8, 1 / 64
 SLOW_CLOSE_S = 2.0  # a close still waiting this long for an idle writer says why, once
 
 _NUM = {"type": "number"}
@@ -358,12 +381,28 @@ def spawn_writer() -> subprocess.Popen[bytes]:
     # never reaches it, not even while it imports (a signal handler installed after the imports left
     # that second open: a Ctrl-C then killed it and lost the log).  It also ignores SIGINT/SIGTERM,
     # and ends when told or when its stdin closes (its parent died), finishing the file either way.
-    return subprocess.Popen(
-        [sys.executable, "-m", "transport.mcaplog"],
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "transport.mcaplog", str(os.getpriority(os.PRIO_PROCESS, 0))],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         process_group=0,
     )
+    assert proc.stdin is not None
+    _enlarge_pipe(proc.stdin.fileno())
+    return proc
+
+
+def _enlarge_pipe(fd: int) -> int:
+    """The pipe's size raised to :data:`PIPE_BYTES` (or as far as the kernel allows); its size."""
+    import fcntl
+
+    sizes = [PIPE_BYTES]
+    with contextlib.suppress(OSError, ValueError):
+        sizes.append(int(Path("/proc/sys/fs/pipe-max-size").read_text()))
+    for size in sizes:
+        with contextlib.suppress(OSError):
+            return int(fcntl.fcntl(fd, fcntl.F_SETPIPE_SZ, min(size, PIPE_BYTES)))
+    return int(fcntl.fcntl(fd, fcntl.F_GETPIPE_SZ))
 
 
 class McapLog:
@@ -386,9 +425,13 @@ class McapLog:
         live_host: str = "127.0.0.1",
         process: subprocess.Popen[bytes] | None = None,
         file_id: tuple[int, int] | None = None,
+        max_ahead_ticks: int | None = None,
     ) -> None:
         """``process``: a writer from :func:`spawn_writer` (default: one started now); ``file_id``:
-        (device, inode) of the empty file at ``path`` that ``transport.logdir.reserve`` created."""
+        (device, inode) of the empty file at ``path`` that ``transport.logdir.reserve`` created;
+        ``max_ahead_ticks``: ticks of chunks this process may hold ahead of the pipe (a real-time
+        session's :data:`MAX_AHEAD_TICKS`; None: no bound, for a writer fed in virtual time)."""
+        self.max_ahead_ticks = max_ahead_ticks
         self.role = role
         self.path = path
         self.live_every = live_every
@@ -406,12 +449,16 @@ class McapLog:
             "file_id": file_id,
         }
         self._proc = process if process is not None else spawn_writer()
+        self._pipe_size = _pipe_size(self._proc)
         self._q: queue.Queue[tuple[str, Any]] = queue.Queue(QUEUE_ITEMS)
         self._q.put(("open", cfg))
         self._thread = threading.Thread(target=self._send, name=f"teleop-{role}-log", daemon=True)
         self._thread.start()
         self._closed = False
         self._live_batch: list[tuple[float, dict[str, dict[str, Any]]]] = []
+        # Ticks of chunks queued by the loop, and written into the pipe by the sender: each counter
+        # is written by one thread only, so their difference is what this process holds.
+        self._queued_ticks = self._sent_ticks = 0
 
     @property
     def live_port(self) -> int | None:
@@ -425,8 +472,22 @@ class McapLog:
 
     # --- called from the loop: O(1), never blocks ----------------------------------------
     def write(self, chunk: Chunk) -> None:
-        """The port's sink: a sealed chunk, queued for the writer."""
-        self._put(("chunk", chunk))
+        """The port's sink: a sealed chunk, queued for the writer, unless this process already holds
+        ``max_ahead_ticks`` ticks the pipe has not taken (then it is dropped and counted)."""
+        ahead = self._queued_ticks - self._sent_ticks
+        if self.max_ahead_ticks is None or ahead == 0 or ahead + chunk.n <= self.max_ahead_ticks:
+            try:
+                self._q.put_nowait(("chunk", chunk))
+            except queue.Full:
+                pass
+            else:
+                self._queued_ticks += chunk.n
+                return
+        self.dropped_chunks += 1  # said in the log too: a hole in the ticks is a drop, not a stall
+        t = chunk.play_time[: chunk.n]
+        done = t[~np.isnan(t)]
+        end = float(done[-1]) if done.size else 0.0
+        self.event(end, "log_dropped", f"ticks {chunk.k0} to {chunk.k0 + chunk.n - 1}: the writer is behind")
 
     def live(self, k: int, t: float, msgs: dict[str, dict[str, Any]]) -> None:
         """Decimated per-tick messages for the live view, queued ``LIVE_BATCH`` at a time: each
@@ -464,8 +525,41 @@ class McapLog:
             except OSError:  # the writer died: say so once; the loop goes on without a log
                 self._writer_died()
                 return
+            if item[0] == "chunk":
+                self._sent_ticks += item[1].n
+                self._keep_up()
             if item[0] == "stop":
                 return
+
+    def _keep_up(self) -> None:
+        """The writer's priority follows its backlog (the bytes its pipe holds): ``SCHED_IDLE``
+        (the loops first) while it holds less than :data:`CAUGHT_UP` of the pipe, this process's
+        own priority once it holds more than :data:`BEHIND`.
+
+        Why: under SCHED_IDLE beside two CPU hogs (2 cores) the writer got next to nothing, fell
+        5 s behind, and a kill -9 of the robot lost all of it.  The sender thread decides, not the
+        writer: a starved idle writer cannot run to promote itself.  A real-time loop (SCHED_FIFO)
+        still preempts the promoted writer at once.  Needs CAP_SYS_NICE, as the loop's priority
+        does; without it the writer stays idle and a writer too far behind costs dropped chunks."""
+        if self._pipe_size <= 0 or self._proc.stdin is None:
+            return
+        import fcntl
+        import termios
+
+        buf = bytearray(4)
+        try:
+            fcntl.ioctl(self._proc.stdin.fileno(), termios.FIONREAD, buf)
+        except (OSError, ValueError):
+            return
+        pending = int.from_bytes(buf, sys.byteorder)
+        try:  # read back, not remembered: the writer idles itself once it has imported
+            idle = os.sched_getscheduler(self._proc.pid) == os.SCHED_IDLE
+        except OSError:  # it has exited
+            return
+        if idle and pending > self._pipe_size * BEHIND:
+            promote_writer(self._proc)
+        elif not idle and pending < self._pipe_size * CAUGHT_UP:
+            idle_writer(self._proc)
 
     def _writer_died(self) -> None:
         """The writer process is gone (killed, crashed): the summary's ``log.error`` and one line."""
@@ -535,6 +629,31 @@ class McapLog:
         )
 
 
+def _pipe_size(proc: subprocess.Popen[bytes]) -> int:
+    import fcntl
+
+    try:
+        return int(fcntl.fcntl(proc.stdin.fileno(), fcntl.F_GETPIPE_SZ)) if proc.stdin else 0
+    except (OSError, ValueError):
+        return 0
+
+
+def idle_writer(proc: subprocess.Popen[bytes]) -> bool:
+    """Every thread of the writer back under ``SCHED_IDLE`` (its backlog is written: the loops
+    first again); False where that failed."""
+    try:
+        tids = [int(t) for t in os.listdir(f"/proc/{proc.pid}/task")]
+    except (OSError, ValueError):
+        return False
+    done = True
+    for tid in tids:
+        try:
+            os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
+        except (OSError, AttributeError):
+            done = False
+    return done
+
+
 def promote_writer(proc: subprocess.Popen[bytes]) -> bool:
     """Every thread of the writer back to ``SCHED_OTHER`` at this process's niceness; False where
     that is refused.
@@ -563,12 +682,60 @@ def promote_writer(proc: subprocess.Popen[bytes]) -> bool:
 
 
 def _read(stdin: Any) -> tuple[str, Any] | None:
-    """One framed item from the parent, or None at the end of input."""
+    """One framed item from the parent, or None at the end of input (a frame cut short is the end
+    too: the parent was killed while writing it)."""
     hdr = stdin.read(4)
     if len(hdr) < 4:
         return None
-    kind, item = pickle.loads(stdin.read(int.from_bytes(hdr, "little")))
+    n = int.from_bytes(hdr, "little")
+    body = stdin.read(n)
+    if len(body) < n:
+        return None
+    kind, item = pickle.loads(body)
     return str(kind), item
+
+
+def _set_priority(idle: bool, nice: int) -> bool:
+    """Every thread of this process (foxglove's encoder threads compress too) under SCHED_IDLE, or
+    back to SCHED_OTHER at ``nice``; False where that is refused (no CAP_SYS_NICE)."""
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except (OSError, ValueError):
+        tids = [0]
+    done = True
+    for tid in tids:
+        try:
+            if idle:
+                os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
+            else:
+                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+                os.setpriority(os.PRIO_PROCESS, tid, nice)
+        except (OSError, AttributeError):
+            done = False
+    return done
+
+
+def _on_parent_death(nice: int) -> None:
+    """SIGUSR1 when the process this writer serves dies (``PR_SET_PDEATHSIG``): every thread back
+    to ``nice`` under SCHED_OTHER, so that what the pipe still holds is written now, not when a
+    busy host next leaves an idle moment (nothing ticks for it any more)."""
+    import ctypes
+
+    signal.signal(signal.SIGUSR1, lambda signum, frame: _set_priority(False, nice))
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGUSR1)  # PR_SET_PDEATHSIG
+    if os.getppid() == 1:  # it died before the prctl
+        _set_priority(False, nice)
+
+
+def _say(line: str, stream: Any) -> None:
+    """One line to the parent (stdout) or the console (stderr); nothing if nobody reads it any more
+    (the parent was killed): the writer ends quietly, never with a BrokenPipeError traceback."""
+    try:
+        print(line, file=stream, flush=True)
+    except (BrokenPipeError, ValueError):
+        with contextlib.suppress(OSError):  # so that the exit's own flush does not fail again
+            os.dup2(os.open(os.devnull, os.O_WRONLY), stream.fileno())
 
 
 def _writer_main() -> None:
@@ -581,11 +748,13 @@ def _writer_main() -> None:
     # niced task may keep the CPU for the rest of its slice); lowering one's own policy needs no
     # privilege, and it also undoes a SCHED_FIFO inherited from a real-time parent.  Threads the
     # writer starts (foxglove's server, its zstd encoder) inherit it.
+    base_nice = int(sys.argv[1]) if len(sys.argv) > 1 else os.getpriority(os.PRIO_PROCESS, 0)
     with contextlib.suppress(OSError, AttributeError):
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
     with contextlib.suppress(OSError):
         os.nice(NICE)
     stdin = sys.stdin.buffer
+    _on_parent_death(base_nice)
     first = _read(stdin)
     if first is None or first[0] != "open":  # never used (its session did not start)
         return
@@ -595,35 +764,39 @@ def _writer_main() -> None:
             cfg["path"], cfg["role"], cfg["wall0_ns"], cfg["live_port"], cfg["live_host"], cfg.get("file_id")
         )
     except Exception as e:  # a file that cannot be made, a port taken: say so; the session goes on
-        print(f"teleop {cfg['role']}: error: no log and no live view: {e}", file=sys.stderr, flush=True)
-        print(json.dumps({"error": str(e)}), flush=True)
+        _say(f"teleop {cfg['role']}: error: no log and no live view: {e}", sys.stderr)
+        _say(json.dumps({"error": str(e)}), sys.stdout)
         while _read(stdin) is not None:  # let the parent's sender finish
             pass
         return
     if w.server is not None:
-        print(json.dumps({"live_port": w.live_port}), flush=True)
-        print(
-            f"teleop {cfg['role']}: live view on ws://{cfg['live_host']}:{w.live_port}",
-            file=sys.stderr,
-            flush=True,
-        )
+        _say(json.dumps({"live_port": w.live_port}), sys.stdout)
+        _say(f"teleop {cfg['role']}: live view on ws://{cfg['live_host']}:{w.live_port}", sys.stderr)
     port = w.live_port  # (the server says 0 once stopped)
     error = None
+    got: tuple[str, Any] | None = None
     try:
         while (got := _read(stdin)) is not None and got[0] != "stop":
             w.handle(*got)
     except Exception as e:  # a full disk, an I/O error: say so; the parent's session goes on
         error = f"writing the log failed: {e}"
-        print(f"teleop {cfg['role']}: error: {error}", file=sys.stderr, flush=True)
+        _say(f"teleop {cfg['role']}: error: {error}", sys.stderr)
         while _read(stdin) is not None:  # let the parent's sender finish
             pass
     finally:
+        if got is None and error is None:  # the input ended without "stop": the process died
+            _set_priority(False, base_nice)  # nothing ticks for it any more: finish now
+            _say(
+                f"teleop {cfg['role']}: the process ended without closing its log (killed?); "
+                f"the log writer finished {cfg['path']} with what reached it",
+                sys.stderr,
+            )
         try:
             w.close()
         except Exception as e:
             error = error or f"finishing the log failed: {e}"
     error = w.error or error  # a failed write: the first failure, said once already
-    print(json.dumps({"messages": w.messages, "live_port": port, "error": error}), flush=True)
+    _say(json.dumps({"messages": w.messages, "live_port": port, "error": error}), sys.stdout)
 
 
 def wall_clock_of(t_common_ns: int) -> int:

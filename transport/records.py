@@ -1,12 +1,13 @@
 """A process's records of its sessions: one MCAP log (and live view) per session, and its ``ROLE.json``.
 
 The runner hands each session's port the sink :meth:`Records.open` returns; the port hands it the
-per-tick record a chunk (1000 ticks) at a time.  The sink is ``transport.mcaplog.McapLog``, whose
-writer process writes ``ROLE.mcap`` as the session runs (and, with a live view, serves the same
-channels over the Foxglove WebSocket protocol), so memory stays flat however long the session lasts
-and the loop never encodes or writes a message.  :meth:`Records.end` closes a session's log and
-writes its summary (``teleop.summary.SessionSummary.document``) into the log and beside it; a
-session replaced by a takeover is finished on a thread, beside the next one, not in its way.
+per-tick record a chunk (250 ticks, ``transport.mcaplog.LOG_CHUNK_TICKS``) at a time. The sink is
+``transport.mcaplog.McapLog``, whose writer process writes ``ROLE.mcap`` as the session runs (and,
+with a live view, serves the same channels over the Foxglove WebSocket protocol), so memory stays
+flat however long the session lasts and the loop never encodes or writes a message.
+:meth:`Records.end` closes a session's log and writes its summary
+(``teleop.summary.SessionSummary.document``) into the log and beside it; a session replaced by a
+takeover is finished on a thread, beside the next one, not in its way.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from teleop.port import Chunk
 from teleop.summary import LogFigures, SessionSummary
 
 from . import logdir
-from .mcaplog import McapLog, spawn_writer, wall_clock_of
+from .mcaplog import MAX_AHEAD_TICKS, McapLog, spawn_writer, wall_clock_of
 
 
 class RecordError(TeleopError):
@@ -69,6 +70,7 @@ class Records:
                 live_host=self.live_view_host,
                 process=writer,
                 file_id=(files.dev, files.ino) if files is not None else None,
+                max_ahead_ticks=MAX_AHEAD_TICKS,
             )
         except (OSError, RuntimeError, ValueError) as e:  # a folder others can write, the port is taken
             raise RecordError(f"cannot open the log or the live view: {e}") from None

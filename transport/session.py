@@ -47,7 +47,7 @@ from teleop.protocol import PROTOCOL_VERSION, Pins, SessionParams
 from teleop.summary import ProcessSummary, SessionSummary
 
 from .base import Addr, Transport
-from .mcaplog import McapLog
+from .mcaplog import LOG_CHUNK_TICKS, McapLog
 from .options import EndpointOptions, ZenohOptions, new_session_id
 from .realtime import LoopStats, Ticker, freeze_heap, setup_realtime
 from .records import RecordError, Records
@@ -135,6 +135,7 @@ class _Runner:
             o.role, params, k0, keys, header_bytes=self.tr.header_bytes, sink=sink, device=o.device
         )
         port.rec.defer = True  # a closed chunk of the record is sealed after the send (settle)
+        port.rec.chunk_ticks = LOG_CHUNK_TICKS  # sealed 4 times a second: what a kill -9 loses
         return port
 
     # --- I/O ------------------------------------------------------------------------------------
@@ -263,7 +264,9 @@ class _Runner:
             ep.port.settle()  # the tick's datagrams left: what could wait for it (the record's seal)
             ep.port.loop_timing(k, ticker.last_lateness_ns)
             if self.log is not None:
-                self.watch.tick(self.log, ep.port, k, ep.session_time(self.clock()), ticker.overruns)
+                self.watch.tick(
+                    self.log, ep.port, k, ep.session_time(self.clock()), ticker.overruns, ticker.skipped
+                )
             if o.live and k % 1000 == 999:
                 print(
                     status_line(o.role, ep.port, k, ticker.overruns, o.insecure), file=sys.stderr, flush=True

@@ -22,9 +22,11 @@ class LogWatch:
     def __init__(self) -> None:
         self._watched: tuple[int, ...] = ()
 
-    def tick(self, log: McapLog, port: Port, k: int, t: float, overruns: int) -> None:
+    def tick(self, log: McapLog, port: Port, k: int, t: float, overruns: int, skipped: int = 0) -> None:
+        """``skipped``: ticks the loop skipped so far (a stall): said as a ``stall`` event, so that
+        a hole in a log's ticks is explained in the log (a dropped chunk is ``log_dropped``)."""
         node, sec = port.node, port.security
-        watched = (node.peer_restarts, sec.rejected, sec.replayed, overruns)
+        watched = (node.peer_restarts, sec.rejected, sec.replayed, overruns, skipped)
         if watched != self._watched:
             if self._watched:
                 old = self._watched
@@ -36,6 +38,8 @@ class LogWatch:
                     log.event(t, "replayed", f"{watched[2]} so far")
                 if watched[3] != old[3]:
                     log.event(t, "overrun", f"tick {k}: {overruns} so far")
+                if watched[4] != old[4]:
+                    log.event(t, "stall", f"tick {k}: {watched[4] - old[4]} ticks skipped before it")
             self._watched = watched
         if k % log.live_every == 0:
             log.live(k, t, live_messages(port, k, t))

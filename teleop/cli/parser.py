@@ -9,6 +9,15 @@ from ..files import FileRefused
 from . import conformance, endpoints, experiment, keygen, report, run, sim, sweep
 from .args import CliError, Parser
 
+#: Control characters (C0, DEL, C1) shown escaped: a file name or a log's text in an error must
+#: keep it one line, and must not drive the terminal (an escape sequence in a planted file's name).
+_CONTROL = {c: f"\\x{c:02x}" for c in (*range(0x20), *range(0x7F, 0xA0))}
+
+
+def one_line(text: object) -> str:
+    """``text`` with every control character escaped (newlines too): what an error prints."""
+    return str(text).translate(_CONTROL)
+
 
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="teleop", description="Networked haptic teleoperation with passive LDR.")
@@ -32,9 +41,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         rc: int = args.func(args)
     except CliError as e:
-        parser.exit(2, f"teleop: error: {e}\n")
+        parser.exit(2, f"teleop: error: {one_line(e)}\n")
     except FileRefused as e:  # an output already there, a full disk: teleop.files
-        parser.exit(2, f"teleop: error: {e}\n")
+        parser.exit(2, f"teleop: error: {one_line(e)}\n")
     except KeyboardInterrupt:
         return 130
     return rc

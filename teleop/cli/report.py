@@ -30,6 +30,7 @@ def write_report(
     from .. import report as session_report
     from ..files import FileRefused
     from ..logfile import LogError
+    from .parser import one_line
 
     try:
         traces = tuple(Path(t) for t in getattr(args, "trace", None) or ())
@@ -50,7 +51,9 @@ def write_report(
     path = _write_new(out, ["report.json", f"report-{rep['session']}.json"], json.dumps(rep, indent=2) + "\n")
     suffix = "" if path.name == "report.json" else f"-{rep['session']}"
     files = [] if args.no_plots else session_report.write_plots(logs, out, rep, suffix)
-    print(text)
+    # Text a log holds (a warning, a device name, a file's name) is shown with its control
+    # characters escaped: a hostile log cannot drive the terminal.
+    print("\n".join(one_line(line) for line in text.split("\n")))
     print(f"wrote {path}" + (f" and {', '.join(f.name for f in files)}" if files else ""))
 
 

@@ -5,22 +5,21 @@ Zenoh clients without a router, ``... router``); every setting of the session is
 and passed on explicitly, so the children never fall back on a default of their own.
 
 Authenticated with no setup: unless given ``--key-file`` or ``--insecure``, a run makes a new key in
-a private temporary folder, passes ``--key-file`` to both children and removes the folder when they
-have exited, whatever ended the run.
+an anonymous memory file (never on disk) that both children inherit and read as
+``--key-file /proc/self/fd/N``; it is gone when the last of them exits, whatever ended the run.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import fcntl
 import math
 import os
-import shutil
 import signal
 import socket
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Iterator
@@ -108,6 +107,7 @@ class RunKey:
     options: list[str]  # ["--key-file", PATH] or ["--insecure"]
     source: str  # "ephemeral" (made for this run), "key-file" (--key-file) or "insecure"
     key_id: str  # teleop.auth.key_id: names the key without revealing it
+    pass_fds: tuple[int, ...] = ()  # descriptors the children inherit (the ephemeral key's)
 
 
 def _exit_on_signal(signum: int, frame: FrameType | None) -> None:
@@ -133,7 +133,12 @@ def _exit_cleanly_on_termination() -> Iterator[None]:
 
 @contextlib.contextmanager
 def run_key(args: argparse.Namespace) -> Iterator[RunKey]:
-    """The key of one run: --insecure, --key-file (checked now), or a new one removed on the way out."""
+    """The key of one run: --insecure, --key-file (checked now), or a new one that never lands on
+    disk: it is held in an anonymous memory file (``memfd_create``, mode 0600, sealed) that the
+    children inherit and read as ``--key-file /proc/self/fd/N``, with a key file's checks.
+
+    Why not a file in a private temporary folder: ``kill -9`` of ``teleop run`` left it behind
+    (nothing runs to remove it); a memory file is gone once the last process holding it exits."""
     from .. import auth
 
     if args.insecure:
@@ -143,21 +148,24 @@ def run_key(args: argparse.Namespace) -> Iterator[RunKey]:
         key = read_key(args.key_file)
         yield RunKey(["--key-file", os.path.abspath(args.key_file)], "key-file", auth.key_id(key))
         return
+    key = auth.generate_key()
     try:
-        folder = tempfile.mkdtemp(prefix="teleop-run-key-")  # mode 0700: this user's only
-    except OSError as e:
-        raise CliError(f"cannot create a temporary folder for the run's key: {e.strerror or e}") from None
+        fd = os.memfd_create("teleop-run-key", os.MFD_CLOEXEC | os.MFD_ALLOW_SEALING)
+    except (AttributeError, OSError) as e:  # not Linux
+        raise CliError(
+            f"cannot hold the run's key in memory ({getattr(e, 'strerror', None) or e}): "
+            "pass --key-file FILE (teleop keygen FILE)"
+        ) from None
     try:
+        os.fchmod(fd, 0o600)
+        os.write(fd, (key.hex() + "\n").encode())
+        seals = fcntl.F_SEAL_SEAL | fcntl.F_SEAL_SHRINK | fcntl.F_SEAL_GROW | fcntl.F_SEAL_WRITE
+        fcntl.fcntl(fd, fcntl.F_ADD_SEALS, seals)  # the children read it; nobody changes it
+        read_key(f"/proc/self/fd/{fd}")  # the very checks the children make
         with _exit_cleanly_on_termination():
-            key = auth.generate_key()
-            path = os.path.join(folder, "run.key")
-            try:
-                auth.write_key_file(path, key)  # mode 0600
-            except ValueError as e:
-                raise CliError(str(e)) from None
-            yield RunKey(["--key-file", path], "ephemeral", auth.key_id(key))
+            yield RunKey(["--key-file", f"/proc/self/fd/{fd}"], "ephemeral", auth.key_id(key), (fd,))
     finally:
-        shutil.rmtree(folder, ignore_errors=True)
+        os.close(fd)
 
 
 @dataclass
@@ -236,8 +244,8 @@ def _die_with_parent() -> None:
         ctypes.CDLL("libc.so.6").prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
 
 
-def _spawn(cmd: list[str]) -> subprocess.Popen[bytes]:
-    return subprocess.Popen(cmd, preexec_fn=_die_with_parent)
+def _spawn(cmd: list[str], pass_fds: tuple[int, ...] = ()) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(cmd, preexec_fn=_die_with_parent, pass_fds=pass_fds)
 
 
 def _stop(procs: list[subprocess.Popen[bytes]]) -> None:
@@ -264,16 +272,18 @@ def _start_router(net: Network) -> subprocess.Popen[bytes] | None:
     return router
 
 
-def _run_pair(to_cmd: list[str], op_cmd: list[str], timeout: float) -> tuple[dict[str, int | None], bool]:
+def _run_pair(
+    to_cmd: list[str], op_cmd: list[str], timeout: float, pass_fds: tuple[int, ...] = ()
+) -> tuple[dict[str, int | None], bool]:
     """Run the teleoperator, then the operator, until both exit (or ``timeout`` s, then CliError).
 
     Returns their exit codes and whether Ctrl-C stopped them.
     """
-    procs = [_spawn(to_cmd)]
+    procs = [_spawn(to_cmd, pass_fds)]
     interrupted = False
     try:
         time.sleep(0.3)  # let the teleoperator bind before the operator says hello
-        procs.append(_spawn(op_cmd))
+        procs.append(_spawn(op_cmd, pass_fds))
         limit = time.monotonic() + timeout
         while any(p.poll() is None for p in procs):
             if time.monotonic() > limit:
@@ -323,7 +333,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         router = _start_router(net)
         try:
             timeout = math.inf if params.until_stopped else params.duration + 2 * args.connect_timeout + 10
-            codes, interrupted = _run_pair(cmds.teleoperator, cmds.operator, timeout)
+            codes, interrupted = _run_pair(cmds.teleoperator, cmds.operator, timeout, key.pass_fds)
         finally:
             if router is not None:
                 _stop([router])
@@ -372,7 +382,7 @@ def add_parser(sub: Subcommands) -> None:
         help="teleoperator UDP port (default: a free one)",
     )
     add_process_args(r)
-    add_key_args(r, "default: a new key for this run, in a private temporary folder removed afterwards")
+    add_key_args(r, "default: a new key for this run, held in memory and handed to both processes")
     r.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     r.add_argument("--no-sim", action="store_true", help="skip the teleop sim comparison in the report")
     r.add_argument("--no-live", action="store_true", help="no status line every second during the run")

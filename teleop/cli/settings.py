@@ -65,21 +65,31 @@ def writable_dir(path: Path, option: str) -> Path:
 
 
 def private_dir(path: Path, option: str) -> Path:
-    """A log folder: made 0755 if missing (whatever the umask: a umask of 002 would make it
-    group-writable, and refused), refused if another user can write it (``teleop.files``), and
-    checked writable; CliError says why.  ``transport.logdir.reserve`` checks it again."""
-    from ..files import FileRefused, check_private_dir
+    """A log folder, opened where the user named it (``teleop.files.open_dir``: never through a
+    symlink another user could have placed, on the way or as the folder), made 0755 if missing
+    (whatever the umask: a umask of 002 would make it group-writable, and refused), refused if
+    another user can write it or a folder on the way, and checked writable; CliError says why.
+    ``transport.logdir.reserve`` walks it again."""
+    from ..files import FileRefused, open_dir
 
     try:
-        if not path.exists():
-            path.mkdir(parents=True, exist_ok=True)
-            path.chmod(0o755)
-        check_private_dir(path, option)
+        fd = open_dir(path, option, create=True)
     except FileRefused as e:
+        blocker = _file_in_the_way(path)
+        if blocker is not None and not blocker.is_symlink():
+            raise CliError(
+                f"{option} {path}: cannot create or write to this folder: {blocker} is a file, not a folder"
+            ) from None
         raise CliError(str(e)) from None
-    except OSError:
-        pass  # writable_dir says why, naming what is in the way
-    return writable_dir(path, option)
+    probe = f".teleop-write-check-{os.getpid()}"
+    try:
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600, dir_fd=fd))
+        os.unlink(probe, dir_fd=fd)
+    except OSError as e:
+        raise CliError(f"{option} {path}: cannot create or write to this folder: {e.strerror or e}") from None
+    finally:
+        os.close(fd)
+    return path
 
 
 def fresh_out(out: Path, names: list[str]) -> None:
