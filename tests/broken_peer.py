@@ -53,12 +53,157 @@ def _ignores_retry() -> None:  # 4.3 step 2: an operator that never puts the coo
     protocol.encode = no_cookie
 
 
+# --- faults on the wire that an implementation written from PROTOCOL.md alone was measured to make
+# (issue 35): each one once the session runs (the 20th session-key datagram), or on every packet.
+FAULT_AT = 20  # the session-key datagram (of this process) that carries a one-off fault
+
+
+def _on_session_datagram(fault: Any) -> None:
+    """Patch ``auth.Sealer.seal`` so that ``fault(sealer, signed)`` rewrites the ``FAULT_AT``-th
+    session-key datagram this process seals (``signed``: header and body, before the tag)."""
+    from teleop import auth
+
+    seal = auth.Sealer.seal
+    count = [0]
+
+    def sealed(self: Any, body: bytes) -> bytes:
+        if (self._flags >> 1) & 1 != auth.SESSION:
+            return seal(self, body)
+        count[0] += 1
+        if count[0] != FAULT_AT:
+            return seal(self, body)
+        data = seal(self, body)
+        return bytes(fault(self, data))
+
+    auth.Sealer.seal = sealed  # type: ignore[method-assign]
+
+
+def _retag(sealer: Any, signed: bytes) -> bytes:
+    m = sealer._mac.copy()
+    m.update(signed)
+    return signed + bytes(m.digest())
+
+
+def _bad_mac() -> None:  # 2.1: one datagram whose tag does not verify
+    _on_session_datagram(lambda s, d: d[:-1] + bytes([d[-1] ^ 0x01]))
+
+
+def _wrong_direction() -> None:  # 2.1: one datagram with the other side's direction bit, tag valid
+    _on_session_datagram(lambda s, d: _retag(s, d[:1] + bytes([d[1] ^ 0x01]) + d[2:-16]))
+
+
+def _reserved_bits() -> None:  # 2.1: one datagram with a reserved flag bit set, tag valid
+    _on_session_datagram(lambda s, d: _retag(s, d[:1] + bytes([d[1] | 0x04]) + d[2:-16]))
+
+
+def _counter_jump() -> None:  # 2.3: the counter jumps by 100000 once
+    from teleop import auth
+
+    seal = auth.Sealer.seal
+    count = [0]
+
+    def sealed(self: Any, body: bytes) -> bytes:
+        if (self._flags >> 1) & 1 == auth.SESSION:
+            count[0] += 1
+            if count[0] == FAULT_AT:
+                self.counter += 100_000
+        return seal(self, body)
+
+    auth.Sealer.seal = sealed  # type: ignore[method-assign]
+
+
+def _on_packet(change: Any) -> None:
+    """Every data packet this process encodes goes through ``change(packet) -> packet`` first."""
+    from teleop import port, wire
+
+    encode = wire.encode
+    port.wire.encode = lambda p: encode(change(p))  # type: ignore[attr-defined]
+
+
+def _oversize_payload() -> None:  # 3.5, 4.5: one data packet with a 6000-byte payload
+    _on_packet(lambda p: p._replace(payload=bytes(6000)) if p.seq == FAULT_AT else p)
+
+
+def _energy_2x() -> None:  # 3.6: energy over-reported twice
+    _on_packet(lambda p: p._replace(energy=2.0 * p.energy))
+
+
+def _t_us_off() -> None:  # 3.2: t_us 500 us off its tick
+    _on_packet(lambda p: p._replace(t_us=p.t_us + 500) if p.t_us < 2**63 else p)  # (not the size bound's)
+
+
+def _round_nearest() -> None:  # 3.4: the 16-bit format rounds to nearest instead of toward zero
+    import numpy as np
+
+    from teleop.codecs import base
+
+    def quantize(self: Any, x: Any, dtype: Any = base._I8) -> Any:
+        inv, lo, hi, _ = self._constants(x.shape)
+        return np.rint(np.clip(x * inv, lo, hi)).astype(dtype)
+
+    base.RawFormat.quantize = quantize  # type: ignore[method-assign]
+
+
+def _deadband_no_budget() -> None:  # 3.6: pd/pdp hold and send without the energy budget (eq. 10)
+    from teleop.codecs import deadband
+
+    deadband.DeadbandEncoder.power = True  # the deadband's rules 2 and 3 off, as on a power variable
+
+
+def _phase_0() -> None:  # 5.1: a teleoperator that runs its ticks with the operator's (phase 0)
+    from teleop import endpoint
+
+    from_to = endpoint.Endpoint._from_to_handshake
+
+    def zero(self: Any, hs: Any, now_ns: int) -> None:
+        hs.params = dataclasses.replace(hs.params, phase=0.0)
+        from_to(self, hs, now_ns)
+
+    endpoint.Endpoint._from_to_handshake = zero  # type: ignore[method-assign]
+
+
+def _late_5() -> None:  # 5.1: ticks run 5 periods late
+    from teleop import endpoint
+
+    begin = endpoint.Endpoint._begin
+
+    def late(self: Any, params: Any, peer: Any, start_ns: int, t0_ns: int, *a: Any, **kw: Any) -> None:
+        begin(self, params, peer, start_ns, t0_ns + 5 * round(params.dt * 1e9), *a, **kw)
+
+    endpoint.Endpoint._begin = late  # type: ignore[method-assign]
+
+
+def _start_skew() -> None:  # 4.3 step 5: an operator whose start_ns is 200 ms off S_O + offset
+    from teleop import protocol
+
+    encode = protocol.encode
+
+    def skewed(msg: Any) -> bytes:
+        if isinstance(msg, protocol.Start):
+            msg = dataclasses.replace(msg, start_ns=msg.start_ns + 200_000_000)
+        return encode(msg)
+
+    protocol.encode = skewed
+
+
 BREAKS = {
     "no-cookie": _no_cookie,
     "answers-own-offers": _answers_own_offers,
     "no-bye": _no_bye,
     "seq-from-5": _seq_from_5,
     "ignores-retry": _ignores_retry,
+    "bad-mac": _bad_mac,
+    "wrong-direction": _wrong_direction,
+    "reserved-bits": _reserved_bits,
+    "counter-jump": _counter_jump,
+    "oversize-payload": _oversize_payload,
+    "energy-2x": _energy_2x,
+    "t-us-off": _t_us_off,
+    "round-nearest": _round_nearest,
+    "deadband-no-budget": _deadband_no_budget,
+    "phase-0": _phase_0,
+    "late-5": _late_5,
+    "start-skew": _start_skew,
 }
 
 if __name__ == "__main__":

@@ -35,7 +35,9 @@ def _peer(brk: str | None, *args: str) -> subprocess.Popen[str]:
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def _check_teleoperator(tmp_path: Path, key: str, brk: str | None) -> tuple[int, dict[str, object], str]:
+def _check_teleoperator(
+    tmp_path: Path, key: str, brk: str | None, *extra: str
+) -> tuple[int, dict[str, object], str]:
     port = _free_port()
     to = _peer(brk, "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--quiet")
     try:
@@ -43,7 +45,7 @@ def _check_teleoperator(tmp_path: Path, key: str, brk: str | None) -> tuple[int,
         out = tmp_path / "conf.json"
         r = subprocess.run(
             [*TELEOP, "conformance", "teleoperator", "--peer", f"127.0.0.1:{port}", "--key-file", key,
-             "--json", str(out)],
+             "--json", str(out), *extra],
             capture_output=True, text=True, timeout=120,
         )  # fmt: skip
     finally:
@@ -103,6 +105,69 @@ def test_a_broken_teleoperator_is_caught(tmp_path: Path, key: str, brk: str, rul
     rc, result, out = _check_teleoperator(tmp_path, key, brk)
     assert rc == 1, out
     assert any(rule in f for f in _failed(result)), out
+
+
+def _failed_in(result: dict[str, object], section: str, rule: str) -> bool:
+    """Whether a MUST rule containing ``rule``, citing ``section``, failed."""
+    checks = result["checks"]
+    assert isinstance(checks, list)
+    return any(
+        c["passed"] is False and c["level"].startswith("MUST") and rule in c["rule"]
+        and section in c["section"]
+        for c in checks
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "brk,codec,section,rule",
+    [
+        ("bad-mac", "none", "2.1", "every datagram's tag verifies"),
+        ("wrong-direction", "none", "2.1", "the direction bit is the sender's"),
+        ("reserved-bits", "none", "2.1", "the reserved flag bits (3-2) are zero"),
+        ("counter-jump", "none", "2.4", "never beyond the jump bound"),
+        ("oversize-payload", "none", "3.5", "every payload has its codec's size"),
+        ("oversize-payload", "none", "4.5", "longer than the largest message of its key kind"),
+        ("energy-2x", "none", "3.6", "energy not over-reported"),
+        ("t-us-off", "none", "3.2", "t_us = round(tick * dt * 1e6)"),
+        ("round-nearest", "none", "3.4", "|Q(x)| <= |x|"),
+        ("deadband-no-budget", "pd:5", "3.6", "the payloads never play more energy than the reports"),
+        ("phase-0", "none", "5.1", "leaves no earlier than the tick's time"),
+        ("late-5", "none", "5.1", "runs tick k on time"),
+    ],
+)
+def test_a_teleoperator_with_a_wire_fault_is_caught_by_its_rule(
+    tmp_path: Path, key: str, brk: str, codec: str, section: str, rule: str
+) -> None:
+    """Issue 35: faults an implementation written from PROTOCOL.md made and the suite once passed;
+    each is caught by a MUST that names its section, and the exit status is 1."""
+    rc, result, out = _check_teleoperator(tmp_path, key, brk, "--codec", codec)
+    assert rc == 1, out
+    assert _failed_in(result, section, rule), out
+
+
+def test_the_projects_teleoperator_conforms_with_a_deadband(tmp_path: Path, key: str) -> None:
+    """The deadband's budget rule passes for the reference (the fault above is not the rule misfiring)."""
+    rc, result, out = _check_teleoperator(tmp_path, key, None, "--codec", "pd:5")
+    assert rc == 0 and not _failed(result), out
+    checks = result["checks"]
+    assert isinstance(checks, list)
+    assert any("never play more energy" in c["rule"] and c["passed"] for c in checks), out
+
+
+@pytest.mark.parametrize(
+    "brk,section,rule",
+    [
+        ("start-skew", "4.3 step 5", "leaves no earlier than the tick's time"),
+        ("late-5", "5.1", "runs tick k on time"),
+        ("bad-mac", "2.1", "every datagram's tag verifies"),
+    ],
+)
+def test_an_operator_with_a_wire_fault_is_caught_by_its_rule(
+    tmp_path: Path, key: str, brk: str, section: str, rule: str
+) -> None:
+    rc, result, out = _check_operator(tmp_path, key, brk)
+    assert rc == 1, out
+    assert _failed_in(result, section, rule), out
 
 
 @pytest.mark.parametrize(

@@ -593,3 +593,67 @@ def test_the_energy_guard_as_documented() -> None:
     assert late.guard.admit(np.array([0.3, 0.3])).tolist() == [0.0, 0.0]
     assert late.guard.report.violations == 1 and late.guard.tolerance == 1e-12
     assert "1e-12" in _section("3.7") and "-1e-9" in _section("3.7")
+
+
+# --- numbers PROTOCOL.md states for implementers (issue 35) -------------------------------------
+def _smallest_hello() -> bytes:
+    """The smallest hello body the full parse accepts: every number an integer but ``dt`` (a float32:
+    no integer is in its range), the shortest codec and scenario names, no optional field."""
+    m = {
+        "t": "hello", "v": 1, "t_ns": 0, "nonce": bytes(16), "session": 1, "codec": "none",
+        "scenario": "step", "dof": 1, "b": 1, "range": 1, "duration": 0, "dt": 0.001, "phase": 0,
+        "netem_forward": "", "netem_backward": "", "seed": 0, "on_loss": "zero", "controller": True,
+        "link_timeout": 1,
+    }  # fmt: skip
+    body: bytes = msgpack.packb(m, use_bin_type=True, use_single_float=True)
+    return body
+
+
+def test_the_smallest_valid_hello_and_the_retries_are_as_stated() -> None:
+    body = _smallest_hello()
+    assert isinstance(protocol.parse(body), protocol.Hello)
+    smallest = len(body) + auth.OVERHEAD
+    p = SessionParams(session=1, codec="none", scenario="step", dof=1, b=1.0, full_scale=1.0,
+                      duration=0.0, phase=0.0, link_timeout=1.0, on_loss="zero")  # fmt: skip
+    ours = len(protocol.encode(protocol.Hello(p, 0, nonce=bytes(16)))) + auth.OVERHEAD
+    retries = [
+        len(protocol.encode(protocol.Retry(s, t, bytes(16)))) + auth.OVERHEAD
+        for s, t in ((None, 0), (2**32 - 1, 2**63 - 1))
+    ]
+    bare = len(msgpack.packb({"t": "hello", "nonce": bytes(16)}, use_bin_type=True)) + auth.OVERHEAD
+    text = " ".join(DOC.split())
+    assert f"the smallest hello the full parse accepts is **{smallest}** bytes" in text
+    assert f"the reference operator's are at least {ours} bytes" in text
+    assert f"retries are {min(retries)} to {max(retries)} bytes" in text
+    assert f"and a `nonce`, {bare} bytes, also gets a retry" in text
+    assert max(retries) < smallest
+
+
+def test_the_session_length_bound_is_the_stated_formula() -> None:
+    text = " ".join(DOC.split())
+    assert "`max(2000 n + 53, 4096) + 26` bytes at `n` DoF up to 32," in text
+    assert "`max(2000 n + 55, 4096) + 26` from 33" in text
+    for n in range(1, 65):
+        extra = 53 if n <= 32 else 55
+        assert wire.max_session_datagram_bytes(n) == max(2000 * n + extra, 4096) + auth.OVERHEAD
+    assert f"{wire.max_session_datagram_bytes(2)} bytes at 1 or 2 DoF" in text
+    assert wire.max_session_datagram_bytes(1) == wire.max_session_datagram_bytes(2)
+
+
+def test_the_personalisation_words_as_stated() -> None:
+    """The note for implementers without BLAKE2s personalisation states the parameter block's words
+    6 and 7 (RFC 7693 2.5) of the person the code uses."""
+    text = " ".join(DOC.split())
+    person = auth._PERSON
+    w6, w7 = (int.from_bytes(person[i : i + 4], "little") for i in (0, 4))
+    assert f"`{person.decode()}`: `p[6]" in text
+    assert f"`p[6] = 0x{w6:08x}`, `p[7] = 0x{w7:08x}`" in text
+
+
+def test_the_zenoh_credential_keys_are_the_transports() -> None:
+    from transport import zenoh
+
+    for key in ("user", "password", "dictionary_file"):
+        assert f"`{zenoh._USRPWD}/{key}`" in DOC
+    assert auth.ZENOH_USER == "teleop"
+

@@ -11,6 +11,8 @@ ever sent to.
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 import json
 import math
 import secrets
@@ -22,9 +24,12 @@ from pathlib import Path
 from typing import Any
 
 import msgpack
+import numpy as np
 
 from teleop import auth, protocol, wire
-from teleop.codecs import make_codec
+from teleop.codecs import Codec, make_codec
+from teleop.codecs.base import RAW_BITS, CodecError, RawFormat, unpack16
+from teleop.codecs.deadband import SLOPE_SCALE
 from teleop.endpoint import Endpoint, SessionEnded, SessionStarted, State, session_port
 from teleop.link import Addr
 from teleop.port import Port, PortKeys
@@ -33,6 +38,7 @@ from teleop.settings import DEFAULT_ENVELOPE
 
 QUIET_S = 0.3  # how long "no answer" is waited for
 PROBE_TIMEOUT_S = 2.0
+LINK_TIMEOUT_S = DEFAULT_ENVELOPE.max_link_timeout  # the reference robot's default --max-link-timeout
 
 
 @dataclass
@@ -80,12 +86,12 @@ class Result:
 
 def params_for(session: int, codec: str, duration: float) -> SessionParams:
     """The session proposed to a teleoperator: 2 DoF, the protocol scenario, and a link timeout of
-    0.25 s, the longest a robot affords by default (teleop.settings.Envelope): a loaded host's stall
-    must not put the peer into link loss, where a hello means a takeover and the busy rule no
-    longer applies."""
+    0.25 s, the longest a reference robot affords by default (``--max-link-timeout``; a longer one is
+    rejected): a loaded host's stall must not put the peer into link loss, where a hello means a
+    takeover and the busy rule no longer applies."""
     return SessionParams(
         session=session, codec=codec, scenario="protocol", dof=2, b=20.0, full_scale=2.0, duration=duration,
-        link_timeout=DEFAULT_ENVELOPE.max_link_timeout,
+        link_timeout=LINK_TIMEOUT_S,
     ).validate()  # fmt: skip
 
 
@@ -108,6 +114,8 @@ class _Carrier:
 
     #: Whether a second carrier has a source address of its own (UDP) or the same (Zenoh: one peer).
     distinct_addresses = True
+    #: Every datagram received, (bytes, source, receive time ns), for the envelope audit.
+    log: list[tuple[bytes, Addr, int]]
 
     @property
     def addr(self) -> Addr:
@@ -116,8 +124,14 @@ class _Carrier:
     def send(self, data: bytes, to: Addr) -> None:
         raise NotImplementedError
 
-    def recv_all(self) -> list[tuple[bytes, Addr, int]]:
+    def _recv(self) -> list[tuple[bytes, Addr, int]]:
         raise NotImplementedError
+
+    def recv_all(self) -> list[tuple[bytes, Addr, int]]:
+        """Everything received since the last call (also kept in :attr:`log`)."""
+        out = self._recv()
+        self.log.extend(out)
+        return out
 
     def close(self) -> None:
         raise NotImplementedError
@@ -148,6 +162,7 @@ class _Zenoh(_Carrier):
 
         tx, rx = _keys(role, prefix)
         self._peer = ZENOH_PEER
+        self.log = []
         self._lock = threading.Lock()
         self._q: list[tuple[bytes, Addr, int]] = []
         self.session: Any = open_session(config, key)  # in peer mode only key holders get a link
@@ -172,7 +187,7 @@ class _Zenoh(_Carrier):
     def send(self, data: bytes, to: Addr) -> None:
         self.pub.put(data)
 
-    def recv_all(self) -> list[tuple[bytes, Addr, int]]:
+    def _recv(self) -> list[tuple[bytes, Addr, int]]:
         with self._lock:
             out, self._q = self._q, []
         return out
@@ -190,6 +205,7 @@ class _Socket(_Carrier):
         self.s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.s.bind(bind)
         self.s.setblocking(False)
+        self.log = []
 
     @property
     def addr(self) -> Addr:
@@ -199,7 +215,7 @@ class _Socket(_Carrier):
     def send(self, data: bytes, to: Addr) -> None:
         self.s.sendto(data, to)
 
-    def recv_all(self) -> list[tuple[bytes, Addr, int]]:
+    def _recv(self) -> list[tuple[bytes, Addr, int]]:
         out: list[tuple[bytes, Addr, int]] = []
         while True:
             try:
@@ -263,9 +279,31 @@ class _Driver:
             self.events.append(ev)
 
 
-def _factory(role: str) -> Callable[[SessionParams, int, PortKeys, int], Port]:
+#: The probe's forward reports: this fraction of the energy sent (section 3.7 step 7: safe, the
+#: receiver's guard only cuts more).  The teleoperator's guard then scales what it plays to fit,
+#: which takes its own wave off the 16-bit grid: in free space the protocol scenario's robot sends
+#: back exactly what it played (``h_r = g_r``), values already on the grid, where a quantiser that
+#: rounds to nearest cannot be told from one that truncates (3.4).
+UNDER_REPORT = 0.9
+
+
+def _factory(role: str, under_report: float = 1.0) -> Callable[[SessionParams, int, PortKeys, int], Port]:
     def make(p: SessionParams, k0: int, keys: PortKeys, start_ns: int) -> Port:
-        return session_port(role, p, k0, keys, header_bytes=28)
+        port = session_port(role, p, k0, keys, header_bytes=28)
+        if under_report != 1.0:
+            node = port.node
+            transmit = node._transmit
+
+            def under(now: float, x: Any) -> wire.Packet | None:
+                sent = node.energy_sent
+                node.energy_sent = sent * under_report
+                try:
+                    return transmit(now, x)
+                finally:
+                    node.energy_sent = sent
+
+            node._transmit = under  # type: ignore[method-assign]
+        return port
 
     return make
 
@@ -282,6 +320,7 @@ class _DataCheck:
         self.last_seq = -1
         self.last_energy = 0.0
         self.byes: list[tuple[int, protocol.Bye]] = []
+        self.stream: list[tuple[int, wire.Packet]] = []  # (receive time ns, packet) of this session
         self.starts = 0
         self.started = 0
         self.first_error = ""
@@ -319,6 +358,8 @@ class _DataCheck:
             self.first_error = self.first_error or (
                 f"session {pkt.session}, direction {pkt.direction}, codec id {pkt.codec_id}"
             )
+        else:
+            self.stream.append((t, pkt))
         if self.first_seq is None:
             self.first_seq = pkt.seq
         elif pkt.seq <= self.last_seq:
@@ -384,6 +425,246 @@ def _data_checks(r: Result, d: _DataCheck, codec: str, ticks: int) -> None:
             byes[0][1].produced >= d.packets,
             f"produced {byes[0][1].produced}, arrived {d.packets}",
         )
+
+
+# --------------------------------------------------------------------------------------------
+# what every datagram and every data packet of the peer must be (PROTOCOL.md 2, 3, 5.1)
+# --------------------------------------------------------------------------------------------
+#: A tick's packet may leave no earlier than its deadline (5.1); this much earlier is allowed for
+#: the error of the clock offset (at most rtt / 2 on loopback, tens of us).
+EARLY_TOLERANCE_NS = 250_000
+#: How late the median packet may arrive after its tick's deadline: two periods plus 0.5 ms (a
+#: loaded host; the receive times of this suite are polled every 0.3 ms).
+LATE_PERIODS, LATE_EXTRA_NS = 2, 500_000
+
+
+def _mac_ok(key: bytes, data: bytes) -> bool:
+    m = hashlib.blake2s(data[: -auth.TAG_BYTES], key=key, digest_size=auth.TAG_BYTES)
+    return hmac.compare_digest(m.digest(), data[-auth.TAG_BYTES :])
+
+
+def audit_envelopes(
+    r: Result,
+    log: list[tuple[bytes, Addr, int]],
+    peer: Addr | None,
+    direction: int,
+    k_hs: bytes,
+    k_session: bytes | None,
+    k_session_other: bytes | None,
+    dof: int,
+) -> None:
+    """PROTOCOL.md 2.1, 2.3, 2.4 and 4.5 over every datagram the peer sent (from ``peer``; every
+    one on Zenoh): a tag that verifies under the key of its kind, a valid header with the reserved
+    bits zero, the sender's direction, counters that never repeat nor jump, no datagram longer
+    than the largest message of its key kind.  Identical copies (two Zenoh subscribers) count once."""
+    seen: set[bytes] = set()
+    bad_tag = bad_header = reserved = wrong_kind = wrong_dir = oversize = reused = jumps = n = 0
+    first: dict[str, str] = {}
+    highest: dict[int, tuple[int, int]] = {}  # key kind -> (highest counter, its receive time)
+    used: dict[int, set[int]] = {auth.HANDSHAKE: set(), auth.SESSION: set()}
+    limit = {
+        auth.HANDSHAKE: wire.MAX_HANDSHAKE_DATAGRAM_BYTES,
+        auth.SESSION: wire.max_session_datagram_bytes(dof),
+    }
+    for data, src, t in sorted(log, key=lambda e: e[2]):
+        if (peer is not None and src != peer) or data in seen:
+            continue
+        seen.add(data)
+        n += 1
+        if len(data) < auth.OVERHEAD:
+            bad_header += 1
+            first.setdefault("header", f"{len(data)} bytes")
+            continue
+        magic, flags, counter = data[0:1], data[1], int.from_bytes(data[2:10], "big")
+        kind: int | None = None
+        if _mac_ok(k_hs, data):
+            kind = auth.HANDSHAKE
+        elif k_session is not None and _mac_ok(k_session, data):
+            kind = auth.SESSION
+        elif k_session_other is not None and _mac_ok(k_session_other, data):
+            wrong_dir += 1  # sealed under the other direction's session key
+            first.setdefault("direction", "sealed under the other direction's session key")
+            continue
+        if kind is None:
+            bad_tag += 1
+            first.setdefault("tag", f"counter {counter}, flags 0x{flags:02x}, {len(data)} bytes")
+            continue
+        if magic != auth.MAGIC or flags >> 4 != auth.ENVELOPE_VERSION or counter == 0:
+            bad_header += 1
+            first.setdefault("header", f"magic {magic!r}, flags 0x{flags:02x}, counter {counter}")
+        if flags & 0x0C:
+            reserved += 1
+            first.setdefault("reserved", f"flags 0x{flags:02x}, counter {counter}")
+        if (flags >> 1) & 1 != kind:
+            wrong_kind += 1
+            first.setdefault("kind", f"flags 0x{flags:02x} under the {('handshake', 'session')[kind]} key")
+        if flags & 1 != direction:
+            wrong_dir += 1
+            first.setdefault("direction", f"flags 0x{flags:02x}, counter {counter}")
+        if len(data) > limit[kind]:
+            oversize += 1
+            first.setdefault("oversize", f"{len(data)} > {limit[kind]} bytes")
+        if counter in used[kind]:
+            reused += 1
+            first.setdefault("reused", f"counter {counter}")
+        used[kind].add(counter)
+        if kind == auth.SESSION and kind in highest:
+            top, at = highest[kind]
+            if counter > top + 1024 + 4000 * max(0, t - at) / 1e9:
+                jumps += 1
+                first.setdefault("jump", f"counter {counter} after {top}, {(t - at) / 1e6:.1f} ms later")
+        if kind not in highest or counter > highest[kind][0]:
+            highest[kind] = (counter, t)
+    if n == 0:
+        return
+    r.check("2.1", "MUST", "every datagram's tag verifies under the key of its kind and direction",
+            bad_tag == 0, f"{bad_tag} of {n} do not verify; {first.get('tag', '')}")  # fmt: skip
+    r.check("2.1", "MUST", "every header is valid: magic T, version 1, counter not 0",
+            bad_header == 0, f"{bad_header} bad; {first.get('header', '')}")  # fmt: skip
+    r.check("2.1", "MUST", "the reserved flag bits (3-2) are zero",
+            reserved == 0, f"{reserved} with them set; {first.get('reserved', '')}")  # fmt: skip
+    r.check("2.1", "MUST", "the kind bit names the key the datagram is sealed under",
+            wrong_kind == 0, f"{wrong_kind} wrong; {first.get('kind', '')}")  # fmt: skip
+    r.check("2.1", "MUST", "the direction bit is the sender's, on every datagram",
+            wrong_dir == 0, f"{wrong_dir} wrong; {first.get('direction', '')}")  # fmt: skip
+    r.check("2.3", "MUST NOT", "reuse a counter under a key",
+            reused == 0, f"{reused} reused; {first.get('reused', '')}")  # fmt: skip
+    rule = "counters rise by one per datagram sealed: never beyond the jump bound (1024 + 4000/s)"
+    r.check("2.3, 2.4", "MUST", rule, jumps == 0, f"{jumps} jumps; {first.get('jump', '')}")
+    r.check("4.5", "MUST NOT", "send a datagram longer than the largest message of its key kind",
+            oversize == 0, f"{oversize} too long; {first.get('oversize', '')}")  # fmt: skip
+
+
+def _values(codec: Codec, payload: bytes) -> tuple[list[tuple[np.ndarray, int]], np.ndarray]:
+    """What a receiver plays of ``payload``: runs of (value, ticks), and a slope per tick (pd, pdp:
+    played as ``value + slope * i`` until the next payload; zero for the others)."""
+    dof, raw = codec.dof, codec.raw
+    if codec.name in ("pd", "pdp"):
+        q = unpack16(payload, dof * codec.values)
+        slope = np.zeros(dof)
+        if codec.name == "pdp":
+            slope = RawFormat(raw.full_scale * SLOPE_SCALE).dequantize(q[dof:])
+        return [(raw.dequantize(q[:dof]), 1)], slope
+    return codec.decoder().runs(payload), np.zeros(dof)
+
+
+def stream_checks(
+    r: Result,
+    d: _DataCheck,
+    codec_spec: str,
+    dof: int,
+    full_scale: float,
+    dt: float,
+    t0_ns: int,
+    passivity: str,
+    timing: str = "5.1",
+) -> None:
+    """PROTOCOL.md 3.2, 3.4, 3.5, 3.6 and 5.1 over the peer's data packets: payload sizes, ``t_us``,
+    when each tick's packet came, and what the energy reports allow the payloads to play.  ``t0_ns``:
+    when the peer's tick 0 is due on this process's clock; ``timing`` the section(s) its timing
+    rules cite."""
+    codec = make_codec(codec_spec, dof, full_scale, power=passivity == "tdpa")
+    stream = sorted(d.stream, key=lambda e: e[1].seq)
+    if not stream:
+        return
+    bad_size = [p for _, p in stream if len(p.payload) != codec.payload_bytes]
+    detail = f"{len(bad_size)} of {len(stream)}; {codec.spec} at {dof} DoF: {codec.payload_bytes} bytes"
+    if bad_size:
+        detail += f"; seq {bad_size[0].seq}: {len(bad_size[0].payload)}"
+    r.check("3.5", "MUST", "every payload has its codec's size", not bad_size, detail)
+    bad_t = [p for _, p in stream if p.t_us != round(p.tick * dt * 1e6)]
+    detail = f"{len(bad_t)} of {len(stream)}"
+    if bad_t:
+        detail += f"; tick {bad_t[0].tick}: t_us {bad_t[0].t_us}, not {round(bad_t[0].tick * dt * 1e6)}"
+    r.check("3.2", "MUST", "t_us = round(tick * dt * 1e6), the tick's nominal time", not bad_t, detail)
+    period = round(dt * 1e9)
+    late = sorted(t - (t0_ns + p.tick * period) for t, p in stream)
+    if len(late) >= 10:
+        early, median = late[len(late) // 20], late[len(late) // 2]
+        rule = "a tick's packet leaves no earlier than the tick's time on the session clock"
+        r.check(timing, "MUST", rule, early >= -EARLY_TOLERANCE_NS, f"5th percentile {early / 1e3:+.0f} us")
+        rule = "runs tick k on time: its packet arrives within two periods of the tick's time"
+        ok = median <= LATE_PERIODS * period + LATE_EXTRA_NS
+        r.check(timing, "MUST", rule, ok, f"median {median / 1e3:+.0f} us after its tick")
+    else:
+        r.check(timing, "MUST", "runs tick k on time", None, f"only {len(late)} packets")
+    _energy_checks(r, codec, [p for _, p in stream if len(p.payload) == codec.payload_bytes], dt, passivity)
+
+
+def _energy_checks(r: Result, codec: Codec, pkts: list[wire.Packet], dt: float, passivity: str) -> None:
+    """3.4, 3.6, eq. (5), (10), (11): the energy the payloads play never exceeds what the reports say
+    was sent, and (every-tick codecs) each tick's report grows by what its value allows."""
+    rule_q = "each tick's value carries no more energy than its report grew by (|Q(x)| <= |x|, eq. 11)"
+    rule_o = "energy not over-reported: each tick's report grows by at most what its value allows"
+    rule_c = "the payloads never play more energy than the reports say was sent (eq. 5, 10)"
+    if passivity != "wave" or codec.name == "pdr":
+        why = "TDPA reports input energy" if passivity != "wave" else "pdr's reflection is not modelled here"
+        for rule in (rule_q, rule_o, rule_c):
+            r.check("3.6", "MUST", rule, None, why)
+        return
+    half = 0.5 * dt
+    if not pkts or pkts[0].seq != 0:
+        for rule in (rule_q, rule_o, rule_c):
+            r.check("3.6", "MUST", rule, None, "the first packet (seq 0) did not arrive")
+        return
+    try:
+        played = [_values(codec, p.payload) for p in pkts]
+    except CodecError as e:
+        r.check("3.6", "MUST", rule_c, False, f"a payload does not decode: {e}")
+        return
+    if codec.klass == "direct":  # a value every tick: the report's growth is that tick's |x|^2 dt/2
+        step = codec.raw.step * 2 ** (RAW_BITS - codec.bits)
+        top = codec.raw.full_scale * (1 - 1e-9)
+        q_bad = o_bad = pairs = 0
+        detail_q = detail_o = ""
+        prev: wire.Packet | None = None
+        for p, (runs, _) in zip(pkts, played, strict=True):
+            first = prev is None and p.seq == 0
+            if not first and (prev is None or p.seq != prev.seq + 1 or p.tick != prev.tick + 1):
+                prev = p
+                continue
+            grew = p.energy - (prev.energy if prev is not None else 0.0)
+            v = np.abs(runs[0][0])
+            e_v, e_hi = half * float(v.dot(v)), half * float(np.sum((v + step) ** 2))
+            tol = 8 * math.ulp(p.energy) + 1e-9 * e_v
+            pairs += 1
+            if e_v > grew + tol:
+                q_bad += 1
+                detail_q = detail_q or f"tick {p.tick}: value {e_v:.6g} J, report grew {grew:.6g} J"
+            if float(v.max()) < top and grew > e_hi + tol:
+                o_bad += 1
+                detail_o = detail_o or f"tick {p.tick}: grew {grew:.6g} J, its value allows {e_hi:.6g} J"
+            prev = p
+        r.check("3.4", "MUST", rule_q, q_bad == 0 if pairs else None, f"{q_bad} of {pairs} ticks; {detail_q}")
+        r.check("3.6", "MUST", rule_o, o_bad == 0 if pairs else None, f"{o_bad} of {pairs} ticks; {detail_o}")
+    # (other codecs do not carry every tick's value: only the cumulative rule below applies)
+    # Cumulative: each payload committed to play (in full; pd/pdp: until the next payload, as the
+    # sender models the receiver, no delay) against the newest report, up to the first gap.
+    committed, bad, detail = 0.0, 0, ""
+    checked = 0
+    event = codec.name in ("pd", "pdp")
+    for i, (p, (runs, slope)) in enumerate(zip(pkts, played, strict=True)):
+        if i and p.seq != pkts[i - 1].seq + 1:
+            break
+        if event:
+            value = runs[0][0]
+            nxt = pkts[i + 1] if i + 1 < len(pkts) and pkts[i + 1].seq == p.seq + 1 else None
+            ticks = (nxt.tick - p.tick) if nxt is not None else 1
+            for j in range(max(ticks, 1)):
+                x = value + slope * j
+                committed += half * float(x.dot(x))
+                checked += 1
+                if committed > p.energy + 1e-12 + 1e-12 * p.energy:
+                    bad += 1
+                    got = f"tick {p.tick + j}: plays {committed:.6g} J > reported {p.energy:.6g} J"
+                    detail = detail or got
+        else:
+            committed += half * sum(count * float(value.dot(value)) for value, count in runs)
+            checked += 1
+            if committed > p.energy + 1e-12 + 1e-12 * p.energy:
+                bad += 1
+                detail = detail or f"tick {p.tick}: payloads {committed:.6g} J > reported {p.energy:.6g} J"
+    r.check("3.6", "MUST", rule_c, bad == 0, f"{bad} of {checked} ticks; {detail}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -535,7 +816,7 @@ def _session_as_operator(
 ) -> None:
     session = secrets.randbelow(2**32 - 2) + 1
     p = params_for(session, codec, duration)
-    ep = Endpoint.operator(p, peer, _factory("operator"), now_ns=time.monotonic_ns(), psk=k_r)
+    ep = Endpoint.operator(p, peer, _factory("operator", UNDER_REPORT), now_ns=time.monotonic_ns(), psk=k_r)
     data: _DataCheck | None = None
 
     def tap(d: bytes, t: int) -> None:
@@ -606,6 +887,11 @@ def _session_as_operator(
         f"got {[m.kind for m in busy]}",
     )
     _data_checks(r, data, codec, p.ticks)
+    t0 = ep.start_ns + round(p.phase * p.dt * 1e9)  # the teleoperator's tick 0 on this clock (5.1)
+    stream_checks(r, data, codec, p.dof, p.full_scale, p.dt, t0, p.passivity)
+    fwd, bwd = auth.session_keys(k_r, session, ep.port.keys.nonce, _nonce(ep.peer_nonce))
+    log = a.log + (b.log if a.distinct_addresses else [])
+    audit_envelopes(r, log, peer if a.distinct_addresses else None, wire.BACKWARD, k_hs, bwd, fwd, p.dof)
     ended = [e for e in events if isinstance(e, SessionEnded)]
     if ended:
         pv = ended[0].summary.port["passivity"]
@@ -787,6 +1073,12 @@ def check_operator(
         starts.append((ep.start_ns, now))
         drv.run(lambda: ep.finished, p.span_s + 10.0)
         _data_checks(r, data[0], p.codec, p.ticks)
+        # The operator's tick 0 is start_ns on this clock (4.3 step 5: start_ns = S_O + offset).
+        timing = "4.3 step 5, 5.1"  # a start_ns off S_O + offset shows as ticks off on this clock
+        stream_checks(r, data[0], p.codec, p.dof, p.full_scale, p.dt, ep.start_ns, p.passivity, timing)
+        _, bwd = auth.session_keys(k_r, p.session, hello.nonce, ep.port.keys.nonce)
+        sender = peer_addr[0] if peer_addr and sock.distinct_addresses else None
+        audit_envelopes(r, sock.log, sender, wire.FORWARD, k_hs, fwd, bwd, p.dof)
     finally:
         sock.close()
     return r
