@@ -520,10 +520,12 @@ def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, li
     ``ROLE-*.mcap``: restarts add files, never replace one), paired by session id: ``session``, or
     else the session of the newest log that has both.  Where a role has several logs of the session
     (a restarted process that rejoined, or a planted one), :class:`LogError` names them: a report
-    never picks one silently.  A log another user could have planted (:class:`UntrustedLog`) is
+    never picks one silently; the one exception is a rejoin, where exactly one of them was finished
+    (the others' processes were killed): that one is read and the others are named in the notes.
+    A log another user could have planted (:class:`UntrustedLog`) is
     ignored and named in the notes.  Returns the two paths and notes on
     what else the folder holds; :class:`LogError` when no pair is found."""
-    found: dict[int, dict[str, list[tuple[int, Path]]]] = {}
+    found: dict[int, dict[str, list[tuple[int, Path, bool]]]] = {}  # (mtime, path, finished)
     errors: dict[str, str] = {}
     ignored: list[str] = []
     for role in ROLES:
@@ -535,7 +537,7 @@ def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, li
                 st = os.lstat(path)
                 if not stat.S_ISREG(st.st_mode):
                     raise LogError(f"{path}: not a regular file (a log is one)")
-                sid, _, _ = log_session(path)
+                sid, summary, _ = log_session(path)
             except UntrustedLog as e:  # flagged and ignored: the figures are the genuine logs'
                 ignored.append(f"ignored {e}")
                 errors.setdefault(role, str(e))
@@ -543,7 +545,7 @@ def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, li
             except LogError as e:
                 errors.setdefault(role, str(e))
                 continue
-            found.setdefault(sid, {}).setdefault(role, []).append((st.st_mtime_ns, path))
+            found.setdefault(sid, {}).setdefault(role, []).append((st.st_mtime_ns, path, bool(summary)))
     both = {s: r for s, r in found.items() if all(role in r for role in ROLES)}
     if session is not None:
         if session not in both:
@@ -553,7 +555,7 @@ def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, li
             )
         chosen = session
     elif both:
-        chosen = max(both, key=lambda s: max(t for r in both[s].values() for t, _ in r))
+        chosen = max(both, key=lambda s: max(t for r in both[s].values() for t, _, _ in r))
     else:
         for r in ROLES:
             if r in errors and not any(r in got for got in found.values()):
@@ -567,8 +569,19 @@ def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, li
     pick = {}
     for role in ROLES:
         logs = sorted(both[chosen][role])
+        finished = [p for _, p, done in logs if done]
+        if len(logs) > 1 and len(finished) == 1:
+            # A process that was killed and restarted into the same session (a rejoin): the one log
+            # that was finished is the session's end; the others are named, never read silently.
+            others = ", ".join(p.name for _, p, done in logs if not done)
+            notes.append(
+                f"{role}: read {finished[0].name}, the one log of session {chosen} that was finished; "
+                f"not read: {others} (an earlier process of the session, killed)"
+            )
+            pick[role] = finished[0]
+            continue
         if len(logs) > 1:
-            names = ", ".join(p.name for _, p in logs[:4]) + (", ..." if len(logs) > 4 else "")
+            names = ", ".join(p.name for _, p, _ in logs[:4]) + (", ..." if len(logs) > 4 else "")
             raise LogError(
                 f"{log_dir} holds {len(logs)} {role} logs of session {chosen} ({names}): a report "
                 "reads one of each role; move the others out of the folder (a restarted process's)"
