@@ -28,6 +28,10 @@ from .ratecap import RateCap
 
 #: The two architectures: scattering waves (eq. 3-5) or TDPA on power variables (teleop.passivity).
 PASSIVITY = ("wave", "tdpa")
+#: What an operator proposes when not told (``teleop operator`` and ``teleop run``): the codec that
+#: cuts 98% of the packets at the paper's protocol, and the paper's Section VI task.
+DEFAULT_CODEC = "eds:50"
+DEFAULT_SCENARIO = "protocol"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -298,13 +302,15 @@ SETTINGS: tuple[Setting, ...] = (
     Setting(
         "codec",
         "codec",
-        "eds:50",
+        DEFAULT_CODEC,
         True,
         "pinned by --codec; every range it plays (CQ's RANGE included) capped by --max-range",
         "--codec",
         ("--codec", "--max-range"),
     ),
-    Setting("scenario", "scenario", "protocol", True, "pinned by --scenario", "--scenario", ("--scenario",)),
+    Setting(
+        "scenario", "scenario", DEFAULT_SCENARIO, True, "pinned by --scenario", "--scenario", ("--scenario",)
+    ),
     Setting(
         "dof",
         "dof",

@@ -15,7 +15,7 @@ from ..limits import MAX_B, MAX_LINK_TIMEOUT_S, MAX_RANGE, MIN_LINK_TIMEOUT_S
 from ..passivity import ON_LOSS
 from ..playout import MAX_EXTRA_MS
 from ..scenarios import SCENARIOS
-from ..settings import DEFAULT_ENVELOPE, PASSIVITY
+from ..settings import DEFAULT_CODEC, DEFAULT_ENVELOPE, DEFAULT_SCENARIO, PASSIVITY
 from .args import (
     CliError,
     Subcommands,
@@ -188,7 +188,7 @@ def add_operator_parser(sub: Subcommands) -> None:
         "the name of the robot to reach (its --name): bound into every key, so a robot of another "
         "name never answers, even with the same key",
     )
-    add_session_args(o, "eds:50", "protocol")
+    add_session_args(o, DEFAULT_CODEC, DEFAULT_SCENARIO)
     add_device_args(o, ("hsi",))
     add_netem_args(o)
     add_passivity_args(o)

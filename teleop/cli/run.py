@@ -28,7 +28,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from ..settings import DEFAULT_ENVELOPE, SETTINGS, Setting
+from ..settings import DEFAULT_CODEC, DEFAULT_ENVELOPE, DEFAULT_SCENARIO, SETTINGS, Setting
 from .args import (
     MAX_PORT,
     CliError,
@@ -361,7 +361,7 @@ def add_parser(sub: Subcommands) -> None:
         "datagrams are authenticated with a key made for this run unless --key-file or --insecure "
         "is given.",
     )
-    add_session_args(r, "eds:50", "protocol")
+    add_session_args(r, DEFAULT_CODEC, DEFAULT_SCENARIO)
     add_device_args(r, ("hsi", "robot"))
     add_netem_args(r)
     add_passivity_args(r)
