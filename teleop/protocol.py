@@ -79,6 +79,7 @@ __all__ = [
     "is_control",
     "ntp_offset",
     "parse",
+    "start_lead",
 ]
 
 PROTOCOL_VERSION = 1
@@ -97,6 +98,17 @@ _MAX_NAME_LEN = 64
 REJECTIONS_KEPT = 16
 START_AHEAD_NS = 10_000_000_000  # a start at most this far ahead of the teleoperator's clock
 START_SLACK_NS = 1_000_000_000  # or this far behind it (a fresh session: the operator leads by 300 ms)
+#: The start's lead follows the measured round trip: at least ``start_lead_ns``, and at least
+#: ``start_margin_ns + START_LEAD_RTTS * rtt + START_LEAD_SLACK_NS``.  With jitter up to half the
+#: one-way delay a round trip may take 3x the smallest one measured; the slack is for one lost
+#: start or started.  Unchanged (300 ms) up to a 50 ms round trip; 6.15 s at 2 s.
+START_LEAD_RTTS = 3
+START_LEAD_SLACK_NS = 100_000_000
+#: The start is resent every ``max(start_resend_ns, rtt / START_RESEND_DIV)``: a few per round trip.
+START_RESEND_DIV = 8
+#: The longest smallest round trip the operator starts at (PROTOCOL.md 4.3): 2 s with 50 % jitter
+#: to spare; its start lead (9.15 s) stays within START_AHEAD_NS.
+MAX_RTT_NS = 3_000_000_000
 BUSY = "busy with another operator"
 
 
@@ -108,6 +120,7 @@ class Failure(enum.Enum):
     REJECTED = "rejected"  # operator: the teleoperator refused the session
     START_UNCONFIRMED = "start_unconfirmed"  # operator: no started before tick 0
     PEER_CLOCK = "peer_clock"  # operator: the peer's clock is out of range
+    ROUND_TRIP = "round_trip"  # operator: even the quickest exchange took longer than MAX_RTT_NS
     NO_OPERATOR = "no_operator"  # teleoperator: no start within the timeout
 
 
@@ -670,6 +683,13 @@ def ntp_offset(t1: int, t2: int, t3: int, t4: int) -> tuple[int, int]:
     return ((t2 - t1) + (t3 - t4)) // 2, (t4 - t1) - (t3 - t2)
 
 
+def start_lead(rtt_ns: int, min_lead_ns: int = 300_000_000, margin_ns: int = 50_000_000) -> int:
+    """How far ahead of now the operator sets tick 0 after an exchange of round trip ``rtt_ns``:
+    the start must reach the TO and its started come back before ``margin_ns`` ahead of tick 0,
+    with jitter (3 smallest round trips) and one loss (:data:`START_LEAD_SLACK_NS`) to spare."""
+    return max(min_lead_ns, margin_ns + START_LEAD_RTTS * max(0, rtt_ns) + START_LEAD_SLACK_NS)
+
+
 # --------------------------------------------------------------------------------------------
 # the operator's side
 # --------------------------------------------------------------------------------------------
@@ -682,9 +702,10 @@ class OperatorHandshake:
     irrelevant datagrams are counted in ``rejected``, never raised.
 
     A hello goes out when the previous one was answered or ``hello_interval_ns`` ran out.  After
-    ``answers`` welcomes, or at the timeout with at least one, the start is set ``start_lead_ns``
-    ahead (on this clock; the message carries it on the TO's clock) and resent every
-    ``start_resend_ns`` until confirmed, giving up ``start_margin_ns`` before the start itself.
+    ``answers`` welcomes, or at the timeout with at least one, the start is set ahead by the lead
+    (:func:`start_lead_ns`: ``start_lead_ns``, more at a long round trip; on this clock, the message
+    carries it on the TO's clock) and resent every ``start_resend_ns`` (a few per round trip) until
+    confirmed, giving up ``start_margin_ns`` before the start itself.
     """
 
     def __init__(
@@ -822,7 +843,16 @@ class OperatorHandshake:
     def _begin_start(self, now_ns: int) -> None:
         assert self._best is not None
         self.rtt_ns, self.offset_ns = self._best
-        self.start_ns = now_ns + self.start_lead_ns
+        if self.rtt_ns > MAX_RTT_NS:
+            self.error = (
+                f"the round trip {self.rtt_ns / 1e9:.3g} s exceeds the {MAX_RTT_NS / 1e9:g} s"
+                " the protocol serves"
+            )
+            self.failure = Failure.ROUND_TRIP
+            return
+        lead = start_lead(self.rtt_ns, self.start_lead_ns, self.start_margin_ns)
+        self.start_ns = now_ns + lead
+        self.start_resend_ns = max(self.start_resend_ns, self.rtt_ns // START_RESEND_DIV)
         if not 0 <= self.start_ns + self.offset_ns <= MAX_TIMESTAMP:
             self.error = f"the peer's clock is out of range (offset {self.offset_ns} ns)"
             self.failure = Failure.PEER_CLOCK
