@@ -83,10 +83,15 @@ __all__ = [
 REJOIN_OFFER_INTERVAL_NS = 250_000_000  # operator, link lost: an offer this often
 REJOIN_SAMPLES = 4  # welcomes of one restarted teleoperator before the start is placed
 REJOIN_COLLECT_NS = 2_000_000_000  # or this long after the first of them
-START_RESEND_NS = 20_000_000  # a rejoin's start, until started (or the new peer's data) arrives
-START_RESENDS = 50
+START_RESEND_NS = 20_000_000  # a rejoin's start, until started (or the new peer's data) arrives ...
+START_RESENDS = 50  # ... at most this often, each max(START_RESEND_NS, rtt / 8) apart: >= 6 round trips
 JOIN_AHEAD_TICKS = 20  # a late joiner starts this many ticks ahead of now (it still has to set up)
 START_GUARD_NS = 2_000_000  # a start closer than this (or past) is joined late
+#: The peer's first data packet is due by tick 0 (or the commit, if later) plus the larger of this
+#: and, at the operator, two round trips, at the teleoperator, what was left of the start's lead when
+#: it committed (>= 1.5 round trips, PROTOCOL.md 4.3); a link never heard from is lost a link timeout
+#: after that, and a teleoperator then ends the session (a ghost) and waits for an operator again.
+SILENT_MIN_NS = 1_000_000_000
 BYE_COPIES = 3
 LINGER_SHIM_GRACE_NS = 2_000_000_000  # how long after the linger the shim's backlog may still go out
 GRACE_STREAK = 3  # grace waits missed in a row before grace rests
@@ -179,6 +184,7 @@ class EndReason(enum.Enum):
     REPLACED = "replaced"  # teleoperator: a new operator took the silent one's place
     DEVICE_FAULT = "device_fault"  # this side's device ended the session (a reflex): bye says why
     PEER_FAULT = "peer_fault"  # the peer's device ended it: its bye said why
+    PEER_SILENT = "peer_silent"  # teleoperator: not one packet from the operator since its start
 
 
 @dataclass(frozen=True)
@@ -308,7 +314,8 @@ class Endpoint:
         self._link_lost = False
         # operator
         self._op_hs: protocol.OperatorHandshake | None = None
-        self._offers: deque[int] = deque(maxlen=16)  # t_ns of rejoin offers not yet answered
+        # t_ns of rejoin offers not yet answered: at a 2 s round trip some 16 are in flight
+        self._offers: deque[int] = deque(maxlen=64)
         self._next_offer = 0
         self._rj_cookie: bytes | None = None
         self._rj_nonce: bytes | None = None
@@ -319,6 +326,7 @@ class Endpoint:
         self._rj_start: protocol.Start | None = None
         self._rj_resends = 0
         self._rj_next = 0
+        self._rj_interval = START_RESEND_NS
         self.rejoin_offers = self.rejoins = self.rejoin_retries = 0
         # teleoperator
         self._to_hs: protocol.TeleoperatorHandshake | None = None
@@ -549,7 +557,9 @@ class Endpoint:
             self._events.append(LinkLost(k) if lost else LinkRestored(k))
             if lost:
                 self._next_offer = now_ns
-        if k + 1 >= self.params.ticks:
+        if lost and self.role == "teleoperator" and port.node.counters.accepted == 0:
+            self._end(EndReason.PEER_SILENT, now_ns)  # a ghost: free the robot for an operator
+        elif k + 1 >= self.params.ticks:
             self._end(EndReason.COMPLETED, now_ns)
         elif self.params.until_stopped and self.peer_bye is not None:
             self._end(EndReason.PEER_BYE, now_ns)
@@ -597,9 +607,11 @@ class Endpoint:
             keys = PortKeys(hs.tx_sealer, hs.rx_opener, hs.hs_sealer, hs.hs_opener, self.psk, hs.nonce)
             self._handshake_info = {"clock_offset_ns": hs.offset_ns, "handshake_rtt_us": hs.rtt_ns / 1e3}
             self.peer_nonce, self.offset_ns = hs.peer_nonce, hs.offset_ns
+            first_due = hs.start_ns + max(SILENT_MIN_NS, 2 * hs.rtt_ns)
             self._begin(
-                self.params, self.peer, hs.start_ns, hs.start_ns, 0, False, keys, hs.offset_ns, hs.rtt_ns
-            )
+                self.params, self.peer, hs.start_ns, hs.start_ns, 0, False, keys, first_due, hs.offset_ns,
+                hs.rtt_ns,
+            )  # fmt: skip
 
     def _from_to_handshake(self, hs: protocol.TeleoperatorHandshake, now_ns: int) -> None:
         """A teleoperator handshake completed: run its session (late, if it already runs)."""
@@ -612,7 +624,10 @@ class Endpoint:
         late = hs.rejoin or now_ns > t0 - START_GUARD_NS
         k0 = max(0, -(-(now_ns - t0) // period) + JOIN_AHEAD_TICKS) if late else 0
         self._handshake_info = {"joined_late": late}
-        self._begin(p, hs.peer, hs.start_ns, t0, k0, late, keys)
+        # The operator's first packet leaves at its tick 0 (a rejoin's: at once); the lead left of a
+        # fresh start bounds when it arrives (it is >= 1.5 round trips: PROTOCOL.md 4.3 step 5).
+        first_due = max(hs.start_ns, now_ns) + max(SILENT_MIN_NS, hs.start_ns - now_ns)
+        self._begin(p, hs.peer, hs.start_ns, t0, k0, late, keys, first_due)
 
     def _begin(
         self,
@@ -623,6 +638,7 @@ class Endpoint:
         k0: int,
         late: bool,
         keys: PortKeys,
+        first_due_ns: int,
         offset_ns: int = 0,
         rtt_ns: int = 0,
     ) -> None:
@@ -643,6 +659,7 @@ class Endpoint:
             self.port.node.confine(self._limits)
         if k0:
             self.port.node.joined_late()
+        self.port.node.expect_first_by((first_due_ns - start_ns) / 1e9)
         self.state = State.STARTING
         self._link_lost = False
         self._events.append(SessionStarted(params, peer, start_ns, t0_ns, k0, late, offset_ns, rtt_ns))
@@ -760,7 +777,7 @@ class Endpoint:
             else:
                 self._out.append((port.seal(self._rj_start), self._peer()))
                 self._rj_resends += 1
-                self._rj_next = now_ns + START_RESEND_NS
+                self._rj_next = now_ns + self._rj_interval
         if not port.node.link_lost or now_ns < self._next_offer:
             return
         self._next_offer = now_ns + REJOIN_OFFER_INTERVAL_NS
@@ -790,6 +807,7 @@ class Endpoint:
         port.peer_restarted(m.nonce)  # its new nonce keys the rest of the session
         start = protocol.Start(params.session, start_ns=self.start_ns + offset, rejoin=True)
         self._rj_start, self._rj_resends, self._rj_next = start, 0, t4
+        self._rj_interval = max(START_RESEND_NS, rtt // protocol.START_RESEND_DIV)
         self._rj_nonce, self._rj_samples = None, []
         self._offers.clear()
         self.rejoins += 1
@@ -844,6 +862,15 @@ class Endpoint:
         seen = protocol.peek_hello(body)
         return seen is not None and seen[0] == self.params.session
 
+    def _listen_again(self, now_ns: int) -> None:
+        """Teleoperator: back to the handshake, as at start-up (a new nonce, its connect timeout)."""
+        self._reset_session_state()
+        self.state = State.HANDSHAKE
+        self.port, self.params, self.peer, self._takeover = None, None, None, None
+        self._max_len[auth.SESSION] = wire.MAX_DATAGRAM_BYTES
+        self._rejections_seen = 0
+        self._to_hs = self._new_to_handshake(now_ns)
+
     def _reset_session_state(self) -> None:
         self._stopped = False
         self._ended = None
@@ -862,6 +889,12 @@ class Endpoint:
         self._ended = reason
         if reason == EndReason.REPLACED:
             self._close()
+            return
+        if reason == EndReason.PEER_SILENT:
+            # Nobody to linger for: the session ends at once and the robot waits for an operator
+            # again (a late one of this session gets welcomed as a rejoin, PROTOCOL.md 4.4).
+            self._close()
+            self._listen_again(now_ns)
             return
         self.state = State.LINGER
         self._linger_end = now_ns + self.linger_ns

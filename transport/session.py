@@ -243,6 +243,9 @@ class _Runner:
                 ep.tick(k, self.clock())
                 self.send()
                 ticker.departed(self.clock())
+                if ep.params is not session:  # ended without its peer (a ghost): waits again
+                    self.events()
+                    break
             else:
                 # Run early, the tick is done: what arrives now counts for the next one, which the
                 # next wake's early drain reads as well as a drain now would, for one read (a system
@@ -431,6 +434,13 @@ class _Runner:
                 name = {PeerRestarted: "peer_rejoined", LinkLost: "link_lost", LinkRestored: "link_restored"}
                 self.log.event(ep.session_time(self.clock()), name[type(ev)], f"tick {ev.k}")
             elif isinstance(ev, SessionEnded):
+                if ev.reason == EndReason.PEER_SILENT:
+                    print(
+                        f"teleop {o.role}: session {ev.summary.params.session} ended: not one packet from"
+                        f" the operator since its start; waiting for an operator",
+                        file=sys.stderr,
+                        flush=True,
+                    )
                 self.ended(ev)
 
     def _failure(self, ev: Failed) -> str:
