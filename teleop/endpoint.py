@@ -101,6 +101,10 @@ HANDSHAKE_RATE = 50.0  # handshake datagrams/s one source address may cost us (b
 HANDSHAKE_BURST = 20.0
 HANDSHAKE_RATE_ALL = 1000.0  # ... and all sources together (burst 200): bounds the loop's cost
 HANDSHAKE_BURST_ALL = 200.0
+#: Reserved for hellos with a valid cookie (a sender proven to receive at its address): a flood of
+#: cookie-less hellos (recordings replayed from many ports) cannot spend it.
+HANDSHAKE_RATE_COOKIE = 250.0
+HANDSHAKE_BURST_COOKIE = 50.0
 LIMITER_SOURCES = 4096  # source addresses remembered (oldest forgotten first)
 #: Under a handshake flood (the limiter dropped within FLOOD_HOLD_NS) a transport that can filter
 #: keeps strangers' handshake datagrams 1 in FLOOD_SAMPLE (see Admission).
@@ -136,15 +140,22 @@ class Admission(NamedTuple):
 class HandshakeLimiter:
     """Token buckets on handshake work: per source address and for all sources together.
 
-    A handshake datagram costs a MAC check and maybe a parse and a reply; a genuine operator sends a
-    few a second.  Beyond these rates datagrams are dropped before any of that work (counted), so a
-    flood of recorded hellos or handshake-looking junk costs the 1 kHz loop a dictionary lookup each.
-    The running session's peer is never limited; a flood from spoofed addresses can still delay a
-    *new* operator's handshake (the global bucket), which is the price of keeping the robot's loop."""
+    A hello costs an unpack, maybe a full parse (~0.2 ms) and a reply; a genuine operator sends a
+    few a second.  **Who may spend a budget** (issue 35): while the robot waits for an operator (or
+    may be taken over), a handshake datagram is charged only once its MAC verified, so junk, whatever
+    address it claims, spends no one's budget (it costs a MAC and is counted ``unauthenticated``);
+    a hello with a valid cookie for its source is charged to buckets of its own (per source, and a
+    global share reserved for them), so recorded cookie-less hellos replayed from many ports cannot
+    spend what a genuine operator's second hello needs.  While a session runs with its link up, no
+    stranger can start anything (busy): strangers' handshake datagrams are charged before the MAC
+    (``cookie`` False), which keeps a flood's cost to a dictionary lookup each and drives the kernel
+    filter's sampling (:class:`Admission`).  The running session's peer is never limited."""
 
     def __init__(self) -> None:
-        self._per: dict[Addr, tuple[float, int]] = {}  # tokens, last refill (ns)
+        # (source, cookie-bearing) -> (tokens, last refill ns): the two kinds never share a bucket
+        self._per: dict[tuple[Addr, bool], tuple[float, int]] = {}
         self._all = (HANDSHAKE_BURST_ALL, 0)
+        self._cookie = (HANDSHAKE_BURST_COOKIE, 0)
         self.dropped = 0
         self.last_drop_ns: int | None = None
 
@@ -153,12 +164,21 @@ class HandshakeLimiter:
         tokens = min(burst, tokens + max(0, now_ns - last) * rate / 1e9)
         return (tokens - 1.0, True) if tokens >= 1.0 else (tokens, False)
 
-    def allow(self, addr: Addr, now_ns: int) -> bool:
-        tokens, last = self._per.pop(addr, (HANDSHAKE_BURST, now_ns))
+    def allow(self, addr: Addr, now_ns: int, cookie: bool = False) -> bool:
+        """Whether one more handshake datagram from ``addr`` may be worked on (``cookie``: a hello
+        whose MAC verified and whose cookie is valid for ``addr``)."""
+        key = (addr, cookie)
+        tokens, last = self._per.pop(key, (HANDSHAKE_BURST, now_ns))
         tokens, ok = self._take(tokens, last, now_ns, HANDSHAKE_RATE, HANDSHAKE_BURST)
-        self._per[addr] = (tokens, now_ns)  # newest last
+        self._per[key] = (tokens, now_ns)  # newest last
         if len(self._per) > LIMITER_SOURCES:
             del self._per[next(iter(self._per))]
+        if ok and cookie:
+            rate, burst = HANDSHAKE_RATE_COOKIE, HANDSHAKE_BURST_COOKIE
+            c_tokens, reserved = self._take(*self._cookie, now_ns, rate, burst)
+            self._cookie = (c_tokens, now_ns)
+            if reserved:
+                return True  # (else the general share, below)
         if ok:
             all_tokens, ok = self._take(*self._all, now_ns, HANDSHAKE_RATE_ALL, HANDSHAKE_BURST_ALL)
             self._all = (all_tokens, now_ns)
@@ -393,6 +413,7 @@ class Endpoint:
             cookie_secret=self._cookie_secret,
             local_limits=self._limits,
             defer_t3=True,
+            admit=self._limiter.allow,
         )
 
     # --- the surface ------------------------------------------------------------------------
@@ -446,8 +467,8 @@ class Endpoint:
             self.oversize += 1  # longer than any message of its key kind: refused by length alone
             return
         handshake = hdr is not None and hdr[0] == auth.HANDSHAKE
-        if handshake and addr != self.peer and not self._limiter.allow(addr, now_ns):
-            return  # over the handshake budget: dropped before the MAC (HandshakeLimiter)
+        if handshake and addr != self.peer and self._busy() and not self._limiter.allow(addr, now_ns):
+            return  # busy, over the handshake budget: dropped before the MAC (HandshakeLimiter)
         if self.state == State.HANDSHAKE:
             if self._op_hs is not None:
                 if addr == self.peer:
@@ -848,9 +869,15 @@ class Endpoint:
             self._events.append(Replaced(old, self.params.session))
         return True
 
-    def _takeover_possible(self, port: Port) -> bool:
+    def _busy(self) -> bool:
+        """A teleoperator whose session runs with its link up: a stranger can start nothing here."""
+        running = self.state in (State.STARTING, State.RUNNING, State.LINGER)
+        return self.role == "teleoperator" and running and not self._takeover_possible(self.port)
+
+    def _takeover_possible(self, port: Port | None) -> bool:
         """A teleoperator whose running session's link is lost may be taken over (PROTOCOL.md 4.5)."""
-        return self.role == "teleoperator" and self.state == State.RUNNING and port.node.link_lost
+        running = self.role == "teleoperator" and self.state == State.RUNNING
+        return running and port is not None and port.node.link_lost
 
     def _own_offer(self, data: bytes) -> bool:
         """Whether ``data`` is an authentic hello of this very session (our operator's rejoin offer)."""

@@ -116,7 +116,9 @@ class Failure(enum.Enum):
     """Why a handshake (or the session it was for) never started: what callers branch on, never
     the error's text (h11's rule)."""
 
-    NO_ANSWER = "no_answer"  # operator: no welcome within the timeout (absent robot, other key or name)
+    NO_ANSWER = "no_answer"  # operator: nothing at all within the timeout (absent robot, other key or name)
+    THROTTLED = "throttled"  # operator: retries, but no welcome for a hello with the cookie (dropped)
+    UNVERIFIED = "unverified"  # operator: no welcome, and answers whose MAC failed (another key?)
     REJECTED = "rejected"  # operator: the teleoperator refused the session
     START_UNCONFIRMED = "start_unconfirmed"  # operator: no started before tick 0
     PEER_CLOCK = "peer_clock"  # operator: the peer's clock is out of range
@@ -875,7 +877,7 @@ class OperatorHandshake:
                 if self.error is not None:
                     return []
             elif now_ns >= self._give_up:
-                self.error, self.failure = f"never answered within {self.timeout_s:g} s", Failure.NO_ANSWER
+                self.error, self.failure = self._unanswered()
                 return []
             elif now_ns >= self._next_hello:
                 self._in_flight.append(now_ns)
@@ -895,6 +897,23 @@ class OperatorHandshake:
             assert self.tx_sealer is not None
             return [self.tx_sealer.seal(encode(Start(self.params.session, self.start_ns + self.offset_ns)))]
         return []
+
+    def _unanswered(self) -> tuple[str, Failure]:
+        """The handshake's failure when no welcome came, with what this side saw: nothing at all
+        (absent, unreachable, or another key or name: such a robot stays silent), only retries (it
+        drops our hellos with their cookie: throttled), or datagrams whose MAC failed (another key,
+        or someone else answering)."""
+        seen = f"{self.hellos_sent} hellos sent, {self.retries} retries taken"
+        if self.unauthenticated:
+            seen += f", {self.unauthenticated} datagram(s) that did not verify ({self.last_unauthenticated})"
+        if self.rejected:
+            seen += f", {self.rejected} refused ({self.last_rejection})"
+        why = f"never answered within {self.timeout_s:g} s ({seen})"
+        if self.unauthenticated:
+            return why, Failure.UNVERIFIED
+        if self.retries:
+            return why, Failure.THROTTLED
+        return why, Failure.NO_ANSWER
 
     def _unconfirmed(self) -> str:
         """The start's failure, with what this side saw: whether its starts left, and what it refused
@@ -1013,6 +1032,7 @@ class TeleoperatorHandshake:
         cookie_secret: bytes | None = None,
         local_limits: Envelope | None = None,
         defer_t3: bool = False,
+        admit: Callable[[Addr, int, bool], bool] | None = None,
     ) -> None:
         self.expect = Pins.of(expect).pinned()
         self.local_netem = frozenset(local_netem) | configured_netem(self.expect)
@@ -1050,6 +1070,11 @@ class TeleoperatorHandshake:
         self.retries_sent = 0  # hellos without a valid cookie, answered with a retry, nothing kept
         self.defer_t3 = defer_t3
         self._drafts: list[tuple[Welcome, Addr]] = []  # welcomes waiting for their t3 (defer_t3)
+        # The handshake budget (the endpoint's HandshakeLimiter): asked once a hello's MAC verified,
+        # with whether it carries a valid cookie for its source, so that unauthenticated datagrams
+        # (a stranger's junk, whatever address it claims) spend nobody's budget.
+        self.admit = admit
+        self.throttled = 0
 
     @property
     def finished(self) -> bool:
@@ -1064,16 +1089,13 @@ class TeleoperatorHandshake:
         self._drafts.clear()
         return out
 
-    def _retry(self, addr: Addr, body: bytes, now_ns: int) -> list[tuple[bytes, Addr]] | None:
+    def _retry(
+        self, addr: Addr, seen: tuple[int | None, int, object, object] | None, cookie_valid: bool, now_ns: int
+    ) -> list[tuple[bytes, Addr]] | None:
         """A retry for a hello without a valid cookie for ``addr`` (None: it has one, or is no hello)."""
-        if self.cookie_secret is None:
+        if self.cookie_secret is None or seen is None or cookie_valid:
             return None
-        seen = peek_hello(body)
-        if seen is None:
-            return None
-        session, t_ns, nonce, cookie = seen
-        if cookie_ok(self.cookie_secret, cookie, addr, nonce, now_ns):
-            return None
+        session, t_ns, nonce, _ = seen
         if type(nonce) is not bytes or len(nonce) != auth.NONCE_BYTES:
             return None  # malformed: the full parse rejects it
         self.retries_sent += 1
@@ -1141,8 +1163,14 @@ class TeleoperatorHandshake:
         if opened is None:
             return []
         cand, body = opened
-        if cand is None and (retry := self._retry(addr, body, now_ns)) is not None:
-            return retry
+        if cand is None:
+            seen = peek_hello(body) if self.cookie_secret is not None else None
+            valid = seen is not None and cookie_ok(self.cookie_secret or b"", seen[3], addr, seen[2], now_ns)
+            if self.admit is not None and not self.admit(addr, now_ns, valid):
+                self.throttled += 1  # over its budget: dropped unanswered, before the full parse
+                return []
+            if (retry := self._retry(addr, seen, valid, now_ns)) is not None:
+                return retry
         try:
             msg = parse(body, local_netem=self.local_netem)
             if (cand is None) != isinstance(msg, Hello):

@@ -12,7 +12,7 @@ from teleop import auth, protocol
 from teleop.endpoint import SILENT_MIN_NS, EndReason, Failed, PeerRestarted, SessionEnded, State
 from teleop.summary import SessionSummary
 
-from .vnet import MS, TO, Host, VirtualNet, params
+from .vnet import MS, OP, TO, Host, VirtualNet, params
 
 TO_OFFSET = 5_000_000_000
 #: Round trips beyond what the fixed 300 ms lead served (the relay's 130, 150, 300 and 800 ms each
@@ -163,3 +163,125 @@ def test_an_operator_whose_robot_died_before_tick_0_offers_a_rejoin() -> None:
     assert to2.ep.state == State.RUNNING and op.of(PeerRestarted)
     net.seconds(6.0)
     assert ended(op)["completed"] and ended(to2)["completed"] and ended(to2)["received"]["packets"] > 0
+
+
+# --------------------------------------------------------------------------------------------
+# item 3: budgets strangers cannot spend for others
+# --------------------------------------------------------------------------------------------
+def _start_time(flood: Any = None, one_way_ms: float = 1.0) -> tuple[float, VirtualNet, Host, Host]:
+    """Seconds from the operator's first hello to both sides running, with ``flood(net)`` injected."""
+    net = VirtualNet(one_way_ms, seed=11)
+    to = net.teleoperator(offset_ns=TO_OFFSET)
+    if flood is not None:
+        flood(net)
+    op = net.operator(params(duration=1.0))
+    t0 = net.now
+    net.seconds(12.0, stop=lambda: running(op, to)() or bool(op.of(Failed)))
+    assert op.ep.state == to.ep.state == State.RUNNING, op.of(Failed)
+    return (net.now - t0) / 1e9, net, op, to
+
+
+def _junk(rng: Any, i: int) -> bytes:
+    """A handshake-kind datagram without a valid tag (flags 0x10: handshake key, forward)."""
+    return b"T\x10" + (i + 1).to_bytes(8, "big") + rng.randbytes(60)
+
+
+def _spoofed_as_operator(rate: float, seconds: float) -> Any:
+    def flood(net: VirtualNet) -> None:
+        n = int(rate * seconds)
+        for i in range(n):
+            net.inject(OP, TO, _junk(net.rng, i), delay_ns=round(i * 1e9 / rate))
+
+    return flood
+
+
+def _many_ports(rate: float, seconds: float, ports: int = 2000) -> Any:
+    def flood(net: VirtualNet) -> None:
+        n = int(rate * seconds)
+        for i in range(n):
+            src = (f"10.0.{2 + i % ports // 250}.{i % 250 + 1}", 20000 + i % ports)
+            net.inject(src, TO, _junk(net.rng, i), delay_ns=round(i * 1e9 / rate))
+
+    return flood
+
+
+@pytest.mark.parametrize(
+    "name,flood",
+    [
+        ("1000/s spoofed as the operator", _spoofed_as_operator(1000.0, 3.0)),
+        ("120k/s from 2000 ports", _many_ports(120_000.0, 1.5)),
+    ],
+)
+def test_handshake_junk_cannot_spend_a_genuine_operators_budget(name: str, flood: Any) -> None:
+    """Unauthenticated handshake-kind datagrams cost a MAC each and spend no budget: a genuine start
+    takes at most twice its time without the flood, or 1 s more."""
+    quiet, *_ = _start_time()
+    flooded, _, _, to = _start_time(flood)
+    print(f"{name}: start {flooded:.3f} s against {quiet:.3f} s without it")
+    assert flooded <= max(2 * quiet, quiet + 1.0)
+    hs = to.ep._to_hs
+    # The junk reached the handshake and was counted, and charged nothing (the session that runs
+    # now, busy to strangers, drops it before the MAC: that is the limiter's other half).
+    assert hs is not None and hs.unauthenticated > 0 and hs.throttled == 0
+
+
+def test_recorded_hellos_from_many_ports_cannot_spend_the_cookie_share() -> None:
+    """The global budget's cookie-less share drained by authentic recorded hellos (no valid cookie
+    for their ports): the genuine operator's hellos with its cookie draw on the reserved share."""
+    from teleop.endpoint import HANDSHAKE_BURST_ALL, HandshakeLimiter
+
+    lim = HandshakeLimiter()
+    spent = sum(lim.allow((f"10.9.{i // 250}.{i % 250}", 1), 0) for i in range(5000))
+    assert spent == HANDSHAKE_BURST_ALL  # the shared bucket is empty ...
+    assert not lim.allow(OP, 0)  # ... for a first hello too (it is retried every 100 ms),
+    assert all(lim.allow(OP, i, cookie=True) for i in range(20))  # but not for cookie-bearing ones
+
+
+def test_the_operators_error_says_what_it_saw() -> None:
+    """No answer at all, only retries (its hellos with their cookie dropped), or answers whose MAC
+    failed: three failures, and only the last points at the key."""
+    net = VirtualNet(1.0)
+    op = net.operator(params(), connect_timeout_s=0.5)
+    net.seconds(1.0)
+    assert op.of(Failed)[0].reason == protocol.Failure.NO_ANSWER
+
+    net = VirtualNet(1.0)
+    to = net.teleoperator()
+    assert to.ep._to_hs is not None
+    to.ep._to_hs.admit = lambda addr, now, cookie: not cookie  # every hello with its cookie dropped
+    op = net.operator(params(), connect_timeout_s=0.5)
+    net.seconds(1.0)
+    (f,) = op.of(Failed)
+    assert f.reason == protocol.Failure.THROTTLED and "retries taken" in f.detail, f
+
+    net = VirtualNet(1.0)
+    op = net.operator(params(), connect_timeout_s=0.5)
+    for i in range(20):
+        net.inject(TO, OP, b"T\x11" + (i + 1).to_bytes(8, "big") + bytes(60), delay_ns=i * 10 * MS)
+    net.seconds(1.0)
+    (f,) = op.of(Failed)
+    assert f.reason == protocol.Failure.UNVERIFIED and "did not verify" in f.detail, f
+
+
+def _rejoin_time(flood: Any = None) -> float:
+    net = VirtualNet(1.0, seed=12)
+    to = net.teleoperator(offset_ns=TO_OFFSET)
+    op = net.operator(params(duration=8.0))
+    net.seconds(5.0, stop=running(op, to))
+    net.seconds(0.5)
+    net.kill(TO)
+    net.seconds(0.3)
+    to2 = net.teleoperator(offset_ns=TO_OFFSET)
+    if flood is not None:
+        flood(net)
+    t0 = net.now
+    net.seconds(6.0, stop=lambda: to2.ep.state == State.RUNNING)
+    assert to2.ep.state == State.RUNNING and op.of(PeerRestarted)
+    return (net.now - t0) / 1e9
+
+
+def test_a_rejoin_under_junk_spoofed_as_the_operator_is_not_delayed() -> None:
+    quiet = _rejoin_time()
+    flooded = _rejoin_time(_spoofed_as_operator(1000.0, 4.0))
+    print(f"rejoin: {flooded:.3f} s under 1000/s spoofed junk against {quiet:.3f} s without it")
+    assert flooded <= max(2 * quiet, quiet + 1.0)

@@ -449,10 +449,17 @@ class _Runner:
             return f"{ev.detail} on {_addr(self.tr.local_address)}"
         peer = _addr(o.peer) if o.peer is not None else "zenoh"
         hint = ""
-        if ev.reason == Failure.NO_ANSWER:  # a teleoperator with another key or name stays silent
+        if ev.reason == Failure.NO_ANSWER:  # nothing came back: absent, unreachable, or silent
             hint = (
-                f" (is `teleop teleoperator --listen {peer} --name {o.robot_name}` running, with the"
-                " same key? A robot of another name, or another key, never answers)"
+                f" (nothing came back: is `teleop teleoperator --listen {peer} --name {o.robot_name}`"
+                " running and reachable? A robot of another name, or another key, stays silent too)"
+            )
+        elif ev.reason == Failure.THROTTLED:
+            hint = " (it answered with retries only: it dropped our hellos with their cookie; flooded?)"
+        elif ev.reason == Failure.UNVERIFIED:  # the one case that points at the key
+            hint = (
+                f" (answers came whose MAC did not verify: does the teleoperator hold the same key,"
+                f" with --name {o.robot_name}?)"
             )
         return f"peer {peer} {ev.detail}{hint}"
 
