@@ -4,6 +4,7 @@ and a delayer that skews the clock (tests/vnet.py; each test tens of millisecond
 
 from __future__ import annotations
 
+import random
 from typing import Any
 
 import pytest
@@ -181,7 +182,7 @@ def _start_time(flood: Any = None, one_way_ms: float = 1.0) -> tuple[float, Virt
     return (net.now - t0) / 1e9, net, op, to
 
 
-def _junk(rng: Any, i: int) -> bytes:
+def _junk(rng: random.Random, i: int) -> bytes:
     """A handshake-kind datagram without a valid tag (flags 0x10: handshake key, forward)."""
     return b"T\x10" + (i + 1).to_bytes(8, "big") + rng.randbytes(60)
 
