@@ -83,10 +83,15 @@ __all__ = [
 REJOIN_OFFER_INTERVAL_NS = 250_000_000  # operator, link lost: an offer this often
 REJOIN_SAMPLES = 4  # welcomes of one restarted teleoperator before the start is placed
 REJOIN_COLLECT_NS = 2_000_000_000  # or this long after the first of them
-START_RESEND_NS = 20_000_000  # a rejoin's start, until started (or the new peer's data) arrives
-START_RESENDS = 50
+START_RESEND_NS = 20_000_000  # a rejoin's start, until started (or the new peer's data) arrives ...
+START_RESENDS = 50  # ... at most this often, each max(START_RESEND_NS, rtt / 8) apart: >= 6 round trips
 JOIN_AHEAD_TICKS = 20  # a late joiner starts this many ticks ahead of now (it still has to set up)
 START_GUARD_NS = 2_000_000  # a start closer than this (or past) is joined late
+#: The peer's first data packet is due by tick 0 (or the commit, if later) plus the larger of this
+#: and, at the operator, two round trips, at the teleoperator, what was left of the start's lead when
+#: it committed (>= 1.5 round trips, PROTOCOL.md 4.3); a link never heard from is lost a link timeout
+#: after that, and a teleoperator then ends the session (a ghost) and waits for an operator again.
+SILENT_MIN_NS = 1_000_000_000
 BYE_COPIES = 3
 LINGER_SHIM_GRACE_NS = 2_000_000_000  # how long after the linger the shim's backlog may still go out
 GRACE_STREAK = 3  # grace waits missed in a row before grace rests
@@ -96,6 +101,10 @@ HANDSHAKE_RATE = 50.0  # handshake datagrams/s one source address may cost us (b
 HANDSHAKE_BURST = 20.0
 HANDSHAKE_RATE_ALL = 1000.0  # ... and all sources together (burst 200): bounds the loop's cost
 HANDSHAKE_BURST_ALL = 200.0
+#: Reserved for hellos with a valid cookie (a sender proven to receive at its address): a flood of
+#: cookie-less hellos (recordings replayed from many ports) cannot spend it.
+HANDSHAKE_RATE_COOKIE = 250.0
+HANDSHAKE_BURST_COOKIE = 50.0
 LIMITER_SOURCES = 4096  # source addresses remembered (oldest forgotten first)
 #: Under a handshake flood (the limiter dropped within FLOOD_HOLD_NS) a transport that can filter
 #: keeps strangers' handshake datagrams 1 in FLOOD_SAMPLE (see Admission).
@@ -131,15 +140,22 @@ class Admission(NamedTuple):
 class HandshakeLimiter:
     """Token buckets on handshake work: per source address and for all sources together.
 
-    A handshake datagram costs a MAC check and maybe a parse and a reply; a genuine operator sends a
-    few a second.  Beyond these rates datagrams are dropped before any of that work (counted), so a
-    flood of recorded hellos or handshake-looking junk costs the 1 kHz loop a dictionary lookup each.
-    The running session's peer is never limited; a flood from spoofed addresses can still delay a
-    *new* operator's handshake (the global bucket), which is the price of keeping the robot's loop."""
+    A hello costs an unpack, maybe a full parse (~0.2 ms) and a reply; a genuine operator sends a
+    few a second.  **Who may spend a budget** (issue 35): while the robot waits for an operator (or
+    may be taken over), a handshake datagram is charged only once its MAC verified, so junk, whatever
+    address it claims, spends no one's budget (it costs a MAC and is counted ``unauthenticated``);
+    a hello with a valid cookie for its source is charged to buckets of its own (per source, and a
+    global share reserved for them), so recorded cookie-less hellos replayed from many ports cannot
+    spend what a genuine operator's second hello needs.  While a session runs with its link up, no
+    stranger can start anything (busy): strangers' handshake datagrams are charged before the MAC
+    (``cookie`` False), which keeps a flood's cost to a dictionary lookup each and drives the kernel
+    filter's sampling (:class:`Admission`).  The running session's peer is never limited."""
 
     def __init__(self) -> None:
-        self._per: dict[Addr, tuple[float, int]] = {}  # tokens, last refill (ns)
+        # (source, cookie-bearing) -> (tokens, last refill ns): the two kinds never share a bucket
+        self._per: dict[tuple[Addr, bool], tuple[float, int]] = {}
         self._all = (HANDSHAKE_BURST_ALL, 0)
+        self._cookie = (HANDSHAKE_BURST_COOKIE, 0)
         self.dropped = 0
         self.last_drop_ns: int | None = None
 
@@ -148,12 +164,21 @@ class HandshakeLimiter:
         tokens = min(burst, tokens + max(0, now_ns - last) * rate / 1e9)
         return (tokens - 1.0, True) if tokens >= 1.0 else (tokens, False)
 
-    def allow(self, addr: Addr, now_ns: int) -> bool:
-        tokens, last = self._per.pop(addr, (HANDSHAKE_BURST, now_ns))
+    def allow(self, addr: Addr, now_ns: int, cookie: bool = False) -> bool:
+        """Whether one more handshake datagram from ``addr`` may be worked on (``cookie``: a hello
+        whose MAC verified and whose cookie is valid for ``addr``)."""
+        key = (addr, cookie)
+        tokens, last = self._per.pop(key, (HANDSHAKE_BURST, now_ns))
         tokens, ok = self._take(tokens, last, now_ns, HANDSHAKE_RATE, HANDSHAKE_BURST)
-        self._per[addr] = (tokens, now_ns)  # newest last
+        self._per[key] = (tokens, now_ns)  # newest last
         if len(self._per) > LIMITER_SOURCES:
             del self._per[next(iter(self._per))]
+        if ok and cookie:
+            rate, burst = HANDSHAKE_RATE_COOKIE, HANDSHAKE_BURST_COOKIE
+            c_tokens, reserved = self._take(*self._cookie, now_ns, rate, burst)
+            self._cookie = (c_tokens, now_ns)
+            if reserved:
+                return True  # (else the general share, below)
         if ok:
             all_tokens, ok = self._take(*self._all, now_ns, HANDSHAKE_RATE_ALL, HANDSHAKE_BURST_ALL)
             self._all = (all_tokens, now_ns)
@@ -179,6 +204,7 @@ class EndReason(enum.Enum):
     REPLACED = "replaced"  # teleoperator: a new operator took the silent one's place
     DEVICE_FAULT = "device_fault"  # this side's device ended the session (a reflex): bye says why
     PEER_FAULT = "peer_fault"  # the peer's device ended it: its bye said why
+    PEER_SILENT = "peer_silent"  # teleoperator: not one packet from the operator since its start
 
 
 @dataclass(frozen=True)
@@ -308,7 +334,8 @@ class Endpoint:
         self._link_lost = False
         # operator
         self._op_hs: protocol.OperatorHandshake | None = None
-        self._offers: deque[int] = deque(maxlen=16)  # t_ns of rejoin offers not yet answered
+        # t_ns of rejoin offers not yet answered: at a 2 s round trip some 16 are in flight
+        self._offers: deque[int] = deque(maxlen=64)
         self._next_offer = 0
         self._rj_cookie: bytes | None = None
         self._rj_nonce: bytes | None = None
@@ -319,6 +346,7 @@ class Endpoint:
         self._rj_start: protocol.Start | None = None
         self._rj_resends = 0
         self._rj_next = 0
+        self._rj_interval = START_RESEND_NS
         self.rejoin_offers = self.rejoins = self.rejoin_retries = 0
         # teleoperator
         self._to_hs: protocol.TeleoperatorHandshake | None = None
@@ -385,6 +413,7 @@ class Endpoint:
             cookie_secret=self._cookie_secret,
             local_limits=self._limits,
             defer_t3=True,
+            admit=self._limiter.allow,
         )
 
     # --- the surface ------------------------------------------------------------------------
@@ -438,8 +467,8 @@ class Endpoint:
             self.oversize += 1  # longer than any message of its key kind: refused by length alone
             return
         handshake = hdr is not None and hdr[0] == auth.HANDSHAKE
-        if handshake and addr != self.peer and not self._limiter.allow(addr, now_ns):
-            return  # over the handshake budget: dropped before the MAC (HandshakeLimiter)
+        if handshake and addr != self.peer and self._busy() and not self._limiter.allow(addr, now_ns):
+            return  # busy, over the handshake budget: dropped before the MAC (HandshakeLimiter)
         if self.state == State.HANDSHAKE:
             if self._op_hs is not None:
                 if addr == self.peer:
@@ -549,7 +578,9 @@ class Endpoint:
             self._events.append(LinkLost(k) if lost else LinkRestored(k))
             if lost:
                 self._next_offer = now_ns
-        if k + 1 >= self.params.ticks:
+        if lost and self.role == "teleoperator" and port.node.counters.accepted == 0:
+            self._end(EndReason.PEER_SILENT, now_ns)  # a ghost: free the robot for an operator
+        elif k + 1 >= self.params.ticks:
             self._end(EndReason.COMPLETED, now_ns)
         elif self.params.until_stopped and self.peer_bye is not None:
             self._end(EndReason.PEER_BYE, now_ns)
@@ -597,9 +628,11 @@ class Endpoint:
             keys = PortKeys(hs.tx_sealer, hs.rx_opener, hs.hs_sealer, hs.hs_opener, self.psk, hs.nonce)
             self._handshake_info = {"clock_offset_ns": hs.offset_ns, "handshake_rtt_us": hs.rtt_ns / 1e3}
             self.peer_nonce, self.offset_ns = hs.peer_nonce, hs.offset_ns
+            first_due = hs.start_ns + max(SILENT_MIN_NS, 2 * hs.rtt_ns)
             self._begin(
-                self.params, self.peer, hs.start_ns, hs.start_ns, 0, False, keys, hs.offset_ns, hs.rtt_ns
-            )
+                self.params, self.peer, hs.start_ns, hs.start_ns, 0, False, keys, first_due, hs.offset_ns,
+                hs.rtt_ns,
+            )  # fmt: skip
 
     def _from_to_handshake(self, hs: protocol.TeleoperatorHandshake, now_ns: int) -> None:
         """A teleoperator handshake completed: run its session (late, if it already runs)."""
@@ -612,7 +645,10 @@ class Endpoint:
         late = hs.rejoin or now_ns > t0 - START_GUARD_NS
         k0 = max(0, -(-(now_ns - t0) // period) + JOIN_AHEAD_TICKS) if late else 0
         self._handshake_info = {"joined_late": late}
-        self._begin(p, hs.peer, hs.start_ns, t0, k0, late, keys)
+        # The operator's first packet leaves at its tick 0 (a rejoin's: at once); the lead left of a
+        # fresh start bounds when it arrives (it is >= 1.5 round trips: PROTOCOL.md 4.3 step 5).
+        first_due = max(hs.start_ns, now_ns) + max(SILENT_MIN_NS, hs.start_ns - now_ns)
+        self._begin(p, hs.peer, hs.start_ns, t0, k0, late, keys, first_due)
 
     def _begin(
         self,
@@ -623,6 +659,7 @@ class Endpoint:
         k0: int,
         late: bool,
         keys: PortKeys,
+        first_due_ns: int,
         offset_ns: int = 0,
         rtt_ns: int = 0,
     ) -> None:
@@ -643,6 +680,7 @@ class Endpoint:
             self.port.node.confine(self._limits)
         if k0:
             self.port.node.joined_late()
+        self.port.node.expect_first_by((first_due_ns - start_ns) / 1e9)
         self.state = State.STARTING
         self._link_lost = False
         self._events.append(SessionStarted(params, peer, start_ns, t0_ns, k0, late, offset_ns, rtt_ns))
@@ -760,7 +798,7 @@ class Endpoint:
             else:
                 self._out.append((port.seal(self._rj_start), self._peer()))
                 self._rj_resends += 1
-                self._rj_next = now_ns + START_RESEND_NS
+                self._rj_next = now_ns + self._rj_interval
         if not port.node.link_lost or now_ns < self._next_offer:
             return
         self._next_offer = now_ns + REJOIN_OFFER_INTERVAL_NS
@@ -790,6 +828,7 @@ class Endpoint:
         port.peer_restarted(m.nonce)  # its new nonce keys the rest of the session
         start = protocol.Start(params.session, start_ns=self.start_ns + offset, rejoin=True)
         self._rj_start, self._rj_resends, self._rj_next = start, 0, t4
+        self._rj_interval = max(START_RESEND_NS, rtt // protocol.START_RESEND_DIV)
         self._rj_nonce, self._rj_samples = None, []
         self._offers.clear()
         self.rejoins += 1
@@ -830,9 +869,15 @@ class Endpoint:
             self._events.append(Replaced(old, self.params.session))
         return True
 
-    def _takeover_possible(self, port: Port) -> bool:
+    def _busy(self) -> bool:
+        """A teleoperator whose session runs with its link up: a stranger can start nothing here."""
+        running = self.state in (State.STARTING, State.RUNNING, State.LINGER)
+        return self.role == "teleoperator" and running and not self._takeover_possible(self.port)
+
+    def _takeover_possible(self, port: Port | None) -> bool:
         """A teleoperator whose running session's link is lost may be taken over (PROTOCOL.md 4.5)."""
-        return self.role == "teleoperator" and self.state == State.RUNNING and port.node.link_lost
+        running = self.role == "teleoperator" and self.state == State.RUNNING
+        return running and port is not None and port.node.link_lost
 
     def _own_offer(self, data: bytes) -> bool:
         """Whether ``data`` is an authentic hello of this very session (our operator's rejoin offer)."""
@@ -843,6 +888,15 @@ class Endpoint:
             return False
         seen = protocol.peek_hello(body)
         return seen is not None and seen[0] == self.params.session
+
+    def _listen_again(self, now_ns: int) -> None:
+        """Teleoperator: back to the handshake, as at start-up (a new nonce, its connect timeout)."""
+        self._reset_session_state()
+        self.state = State.HANDSHAKE
+        self.port, self.params, self.peer, self._takeover = None, None, None, None
+        self._max_len[auth.SESSION] = wire.MAX_DATAGRAM_BYTES
+        self._rejections_seen = 0
+        self._to_hs = self._new_to_handshake(now_ns)
 
     def _reset_session_state(self) -> None:
         self._stopped = False
@@ -862,6 +916,12 @@ class Endpoint:
         self._ended = reason
         if reason == EndReason.REPLACED:
             self._close()
+            return
+        if reason == EndReason.PEER_SILENT:
+            # Nobody to linger for: the session ends at once and the robot waits for an operator
+            # again (a late one of this session gets welcomed as a rejoin, PROTOCOL.md 4.4).
+            self._close()
+            self._listen_again(now_ns)
             return
         self.state = State.LINGER
         self._linger_end = now_ns + self.linger_ns

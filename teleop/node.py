@@ -212,6 +212,7 @@ class _Port:
         self.coupling = 1.0
         self.link_lost = False
         self._last_rx_at: float | None = None
+        self._first_due: float | None = None  # session time by which the peer's first packet is due
         self._accepted_seen = 0
         dof = wave.dof
         self.v = np.zeros(dof)
@@ -348,6 +349,12 @@ class _Port:
         self.guard.new_epoch(joined_late=False)
         self.peer_restarts += 1
 
+    def expect_first_by(self, t: float) -> None:
+        """Silence before the first packet is the channel's delay only until session time ``t``
+        (the endpoint's bound, from the round trip): after it, a link never heard from counts as
+        lost ``link_timeout`` later, as if its last packet had come at ``t`` (no ghost sessions)."""
+        self._first_due = t
+
     def joined_late(self) -> None:
         """This process joined a running session: its budget starts at the first packet it sees."""
         self.guard.new_epoch(joined_late=True)
@@ -356,15 +363,20 @@ class _Port:
     def _supervise(self, now: float) -> float:
         """Update link supervision; returns this tick's coupling in [0, 1].
 
-        Armed by the first accepted packet: before it, silence is the channel's delay, not a loss.
+        Armed by the first accepted packet: before it, silence is the channel's delay, not a loss,
+        until the first packet's due time (:meth:`expect_first_by`), if one was set.
         """
         self._now = now
         if self.counters.accepted == 0:
-            return self.coupling
-        if self._last_rx_at is None or self.counters.accepted != self._accepted_seen:
-            self._last_rx_at = now
-            self._accepted_seen = self.counters.accepted
-        lost = now - self._last_rx_at > self.link_timeout
+            if self._first_due is None:
+                return self.coupling
+            last = self._first_due
+        else:
+            if self._last_rx_at is None or self.counters.accepted != self._accepted_seen:
+                self._last_rx_at = now
+                self._accepted_seen = self.counters.accepted
+            last = self._last_rx_at
+        lost = now - last > self.link_timeout
         rep = self.guard.report
         if lost:
             rep.link_lost_ticks += 1

@@ -79,6 +79,7 @@ __all__ = [
     "is_control",
     "ntp_offset",
     "parse",
+    "start_lead",
 ]
 
 PROTOCOL_VERSION = 1
@@ -97,6 +98,17 @@ _MAX_NAME_LEN = 64
 REJECTIONS_KEPT = 16
 START_AHEAD_NS = 10_000_000_000  # a start at most this far ahead of the teleoperator's clock
 START_SLACK_NS = 1_000_000_000  # or this far behind it (a fresh session: the operator leads by 300 ms)
+#: The start's lead follows the measured round trip: at least ``start_lead_ns``, and at least
+#: ``start_margin_ns + START_LEAD_RTTS * rtt + START_LEAD_SLACK_NS``.  With jitter up to half the
+#: one-way delay a round trip may take 3x the smallest one measured; the slack is for one lost
+#: start or started.  Unchanged (300 ms) up to a 50 ms round trip; 6.15 s at 2 s.
+START_LEAD_RTTS = 3
+START_LEAD_SLACK_NS = 100_000_000
+#: The start is resent every ``max(start_resend_ns, rtt / START_RESEND_DIV)``: a few per round trip.
+START_RESEND_DIV = 8
+#: The longest smallest round trip the operator starts at (PROTOCOL.md 4.3): 2 s with 50 % jitter
+#: to spare; its start lead (9.15 s) stays within START_AHEAD_NS.
+MAX_RTT_NS = 3_000_000_000
 BUSY = "busy with another operator"
 
 
@@ -104,10 +116,13 @@ class Failure(enum.Enum):
     """Why a handshake (or the session it was for) never started: what callers branch on, never
     the error's text (h11's rule)."""
 
-    NO_ANSWER = "no_answer"  # operator: no welcome within the timeout (absent robot, other key or name)
+    NO_ANSWER = "no_answer"  # operator: nothing at all within the timeout (absent robot, other key or name)
+    THROTTLED = "throttled"  # operator: retries, but no welcome for a hello with the cookie (dropped)
+    UNVERIFIED = "unverified"  # operator: no welcome, and answers whose MAC failed (another key?)
     REJECTED = "rejected"  # operator: the teleoperator refused the session
     START_UNCONFIRMED = "start_unconfirmed"  # operator: no started before tick 0
     PEER_CLOCK = "peer_clock"  # operator: the peer's clock is out of range
+    ROUND_TRIP = "round_trip"  # operator: even the quickest exchange took longer than MAX_RTT_NS
     NO_OPERATOR = "no_operator"  # teleoperator: no start within the timeout
 
 
@@ -670,6 +685,13 @@ def ntp_offset(t1: int, t2: int, t3: int, t4: int) -> tuple[int, int]:
     return ((t2 - t1) + (t3 - t4)) // 2, (t4 - t1) - (t3 - t2)
 
 
+def start_lead(rtt_ns: int, min_lead_ns: int = 300_000_000, margin_ns: int = 50_000_000) -> int:
+    """How far ahead of now the operator sets tick 0 after an exchange of round trip ``rtt_ns``:
+    the start must reach the TO and its started come back before ``margin_ns`` ahead of tick 0,
+    with jitter (3 smallest round trips) and one loss (:data:`START_LEAD_SLACK_NS`) to spare."""
+    return max(min_lead_ns, margin_ns + START_LEAD_RTTS * max(0, rtt_ns) + START_LEAD_SLACK_NS)
+
+
 # --------------------------------------------------------------------------------------------
 # the operator's side
 # --------------------------------------------------------------------------------------------
@@ -682,9 +704,10 @@ class OperatorHandshake:
     irrelevant datagrams are counted in ``rejected``, never raised.
 
     A hello goes out when the previous one was answered or ``hello_interval_ns`` ran out.  After
-    ``answers`` welcomes, or at the timeout with at least one, the start is set ``start_lead_ns``
-    ahead (on this clock; the message carries it on the TO's clock) and resent every
-    ``start_resend_ns`` until confirmed, giving up ``start_margin_ns`` before the start itself.
+    ``answers`` welcomes, or at the timeout with at least one, the start is set ahead by the lead
+    (:func:`start_lead_ns`: ``start_lead_ns``, more at a long round trip; on this clock, the message
+    carries it on the TO's clock) and resent every ``start_resend_ns`` (a few per round trip) until
+    confirmed, giving up ``start_margin_ns`` before the start itself.
     """
 
     def __init__(
@@ -822,7 +845,16 @@ class OperatorHandshake:
     def _begin_start(self, now_ns: int) -> None:
         assert self._best is not None
         self.rtt_ns, self.offset_ns = self._best
-        self.start_ns = now_ns + self.start_lead_ns
+        if self.rtt_ns > MAX_RTT_NS:
+            self.error = (
+                f"the round trip {self.rtt_ns / 1e9:.3g} s exceeds the {MAX_RTT_NS / 1e9:g} s"
+                " the protocol serves"
+            )
+            self.failure = Failure.ROUND_TRIP
+            return
+        lead = start_lead(self.rtt_ns, self.start_lead_ns, self.start_margin_ns)
+        self.start_ns = now_ns + lead
+        self.start_resend_ns = max(self.start_resend_ns, self.rtt_ns // START_RESEND_DIV)
         if not 0 <= self.start_ns + self.offset_ns <= MAX_TIMESTAMP:
             self.error = f"the peer's clock is out of range (offset {self.offset_ns} ns)"
             self.failure = Failure.PEER_CLOCK
@@ -845,7 +877,7 @@ class OperatorHandshake:
                 if self.error is not None:
                     return []
             elif now_ns >= self._give_up:
-                self.error, self.failure = f"never answered within {self.timeout_s:g} s", Failure.NO_ANSWER
+                self.error, self.failure = self._unanswered()
                 return []
             elif now_ns >= self._next_hello:
                 self._in_flight.append(now_ns)
@@ -865,6 +897,23 @@ class OperatorHandshake:
             assert self.tx_sealer is not None
             return [self.tx_sealer.seal(encode(Start(self.params.session, self.start_ns + self.offset_ns)))]
         return []
+
+    def _unanswered(self) -> tuple[str, Failure]:
+        """The handshake's failure when no welcome came, with what this side saw: nothing at all
+        (absent, unreachable, or another key or name: such a robot stays silent), only retries (it
+        drops our hellos with their cookie: throttled), or datagrams whose MAC failed (another key,
+        or someone else answering)."""
+        seen = f"{self.hellos_sent} hellos sent, {self.retries} retries taken"
+        if self.unauthenticated:
+            seen += f", {self.unauthenticated} datagram(s) that did not verify ({self.last_unauthenticated})"
+        if self.rejected:
+            seen += f", {self.rejected} refused ({self.last_rejection})"
+        why = f"never answered within {self.timeout_s:g} s ({seen})"
+        if self.unauthenticated:
+            return why, Failure.UNVERIFIED
+        if self.retries:
+            return why, Failure.THROTTLED
+        return why, Failure.NO_ANSWER
 
     def _unconfirmed(self) -> str:
         """The start's failure, with what this side saw: whether its starts left, and what it refused
@@ -983,6 +1032,7 @@ class TeleoperatorHandshake:
         cookie_secret: bytes | None = None,
         local_limits: Envelope | None = None,
         defer_t3: bool = False,
+        admit: Callable[[Addr, int, bool], bool] | None = None,
     ) -> None:
         self.expect = Pins.of(expect).pinned()
         self.local_netem = frozenset(local_netem) | configured_netem(self.expect)
@@ -1020,6 +1070,11 @@ class TeleoperatorHandshake:
         self.retries_sent = 0  # hellos without a valid cookie, answered with a retry, nothing kept
         self.defer_t3 = defer_t3
         self._drafts: list[tuple[Welcome, Addr]] = []  # welcomes waiting for their t3 (defer_t3)
+        # The handshake budget (the endpoint's HandshakeLimiter): asked once a hello's MAC verified,
+        # with whether it carries a valid cookie for its source, so that unauthenticated datagrams
+        # (a stranger's junk, whatever address it claims) spend nobody's budget.
+        self.admit = admit
+        self.throttled = 0
 
     @property
     def finished(self) -> bool:
@@ -1034,16 +1089,13 @@ class TeleoperatorHandshake:
         self._drafts.clear()
         return out
 
-    def _retry(self, addr: Addr, body: bytes, now_ns: int) -> list[tuple[bytes, Addr]] | None:
+    def _retry(
+        self, addr: Addr, seen: tuple[int | None, int, object, object] | None, cookie_valid: bool, now_ns: int
+    ) -> list[tuple[bytes, Addr]] | None:
         """A retry for a hello without a valid cookie for ``addr`` (None: it has one, or is no hello)."""
-        if self.cookie_secret is None:
+        if self.cookie_secret is None or seen is None or cookie_valid:
             return None
-        seen = peek_hello(body)
-        if seen is None:
-            return None
-        session, t_ns, nonce, cookie = seen
-        if cookie_ok(self.cookie_secret, cookie, addr, nonce, now_ns):
-            return None
+        session, t_ns, nonce, _ = seen
         if type(nonce) is not bytes or len(nonce) != auth.NONCE_BYTES:
             return None  # malformed: the full parse rejects it
         self.retries_sent += 1
@@ -1111,8 +1163,14 @@ class TeleoperatorHandshake:
         if opened is None:
             return []
         cand, body = opened
-        if cand is None and (retry := self._retry(addr, body, now_ns)) is not None:
-            return retry
+        if cand is None:
+            seen = peek_hello(body) if self.cookie_secret is not None else None
+            valid = seen is not None and cookie_ok(self.cookie_secret or b"", seen[3], addr, seen[2], now_ns)
+            if self.admit is not None and not self.admit(addr, now_ns, valid):
+                self.throttled += 1  # over its budget: dropped unanswered, before the full parse
+                return []
+            if (retry := self._retry(addr, seen, valid, now_ns)) is not None:
+                return retry
         try:
             msg = parse(body, local_netem=self.local_netem)
             if (cand is None) != isinstance(msg, Hello):

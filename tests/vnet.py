@@ -72,11 +72,18 @@ class Host:
 
 class VirtualNet:
     def __init__(
-        self, one_way_ms: float | tuple[float, float] = 0.1, loss: float = 0.0, seed: int = 0
+        self,
+        one_way_ms: float | tuple[float, float] = 0.1,
+        loss: float = 0.0,
+        seed: int = 0,
+        jitter: float = 0.0,
     ) -> None:
+        """``jitter``: each datagram's delay is the direction's times 1 + U(0, jitter) (seeded;
+        datagrams may overtake each other)."""
         fwd, bwd = one_way_ms if isinstance(one_way_ms, tuple) else (one_way_ms, one_way_ms)
         self.delay_ns = {"fwd": round(fwd * MS), "bwd": round(bwd * MS)}
         self.loss = loss
+        self.jitter = jitter
         self.rng = random.Random(seed)
         self.now = 0
         self.hosts: dict[Addr, Host] = {}
@@ -154,7 +161,10 @@ class VirtualNet:
                 self.dropped += 1
                 continue
             to_operator = (h := self.hosts.get(d)) is not None and h.ep.role == "operator"
-            self.inject(s, d, b, self.delay_ns["bwd" if to_operator else "fwd"])
+            delay = self.delay_ns["bwd" if to_operator else "fwd"]
+            if self.jitter:
+                delay += round(delay * self.jitter * self.rng.random())
+            self.inject(s, d, b, delay)
 
     def _flush(self, h: Host) -> None:
         for data, dst in h.ep.datagrams_to_send(h.clock(self.now)):

@@ -244,6 +244,9 @@ class _Runner:
                 ep.tick(k, self.clock())
                 self.send()
                 ticker.departed(self.clock())
+                if ep.params is not session:  # ended without its peer (a ghost): waits again
+                    self.events()
+                    break
             else:
                 # Run early, the tick is done: what arrives now counts for the next one, which the
                 # next wake's early drain reads as well as a drain now would, for one read (a system
@@ -434,6 +437,13 @@ class _Runner:
                 name = {PeerRestarted: "peer_rejoined", LinkLost: "link_lost", LinkRestored: "link_restored"}
                 self.log.event(ep.session_time(self.clock()), name[type(ev)], f"tick {ev.k}")
             elif isinstance(ev, SessionEnded):
+                if ev.reason == EndReason.PEER_SILENT:
+                    print(
+                        f"teleop {o.role}: session {ev.summary.params.session} ended: not one packet from"
+                        f" the operator since its start; waiting for an operator",
+                        file=sys.stderr,
+                        flush=True,
+                    )
                 self.ended(ev)
 
     def _failure(self, ev: Failed) -> str:
@@ -442,10 +452,17 @@ class _Runner:
             return f"{ev.detail} on {_addr(self.tr.local_address)}"
         peer = _addr(o.peer) if o.peer is not None else "zenoh"
         hint = ""
-        if ev.reason == Failure.NO_ANSWER:  # a teleoperator with another key or name stays silent
+        if ev.reason == Failure.NO_ANSWER:  # nothing came back: absent, unreachable, or silent
             hint = (
-                f" (is `teleop teleoperator --listen {peer} --name {o.robot_name}` running, with the"
-                " same key? A robot of another name, or another key, never answers)"
+                f" (nothing came back: is `teleop teleoperator --listen {peer} --name {o.robot_name}`"
+                " running and reachable? A robot of another name, or another key, stays silent too)"
+            )
+        elif ev.reason == Failure.THROTTLED:
+            hint = " (it answered with retries only: it dropped our hellos with their cookie; flooded?)"
+        elif ev.reason == Failure.UNVERIFIED:  # the one case that points at the key
+            hint = (
+                f" (answers came whose MAC did not verify: does the teleoperator hold the same key,"
+                f" with --name {o.robot_name}?)"
             )
         return f"peer {peer} {ev.detail}{hint}"
 

@@ -1,0 +1,85 @@
+"""Issue 35 over real UDP: two processes through a relay on 127.0.0.1 that delays every datagram
+130, 300 or 800 ms each way (a round trip the fixed 300 ms start lead could not serve).  A session
+starts and completes there, and a teleoperator restarted there rejoins.
+
+The relay is ``tests.test_restart_real.DelayRelay`` (a thread of the test with a bounded life).
+Nothing sleeps for a fixed time: the tests wait for the files and exits they need.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.test_processes import _free_port, _spawn
+from tests.test_restart_real import DelayRelay, _operator
+
+DELAYS_MS = (130, 300, 800)
+
+
+def _wait_for(path: Path, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not path.exists():
+        assert time.monotonic() < deadline, f"{path} did not appear within {timeout_s} s"
+        time.sleep(0.05)
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("delay_ms", DELAYS_MS)
+def test_a_session_starts_and_completes_behind_a_long_delay(tmp_path: Path, key: str, delay_ms: int) -> None:
+    port = _free_port()
+    relay = DelayRelay(("127.0.0.1", port), delay_ms / 1e3)
+    try:
+        to = _spawn(
+            "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--quiet",
+            "--connect-timeout", "30", "--log", str(tmp_path / "to"),
+        )  # fmt: skip
+        op = _operator(key, relay.addr, tmp_path / "op", "2", "--connect-timeout", "30")
+        _, op_err = op.communicate(timeout=90)
+        _, to_err = to.communicate(timeout=30)
+    finally:
+        relay.close()
+    assert op.returncode == 0, op_err
+    assert to.returncode == 0, to_err
+    o = json.loads((tmp_path / "op" / "operator.json").read_text())
+    t = json.loads((tmp_path / "to" / "teleoperator.json").read_text())
+    assert o["completed"] and t["completed"] and not t["joined_late"]
+    assert o["handshake_rtt_us"] >= 2 * delay_ms * 1e3
+    assert o["received"]["packets"] > 0 and t["received"]["packets"] > 0
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("delay_ms", DELAYS_MS)
+def test_a_restarted_robot_rejoins_behind_a_long_delay(tmp_path: Path, key: str, delay_ms: int) -> None:
+    port = _free_port()
+    relay = DelayRelay(("127.0.0.1", port), delay_ms / 1e3, lifetime_s=120.0)
+    # TO1 dies before its tick 0: the operator's link, never heard from, is lost 2 round trips after
+    # it; then the restart's import, a cookie round trip, four welcomes and the start.
+    duration = 8 + 8 * delay_ms / 1e3
+    try:
+        to1 = _spawn(
+            "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--quiet",
+            "--connect-timeout", "30", "--log", str(tmp_path / "to1"),
+        )  # fmt: skip
+        op = _operator(key, relay.addr, tmp_path / "op", f"{duration:g}", "--connect-timeout", "30")
+        _wait_for(tmp_path / "to1" / "teleoperator.mcap", 60.0)  # its session started
+        _wait_for(tmp_path / "op" / "operator.mcap", 60.0)
+        to1.kill()
+        to1.wait()
+        to2 = _spawn(
+            "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--quiet",
+            "--connect-timeout", "30", "--log", str(tmp_path / "to2"),
+        )  # fmt: skip
+        _, op_err = op.communicate(timeout=120)
+        _, to2_err = to2.communicate(timeout=60)
+    finally:
+        relay.close()
+    assert op.returncode == 0, op_err
+    assert to2.returncode == 0, to2_err
+    o = json.loads((tmp_path / "op" / "operator.json").read_text())
+    t = json.loads((tmp_path / "to2" / "teleoperator.json").read_text())
+    assert o["rejoin"]["rejoins"] == 1 and o["completed"]
+    assert t["joined_late"] and t["completed"] and t["received"]["packets"] > 0
