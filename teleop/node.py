@@ -80,7 +80,7 @@ TDPA_TO_BANDWIDTH = 5.0
 TDPA_DRIFT_GAIN = 2.0
 TDPA_DRIFT_MAX_V = 0.05
 #: A device's output beyond these is implausible, a fault like a non-finite value: the node holds
-#: the last good output for that tick (``device_stale``).  Per DoF: N, m/s; a gain (the
+#: the last good output for that tick (``device_stale``).  Summed over the DoF: N, m/s; a gain (the
 #: HSI's admittance ``Y``, the robot's impedance ``Z``) must be finite, >= 0 and below ``_GAIN``.
 PLAUSIBLE_FORCE_N = 1e5
 PLAUSIBLE_VELOCITY = 1e3
@@ -221,13 +221,12 @@ class _Port:
         self.wave_in = np.zeros(dof)
         # The device's last good output (held while it gives nonsense), and a read-only gain
         # already found sane (a built-in device's constant feedthrough: checked once).
-        self._shape = (dof,)
+        self._shape, self._dof = (dof,), dof
         self._device_good: tuple[Array, Array] = (np.zeros(dof), np.zeros(dof))
         self._gain_ok: Array | None = None
         # The robot's envelope (:meth:`confine`): none until a robot confines its node.
         self.confined = False
         self.max_velocity = self.max_force = math.inf
-        self._vmax2 = self._fmax2 = math.inf
 
     def _make_guard(
         self, dt: float, opts: PortOptions, wave: WaveImpedance, tx: Codec, rx: Codec
@@ -246,17 +245,21 @@ class _Port:
         the operator proposed (DESIGN.md: the robot is sovereign).  Called as the session starts."""
         self.confined = True
         self.max_velocity, self.max_force = env.max_velocity, env.max_force
-        self._vmax2, self._fmax2 = env.max_velocity**2, env.max_force**2
         self.guard.bound(self._envelope_power(env))
 
     def _device(self, out: tuple[Array, Array], limit: float) -> tuple[Array, Array]:
         """The device's ``affine`` output if it is sane, else the last sane one (counted): a
-        non-finite or implausible value never reaches the port's solve nor the energy books."""
+        non-finite or implausible value never reaches the port's solve nor the energy books.
+
+        On plain floats, not numpy: this runs twice a tick and a ufunc call costs more than the
+        whole check (the sum of magnitudes is NaN for a NaN, inf for an inf, and beyond ``limit``
+        for an absurd value: one comparison fails for all three)."""
         a, g = out
-        # NaN, inf and an absurd value all fail the one comparison (NaN propagates through max).
+        vals = a.tolist() if type(a) is np.ndarray else None
         if (
-            a.shape == self._shape
-            and float(np.max(np.abs(a))) <= limit
+            vals is not None
+            and len(vals) == self._dof
+            and sum(map(abs, vals)) <= limit
             and (g is self._gain_ok or self._gain_sane(g))
         ):
             self._device_good = out
@@ -265,12 +268,13 @@ class _Port:
         return self._device_good
 
     def _gain_sane(self, g: Array) -> bool:
-        if getattr(g, "shape", None) != self._shape:
+        if type(g) is not np.ndarray or g.shape != self._shape:
             return False
-        ok = float(np.min(g)) >= 0.0 and float(np.max(g)) < _PLAUSIBLE_GAIN
+        vals = g.tolist()
+        ok = sum(vals) < _PLAUSIBLE_GAIN and min(vals) >= 0.0  # a NaN makes the sum NaN: refused
         if ok and not g.flags.writeable:
             self._gain_ok = g
-        return ok
+        return bool(ok)
 
     @property
     def energy_played(self) -> float:
@@ -536,11 +540,18 @@ class TeleoperatorNode(_Port):
         f0, z = self._device(self.environment.affine(now), PLAUSIBLE_FORCE_N)
         v = _scaled(w.sqrt2b * g_r - f0, c) / self._den(z, c)  # the robot is commanded c v
         f = f_wave = f0 + z * v
-        if self.confined and (float(np.dot(v, v)) > self._vmax2 or float(np.dot(f, f)) > self._fmax2):
+        if self.confined and self._beyond(v, f):
             v, f, f_wave = self._saturate(v, f0, z, f)
         self.environment.advance(now, v, f)
         self.v, self.f = v, f
         return self._send(now, _scaled(w.to_wave_out(g_r, f_wave), c))
+
+    def _beyond(self, v: Array, f: Array) -> bool:
+        """Whether any DoF of the command or its force is past the envelope (plain floats: cheaper
+        than numpy on a few DoF, and this runs every tick of a robot)."""
+        vl, fl = v.tolist(), f.tolist()
+        vmax, fmax = self.max_velocity, self.max_force
+        return bool(max(vl) > vmax or min(vl) < -vmax or max(fl) > fmax or min(fl) < -fmax)
 
     def _saturate(self, v: Array, f0: Array, z: Array, f: Array) -> tuple[Array, Array, Array]:
         """The command ``v`` saturated to the envelope per DoF: at most ``max_velocity``, and no
@@ -679,7 +690,7 @@ class TdpaTeleoperatorNode(_TdpaPort, TeleoperatorNode):
         if n > TDPA_DRIFT_MAX_V:
             corr *= TDPA_DRIFT_MAX_V / n
         cmd = v_ref + corr
-        if self.confined and float(np.dot(cmd, cmd)) > self._vmax2:
+        if self.confined and (max(cl := cmd.tolist()) > self.max_velocity or min(cl) < -self.max_velocity):
             # The envelope's speed, per DoF: a slower command only ever removes energy (the observer
             # books the port's real power), and the drift compensator asks the rest back in budget.
             held = np.clip(cmd, -self.max_velocity, self.max_velocity)

@@ -580,9 +580,11 @@ def stream_checks(
     period = round(dt * 1e9)
     late = sorted(t - (t0_ns + p.tick * period) for t, p in stream)
     if len(late) >= 10:
-        early, median = late[len(late) // 20], late[len(late) // 2]
+        # The 1st percentile: a load on the host only delays packets, so the earliest show the
+        # schedule itself (the 5th moved 300 us on a loaded 2-core host and passed a phase-0 peer).
+        early, median = late[len(late) // 100], late[len(late) // 2]
         rule = "a tick's packet leaves no earlier than the tick's time on the session clock"
-        r.check(timing, "MUST", rule, early >= -EARLY_TOLERANCE_NS, f"5th percentile {early / 1e3:+.0f} us")
+        r.check(timing, "MUST", rule, early >= -EARLY_TOLERANCE_NS, f"1st percentile {early / 1e3:+.0f} us")
         rule = "runs tick k on time: its packet arrives within two periods of the tick's time"
         ok = median <= LATE_PERIODS * period + LATE_EXTRA_NS
         r.check(timing, "MUST", rule, ok, f"median {median / 1e3:+.0f} us after its tick")
