@@ -690,13 +690,12 @@ class TdpaTeleoperatorNode(_TdpaPort, TeleoperatorNode):
         if n > TDPA_DRIFT_MAX_V:
             corr *= TDPA_DRIFT_MAX_V / n
         cmd = v_ref + corr
-        if self.confined and (max(cl := cmd.tolist()) > self.max_velocity or min(cl) < -self.max_velocity):
-            # The envelope's speed, per DoF: a slower command only ever removes energy (the observer
-            # books the port's real power), and the drift compensator asks the rest back in budget.
-            held = np.clip(cmd, -self.max_velocity, self.max_velocity)
-            if (held != cmd).any():
-                self.counters.saturated += 1
-                cmd = held
+        if self.confined and self._beyond(cmd, fc := f0 + z * cmd):
+            # The envelope, per DoF, on the impedance seen from the network (F = f0' + Z' v_d): no
+            # faster than max velocity, no faster into a contact than keeps F within max force.  A
+            # slower command only ever removes energy (the observer books the port's real power),
+            # and the drift compensator asks the rest back within the budget.
+            cmd, _, _ = self._saturate(cmd, f0, z, fc)
         v_d, f, p, removed, acted = series_damper(cmd, f0, z, self._allowed())
         self.drift += (v_ref - v_d) * self.dt
         v = v_d - (f - ke) / g

@@ -206,6 +206,18 @@ def test_the_robot_stays_within_its_velocity_when_the_operator_pushes_past_it(pa
     assert r.summary["passive"]
 
 
+@pytest.mark.parametrize("passivity", ["wave", "tdpa"])
+def test_the_robot_pushes_a_wall_no_harder_than_its_max_force(passivity: str) -> None:
+    """The protocol task's wall pushes reach about 7 N (wave) and 1.5 N (TDPA): a robot whose
+    envelope says 1 N is slowed into the wall, never reversed, and stays passive."""
+    env = Envelope(max_force=1.0)
+    r = run_case(SimConfig(codec="none", scenario="protocol", passivity=passivity, envelope=env))
+    pushing = r.trace.f_to * r.trace.v_to > 0.0
+    assert float(np.max(np.abs(r.trace.f_to[pushing]))) <= 1.0 + 1e-9
+    assert r.summary["counters"]["teleoperator"]["saturated"] > 0
+    assert r.summary["passive"]
+
+
 def test_the_robots_guard_is_bounded_by_its_own_range_not_the_sessions() -> None:
     node = make_node(
         "teleoperator",
