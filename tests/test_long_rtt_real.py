@@ -52,7 +52,9 @@ def test_a_session_starts_and_completes_behind_a_long_delay(tmp_path: Path, key:
 
 
 @pytest.mark.integration
-@pytest.mark.parametrize("delay_ms", DELAYS_MS)
+# The longest only: a rejoin at 0.26, 0.3, 1.6 and 2 s round trip runs in virtual time
+# (tests/test_endpoint_robust.py); each real case here costs 12-25 s of the suite.
+@pytest.mark.parametrize("delay_ms", DELAYS_MS[-1:])
 def test_a_restarted_robot_rejoins_behind_a_long_delay(tmp_path: Path, key: str, delay_ms: int) -> None:
     port = _free_port()
     relay = DelayRelay(("127.0.0.1", port), delay_ms / 1e3, lifetime_s=120.0)
