@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from ..limits import MAX_B, MAX_LINK_TIMEOUT_S, MAX_RANGE, MIN_LINK_TIMEOUT_S
@@ -130,10 +132,7 @@ def robot_envelope(args: argparse.Namespace) -> Any:
             passivity=_names(args.allow_passivity, PASSIVITY, "--allow-passivity") or e.passivity,
             on_loss=_names(args.allow_on_loss, ON_LOSS, "--allow-on-loss") or e.on_loss,
             uncontrolled_on_loss=_names(args.allow_no_controller, ON_LOSS, "--allow-no-controller") or (),
-            max_link_timeout=args.max_link_timeout / 1e3,
-            max_playout_ms=args.max_playout,
-            max_velocity=args.max_velocity,
-            max_force=args.max_force,
+            **{lim.field: getattr(args, lim.dest) / lim.scale for lim in LIMITS if not lim.widens},
         )
     except ValueError as err:
         raise CliError(str(err)) from None
@@ -226,22 +225,70 @@ def add_teleoperator_parser(sub: Subcommands) -> None:
     t.set_defaults(func=cmd_teleoperator)
 
 
+@dataclass(frozen=True)
+class _Limit:
+    """One numeric limit of the robot's envelope on the command line."""
+
+    field: str  # of teleop.settings.Envelope
+    flag: str
+    scale: float  # the flag's unit per the field's (ms per s: 1e3)
+    parse: Callable[[str], float]
+    metavar: str
+    help: str  # "{default}" is the default, in the flag's unit
+    widens: str | None = None  # a pinned --range/--b widens the default to it (robot_envelope)
+
+    @property
+    def dest(self) -> str:
+        return self.flag[2:].replace("-", "_")
+
+
+#: The envelope's numeric limits: their flags, the flags ``teleop run`` passes its robot
+#: (:func:`envelope_flags`) and what :func:`robot_envelope` reads, from one list.
+LIMITS: tuple[_Limit, ...] = (
+    _Limit(
+        "max_range", "--max-range", 1.0, positive_float("max range", MAX_RANGE, "sqrt(W)"), "R",
+        "the largest wave range an operator may choose, CQ's RANGE included (default {default}, or "
+        "--range if larger)", "range",
+    ),
+    _Limit(
+        "min_b", "--min-b", 1.0, positive_float("min b", MAX_B, "N s/m"), "B",
+        "the smallest wave impedance an operator may choose: a small b turns a small wave into a fast "
+        "motion (default {default}, or --b if smaller)", "b",
+    ),
+    _Limit(
+        "max_b", "--max-b", 1.0, positive_float("max b", MAX_B, "N s/m"), "B",
+        "the largest wave impedance an operator may choose (default {default}, or --b if larger)", "b",
+    ),
+    _Limit(
+        "max_link_timeout", "--max-link-timeout", 1e3,
+        float_range("max link timeout", MIN_LINK_TIMEOUT_S * 1e3, MAX_LINK_TIMEOUT_S * 1e3, "ms"), "MS",
+        "the longest link timeout an operator may ask: how long this robot acts on a silent link "
+        "(default {default})",
+    ),
+    _Limit(
+        "max_playout_ms", "--max-playout", 1.0, nonneg_float("max playout", MAX_EXTRA_MS, "ms"), "MS",
+        "the largest fixed playout delay an operator may ask (default {default})",
+    ),
+    _Limit(
+        "max_velocity", "--max-velocity", 1.0, positive_float("max velocity", 1e3, "m/s"), "M_S",
+        "the fastest this robot is ever commanded, m/s per DoF (default {default})",
+    ),
+    _Limit(
+        "max_force", "--max-force", 1.0, positive_float("max force", 1e5, "N"), "N",
+        "the largest contact force this robot pushes to, N per DoF: it is slowed, never reversed, "
+        "beyond it (default {default})",
+    ),
+)  # fmt: skip
+
+
 def envelope_flags(env: Any) -> list[str]:
     """The teleoperator's flags that make :func:`robot_envelope` give ``env`` (only those that
     differ from the default): how ``teleop run`` tells its robot what it admits."""
     e = DEFAULT_ENVELOPE
     out: list[str] = []
-    for name, flag, scale in (
-        ("max_range", "--max-range", 1.0),
-        ("min_b", "--min-b", 1.0),
-        ("max_b", "--max-b", 1.0),
-        ("max_link_timeout", "--max-link-timeout", 1e3),
-        ("max_playout_ms", "--max-playout", 1.0),
-        ("max_velocity", "--max-velocity", 1.0),
-        ("max_force", "--max-force", 1.0),
-    ):
-        if getattr(env, name) != getattr(e, name):
-            out += [flag, repr(getattr(env, name) * scale)]
+    for lim in LIMITS:
+        if getattr(env, lim.field) != getattr(e, lim.field):
+            out += [lim.flag, repr(getattr(env, lim.field) * lim.scale)]
     for name, flag in (("passivity", "--allow-passivity"), ("on_loss", "--allow-on-loss")):
         if getattr(env, name) != getattr(e, name):
             out += [flag, ",".join(getattr(env, name))]
@@ -265,44 +312,15 @@ def add_envelope_args(t: argparse.ArgumentParser) -> None:
         metavar="RATE",
         help="accept only an operator proposing this rate cap (netem's units, e.g. 64kbit)",
     )
-    g.add_argument(
-        "--max-range",
-        type=positive_float("max range", MAX_RANGE, "sqrt(W)"),
-        default=None,
-        metavar="R",
-        help="the largest wave range an operator may choose, CQ's RANGE included "
-        f"(default {e.max_range:g}, or --range if larger)",
-    )
-    g.add_argument(
-        "--min-b",
-        type=positive_float("min b", MAX_B, "N s/m"),
-        default=None,
-        metavar="B",
-        help="the smallest wave impedance an operator may choose: a small b turns a small wave into a "
-        f"fast motion (default {e.min_b:g}, or --b if smaller)",
-    )
-    g.add_argument(
-        "--max-b",
-        type=positive_float("max b", MAX_B, "N s/m"),
-        default=None,
-        metavar="B",
-        help=f"the largest wave impedance an operator may choose (default {e.max_b:g}, or --b if larger)",
-    )
-    g.add_argument(
-        "--max-link-timeout",
-        type=float_range("max link timeout", MIN_LINK_TIMEOUT_S * 1e3, MAX_LINK_TIMEOUT_S * 1e3, "ms"),
-        default=e.max_link_timeout * 1e3,
-        metavar="MS",
-        help="the longest link timeout an operator may ask: how long this robot acts on a silent link "
-        f"(default {e.max_link_timeout * 1e3:g})",
-    )
-    g.add_argument(
-        "--max-playout",
-        type=nonneg_float("max playout", MAX_EXTRA_MS, "ms"),
-        default=e.max_playout_ms,
-        metavar="MS",
-        help=f"the largest fixed playout delay an operator may ask (default {e.max_playout_ms:g})",
-    )
+    for lim in LIMITS:
+        default = getattr(e, lim.field) * lim.scale
+        g.add_argument(
+            lim.flag,
+            type=lim.parse,
+            default=None if lim.widens else default,
+            metavar=lim.metavar,
+            help=lim.help.format(default=f"{default:g}"),
+        )
     g.add_argument(
         "--allow-passivity",
         metavar="LIST",
@@ -325,21 +343,6 @@ def add_envelope_args(t: argparse.ArgumentParser) -> None:
         help="let an operator turn the passivity controller off (refused otherwise), with the "
         "reconstructions named, comma-separated (default zero, the passive one; hold and conceal "
         "generate energy without the controller)",
-    )
-    g.add_argument(
-        "--max-velocity",
-        type=positive_float("max velocity", 1e3, "m/s"),
-        default=e.max_velocity,
-        metavar="M_S",
-        help=f"the fastest this robot is ever commanded, m/s per DoF (default {e.max_velocity:g})",
-    )
-    g.add_argument(
-        "--max-force",
-        type=positive_float("max force", 1e5, "N"),
-        default=e.max_force,
-        metavar="N",
-        help="the largest contact force this robot pushes to, N per DoF: it is slowed, never reversed, "
-        f"beyond it (default {e.max_force:g})",
     )
 
 
