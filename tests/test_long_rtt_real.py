@@ -9,6 +9,7 @@ Nothing sleeps for a fixed time: the tests wait for the files and exits they nee
 from __future__ import annotations
 
 import json
+import subprocess
 import time
 from pathlib import Path
 
@@ -27,16 +28,21 @@ def _wait_for(path: Path, timeout_s: float) -> None:
         time.sleep(0.05)
 
 
+def _robot(key: str, port: int, log: Path) -> subprocess.Popen[str]:
+    """A teleoperator on ``port`` logging to ``log``, waiting up to 30 s for its operator."""
+    return _spawn(
+        "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--quiet",
+        "--connect-timeout", "30", "--log", str(log),
+    )  # fmt: skip
+
+
 @pytest.mark.integration
 @pytest.mark.parametrize("delay_ms", DELAYS_MS)
 def test_a_session_starts_and_completes_behind_a_long_delay(tmp_path: Path, key: str, delay_ms: int) -> None:
     port = _free_port()
     relay = DelayRelay(("127.0.0.1", port), delay_ms / 1e3)
     try:
-        to = _spawn(
-            "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--quiet",
-            "--connect-timeout", "30", "--log", str(tmp_path / "to"),
-        )  # fmt: skip
+        to = _robot(key, port, tmp_path / "to")
         op = _operator(key, relay.addr, tmp_path / "op", "2", "--connect-timeout", "30")
         _, op_err = op.communicate(timeout=90)
         _, to_err = to.communicate(timeout=30)
@@ -62,19 +68,13 @@ def test_a_restarted_robot_rejoins_behind_a_long_delay(tmp_path: Path, key: str,
     # it; then the restart's import, a cookie round trip, four welcomes and the start.
     duration = 8 + 8 * delay_ms / 1e3
     try:
-        to1 = _spawn(
-            "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--quiet",
-            "--connect-timeout", "30", "--log", str(tmp_path / "to1"),
-        )  # fmt: skip
+        to1 = _robot(key, port, tmp_path / "to1")
         op = _operator(key, relay.addr, tmp_path / "op", f"{duration:g}", "--connect-timeout", "30")
         _wait_for(tmp_path / "to1" / "teleoperator.mcap", 60.0)  # its session started
         _wait_for(tmp_path / "op" / "operator.mcap", 60.0)
         to1.kill()
         to1.wait()
-        to2 = _spawn(
-            "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--quiet",
-            "--connect-timeout", "30", "--log", str(tmp_path / "to2"),
-        )  # fmt: skip
+        to2 = _robot(key, port, tmp_path / "to2")
         _, op_err = op.communicate(timeout=120)
         _, to2_err = to2.communicate(timeout=60)
     finally:

@@ -517,18 +517,19 @@ def audit_envelopes(
             highest[kind] = (counter, t)
     if n == 0:
         return
-    r.check("2.1", "MUST", "every datagram's tag verifies under the key of its kind and direction",
-            bad_tag == 0, f"{bad_tag} of {n} do not verify; {first.get('tag', '')}")  # fmt: skip
-    r.check("2.1", "MUST", "every header is valid: magic T, version 1, counter not 0",
-            bad_header == 0, f"{bad_header} bad; {first.get('header', '')}")  # fmt: skip
-    r.check("2.1", "MUST", "the reserved flag bits (3-2) are zero",
-            reserved == 0, f"{reserved} with them set; {first.get('reserved', '')}")  # fmt: skip
-    r.check("2.1", "MUST", "the kind bit names the key the datagram is sealed under",
-            wrong_kind == 0, f"{wrong_kind} wrong; {first.get('kind', '')}")  # fmt: skip
-    r.check("2.1", "MUST", "the direction bit is the sender's, on every datagram",
-            wrong_dir == 0, f"{wrong_dir} wrong; {first.get('direction', '')}")  # fmt: skip
-    r.check("2.3", "MUST NOT", "reuse a counter under a key",
-            reused == 0, f"{reused} reused; {first.get('reused', '')}")  # fmt: skip
+    for section, level, rule, count, what, key in (
+        ("2.1", "MUST", "every datagram's tag verifies under the key of its kind and direction", bad_tag,
+         f"of {n} do not verify", "tag"),
+        ("2.1", "MUST", "every header is valid: magic T, version 1, counter not 0", bad_header, "bad",
+         "header"),
+        ("2.1", "MUST", "the reserved flag bits (3-2) are zero", reserved, "with them set", "reserved"),
+        ("2.1", "MUST", "the kind bit names the key the datagram is sealed under", wrong_kind, "wrong",
+         "kind"),
+        ("2.1", "MUST", "the direction bit is the sender's, on every datagram", wrong_dir, "wrong",
+         "direction"),
+        ("2.3", "MUST NOT", "reuse a counter under a key", reused, "reused", "reused"),
+    ):  # fmt: skip
+        r.check(section, level, rule, count == 0, f"{count} {what}; {first.get(key, '')}")
     rule = "counters rise by one per datagram sealed: never beyond the jump bound (1024 + 4000/s)"
     r.check("2.3, 2.4", "MUST", rule, jumps == 0, f"{jumps} jumps; {first.get('jump', '')}")
     r.check("4.5", "MUST NOT", "send a datagram longer than the largest message of its key kind",
