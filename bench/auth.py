@@ -1,4 +1,4 @@
-"""Micro-benchmark: microseconds per seal and per open of a 40-byte body (teleop.auth).
+"""Micro-benchmark: microseconds per seal and per open of a 40-byte body (teleop.session.auth).
 
 What authentication adds to each datagram at 1 kHz.  ``--iterations`` calls of each, timed in
 batches of ``--batch``; the figure is the median over batches of the mean per call (a per-call
@@ -22,7 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from teleop.auth import SESSION, Opener, Sealer, generate_key
+from teleop.session.auth import SESSION, Opener, Sealer, generate_key
 
 BODY = bytes(range(40))
 

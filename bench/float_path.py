@@ -37,8 +37,8 @@ from typing import Any
 import numpy as np
 
 from bench.tick import DT, _port_pair
-from teleop import wire
-from teleop.models import ProtocolHuman
+from teleop.devices.models import ProtocolHuman
+from teleop.session import wire
 from transport.realtime import Ticker
 
 

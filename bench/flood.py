@@ -48,7 +48,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from teleop import auth, protocol
+from teleop.session import auth, protocol
 
 LOOPBACK = "127.0.0.1"
 TELEOP = [sys.executable, "-m", "teleop.cli"]

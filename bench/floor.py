@@ -2,8 +2,8 @@
 
 Each of the two processes does only what any loop of ``teleop run`` must do every tick: sleep until
 ``--spin-us`` (100 us) before the deadline, spin on the clock for the rest, seal a 40-byte body
-with keyed BLAKE2s (``teleop.auth.Sealer``), send it to the other over loopback UDP, drain the
-socket and verify what arrived (``teleop.auth.Opener``).  No models, no codec, no wire format, no
+with keyed BLAKE2s (``teleop.session.auth.Sealer``), send it to the other over loopback UDP, drain the
+socket and verify what arrived (``teleop.session.auth.Opener``).  No models, no codec, no wire format, no
 counters, no recorder, no event loop.  ``bench.cpu`` runs the pair beside ``teleop run`` and
 divides each process's CPU by this one's.
 
@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from teleop.auth import Opener, Sealer
+from teleop.session.auth import Opener, Sealer
 from transport.realtime import setup_realtime
 
 KEY = bytes(range(32))

@@ -3,14 +3,14 @@ Section VI protocol, ``teleop sim --scenario protocol`` (2 DoF, 15 s, no impairm
 
 The target is at most 40 packets/s a direction at ``I`` no worse than ``ids:2``'s, passive under the
 impairment matrix of ``tests/test_watchdog_matrix.py``.  This runs the reflection-aware deadband
-``pdr`` over a grid of bands (``teleop.codecs.reflective``) next to the references, under both
+``pdr`` over a grid of bands (``teleop.control.codecs.reflective``) next to the references, under both
 architectures, marks the best ``pdr`` point within ``ids:2``'s ``I`` (``frontier``), and runs that
 point through the whole matrix (hold and conceal) on the full duration, with the matrix test's
 assertions.
 
     python -m bench.frontier0 [--out bench/results/frontier0.json] [--duration 15] [--pool]
 
-``--pool`` adds ``pdr``'s two-port accounting (self-credit ``cKAPPA``, ``teleop.codecs.reflective``)
+``--pool`` adds ``pdr``'s two-port accounting (self-credit ``cKAPPA``, ``teleop.control.codecs.reflective``)
 to the grid and writes ``bench/results/frontier0_pool.json``.  Such a codec's per-direction margins
 (eq. 5) may go negative by design: its matrix verdict is the two-port's energy (eq. 1 via 4) and the
 guards' in-band margins, and both verdicts are recorded.
@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from teleop.sim import SimConfig, run_case
+from teleop.offline.sim import SimConfig, run_case
 from tests.test_watchdog_matrix import IMPAIRMENTS
 
 PDR = (

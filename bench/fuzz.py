@@ -2,7 +2,7 @@
 
 A teleoperator and an operator run as two real processes on 127.0.0.1 (UDP) under one pre-shared
 key; an attacker in this process sends them ``--datagrams`` hostile datagrams at ``--rate`` per
-second, then the logs say what the two processes made of it (``teleop.report.build``).
+second, then the logs say what the two processes made of it (``teleop.offline.report.build``).
 
 * **Blind**: a plain UDP socket bound to 127.0.0.1, sending from its own address.
 * **On-path** (needs CAP_NET_RAW, i.e. root): an AF_PACKET socket on ``lo`` (ETH_P_ALL, with a BPF
@@ -14,7 +14,7 @@ second, then the logs say what the two processes made of it (``teleop.report.bui
 
 Classes (:data:`CLASSES`), each counted per route (blind / spoofed) and target: random bytes
 (0..1500), random bytes behind a plausible envelope header, truncated and bit-flipped genuine
-datagrams, "re-CRC'd" forgeries (a valid ``teleop.wire`` packet with full-scale payload and an
+datagrams, "re-CRC'd" forgeries (a valid ``teleop.session.wire`` packet with full-scale payload and an
 energy of 1e300 or a far-future seq, correct CRC-32, sealed with a wrong key or the insecure key),
 exact replays, genuine datagrams with the counter rewritten far ahead, oversized datagrams (up to
 65000 bytes), handshake messages with every field wrong (sealed with a wrong or the insecure key),
@@ -58,8 +58,8 @@ from typing import Any
 
 import msgpack
 
-from teleop import auth, protocol, wire
-from teleop.protocol import PROTOCOL_VERSION, SessionParams
+from teleop.session import auth, protocol, wire
+from teleop.session.protocol import PROTOCOL_VERSION, SessionParams
 
 LOOPBACK = "127.0.0.1"
 _LOOPBACK_BYTES = socket.inet_aton(LOOPBACK)
@@ -1016,7 +1016,7 @@ _ABANDONED_KEYS = ("completed", "replaced_by_new_session", "first_tick")
 
 def figures(run: SessionRun) -> dict[str, Any]:
     """``teleop report``-style figures of one session, from both processes' logs."""
-    from teleop.report import build
+    from teleop.offline.report import build
 
     out: dict[str, Any] = {
         "label": run.label,

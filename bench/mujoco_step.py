@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 
 from teleop.devices import make
-from teleop.models import Array
-from teleop.sim import SimConfig, run_case
+from teleop.devices.models import Array
+from teleop.offline.sim import SimConfig, run_case
 
 DT = 1e-3
 PHASES = {"free space 0-5 s": (0.0, 5.0), "foam 5-10 s": (5.0, 10.0), "foam and wall 10-15 s": (10.0, 15.0)}

@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from teleop import node
-from teleop.sim import SimConfig, run_case
+from teleop.offline.sim import SimConfig, run_case
+from teleop.session import node
 
 
 def measure(codec: str, duration: float) -> dict[str, dict[str, float]]:

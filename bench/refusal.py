@@ -3,7 +3,7 @@
 For each class, ``n`` datagrams are queued in a socket on 127.0.0.1 and read back two ways:
 
 * ``drain``: :meth:`transport.udp.UdpTransport.drain` as a 2-DoF session's teleoperator runs it
-  (``max_datagram`` narrowed to ``teleop.wire.max_session_datagram_bytes(2)``: a longer datagram is
+  (``max_datagram`` narrowed to ``teleop.session.wire.max_session_datagram_bytes(2)``: a longer datagram is
   received with ``MSG_TRUNC`` into the preallocated buffer and counted by its true length);
 * ``recvfrom``: one ``recvfrom(65536)`` per datagram, a bytes object of its full length, which is
   what asyncio's datagram transport (uvloop's too) did before anything could refuse it.
@@ -23,7 +23,7 @@ import sys
 import time
 
 from bench.flood import UDP_CLASSES, payloads
-from teleop import auth, wire
+from teleop.session import auth, wire
 from transport.udp import UdpTransport
 
 

@@ -49,7 +49,8 @@ import numpy.typing as npt
 TELEOP = [sys.executable, "-m", "teleop.cli"]
 ROLES = ("operator", "teleoperator")
 # Samples before this are left out of the growth fit: imports, the first chunks, and the loop's
-# exact-percentile buffers (teleop.link.quantiles: the first 65536 ticks, 65 s) are start-up, not growth.
+# exact-percentile buffers (teleop.session.link.quantiles: the first 65536 ticks, 65 s) are
+# start-up, not growth.
 WARM_UP_S = 120.0
 _SUMMARY = re.compile(r"period error p50/p99/max ([\d.]+)/([\d.]+)/([\d.]+) us, CPU (\d+)%")
 

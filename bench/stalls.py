@@ -38,11 +38,11 @@ import numpy.typing as npt
 
 from bench._probed_run import probed_run
 from bench.cpu import _commit
-from teleop.logfile import read_log
+from teleop.offline.logfile import read_log
 
 ROOT = Path(__file__).resolve().parent.parent
 ROLES = ("operator", "teleoperator")
-#: Samples a ``teleop.link.quantiles.Quantiles`` keeps exactly (its default ``exact``): the ticker's
+#: Samples a ``teleop.session.link.quantiles.Quantiles`` keeps exactly (its default ``exact``): the ticker's
 #: fill at this tick.  The window read after it covers a stall and the loop's catch-up.
 QUANTILE_FILL = 1 << 16
 WINDOW = (QUANTILE_FILL - 6, QUANTILE_FILL + 294)

@@ -74,7 +74,7 @@ def _case(c: dict[str, Any], duration: float) -> dict[str, Any]:
 
 def _bounded(passivity: str, codec: str, netem: str) -> dict[str, float]:
     """Largest 1-s RMS of v_to and F_to in the last third over the largest before it (run in-process)."""
-    from teleop.sim import SimConfig, run_case
+    from teleop.offline.sim import SimConfig, run_case
 
     tr = run_case(
         SimConfig(

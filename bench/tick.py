@@ -2,7 +2,7 @@
 
 Measures, per codec: the wave transform alone, encode+decode alone, a full operator tick plus
 teleoperator tick including wire encoding and parsing, and the same through the two sans-I/O ports
-(``teleop.port``: adds the wire counters, the link observer and the per-tick recorder, which is
+(``teleop.session.port``: adds the wire counters, the link observer and the per-tick recorder, which is
 what one loop iteration of each process costs apart from I/O, added together).  Medians over
 repeats; writes JSON (default ``bench/results/tick.json``).
 
@@ -22,12 +22,12 @@ from typing import Any
 
 import numpy as np
 
-from teleop import wire
-from teleop.codecs import make_codec
-from teleop.models import LtiEnvironment, StepHuman
-from teleop.node import OperatorNode, PortOptions, TeleoperatorNode
-from teleop.port import Port, make_node
-from teleop.wave import WaveImpedance
+from teleop.control.codecs import make_codec
+from teleop.control.wave import WaveImpedance
+from teleop.devices.models import LtiEnvironment, StepHuman
+from teleop.session import wire
+from teleop.session.node import OperatorNode, PortOptions, TeleoperatorNode
+from teleop.session.port import Port, make_node
 
 CODECS = ("none", "ids:50", "eds:50", "cq:8")
 TDPA_CODECS = ("none", "eds:50", "pdp:1")  # the port's hot path under TDPA (issue 23)

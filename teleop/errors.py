@@ -4,12 +4,12 @@
 spec, a device, a netem spec typed by the user: fix the command), ``RemoteError`` that what a peer or
 a file sent is wrong (a datagram, a log: count it, drop it, say so).  Each concrete error keeps
 ``ValueError`` as a base, so existing ``except ValueError`` handlers still hold; callers branch on
-the type (and on enums such as ``teleop.protocol.Failure``), never on an error's text.
+the type (and on enums such as ``teleop.session.protocol.Failure``), never on an error's text.
 """
 
 from __future__ import annotations
 
-__all__ = ["LocalError", "RemoteError", "TeleopError"]
+__all__ = ["DeviceError", "LocalError", "RemoteError", "TeleopError"]
 
 
 class TeleopError(Exception):
@@ -22,3 +22,10 @@ class LocalError(TeleopError, ValueError):
 
 class RemoteError(TeleopError, ValueError):
     """What a peer or a file sent is invalid (the text says what and where)."""
+
+
+class DeviceError(LocalError):
+    """A device spec cannot be resolved, or its device cannot be built: one line saying why.
+
+    Here, not in ``teleop.devices``, so the drivers it loads lazily raise it without importing the
+    registry that imports them."""

@@ -1,6 +1,6 @@
 """Opening files safely: the one place the stack opens a file it reads as input or writes.
 
-Why here: the trace loader (``teleop.link.netem``), the command line, the Zenoh config and the log
+Why here: the trace loader (``teleop.session.link.netem``), the command line, the Zenoh config and the log
 writer all need the same rules (DESIGN.md, "Trust nothing from the network, or from a file"):
 
 * an **input** (a netem trace, a Zenoh config) is a regular file of bounded size: its type is
@@ -27,7 +27,7 @@ import os
 import stat
 from pathlib import Path
 
-from .errors import LocalError
+from teleop.errors import LocalError
 
 __all__ = [
     "MAX_CONFIG_BYTES",

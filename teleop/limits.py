@@ -3,8 +3,8 @@
 One table for the command line, ``teleop sim`` and the handshake parser, so a value that the
 network proposes is held to the same bounds as one typed by the user (DESIGN.md: validate every
 field against a range the local side can afford).  A real process streams its per-tick records to
-disk a chunk at a time (``teleop.port``, ``teleop.logfile``), so its memory does not grow with the
-session: a session runs until stopped (duration :data:`UNTIL_STOPPED`) or for at most
+disk a chunk at a time (``teleop.session.port``, ``teleop.offline.logfile``), so its memory does
+not grow with the session: a session runs until stopped (duration :data:`UNTIL_STOPPED`) or for at most
 :data:`MAX_DURATION_S`.  Only ``teleop sim`` keeps every tick in memory, about ``32 dof + 160``
 bytes a tick, so its length is bounded by :data:`RECORD_BUDGET_BYTES`.
 """
@@ -20,7 +20,7 @@ MAX_DURATION_S = 7 * 24 * 3600.0  # s: a fixed-length session of a real process 
 UNTIL_STOPPED = 0.0  # duration of a session that runs until a signal or the peer's bye
 MAX_SESSION = 2**32 - 1  # the wire's uint32 session id (0 is never used)
 MAX_SEED = 2**32 - 1
-MAX_VARIATION = 2.0  # scale of the human's seeded variation (teleop.models.ProtocolPlan)
+MAX_VARIATION = 2.0  # scale of the human's seeded variation (teleop.devices.models.ProtocolPlan)
 MAX_B = 1e6  # N s/m
 MAX_RANGE = 1e6  # sqrt(W), full scale of the raw 16-bit wave format
 MIN_LINK_TIMEOUT_S = 1e-3
@@ -29,7 +29,7 @@ MAX_CODEC_SPEC_LEN = 64
 MAX_NETEM_SPEC_LEN = 1024
 MAX_REASON_LEN = 300  # characters of a peer's reject reason that are kept and printed
 #: Largest control message body, checked before unpacking (a full hello is about 2.3 kB at most);
-#: here so that ``teleop.wire`` can bound every datagram without importing the protocol.
+#: here so that ``teleop.session.wire`` can bound every datagram without importing the protocol.
 MAX_CONTROL_BYTES = 4096
 
 

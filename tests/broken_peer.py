@@ -10,13 +10,13 @@ from typing import Any
 
 
 def _no_cookie() -> None:  # 4.3 step 2: a TO that welcomes a hello without a cookie
-    from teleop import protocol
+    from teleop.session import protocol
 
     protocol.TeleoperatorHandshake._retry = lambda self, *a: None  # type: ignore[method-assign]
 
 
 def _answers_own_offers() -> None:  # 4.4 step 2: a running TO that answers its own session's hello
-    from teleop import auth, endpoint, protocol
+    from teleop.session import auth, endpoint, protocol
 
     def answer(self: Any, data: bytes, addr: Any, now_ns: int) -> None:
         body = self.port.open_handshake(data)
@@ -28,20 +28,20 @@ def _answers_own_offers() -> None:  # 4.4 step 2: a running TO that answers its 
 
 
 def _no_bye() -> None:  # 4.6: no bye at the end
-    from teleop import endpoint
+    from teleop.session import endpoint
 
     endpoint.BYE_COPIES = 0
 
 
 def _seq_from_5() -> None:  # 3.1: seq does not start at 0
-    from teleop import port, wire
+    from teleop.session import port, wire
 
     encode = wire.encode
     port.wire.encode = lambda p: encode(p._replace(seq=p.seq + 5))  # type: ignore[attr-defined]
 
 
 def _ignores_retry() -> None:  # 4.3 step 2: an operator that never puts the cookie in its hellos
-    from teleop import protocol
+    from teleop.session import protocol
 
     encode = protocol.encode
 
@@ -61,7 +61,7 @@ FAULT_AT = 20  # the session-key datagram (of this process) that carries a one-o
 def _on_session_datagram(fault: Any) -> None:
     """Patch ``auth.Sealer.seal`` so that ``fault(sealer, signed)`` rewrites the ``FAULT_AT``-th
     session-key datagram this process seals (``signed``: header and body, before the tag)."""
-    from teleop import auth
+    from teleop.session import auth
 
     seal = auth.Sealer.seal
     count = [0]
@@ -97,7 +97,7 @@ def _reserved_bits() -> None:  # 2.1: one datagram with a reserved flag bit set,
 
 
 def _counter_jump() -> None:  # 2.3: the counter jumps by 100000 once
-    from teleop import auth
+    from teleop.session import auth
 
     seal = auth.Sealer.seal
     count = [0]
@@ -114,7 +114,7 @@ def _counter_jump() -> None:  # 2.3: the counter jumps by 100000 once
 
 def _on_packet(change: Any) -> None:
     """Every data packet this process encodes goes through ``change(packet) -> packet`` first."""
-    from teleop import port, wire
+    from teleop.session import port, wire
 
     encode = wire.encode
     port.wire.encode = lambda p: encode(change(p))  # type: ignore[attr-defined]
@@ -135,7 +135,7 @@ def _t_us_off() -> None:  # 3.2: t_us 500 us off its tick
 def _round_nearest() -> None:  # 3.4: the 16-bit format rounds to nearest instead of toward zero
     import numpy as np
 
-    from teleop.codecs import base
+    from teleop.control.codecs import base
 
     def quantize(self: Any, x: Any, dtype: Any = base._I8) -> Any:
         inv, lo, hi, _ = self._constants(x.shape)
@@ -145,13 +145,13 @@ def _round_nearest() -> None:  # 3.4: the 16-bit format rounds to nearest instea
 
 
 def _deadband_no_budget() -> None:  # 3.6: pd/pdp hold and send without the energy budget (eq. 10)
-    from teleop.codecs import deadband
+    from teleop.control.codecs import deadband
 
     deadband.DeadbandEncoder.power = True  # the deadband's rules 2 and 3 off, as on a power variable
 
 
 def _phase_0() -> None:  # 5.1: a teleoperator that runs its ticks with the operator's (phase 0)
-    from teleop import endpoint
+    from teleop.session import endpoint
 
     from_to = endpoint.Endpoint._from_to_handshake
 
@@ -163,7 +163,7 @@ def _phase_0() -> None:  # 5.1: a teleoperator that runs its ticks with the oper
 
 
 def _late_5() -> None:  # 5.1: ticks run 5 periods late
-    from teleop import endpoint
+    from teleop.session import endpoint
 
     begin = endpoint.Endpoint._begin
 
@@ -174,7 +174,7 @@ def _late_5() -> None:  # 5.1: ticks run 5 periods late
 
 
 def _start_skew() -> None:  # 4.3 step 5: an operator whose start_ns is 200 ms off S_O + offset
-    from teleop import protocol
+    from teleop.session import protocol
 
     encode = protocol.encode
 

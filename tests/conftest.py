@@ -14,7 +14,7 @@ settings.load_profile("teleop")
 @pytest.fixture
 def key(tmp_path: Path) -> str:
     """A deployment's pre-shared key, as `teleop keygen` writes it."""
-    from teleop import auth
+    from teleop.session import auth
 
     path = tmp_path / "teleop.key"
     auth.write_key_file(path, auth.generate_key())

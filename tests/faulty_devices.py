@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from teleop.models import Array, ProtocolEnvironment, ProtocolHuman, ProtocolPlan
+from teleop.devices.models import Array, ProtocolEnvironment, ProtocolHuman, ProtocolPlan
 
 BAD = (float("nan"), float("inf"), float("-inf"), 1e300)
 

@@ -1,5 +1,5 @@
 """The report's whole-session figures by their definitions, over whole arrays (``read_log``): the
-oracle the streamed fold (``teleop.report``) is checked against.  This is how the report computed
+oracle the streamed fold (``teleop.offline.report``) is checked against.  This is how the report computed
 them before it streamed; kept here, not in the package, since only tests should hold a session."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from teleop import metrics
+from teleop.control import metrics
 from transport.mcaplog import read_log
 
 Array = npt.NDArray[Any]
@@ -67,7 +67,7 @@ def figures(op_log: Path, to_log: Path, phases: list[tuple[str, float, float]], 
                 "backward": float(np.nanmin(m_bwd)) if np.isfinite(m_bwd).any() else None,
             },
             "two_port": float(np.nanmin(both)) if np.isfinite(both).any() else None,
-            # Eq. (4) on the session clock, tick against tick (what teleop.sim measures).
+            # Eq. (4) on the session clock, tick against tick (what teleop.offline.sim measures).
             "two_port_clock": _nanmin(
                 (a_op["energy_sent"] - a_to["energy_played_epoch"])
                 + (a_to["energy_sent"] - a_op["energy_played_epoch"])

@@ -1,4 +1,4 @@
-"""teleop.auth: envelopes, the replay window, key derivation and key files.
+"""teleop.session.auth: envelopes, the replay window, key derivation and key files.
 
 No timing asserts: constant-time comparison is hmac.compare_digest's job, and speed is bench/auth.py's.
 """
@@ -14,8 +14,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from teleop import auth
-from teleop.auth import (
+from teleop.session import auth
+from teleop.session.auth import (
     HANDSHAKE,
     HEADER_BYTES,
     OVERHEAD,

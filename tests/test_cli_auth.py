@@ -16,10 +16,10 @@ import pytest
 
 import teleop.cli.run
 import transport.session
-from teleop import auth
 from teleop.cli import CliError, build_parser, main
 from teleop.cli.run import build_commands, run_key
 from teleop.cli.settings import NO_KEY, session_params
+from teleop.session import auth
 
 PEER = ["operator", "--peer", "127.0.0.1:9", "--connect-timeout", "1"]
 LISTEN = ["teleoperator", "--listen", "127.0.0.1:0", "--connect-timeout", "1"]

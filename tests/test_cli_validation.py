@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 import teleop.cli.run
-import teleop.sim
+import teleop.offline.sim
 import transport.session
 from teleop import limits
 from teleop.cli import build_parser, main
@@ -38,7 +38,7 @@ def no_session(monkeypatch: pytest.MonkeyPatch) -> None:
         raise SessionStarted("a session started despite a bad argument")
 
     monkeypatch.setattr(transport.session, "run_endpoint", trip)
-    monkeypatch.setattr(teleop.sim, "run_set", trip)
+    monkeypatch.setattr(teleop.offline.sim, "run_set", trip)
     monkeypatch.setattr(teleop.cli.run, "_spawn", trip)
 
 

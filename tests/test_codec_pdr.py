@@ -1,8 +1,8 @@
-"""``pdr``, the reflection-aware predictive deadband (``teleop.codecs.reflective``, issue 23 item 6).
+"""``pdr``, the reflection-aware predictive deadband (``teleop.control.codecs.reflective``, issue 23 item 6).
 
 Its two ends are paired per node: the backward receiver plays the reflection of the forward wave its
 own sender modelled, so the properties are checked on a whole loop (operator and teleoperator, each
-with its encoder and decoder paired as ``teleop.node`` pairs them) on arbitrary signals, lossless
+with its encoder and decoder paired as ``teleop.session.node`` pairs them) on arbitrary signals, lossless
 and lossy; then in ``teleop sim`` on the protocol scenario under the watchdog's impairment matrix.
 """
 
@@ -16,17 +16,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from teleop import wire
-from teleop.codecs import CodecError, make_codec
-from teleop.codecs.reflective import (
+from teleop.control.codecs import CodecError, make_codec
+from teleop.control.codecs.reflective import (
     REFLECTION_MIN_POWER,
     RESERVE_SCALE,
     Reflection,
     ReflectiveDecoder,
     ReflectiveEncoder,
 )
-from teleop.passivity import EnergyGuard
-from teleop.sim import SimConfig, run_case
+from teleop.control.passivity import EnergyGuard
+from teleop.offline.sim import SimConfig, run_case
+from teleop.session import wire
 from tests.test_watchdog_matrix import IMPAIRMENTS
 from tests.test_watchdog_matrix import run as run_matrix_case
 
@@ -50,7 +50,7 @@ loops = st.integers(1, 3).flatmap(
 def _loop(
     spec: str, x: np.ndarray, keep: list[bool] | None = None
 ) -> tuple[tuple[EnergyGuard, EnergyGuard], list[float], bool]:
-    """Both directions of one session, in ``teleop.sim``'s order at zero delay: the operator plays
+    """Both directions of one session, in ``teleop.offline.sim``'s order at zero delay: the operator plays
     the backward payload of the previous tick and sends; the teleoperator plays the forward payload
     of this tick and sends.  Returns the guards, the smallest true margins (J) and whether every
     decoder played exactly what its peer's sender modelled (before its guard)."""
@@ -174,7 +174,7 @@ def test_spec_is_canonical_and_reuses_pdps_payload() -> None:
 
 
 def test_per_direction_settings_are_canonical_and_set_by_pair() -> None:
-    """BPCT, FR and BR (teleop.codecs.reflective): the shortest spec that means the same, and each
+    """BPCT, FR and BR (teleop.control.codecs.reflective): the shortest spec that means the same, and each
     encoder takes its direction's band and reserve scale when the node pairs it."""
     assert make_codec("pdr:0.8:100:0.8").spec == "pdr:0.8"
     assert make_codec("pdr:0.8:100:0.8:100:100").spec == "pdr:0.8"

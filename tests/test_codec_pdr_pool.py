@@ -1,4 +1,4 @@
-"""``pdr``'s two-port accounting (``teleop.codecs.reflective``): POOL grants and cKAPPA self-credit.
+"""``pdr``'s two-port accounting (``teleop.control.codecs.reflective``): POOL grants and cKAPPA self-credit.
 
 POOL: a side grants part of its own receive budget to the direction it sends; its guard takes the
 grant before its energy report announces it (``EnergyGuard.grant``).  cKAPPA: a side credits its
@@ -18,11 +18,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from teleop import wire
-from teleop.codecs import CodecError, make_codec
-from teleop.codecs.reflective import ReflectiveEncoder
-from teleop.passivity import EnergyGuard
-from teleop.sim import SimConfig, run_case
+from teleop.control.codecs import CodecError, make_codec
+from teleop.control.codecs.reflective import ReflectiveEncoder
+from teleop.control.passivity import EnergyGuard
+from teleop.offline.sim import SimConfig, run_case
+from teleop.session import wire
 from tests.test_codec_pdr import loops  # two waves per tick, DoF 1..3, beyond the range
 
 DT = 1e-3
@@ -33,7 +33,7 @@ CREDIT = "pdr:0.8:100:0.8:30:30:c1"
 
 
 def _pooled_loop(spec: str, x: np.ndarray, delay: int, keep: list[bool] | None) -> tuple[float, float, bool]:
-    """Both directions as ``teleop.sim`` runs them, each payload ``delay`` extra ticks late and
+    """Both directions as ``teleop.offline.sim`` runs them, each payload ``delay`` extra ticks late and
     lost where ``keep`` says so; each report carries energy sent plus granted, as the node's.
     Returns the smallest two-port energy (J), the smallest guard margin (J) and whether anything
     was granted."""
@@ -63,7 +63,7 @@ def _pooled_loop(spec: str, x: np.ndarray, delay: int, keep: list[bool] | None) 
                 guards[side].sent(energy)
             guards[side].admit(decs[side].next())
             if getattr(decs[side], "fresh", False) and encs[side].rx_lag is not None:
-                encs[side].rx_lag = i - rx_tick[side]  # as teleop.node tells it
+                encs[side].rx_lag = i - rx_tick[side]  # as teleop.session.node tells it
             sent[side] += 0.5 * DT * float(np.dot(x[i, side], x[i, side]))
             out = encs[side].encode(x[i, side])
             lost = keep is not None and not keep[i % len(keep)]
@@ -188,7 +188,7 @@ def test_credit_in_the_sim_cuts_packets_and_stays_two_port_passive() -> None:
 def test_a_real_self_crediting_session_is_passive_on_the_session_clock(tmp_path: Path) -> None:
     """Two real processes with cKAPPA: the report's eq. (4) on the session clock (each side's energy
     sent by a tick, reported or not) never goes negative, while the margins that count a sender's
-    energy only once a packet carrying it was accepted may, by design (teleop.report, Fold._run)."""
+    energy only once a packet carrying it was accepted may, by design (teleop.offline.report, Fold._run)."""
     import json
     import subprocess
     import sys

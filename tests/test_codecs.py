@@ -13,8 +13,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from teleop.codecs import Codec, CodecError, make_codec
-from teleop.codecs.base import RawFormat, pack, packed_size, unpack
+from teleop.control.codecs import Codec, CodecError, make_codec
+from teleop.control.codecs.base import RawFormat, pack, packed_size, unpack
 
 TOL = 1e-12
 

@@ -16,11 +16,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from teleop.codecs import CodecError, make_codec
-from teleop.codecs.frequency import dct_basis
-from teleop.passivity import EnergyGuard
-from teleop.ratecap import RateCap
-from teleop.sim import SimConfig, run_case
+from teleop.control.codecs import CodecError, make_codec
+from teleop.control.codecs.frequency import dct_basis
+from teleop.control.passivity import EnergyGuard
+from teleop.control.ratecap import RateCap
+from teleop.offline.sim import SimConfig, run_case
 
 DT = 1e-3
 signals = st.integers(1, 3).flatmap(

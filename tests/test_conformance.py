@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from teleop import auth, protocol, wire
+from teleop.session import auth, protocol, wire
 from transport import conformance
 
 pytestmark = pytest.mark.integration

@@ -12,15 +12,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import teleop.cli.run
-import teleop.sim
+import teleop.offline.sim
 import transport.session
 from teleop import devices
 from teleop.cli import main
 from teleop.devices import DeviceError, DriverHsi, DriverRobot
-from teleop.models import Array, ProtocolEnvironment, ProtocolHuman
-from teleop.node import PortOptions
-from teleop.port import make_node
-from teleop.sim import SimConfig, run_case
+from teleop.devices.models import Array, ProtocolEnvironment, ProtocolHuman
+from teleop.offline.sim import SimConfig, run_case
+from teleop.session.node import PortOptions
+from teleop.session.port import make_node
 
 DT = 0.001
 
@@ -124,7 +124,7 @@ def no_session(monkeypatch: pytest.MonkeyPatch) -> None:
         raise AssertionError("a session started despite a bad argument")
 
     monkeypatch.setattr(transport.session, "run_endpoint", trip)
-    monkeypatch.setattr(teleop.sim, "run_set", trip)
+    monkeypatch.setattr(teleop.offline.sim, "run_set", trip)
     monkeypatch.setattr(teleop.cli.run, "_spawn", trip)
 
 

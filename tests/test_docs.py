@@ -117,7 +117,7 @@ def test_the_sweep_table_has_every_case() -> None:
 
 
 def test_experiment_tables_are_what_teleop_experiment_prints() -> None:
-    from teleop.experiment import format_paired, format_table
+    from teleop.offline.experiment import format_paired, format_table
 
     for folder in docgen.EXPERIMENTS:
         doc = json.loads((ROOT / "docs" / "experiment" / folder / "experiment.json").read_text())

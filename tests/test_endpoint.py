@@ -13,8 +13,8 @@ from typing import Any
 import msgpack
 import pytest
 
-from teleop import auth, protocol
-from teleop.endpoint import (
+from teleop.session import auth, protocol
+from teleop.session.endpoint import (
     REJOIN_OFFER_INTERVAL_NS,
     EndReason,
     Failed,
@@ -27,8 +27,8 @@ from teleop.endpoint import (
     SessionStarted,
     State,
 )
-from teleop.settings import Envelope
-from teleop.summary import SessionSummary
+from teleop.session.settings import Envelope
+from teleop.session.summary import SessionSummary
 
 from .vnet import EVE, MS, OP, PSK, TO, TO_B, Host, VirtualNet, params
 
@@ -396,7 +396,7 @@ def test_handshake_work_per_source_is_rate_limited() -> None:
 def test_a_datagram_longer_than_any_of_its_kind_is_refused_by_length_alone() -> None:
     """A 60 kB datagram with a handshake header, or with a session header in a 2-DoF session, is
     dropped before its MAC is computed (counted); the session goes on."""
-    from teleop import wire
+    from teleop.session import wire
 
     net = VirtualNet(1.0)
     _, to = start(net, duration=1.0)
@@ -471,9 +471,9 @@ def test_a_session_of_two_endpoints_is_teleop_sim_to_the_bit() -> None:
     """One code path: two endpoints on a 0.1 ms virtual link play exactly what ``teleop sim`` plays
     with the real runner's one tick of playout floor at both receivers (eq. 7's I equal to the bit).
     A receive counted against the wrong tick, or a first payload dropped before tick 0, breaks it."""
-    from teleop import metrics
-    from teleop.port import MemorySink
-    from teleop.sim import SimConfig, run_case
+    from teleop.control import metrics
+    from teleop.offline.sim import SimConfig, run_case
+    from teleop.session.port import MemorySink
 
     net = VirtualNet(0.1)
     op, to = start(net, duration=3.0)

@@ -9,9 +9,9 @@ from typing import Any
 
 import pytest
 
-from teleop import auth, protocol
-from teleop.endpoint import SILENT_MIN_NS, EndReason, Failed, PeerRestarted, SessionEnded, State
-from teleop.summary import SessionSummary
+from teleop.session import auth, protocol
+from teleop.session.endpoint import SILENT_MIN_NS, EndReason, Failed, PeerRestarted, SessionEnded, State
+from teleop.session.summary import SessionSummary
 
 from .vnet import MS, OP, TO, Host, VirtualNet, params
 
@@ -229,7 +229,7 @@ def test_handshake_junk_cannot_spend_a_genuine_operators_budget(name: str, flood
 def test_recorded_hellos_from_many_ports_cannot_spend_the_cookie_share() -> None:
     """The global budget's cookie-less share drained by authentic recorded hellos (no valid cookie
     for their ports): the genuine operator's hellos with its cookie draw on the reserved share."""
-    from teleop.endpoint import HANDSHAKE_BURST_ALL, HandshakeLimiter
+    from teleop.session.endpoint import HANDSHAKE_BURST_ALL, HandshakeLimiter
 
     lim = HandshakeLimiter()
     spent = sum(lim.allow((f"10.9.{i // 250}.{i % 250}", 1), 0) for i in range(5000))

@@ -13,13 +13,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from teleop.endpoint import Failed, Failure, HelloRejected, SessionEnded
-from teleop.node import TeleoperatorNode
-from teleop.port import make_node
-from teleop.protocol import SessionParams
-from teleop.settings import DEFAULT_ENVELOPE, SETTINGS, Envelope, settings_table
-from teleop.sim import SimConfig, run_case
-from teleop.wave import WaveImpedance
+from teleop.control.wave import WaveImpedance
+from teleop.offline.sim import SimConfig, run_case
+from teleop.session.endpoint import Failed, Failure, HelloRejected, SessionEnded
+from teleop.session.node import TeleoperatorNode
+from teleop.session.port import make_node
+from teleop.session.protocol import SessionParams
+from teleop.session.settings import DEFAULT_ENVELOPE, SETTINGS, Envelope, settings_table
 
 from .vnet import VirtualNet, params
 
@@ -183,7 +183,7 @@ def test_saturation_is_passive_and_within_the_envelope(
     node.confine(Envelope(max_velocity=vmax, max_force=fmax, min_b=1.0, max_b=20.0))
     w = WaveImpedance.of(b, 3)
     ga, f0a, za = np.array(g), np.array(f0), np.array(z)
-    v = (w.sqrt2b * ga - f0a) / (w.b + za)  # the port's solve at full coupling (teleop.node)
+    v = (w.sqrt2b * ga - f0a) / (w.b + za)  # the port's solve at full coupling (teleop.session.node)
     f = f0a + za * v
     assert isinstance(node, TeleoperatorNode)
     vs, fs, fw = node._saturate(v, f0a, za, f)

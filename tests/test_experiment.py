@@ -14,12 +14,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from teleop import experiment, metrics, scenarios
 from teleop.cli import main
+from teleop.control import metrics
+from teleop.devices import scenarios
+from teleop.devices.models import ModelError, ProtocolEnvironment, ProtocolHuman, ProtocolPlan
 from teleop.limits import MAX_SEED, MAX_VARIATION
-from teleop.models import ModelError, ProtocolEnvironment, ProtocolHuman, ProtocolPlan
-from teleop.protocol import ProtocolError, SessionParams
-from teleop.sim import SimConfig, run_case
+from teleop.offline import experiment
+from teleop.offline.sim import SimConfig, run_case
+from teleop.session.protocol import ProtocolError, SessionParams
 
 seeds = st.integers(0, MAX_SEED)
 variations = st.floats(0.0, MAX_VARIATION)

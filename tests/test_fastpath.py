@@ -16,9 +16,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from teleop import wire
-from teleop.codecs.base import RawFormat, unpack, unpack16
-from teleop.codecs.deadband import _norm
+from teleop.control.codecs.base import RawFormat, unpack, unpack16
+from teleop.control.codecs.deadband import _norm
+from teleop.session import wire
 
 floats = st.floats(allow_nan=True, allow_infinity=True, width=64)
 vectors = hnp.arrays(np.float64, st.integers(1, 70), elements=floats)
@@ -64,7 +64,7 @@ def test_encode_is_packb(
 
 @given(st.floats(-1e6, 1e6))
 def test_math_sin_cos_are_numpys_for_a_float(t: float) -> None:
-    """``teleop.models`` calls math.sin and math.cos on the 1 kHz path where it called np.sin and
+    """``teleop.devices.models`` calls math.sin and math.cos on the 1 kHz path where it called np.sin and
     np.cos on a Python float: numpy's float64 loop calls the same libm, so the bits agree."""
     assert math.sin(t) == float(np.sin(t)) or (math.isnan(math.sin(t)) and math.isnan(float(np.sin(t))))
     assert math.cos(t) == float(np.cos(t)) or (math.isnan(math.cos(t)) and math.isnan(float(np.cos(t))))

@@ -15,7 +15,7 @@ import pytest
 
 from teleop import files
 from teleop.cli import main
-from teleop.link.netem import NetemError, load_trace
+from teleop.session.link.netem import NetemError, load_trace
 from transport.zenoh import make_config
 
 PEER = ["--peer", "127.0.0.1:9", "--connect-timeout", "1"]
@@ -190,7 +190,7 @@ def test_an_output_is_never_overwritten_nor_written_through_a_symlink(
 def test_a_plot_is_never_written_through_a_symlink(tmp_path: Path) -> None:
     import numpy as np
 
-    from teleop import plots
+    from teleop.offline import plots
 
     victim = tmp_path / "victim"
     victim.write_text("precious")

@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 
 from bench import flood, tables
-from teleop import wire
+from teleop.session import wire
 from transport.zenoh import ZENOH_PEER, ZenohTransport, make_config
 
 

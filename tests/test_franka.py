@@ -21,7 +21,7 @@ import pytest
 
 from teleop import devices
 from teleop.devices import DeviceError
-from teleop.franka import FrankaRobot, RobotFault, parse_arg
+from teleop.devices.franka import FrankaRobot, RobotFault, parse_arg
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
 SIM = Path(sys.executable).with_name("franky-sim")

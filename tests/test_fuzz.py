@@ -1,7 +1,7 @@
 """Hostile datagrams (``bench.fuzz``): in memory against the sans-I/O port and handshake, and a short
 attack on two real processes on loopback.
 
-The in-memory tests feed the same forgeries the benchmark sends into :class:`teleop.port.Port` and
+The in-memory tests feed the same forgeries the benchmark sends into :class:`teleop.session.port.Port` and
 the handshake state machines, where every datagram's fate can be accounted for exactly; they also
 show that the forgeries are well made: sealed with the insecure key they do verify when the ports
 run with it, and then only the watchdog stands between them and the energy budget.  The
@@ -21,9 +21,9 @@ from typing import Any
 import pytest
 
 from bench import fuzz
-from teleop import auth, protocol, wire
-from teleop.node import PortOptions
-from teleop.port import Port, make_node, port_keys
+from teleop.session import auth, protocol, wire
+from teleop.session.node import PortOptions
+from teleop.session.port import Port, make_node, port_keys
 
 SESSION = 4242
 TICKS = 2000

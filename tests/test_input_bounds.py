@@ -10,8 +10,9 @@ import time
 
 import zenoh
 
-from teleop import auth, limits, wire
-from teleop.codecs import make_codec
+from teleop import limits
+from teleop.control.codecs import make_codec
+from teleop.session import auth, wire
 from transport.udp import UdpTransport
 from transport.zenoh import MAX_MESSAGE_BYTES, ZENOH_PEER, ZenohTransport, make_config
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from teleop.link.linkstats import LinkObserver
+from teleop.session.link.linkstats import LinkObserver
 
 KEYS = {
     "spec",

@@ -23,7 +23,7 @@ from typing import Any
 import pytest
 
 from teleop import files
-from teleop.logfile import LogError, iter_ticks, read_session, read_summary
+from teleop.offline.logfile import LogError, iter_ticks, read_session, read_summary
 from transport import logdir
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
@@ -59,7 +59,7 @@ def _mcap(path: Path, chunk_size: int, declare_first: bool = False, finish: bool
 
 def _chunks_declaring_and_holding(path: Path, topic: str) -> tuple[list[int], list[int]]:
     """Which chunks hold ``topic``'s Channel record and which its messages (file order)."""
-    from teleop.logfile import _OP_CHUNK, _chunk_payloads, _walk
+    from teleop.offline.logfile import _OP_CHUNK, _chunk_payloads, _walk
 
     with _walk(path) as walk:
         bodies = [body for op, body in walk.records() if op == _OP_CHUNK]
@@ -441,7 +441,7 @@ def test_a_chunk_that_asks_for_too_much_memory_is_refused(tmp_path: Path) -> Non
 
 def test_tick_jumps_are_bounded_in_all(tmp_path: Path) -> None:
     """Many jumps each under MAX_GAP_TICKS add up to hours of work: refused by their sum."""
-    from teleop import logfile
+    from teleop.offline import logfile
     from tests.test_logs import _mcap, _sig
 
     jump = logfile.MAX_GAP_TICKS // 4

@@ -26,11 +26,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from teleop import metrics
-from teleop.link.counters import DirectionCounters
-from teleop.link.quantiles import MOVE_PER_ADD, Quantiles
-from teleop.node import PortOptions
-from teleop.port import MemorySink, Port, make_node
+from teleop.control import metrics
+from teleop.session.link.counters import DirectionCounters
+from teleop.session.link.quantiles import MOVE_PER_ADD, Quantiles
+from teleop.session.node import PortOptions
+from teleop.session.port import MemorySink, Port, make_node
 from transport.mcaplog import PER_TICK_TOPICS, TOPICS, McapLog, read_log
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
@@ -55,7 +55,7 @@ def _pair(sinks: tuple[Any, Any] | None = None, codec: str = "none") -> tuple[Po
 
 
 def _run(op: Port, to: Port, ticks: range) -> None:
-    """The simulation's order within a tick (teleop.sim.run_case), over ``ticks``."""
+    """The simulation's order within a tick (teleop.offline.sim.run_case), over ``ticks``."""
     backward: list[bytes] = []
     for n in ticks:
         now = n * 1e-3
@@ -447,7 +447,8 @@ def test_run_until_stopped_reports_and_both_exit_cleanly(
     # The scenario's phases are the open session's too (they were all empty: cut at duration 0).
     assert rep["phases"]["free"]["ticks"] > 500 and rep["phases"]["free"]["start"] == 0.0
     # A session longer than the simulation's cap is compared over the cap's ticks (here 0.5 s).
-    from teleop import metrics, report
+    from teleop.control import metrics
+    from teleop.offline import report
 
     monkeypatch.setattr(report, "SIM_CAP_S", 0.5)
     rep = report.build(out / "logs", "udp", compare_sim=True)
@@ -526,7 +527,7 @@ def test_the_streamed_report_equals_the_whole_session_figures(
     loss, backward reordering, a teleoperator stall (ticks it did not run, payloads it took late),
     a teleoperator log that starts late and an operator log that ends early.  Small lookahead and
     plot budget, so blocks queue, the plots thin, and the lookup waits for the sender's log."""
-    from teleop import report
+    from teleop.offline import report
     from tests.report_oracle import assert_fold_matches, figures
 
     monkeypatch.setattr(report, "LOOKAHEAD_TICKS", 37)

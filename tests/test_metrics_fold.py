@@ -1,4 +1,4 @@
-"""The report's streamed I_dc and drift (teleop.metrics.DelayDistortionFold) equal their whole-array
+"""The report's streamed I_dc and drift (teleop.control.metrics.DelayDistortionFold) equal their whole-array
 definitions (delay_compensated, position_drift) for any split of the session into blocks."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from teleop import metrics
+from teleop.control import metrics
 
 
 @settings(max_examples=150)

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from teleop.models import (
+from teleop.devices.models import (
     FLOAT_LANES,
     DiscreteLTI,
     LtiEnvironment,

@@ -1,4 +1,4 @@
-"""``--robot mujoco``: the teleoperator's robot in the MuJoCo engine (teleop.mujoco_robot)."""
+"""``--robot mujoco``: the teleoperator's robot in the MuJoCo engine (teleop.devices.mujoco_robot)."""
 
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ from hypothesis import strategies as st
 pytest.importorskip("mujoco")
 
 from teleop.devices import DeviceError
-from teleop.mujoco_robot import MujocoRobot, default_scene
-from teleop.sim import SimConfig, run_case
+from teleop.devices.mujoco_robot import MujocoRobot, default_scene
+from teleop.offline.sim import SimConfig, run_case
 
 DT = 0.001
 Run = tuple[dict[str, Any], np.ndarray, np.ndarray]
@@ -161,7 +161,7 @@ def test_the_scene_switches_phase_when_the_seeded_human_does() -> None:
     """With --variation the foam and the wall come in at the seeded plan's phase times (drawn from
     the same seed on both sides), not at the scripted 5 s and 10 s."""
     from teleop import devices
-    from teleop.models import ProtocolPlan
+    from teleop.devices.models import ProtocolPlan
 
     plan = ProtocolPlan.draw(3, 1.5)
     assert abs(plan.t_foam - 5.0) > 1e-3 and abs(plan.t_wall - 10.0) > 1e-3  # this seed moves both

@@ -18,7 +18,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from teleop.link.netem import (
+from teleop.session.link.netem import (
     PACKET_SIZE,
     FourStateModel,
     GEModel,

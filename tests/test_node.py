@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from teleop import wire
-from teleop.codecs import make_codec
-from teleop.models import LtiEnvironment, StepHuman
-from teleop.node import OperatorNode, TeleoperatorNode
-from teleop.wave import WaveImpedance
+from teleop.control.codecs import make_codec
+from teleop.control.wave import WaveImpedance
+from teleop.devices.models import LtiEnvironment, StepHuman
+from teleop.session import wire
+from teleop.session.node import OperatorNode, TeleoperatorNode
 
 DT = 1e-3
 

@@ -8,12 +8,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from teleop import wire
-from teleop.codecs import make_codec
-from teleop.models import LtiEnvironment, StepHuman
-from teleop.node import OperatorNode, PortOptions, TeleoperatorNode
-from teleop.passivity import EnergyGuard
-from teleop.wave import WaveImpedance
+from teleop.control.codecs import make_codec
+from teleop.control.passivity import EnergyGuard
+from teleop.control.wave import WaveImpedance
+from teleop.devices.models import LtiEnvironment, StepHuman
+from teleop.session import wire
+from teleop.session.node import OperatorNode, PortOptions, TeleoperatorNode
 
 DT = 1e-3
 

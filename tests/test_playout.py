@@ -1,4 +1,5 @@
-"""Issue 13: the adaptive playout buffer and the send phase (``teleop.playout``, ``teleop.port``)."""
+"""Issue 13: the adaptive playout buffer and the send phase (``teleop.session.playout``,
+``teleop.session.port``)."""
 
 from __future__ import annotations
 
@@ -7,9 +8,9 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from teleop import wire
-from teleop.playout import MAX_HELD, PlayoutBuffer, parse_playout
-from teleop.sim import SimConfig, run_case
+from teleop.offline.sim import SimConfig, run_case
+from teleop.session import wire
+from teleop.session.playout import MAX_HELD, PlayoutBuffer, parse_playout
 
 DT = 1e-3
 

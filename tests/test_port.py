@@ -6,10 +6,10 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from teleop import auth, wire
-from teleop.node import PortOptions
-from teleop.port import WIRE_KEYS, MemorySink, Port, make_node, make_shim
-from teleop.sim import SimConfig, run_case
+from teleop.offline.sim import SimConfig, run_case
+from teleop.session import auth, wire
+from teleop.session.node import PortOptions
+from teleop.session.port import WIRE_KEYS, MemorySink, Port, make_node, make_shim
 
 U32 = 2**32 - 1
 
@@ -177,7 +177,7 @@ def test_forged_tampered_and_replayed_datagrams_change_nothing() -> None:
 
 def test_copies_of_an_authentic_hello_are_dropped_before_they_are_parsed() -> None:
     """A flood of one recorded hello costs a tag check per copy: only the first is handled."""
-    from teleop import protocol
+    from teleop.session import protocol
 
     op, to = _pair(ticks=10)
     params = protocol.SessionParams(

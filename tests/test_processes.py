@@ -150,7 +150,7 @@ def test_report_contract_and_logs(tmp_path: Path) -> None:
     # datagrams eds:50 must have sent (ticks 0, 50, ...; 2 DoF, 4-byte payload) and compare.
     import numpy as np
 
-    from teleop import auth, wire
+    from teleop.session import auth, wire
     from transport.mcaplog import read_log
 
     z = read_log(tmp_path / "run" / "logs" / "operator.mcap")[1]
@@ -167,7 +167,7 @@ def test_report_contract_and_logs(tmp_path: Path) -> None:
     assert rep["wire"]["forward"]["wire_bytes"] == int(per_tick.sum())
     # The simulation counts with the same port code: same keys, and on a lossless loopback the
     # same packets and bytes in both directions (issue 9).
-    from teleop.port import WIRE_KEYS
+    from teleop.session.port import WIRE_KEYS
 
     for d, sender in (("forward", "operator"), ("backward", "teleoperator")):
         assert tuple(rep["wire"][d]) == tuple(rep["sim_wire"][d]) == WIRE_KEYS
@@ -274,7 +274,7 @@ def test_port_taken(tmp_path: Path) -> None:
 def test_teleoperator_rejects_a_different_codec_and_keeps_waiting(tmp_path: Path, key: str) -> None:
     """A hello it cannot accept is answered with the reason; the robot's endpoint keeps serving.
     An operator with another key is not answered at all."""
-    from teleop import auth
+    from teleop.session import auth
 
     other_key = tmp_path / "other.key"
     auth.write_key_file(other_key, auth.generate_key())
@@ -407,7 +407,7 @@ def test_teleoperator_restarted_mid_session_and_the_operator_recovers(tmp_path: 
     # fast both processes started on the host (2000-2500 when quiet, 1930 seen under load).
     assert 0 < t["first_tick"] < 5000
     assert t["received"]["packets"] > 500  # and the operator's packets flowed again
-    from teleop import report
+    from teleop.offline import report
 
     rep = report.build(logs, "udp", compare_sim=False)
     for d in ("forward", "backward"):
@@ -482,7 +482,7 @@ def test_operator_restarted_mid_session_and_the_teleoperator_serves_the_new_one(
 def test_a_recorded_hello_during_an_outage_does_not_replace_the_session(tmp_path: Path, key: str) -> None:
     """Issue 11: while the link is down, an authentic hello of another session (a recording: it
     holds the key, but nobody behind it knows our fresh nonce) must not take the session over."""
-    from teleop import auth, protocol
+    from teleop.session import auth, protocol
 
     psk = auth.robot_key(auth.read_key_file(key), auth.DEFAULT_ROBOT_NAME)  # the robot keys derive from
     old = protocol.SessionParams(

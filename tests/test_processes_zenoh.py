@@ -141,7 +141,7 @@ def test_a_stranger_on_the_zenoh_key_cannot_drive_the_robot(tmp_path: Path) -> N
     the operator sent, and the session completes."""
     import zenoh
 
-    from teleop import auth, wire
+    from teleop.session import auth, wire
 
     endpoint = f"tcp/127.0.0.1:{_free_tcp_port()}"
     router = subprocess.Popen([*TELEOP, "router", "--listen", endpoint])

@@ -3,7 +3,7 @@
 Nothing here opens a socket or reads a clock: both handshakes are driven against each other by a
 small event loop over integer "true time", the teleoperator's clock offset by a known amount.
 
-Every datagram the state machines take or return is an authenticated envelope (``teleop.auth``):
+Every datagram the state machines take or return is an authenticated envelope (``teleop.session.auth``):
 hello, welcome and reject under the handshake key, start and started under the session keys.  The
 helpers below seal what a test sends as a peer holding the key would (``to_hs``: a hello to the
 teleoperator, ``op_hs``: a welcome or reject to the operator, ``to_ss`` / ``op_ss``: the same under
@@ -32,12 +32,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import teleop.link.netem
-import teleop.settings
-from teleop import auth, limits, protocol, wire
-from teleop.auth import HANDSHAKE, SESSION, AuthError
-from teleop.codecs import CodecError
-from teleop.protocol import (
+import teleop.session.link.netem
+import teleop.session.settings
+from teleop import limits
+from teleop.control.codecs import CodecError
+from teleop.devices.scenarios import SCENARIOS
+from teleop.session import auth, protocol, wire
+from teleop.session.auth import HANDSHAKE, SESSION, AuthError
+from teleop.session.protocol import (
     BACKWARD,
     FORWARD,
     MAX_CONTROL_BYTES,
@@ -59,7 +61,6 @@ from teleop.protocol import (
     ntp_offset,
     parse,
 )
-from teleop.scenarios import SCENARIOS
 
 Addr = tuple[str, int]
 OP: Addr = ("10.0.0.1", 40000)
@@ -667,9 +668,9 @@ def no_files(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[str]]:
         (pathlib.Path, "open"),
         (pathlib.Path, "read_text"),
         (pathlib.Path, "read_bytes"),
-        (teleop.link.netem, "load_trace"),
-        (teleop.link.netem, "make_link"),
-        (teleop.settings, "make_link"),
+        (teleop.session.link.netem, "load_trace"),
+        (teleop.session.link.netem, "make_link"),
+        (teleop.session.settings, "make_link"),
     ]:
         monkeypatch.setattr(target, name, refuse)
     yield opened

@@ -24,12 +24,12 @@ import msgpack
 import numpy as np
 import pytest
 
-from teleop import auth, protocol, wire
-from teleop.codecs import CODECS, make_codec
-from teleop.codecs.base import RawFormat, pack
-from teleop.node import PortOptions
-from teleop.port import Port, make_node
-from teleop.protocol import SessionParams
+from teleop.control.codecs import CODECS, make_codec
+from teleop.control.codecs.base import RawFormat, pack
+from teleop.session import auth, protocol, wire
+from teleop.session.node import PortOptions
+from teleop.session.port import Port, make_node
+from teleop.session.protocol import SessionParams
 from transport.zenoh import _keys as zenoh_keys
 
 DOC_PATH = Path(__file__).resolve().parent.parent / "PROTOCOL.md"
@@ -70,7 +70,7 @@ def test_every_example_is_present() -> None:
 
 
 def test_the_robot_key_example() -> None:
-    """Section 2.2's K_r, written out with hashlib alone, is the code's teleop.auth.robot_key."""
+    """Section 2.2's K_r, written out with hashlib alone, is the code's teleop.session.auth.robot_key."""
     ex = INPUTS["robot_key_example"]
     psk, name = bytes.fromhex(ex["psk"]), ex["name"]
     by_hand = hashlib.blake2s(b"robot\x00" + name.encode(), key=psk, person=b"teleopv1", digest_size=32)

@@ -59,8 +59,8 @@ def test_departures_are_timed_against_the_deadline_of_the_tick_they_belong_to() 
 
 _FREEZE_SCRIPT = """
 import gc, weakref
-from teleop.node import PortOptions
-from teleop.port import Port, make_node
+from teleop.session.node import PortOptions
+from teleop.session.port import Port, make_node
 from transport.realtime import freeze_heap
 
 def port():

@@ -179,7 +179,7 @@ def test_kill_9_of_the_robot_beside_cpu_hogs_loses_at_most_the_stated_bound(tmp_
     5 s in.  Its log holds every tick it ran up to the bound (LOG_CHUNK_TICKS + MAX_AHEAD_TICKS),
     a hole in its ticks is a stall the loop logged (``stall``), never a dropped chunk, and its
     console says what happened in one line, with no traceback."""
-    from teleop.logfile import iter_messages, iter_ticks
+    from teleop.offline.logfile import iter_messages, iter_ticks
     from transport.mcaplog import LOG_CHUNK_TICKS, MAX_AHEAD_TICKS
 
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:

@@ -107,7 +107,7 @@ def test_a_teleoperator_restarted_behind_a_2ms_link_rejoins_within_2s(tmp_path: 
     # operator's offers (every 250 ms), a retry, four welcomes, the start: well within 2 s.
     assert t["waited_for_session_s"] < 2.0, t["waited_for_session_s"]
     assert t["received"]["packets"] > 0
-    for s in (o, t):  # eq. (5), up to float rounding in cumulative sums (teleop.sim.ENERGY_TOLERANCE)
+    for s in (o, t):  # eq. (5), up to float rounding in cumulative sums (teleop.offline.sim.ENERGY_TOLERANCE)
         assert s["passivity"]["min_margin"] >= -1e-9
 
 

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from teleop.sim import SECTION_V_CODECS, SimConfig, run_case, run_set
+from teleop.offline.sim import SECTION_V_CODECS, SimConfig, run_case, run_set
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,7 @@ import json
 import numpy as np
 import pytest
 
-from teleop.sim import CaseResult, SimConfig, run_case
+from teleop.offline.sim import CaseResult, SimConfig, run_case
 from tests.blas import golden_kernel
 
 NET = "delay 20ms 5ms loss 5%"

@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from teleop.link.netem import NetemError
-from teleop.sim import ENERGY_TOLERANCE, SimConfig, run_case, run_set
+from teleop.offline.sim import ENERGY_TOLERANCE, SimConfig, run_case, run_set
+from teleop.session.link.netem import NetemError
 
 N = 5000  # packets per direction: codec none, 5 s at 1 kHz
 

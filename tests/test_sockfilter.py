@@ -10,8 +10,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from teleop import auth, wire
-from teleop.endpoint import FLOOD_SAMPLE, Admission, State, Strangers
+from teleop.session import auth, wire
+from teleop.session.endpoint import FLOOD_SAMPLE, Admission, State, Strangers
 from transport.sockfilter import compile_filter
 from transport.udp import UdpTransport, kernel_drops
 

@@ -12,13 +12,13 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from teleop import wire
-from teleop.codecs import CodecError, make_codec
-from teleop.node import PortOptions, TdpaOperatorNode, TdpaTeleoperatorNode
-from teleop.passivity import parallel_damper, series_damper
-from teleop.port import make_node
-from teleop.protocol import SessionParams
-from teleop.sim import SimConfig, run_case
+from teleop.control.codecs import CodecError, make_codec
+from teleop.control.passivity import parallel_damper, series_damper
+from teleop.offline.sim import SimConfig, run_case
+from teleop.session import wire
+from teleop.session.node import PortOptions, TdpaOperatorNode, TdpaTeleoperatorNode
+from teleop.session.port import make_node
+from teleop.session.protocol import SessionParams
 
 TOL = 1e-9  # J
 DT = 0.001
@@ -295,7 +295,7 @@ def test_drift_compensation_gives_back_the_motion_the_controller_took(
 ) -> None:
     """At 200 ms the TO's PC takes motion away; the compensator asks it back from surplus energy
     (measured: final drift 33 mm without, 23 mm with), and the run stays passive."""
-    import teleop.node as node
+    import teleop.session.node as node
 
     cfg = SimConfig(codec="none", scenario="protocol", passivity="tdpa", delay_ms=200)
     with_comp = run_case(cfg).summary

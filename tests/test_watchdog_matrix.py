@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from teleop.sim import SimConfig, run_case
+from teleop.offline.sim import SimConfig, run_case
 
 # One of each class: direct, interpolative, extrapolative, then issue 10's deadbands and DCT.
 CODECS = ["none", "ids:5", "eds:5", "cq:8", "pd:1", "pdp:1", "dct:20:2"]
@@ -91,7 +91,7 @@ def test_zero_fill_needs_no_controller(codec: str) -> None:
     """Zero on loss and dropping stale packets are passive by themselves: the watchdog sees nothing.
 
     Not for the deadbands: they hold between payloads whatever ``on_loss`` says, and a hold is
-    passive only within the budget the guard enforces (``teleop.codecs.deadband``)."""
+    passive only within the budget the guard enforces (``teleop.control.codecs.deadband``)."""
     s = run(codec, {"netem": "delay 10ms 5ms loss 10% duplicate 5%"}, on_loss="zero", controller=False)
     assert s["min_energy_margin"] >= -1e-9
     assert all(s["passivity"][d]["violations"] == 0 for d in ("forward", "backward"))

@@ -8,7 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from teleop.wave import WaveError, WaveImpedance, power
+from teleop.control.wave import WaveError, WaveImpedance, power
 
 finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
 

@@ -8,7 +8,7 @@ then in one packet (``tests/blas.py``): recorded there from the same code.
 
 from __future__ import annotations
 
-from teleop.sim import SimConfig, run_case
+from teleop.offline.sim import SimConfig, run_case
 from tests.blas import golden_kernel
 
 NET = "delay 20ms 5ms loss 5%"

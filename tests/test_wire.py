@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from teleop import wire
-from teleop.wire import Packet, WireError
+from teleop.session import wire
+from teleop.session.wire import Packet, WireError
 
 P = Packet(
     session=7, direction=wire.FORWARD, seq=3, tick=1234, t_us=99, codec_id=2, payload=b"\x01\x02", energy=0.5

@@ -22,7 +22,7 @@ import msgpack
 import pytest
 import zenoh
 
-from teleop import auth, wire
+from teleop.session import auth, wire
 from transport.zenoh import (
     ZENOH_PEER,
     TransportError,

@@ -1,6 +1,6 @@
 """A virtual-time network for endpoints: seeded, deterministic, milliseconds of wall time a second.
 
-Hosts are :class:`teleop.endpoint.Endpoint`\\ s at addresses, each with its own clock (an offset from
+Hosts are :class:`teleop.session.endpoint.Endpoint`\\ s at addresses, each with its own clock (an offset from
 the network's), joined by links with a one-way delay per direction and seeded loss.  The loop jumps
 from one instant to the next: a datagram's arrival, an endpoint's timer, a tick's deadline.  An
 adversary sees every datagram (``tap``) and may drop, copy, redirect or inject; a host can be killed
@@ -15,12 +15,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from teleop import auth
-from teleop.endpoint import Endpoint, Event, SessionStarted, session_port
-from teleop.link import Addr
-from teleop.port import Port, PortKeys
-from teleop.protocol import SessionParams
-from teleop.settings import Envelope
+from teleop.session import auth
+from teleop.session.endpoint import Endpoint, Event, SessionStarted, session_port
+from teleop.session.link import Addr
+from teleop.session.port import Port, PortKeys
+from teleop.session.protocol import SessionParams
+from teleop.session.settings import Envelope
 
 PSK = bytes(range(32))
 OP, TO, TO_B, EVE = ("10.0.0.1", 5000), ("10.0.0.2", 7000), ("10.0.0.3", 7000), ("10.0.0.66", 6666)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import Any, Protocol
 
-from teleop.endpoint import Admission
-from teleop.link import Addr
+from teleop.session.endpoint import Admission
+from teleop.session.link import Addr
 
 __all__ = ["Addr", "Transport"]
 
@@ -22,7 +22,7 @@ class Transport(Protocol):
     socket_errors: int
     oversize: int  # datagrams/samples longer than ``max_datagram``, refused by length
     header_bytes: int
-    #: The longest datagram taken: teleop.wire.MAX_DATAGRAM_BYTES until the runner narrows it to its
+    #: The longest datagram taken: teleop.session.wire.MAX_DATAGRAM_BYTES until the runner narrows it to its
     #: endpoint's bound (``Endpoint.max_datagram_bytes``) when a session starts.
     max_datagram: int
     warnings: list[str]  # what the transport could not set up as asked (printed, kept in ROLE.json)

@@ -1,7 +1,7 @@
 """``teleop conformance``: checks another implementation's endpoint against PROTOCOL.md, section by
 section, the way h2spec checks HTTP/2 and the Autobahn suite WebSocket.
 
-It plays the other side with the project's own endpoint (``teleop.endpoint``, the reference) over
+It plays the other side with the project's own endpoint (``teleop.session.endpoint``, the reference) over
 UDP, records every datagram, and adds probes the reference never sends (garbage, a wrong key, a
 cookie from another address, a malformed hello, a rejoin offer of the running session, a second
 operator).  Each check names the rule it tests (section, MUST/SHOULD) and passes, fails, or is
@@ -26,15 +26,15 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from teleop import auth, protocol, wire
-from teleop.codecs import Codec, make_codec
-from teleop.codecs.base import RAW_BITS, CodecError, RawFormat, unpack16
-from teleop.codecs.deadband import SLOPE_SCALE
-from teleop.endpoint import Endpoint, SessionEnded, SessionStarted, State, session_port
-from teleop.link import Addr
-from teleop.port import Port, PortKeys
-from teleop.protocol import SessionParams
-from teleop.settings import DEFAULT_ENVELOPE
+from teleop.control.codecs import Codec, make_codec
+from teleop.control.codecs.base import RAW_BITS, CodecError, RawFormat, unpack16
+from teleop.control.codecs.deadband import SLOPE_SCALE
+from teleop.session import auth, protocol, wire
+from teleop.session.endpoint import Endpoint, SessionEnded, SessionStarted, State, session_port
+from teleop.session.link import Addr
+from teleop.session.port import Port, PortKeys
+from teleop.session.protocol import SessionParams
+from teleop.session.settings import DEFAULT_ENVELOPE
 
 QUIET_S = 0.3  # how long "no answer" is waited for
 PROBE_TIMEOUT_S = 2.0

@@ -13,7 +13,7 @@ symlink was written through, and a full disk left ``ROLE.json`` empty.  Here:
   can never get one name; ``ROLE.json`` takes the MCAP file's stem.
 * :func:`write_summary` writes the JSON to a fresh temporary file and links it into place, so the
   name holds either nothing or the whole summary, and never replaces a file; a full disk is one line.
-* ``teleop report`` pairs the two roles' files by session id (``teleop.logfile.find_pair``).
+* ``teleop report`` pairs the two roles' files by session id (``teleop.offline.logfile.find_pair``).
 """
 
 from __future__ import annotations

@@ -84,18 +84,15 @@ import numpy as np
 import numpy.typing as npt
 
 from teleop.files import create_new, open_reserved, trace_digests
-from teleop.logfile import (
-    ENERGY_FIELDS,
-    PER_TICK_TOPICS,
-    TOPICS,
-    WIRE_FIELDS,
+from teleop.offline.logfile import (
     LogError,
     iter_messages,
     iter_ticks,
     read_log,
     read_summary,
 )
-from teleop.port import Chunk
+from teleop.session.logformat import ENERGY_FIELDS, PER_TICK_TOPICS, TOPICS, WIRE_FIELDS
+from teleop.session.port import Chunk
 
 __all__ = [
     "PER_TICK_TOPICS",
@@ -211,7 +208,7 @@ class _GuardedFile:
     is kept in ``error`` and said in one line, and every later write is dropped: foxglove itself
     prints a line for every message it cannot log (18 590 lines for a 5 s session, measured with
     RLIMIT_FSIZE), and the session must go on.  What was written before stays readable: the
-    chunk being written is cut off, which ``teleop.logfile`` reads as the file's end."""
+    chunk being written is cut off, which ``teleop.offline.logfile`` reads as the file's end."""
 
     def __init__(self, fd: int, role: str) -> None:
         self._f = os.fdopen(fd, "wb", buffering=0)  # unbuffered: a kill -9 loses no written chunk

@@ -1,6 +1,6 @@
 """The options of one real process (``teleop operator`` / ``teleoperator``): what the command line
 resolved, handed to :func:`transport.session.run_endpoint`.  The session's own settings are
-:class:`teleop.protocol.SessionParams` (the operator's proposal) and the teleoperator's pins."""
+:class:`teleop.session.protocol.SessionParams` (the operator's proposal) and the teleoperator's pins."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import random
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from teleop import auth
-from teleop.link import Addr
-from teleop.settings import Envelope
+from teleop.session import auth
+from teleop.session.link import Addr
+from teleop.session.settings import Envelope
 
 from .udp import DEFAULT_RCVBUF_BYTES
 
@@ -36,8 +36,8 @@ class EndpointOptions:
     live: bool = False  # a status line every second: traffic, link, watchdog
     transport: str = "udp"  # "udp" or "zenoh"
     zenoh: ZenohOptions | None = None
-    psk: bytes | None = None  # the deployment's pre-shared key (teleop.auth); None: refuse to start
-    insecure: bool = False  # --insecure: run with teleop.auth.INSECURE_KEY (integrity only), say so
+    psk: bytes | None = None  # the deployment's pre-shared key (teleop.session.auth); None: refuse to start
+    insecure: bool = False  # --insecure: run with teleop.session.auth.INSECURE_KEY (integrity only), say so
     device: str | None = None  # --hsi/--robot spec (teleop.devices), local only; None: the scenario's
     live_view: int | None = None  # serve the Foxglove WebSocket live view on this port (0: any free)
     live_view_host: str = "127.0.0.1"

@@ -53,7 +53,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from teleop.link.quantiles import Quantiles
+from teleop.session.link.quantiles import Quantiles
 
 PR_SET_TIMERSLACK = 29
 

@@ -6,7 +6,7 @@ per-tick record a chunk (250 ticks, ``transport.mcaplog.LOG_CHUNK_TICKS``) at a 
 with a live view, serves the same channels over the Foxglove WebSocket protocol), so memory stays
 flat however long the session lasts and the loop never encodes or writes a message.
 :meth:`Records.end` closes a session's log and writes its summary
-(``teleop.summary.SessionSummary.document``) into the log and beside it; a session replaced by a
+(``teleop.session.summary.SessionSummary.document``) into the log and beside it; a session replaced by a
 takeover is finished on a thread, beside the next one, not in its way.
 """
 
@@ -17,8 +17,8 @@ import threading
 from pathlib import Path
 
 from teleop.errors import TeleopError
-from teleop.port import Chunk
-from teleop.summary import LogFigures, SessionSummary
+from teleop.session.port import Chunk
+from teleop.session.summary import LogFigures, SessionSummary
 
 from . import logdir
 from .mcaplog import MAX_AHEAD_TICKS, McapLog, spawn_writer, wall_clock_of

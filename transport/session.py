@@ -1,4 +1,4 @@
-"""The real-time runner: a :class:`teleop.endpoint.Endpoint` between the ``Ticker`` and a transport.
+"""The real-time runner: a :class:`teleop.session.endpoint.Endpoint` between the ``Ticker`` and a transport.
 
 The endpoint holds the whole session (handshake, start, rejoin, takeover, busy, bye, linger) and
 the port every tick; it is sans-I/O and tested in virtual time.  This module only does I/O: wait
@@ -23,9 +23,10 @@ from collections.abc import Callable
 from dataclasses import asdict
 from typing import Any
 
-from teleop import auth
 from teleop.devices import DeviceError
-from teleop.endpoint import (
+from teleop.errors import TeleopError
+from teleop.session import auth
+from teleop.session.endpoint import (
     Endpoint,
     EndReason,
     Failed,
@@ -41,10 +42,9 @@ from teleop.endpoint import (
     State,
     session_port,
 )
-from teleop.errors import TeleopError
-from teleop.port import Port, PortKeys
-from teleop.protocol import PROTOCOL_VERSION, Pins, SessionParams
-from teleop.summary import ProcessSummary, SessionSummary
+from teleop.session.port import Port, PortKeys
+from teleop.session.protocol import PROTOCOL_VERSION, Pins, SessionParams
+from teleop.session.summary import ProcessSummary, SessionSummary
 
 from .base import Addr, Transport
 from .mcaplog import LOG_CHUNK_TICKS, McapLog

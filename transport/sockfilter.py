@@ -1,5 +1,5 @@
 """A kernel socket filter (classic BPF, ``SO_ATTACH_FILTER``) compiled from an endpoint's
-:class:`teleop.endpoint.Admission`: what the endpoint cannot take is dropped by the kernel before
+:class:`teleop.session.endpoint.Admission`: what the endpoint cannot take is dropped by the kernel before
 the process is woken, copied or charged for it.
 
 *Why.*  Refusing a datagram in Python costs the 1 kHz loop a ``recvfrom`` and a turn of its drain,
@@ -30,8 +30,8 @@ import struct
 import sys
 from typing import NamedTuple
 
-from teleop import auth
-from teleop.endpoint import Admission, Strangers
+from teleop.session import auth
+from teleop.session.endpoint import Admission, Strangers
 
 SO_ATTACH_FILTER = 26
 SO_DETACH_FILTER = 27

@@ -43,8 +43,8 @@ import sys
 import time
 from typing import Any
 
-from teleop.endpoint import Admission
-from teleop.wire import MAX_DATAGRAM_BYTES
+from teleop.session.endpoint import Admission
+from teleop.session.wire import MAX_DATAGRAM_BYTES
 
 from . import sockfilter
 from .base import Addr

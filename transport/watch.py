@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from teleop.port import Port
+from teleop.session.port import Port
 
 from .mcaplog import McapLog
 

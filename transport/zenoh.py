@@ -6,8 +6,8 @@ processes knowing each other's address, while the 1 kHz loop keeps the same duck
 
 **Keys.** With a ``prefix`` agreed by both sides, the operator publishes on ``<prefix>/forward`` and
 subscribes to ``<prefix>/backward``; the teleoperator does the opposite.  Control messages (msgpack
-maps) and data packets (msgpack arrays, ``teleop.wire``) travel on the same two keys, each in the
-authenticated envelope of ``teleop.auth``, as the sample's payload bytes: no Zenoh encoding or
+maps) and data packets (msgpack arrays, ``teleop.session.wire``) travel on the same two keys, each in the
+authenticated envelope of ``teleop.session.auth``, as the sample's payload bytes: no Zenoh encoding or
 attachment is used, so any Zenoh subscriber can read them (PROTOCOL.md) and none can forge them.
 
 **QoS.** One publisher per process: ``express=True`` (no batching: each packet leaves at once),
@@ -24,14 +24,14 @@ dropped, counted in ``inbox_overflow``) and, if the loop is waiting, schedules t
 ``loop.call_soon_threadsafe``.
 
 **Bounds.** A sample longer than ``max_datagram`` (the protocol's largest datagram,
-``teleop.wire.MAX_DATAGRAM_BYTES``, until the runner narrows it to the session's bound) is refused
+``teleop.session.wire.MAX_DATAGRAM_BYTES``, until the runner narrows it to the session's bound) is refused
 by its length alone, before its bytes are copied or hashed, and counted in ``oversize``;
 ``make_config`` also sets Zenoh's ``transport/link/rx/max_message_size`` to ``MAX_MESSAGE_BYTES``
 (Zenoh's default is 1 GiB: six 256 MB samples froze a robot's loop for 1.4 s), so Zenoh itself
 drops a longer message before reassembling it (a file may set a smaller value, not a larger one).
 
 **Admission (peer mode).** Given the robot key, :func:`open_session` makes the session present the
-Zenoh user and password derived from it (``teleop.auth.zenoh_password``) and admit only peers that
+Zenoh user and password derived from it (``teleop.session.auth.zenoh_password``) and admit only peers that
 present them (Zenoh's user-password authentication, PROTOCOL.md section 1): a stranger's Zenoh
 link is refused in Zenoh's own threads, so its samples never reach ``_on_sample`` (a stranger's 60 kB
 samples at 10k/s had cost the loop 3.4x its lateness p99, GIL and all).  The password file Zenoh
@@ -68,11 +68,11 @@ from typing import Any
 
 import zenoh
 
-from teleop import auth
-from teleop.endpoint import Admission
 from teleop.errors import TeleopError
 from teleop.files import MAX_CONFIG_BYTES, create_new, read_regular
-from teleop.wire import MAX_DATAGRAM_BYTES
+from teleop.session import auth
+from teleop.session.endpoint import Admission
+from teleop.session.wire import MAX_DATAGRAM_BYTES
 
 Addr = tuple[str, int]
 ZENOH_PEER: Addr = ("zenoh", 0)

@@ -14,9 +14,10 @@ import socket
 from collections.abc import Callable
 from typing import NoReturn, TypeAlias
 
-from ..codecs import ACCEPTED, CodecError, make_codec
-from ..errors import TeleopError
-from ..limits import (
+from teleop.control.codecs import ACCEPTED, CodecError, make_codec
+from teleop.devices.scenarios import SCENARIOS
+from teleop.errors import TeleopError
+from teleop.limits import (
     MAX_B,
     MAX_CODEC_SPEC_LEN,
     MAX_DOF,
@@ -28,8 +29,17 @@ from ..limits import (
     MAX_VARIATION,
     MIN_LINK_TIMEOUT_S,
 )
-from ..scenarios import SCENARIOS
-from ..settings import DEFAULTS
+from teleop.session.settings import DEFAULTS
+
+#: Control characters (C0, DEL, C1) shown escaped: a file name or a log's text in an error must
+#: keep it one line, and must not drive the terminal (an escape sequence in a planted file's name).
+_CONTROL = {c: f"\\x{c:02x}" for c in (*range(0x20), *range(0x7F, 0xA0))}
+
+
+def one_line(text: object) -> str:
+    """``text`` with every control character escaped (newlines too): what an error prints."""
+    return str(text).translate(_CONTROL)
+
 
 MAX_GRACE_US = 900.0  # the wait for a late payload must end well within the 1 ms tick
 MAX_CONNECT_TIMEOUT_S = 86400.0  # a day: longer waits overflow the loop's nanosecond clock
@@ -118,7 +128,7 @@ def int_range(what: str, lo: int, hi: int, note: str = "") -> Callable[[str], in
 
 
 def playout(text: str) -> str:
-    from ..playout import parse_playout
+    from teleop.session.playout import parse_playout
 
     try:
         return parse_playout(text)
@@ -127,10 +137,9 @@ def playout(text: str) -> str:
 
 
 def rate_cap(text: str) -> float:
-    """A rate in netem's units (``64kbit``; ``kbps`` are bytes/s), within teleop.ratecap's range."""
-    from teleop.link.netem import NetemError, parse_rate
-
-    from ..ratecap import MAX_RATE_BPS, MIN_RATE_BPS
+    """A rate in netem's units (``64kbit``; ``kbps`` are bytes/s), within teleop.control.ratecap's range."""
+    from teleop.control.ratecap import MAX_RATE_BPS, MIN_RATE_BPS
+    from teleop.session.link.netem import NetemError, parse_rate
 
     try:
         bps = parse_rate(text)
@@ -165,7 +174,7 @@ def codec(text: str) -> str:
 
 def netem_spec(text: str) -> str:
     """A netem spec or ``trace FILE``, checked by building its link (so a trace file is read now)."""
-    from teleop.link.netem import make_link
+    from teleop.session.link.netem import make_link
 
     if len(text) > MAX_NETEM_SPEC_LEN:
         raise argparse.ArgumentTypeError(
@@ -193,7 +202,7 @@ def zenoh_config_file(text: str) -> str:
     """A Zenoh JSON5 config file: a regular file of at most ``teleop.files.MAX_CONFIG_BYTES``
     (a FIFO or a device is refused by its type, before it is opened), checked now; the session
     reads it again the same way."""
-    from ..files import MAX_CONFIG_BYTES, FileRefused, read_regular
+    from teleop.files import MAX_CONFIG_BYTES, FileRefused, read_regular
 
     try:
         read_regular(text, MAX_CONFIG_BYTES, "cannot load Zenoh config")
@@ -261,10 +270,10 @@ def add_model_args(p: argparse.ArgumentParser, scenario_default: str | None) -> 
 
 
 def robot_name(flag: str) -> Callable[[str], str]:
-    """A robot's name (teleop.auth.check_robot_name): a bad one says what is allowed."""
+    """A robot's name (teleop.session.auth.check_robot_name): a bad one says what is allowed."""
 
     def parse(text: str) -> str:
-        from ..auth import check_robot_name
+        from teleop.session.auth import check_robot_name
 
         try:
             return check_robot_name(text)
@@ -276,7 +285,7 @@ def robot_name(flag: str) -> Callable[[str], str]:
 
 def add_robot_name_arg(p: argparse.ArgumentParser, flag: str, help: str) -> None:
     """``--name`` (a teleoperator's) or ``--robot-name`` (whom an operator reaches): bound into every key."""
-    from ..auth import DEFAULT_ROBOT_NAME
+    from teleop.session.auth import DEFAULT_ROBOT_NAME
 
     p.add_argument(
         flag,
@@ -291,7 +300,7 @@ def device_spec(role: str) -> Callable[[str], str]:
     """A ``--hsi``/``--robot`` spec, resolved now (teleop.devices): a bad one lists what is available."""
 
     def parse(text: str) -> str:
-        from ..devices import DeviceError, check
+        from teleop.devices import DeviceError, check
 
         try:
             check(text, role)
@@ -304,7 +313,7 @@ def device_spec(role: str) -> Callable[[str], str]:
 
 def add_device_args(p: argparse.ArgumentParser, roles: tuple[str, ...]) -> None:
     """``--hsi`` (operator side) and/or ``--robot`` (teleoperator side): a local choice of each side."""
-    from ..devices import BUILTIN, ENTRY_POINT_GROUP
+    from teleop.devices import BUILTIN, ENTRY_POINT_GROUP
 
     what = {
         "hsi": "the operator's HSI device with its human",

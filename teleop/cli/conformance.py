@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .args import (
+from teleop.cli.args import (
     CliError,
     Subcommands,
     add_key_args,
@@ -19,7 +19,7 @@ from .args import (
     float_range,
     udp_addr,
 )
-from .settings import endpoint_key, zenoh_options
+from teleop.cli.settings import endpoint_key, zenoh_options
 
 
 def cmd_conformance(args: argparse.Namespace) -> int:

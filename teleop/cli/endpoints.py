@@ -1,7 +1,7 @@
 """The real processes: ``teleop operator``, ``teleop teleoperator`` and ``teleop router`` (Zenoh).
 
 The operator and the teleoperator authenticate each other's datagrams with a pre-shared key
-(:mod:`teleop.auth`): ``--key-file FILE``, or ``--insecure`` to say out loud that there is none.
+(:mod:`teleop.session.auth`): ``--key-file FILE``, or ``--insecure`` to say out loud that there is none.
 The router takes no key: it forwards opaque bytes, and the endpoints authenticate end to end.
 """
 
@@ -13,12 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from ..limits import MAX_B, MAX_LINK_TIMEOUT_S, MAX_RANGE, MIN_LINK_TIMEOUT_S
-from ..passivity import ON_LOSS
-from ..playout import MAX_EXTRA_MS
-from ..scenarios import SCENARIOS
-from ..settings import DEFAULT_CODEC, DEFAULT_ENVELOPE, DEFAULT_SCENARIO, PASSIVITY
-from .args import (
+from teleop.cli.args import (
     CliError,
     Subcommands,
     add_device_args,
@@ -38,7 +33,12 @@ from .args import (
     udp_addr,
     zenoh_config_file,
 )
-from .settings import check_duration, check_robot, endpoint_options, netem, session_params
+from teleop.cli.settings import check_duration, check_robot, endpoint_options, netem, session_params
+from teleop.control.passivity import ON_LOSS
+from teleop.devices.scenarios import SCENARIOS
+from teleop.limits import MAX_B, MAX_LINK_TIMEOUT_S, MAX_RANGE, MIN_LINK_TIMEOUT_S
+from teleop.session.playout import MAX_EXTRA_MS
+from teleop.session.settings import DEFAULT_CODEC, DEFAULT_ENVELOPE, DEFAULT_SCENARIO, PASSIVITY
 
 
 def cmd_operator(args: argparse.Namespace) -> int:
@@ -52,9 +52,8 @@ def cmd_operator(args: argparse.Namespace) -> int:
 
 
 def cmd_teleoperator(args: argparse.Namespace) -> int:
+    from teleop.session.protocol import Pins  # what this robot was configured with: a hello must match
     from transport.session import run_endpoint
-
-    from ..protocol import Pins  # what this robot was configured with: a hello must match
 
     activated = os.environ.get("LISTEN_PID") == str(os.getpid())  # systemd passed the socket
     if args.transport == "udp" and args.listen is None and not activated:
@@ -99,11 +98,11 @@ def _names(text: str | None, allowed: tuple[str, ...], flag: str) -> tuple[str, 
 
 
 def robot_envelope(args: argparse.Namespace) -> Any:
-    """This robot's envelope (``teleop.settings.Envelope``), what it affords whatever an operator
+    """This robot's envelope (``teleop.session.settings.Envelope``), what it affords whatever an operator
     proposes: each limit from its flag, else the default; a pinned --range or --b widens the
     default limit to it (a robot is never refused its own setting), and one given beyond an
     explicit limit is an error."""
-    from ..settings import Envelope
+    from teleop.session.settings import Envelope
 
     e = DEFAULT_ENVELOPE
 
@@ -121,7 +120,7 @@ def robot_envelope(args: argparse.Namespace) -> Any:
     min_b = widened(args.min_b, args.b, e.min_b, "--min-b", "--b", False)
     if min_b > max_b:
         raise CliError(f"--min-b {min_b:g} exceeds --max-b {max_b:g}")
-    from ..devices import max_dof
+    from teleop.devices import max_dof
 
     try:
         return Envelope(
@@ -229,7 +228,7 @@ def add_teleoperator_parser(sub: Subcommands) -> None:
 class _Limit:
     """One numeric limit of the robot's envelope on the command line."""
 
-    field: str  # of teleop.settings.Envelope
+    field: str  # of teleop.session.settings.Envelope
     flag: str
     scale: float  # the flag's unit per the field's (ms per s: 1e3)
     parse: Callable[[str], float]
@@ -298,7 +297,7 @@ def envelope_flags(env: Any) -> list[str]:
 
 
 def add_envelope_args(t: argparse.ArgumentParser) -> None:
-    """The robot's envelope (``teleop.settings.Envelope``, the rules of ``SETTINGS``): what it
+    """The robot's envelope (``teleop.session.settings.Envelope``, the rules of ``SETTINGS``): what it
     affords whatever a key-holding operator proposes; a proposal beyond it is refused."""
     e = DEFAULT_ENVELOPE
     g = t.add_argument_group(

@@ -19,12 +19,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
-from ..codecs import ACCEPTED
-from ..files import write_new
-from ..limits import MAX_SEED
-from ..scenarios import SCENARIOS
-from .args import (
+from teleop.cli.args import (
     CliError,
+    Parser,
     Subcommands,
     add_model_args,
     add_netem_args,
@@ -33,7 +30,11 @@ from .args import (
     int_range,
     nonneg_float,
 )
-from .settings import channel, check_duration, fresh_out, sim_config, writable_dir
+from teleop.cli.settings import channel, check_duration, fresh_out, sim_config, writable_dir
+from teleop.control.codecs import ACCEPTED
+from teleop.devices.scenarios import SCENARIOS
+from teleop.files import write_new
+from teleop.limits import MAX_SEED
 
 MAX_RUNS = 1000
 
@@ -75,7 +76,7 @@ def _settings(args: argparse.Namespace, dof: int, duration: float) -> dict[str, 
 
 
 def _sim_runs(args: argparse.Namespace, codecs: list[str], progress: Progress) -> list[Any]:
-    from ..experiment import sim_run
+    from teleop.offline.experiment import sim_run
 
     base = sim_config(args)
     runs = []
@@ -88,9 +89,11 @@ def _sim_runs(args: argparse.Namespace, codecs: list[str], progress: Progress) -
 
 def _run_args(args: argparse.Namespace, spec: str, seed: int, out: Path) -> argparse.Namespace:
     """``teleop run``'s options for one session: its defaults, then every option given here."""
-    from .parser import build_parser
+    from teleop.cli import run
 
-    ns = build_parser().parse_args(["run"])
+    parser = Parser(prog="teleop")
+    run.add_parser(parser.add_subparsers(dest="command"))
+    ns = parser.parse_args(["run"])
     for k, v in vars(args).items():
         if k in vars(ns) and k not in ("func", "command", "out", "codec"):
             setattr(ns, k, v)
@@ -101,8 +104,8 @@ def _run_args(args: argparse.Namespace, spec: str, seed: int, out: Path) -> argp
 
 def _real_run(args: argparse.Namespace, spec: str, seed: int, out: Path) -> Any:
     """One ``teleop run`` session; its printed summary goes to ``out/run.log``."""
-    from ..experiment import RunResult, host_figures, incomplete, real_passive
-    from .run import cmd_run
+    from teleop.cli.run import cmd_run
+    from teleop.offline.experiment import RunResult, host_figures, incomplete, real_passive
 
     ns = _run_args(args, spec, seed, out)
     buf = io.StringIO()
@@ -122,7 +125,7 @@ def _real_run(args: argparse.Namespace, spec: str, seed: int, out: Path) -> Any:
 
 
 def _real_runs(args: argparse.Namespace, codecs: list[str], out: Path, progress: Progress) -> list[Any]:
-    from ..plots import safe_name
+    from teleop.offline.plots import safe_name
 
     runs = []
     # Seed by seed, every codec in turn: a host that gets busier during the experiment then
@@ -139,8 +142,8 @@ def _real_runs(args: argparse.Namespace, codecs: list[str], out: Path, progress:
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
-    from ..experiment import aggregate, format_paired, format_table
-    from ..sim import SECTION_V_CODECS
+    from teleop.offline.experiment import aggregate, format_paired, format_table
+    from teleop.offline.sim import SECTION_V_CODECS
 
     sc = SCENARIOS[args.scenario]
     dof = args.dof if args.dof is not None else sc.dof
@@ -166,7 +169,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     runs = _real_runs(args, codecs, out, progress) if args.real else _sim_runs(args, codecs, progress)
     doc = aggregate(runs, codecs, args.runs, args.real, _settings(args, dof, duration))
     write_new(out / "experiment.json", (json.dumps(doc, indent=2) + "\n").encode())
-    from .. import plots
+    from teleop.offline import plots
 
     title = (
         f"{args.scenario}: {args.runs} runs per codec (variation {args.variation:g}), mean +- std, {where}"

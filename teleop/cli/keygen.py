@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import argparse
 
-from .args import CliError, Subcommands
+from teleop.cli.args import CliError, Subcommands
 
 
 def cmd_keygen(args: argparse.Namespace) -> int:
-    from .. import auth
+    from teleop.session import auth
 
     key = auth.generate_key()
     try:

@@ -5,18 +5,9 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 
-from ..files import FileRefused
-from . import conformance, endpoints, experiment, keygen, report, run, sim, sweep
-from .args import CliError, Parser
-
-#: Control characters (C0, DEL, C1) shown escaped: a file name or a log's text in an error must
-#: keep it one line, and must not drive the terminal (an escape sequence in a planted file's name).
-_CONTROL = {c: f"\\x{c:02x}" for c in (*range(0x20), *range(0x7F, 0xA0))}
-
-
-def one_line(text: object) -> str:
-    """``text`` with every control character escaped (newlines too): what an error prints."""
-    return str(text).translate(_CONTROL)
+from teleop.cli import conformance, endpoints, experiment, keygen, report, run, sim, sweep
+from teleop.cli.args import CliError, Parser, one_line
+from teleop.files import FileRefused
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -8,8 +8,8 @@ import os
 from pathlib import Path
 from typing import Any
 
-from .args import CliError, Subcommands, session_id
-from .settings import writable_dir
+from teleop.cli.args import CliError, Subcommands, session_id
+from teleop.cli.settings import writable_dir
 
 #: What a log whose summary was edited or damaged can raise while the report reads it: one line.
 _DAMAGE = (KeyError, TypeError, ValueError, ArithmeticError, IndexError, AttributeError)
@@ -27,10 +27,10 @@ def write_report(
     """Build the report of ``session`` (default: the newest pair) from LOGS, add ``extra``, write
     OUT/report.json (a new file, never over one) and the plots, print a summary.  Any damage in
     the logs, or a report.json already there, is a :class:`CliError` (one line)."""
-    from .. import report as session_report
-    from ..files import FileRefused
-    from ..logfile import LogError
-    from .parser import one_line
+    from teleop.cli.args import one_line
+    from teleop.files import FileRefused
+    from teleop.offline import report as session_report
+    from teleop.offline.logfile import LogError
 
     try:
         traces = tuple(Path(t) for t in getattr(args, "trace", None) or ())
@@ -60,7 +60,7 @@ def write_report(
 def _write_new(out: Path, names: list[str], text: str) -> Path:
     """``text`` in the first of ``names`` that is free in ``out`` (created with O_EXCL|O_NOFOLLOW:
     an earlier report is never overwritten, a planted symlink never followed)."""
-    from ..files import create_new, is_exists
+    from teleop.files import create_new, is_exists
 
     for name in names:
         path = out / name

@@ -28,8 +28,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from ..settings import DEFAULT_CODEC, DEFAULT_ENVELOPE, DEFAULT_SCENARIO, SETTINGS, Setting
-from .args import (
+from teleop.cli.args import (
     MAX_PORT,
     CliError,
     Subcommands,
@@ -42,9 +41,10 @@ from .args import (
     add_session_args,
     int_range,
 )
-from .endpoints import envelope_flags
-from .report import write_report
-from .settings import check_robot, private_dir, read_key, session_params, writable_dir
+from teleop.cli.endpoints import envelope_flags
+from teleop.cli.report import write_report
+from teleop.cli.settings import check_robot, private_dir, read_key, session_params, writable_dir
+from teleop.session.settings import DEFAULT_CODEC, DEFAULT_ENVELOPE, DEFAULT_SCENARIO, SETTINGS, Setting
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
 
@@ -106,7 +106,7 @@ class RunKey:
 
     options: list[str]  # ["--key-file", PATH] or ["--insecure"]
     source: str  # "ephemeral" (made for this run), "key-file" (--key-file) or "insecure"
-    key_id: str  # teleop.auth.key_id: names the key without revealing it
+    key_id: str  # teleop.session.auth.key_id: names the key without revealing it
     pass_fds: tuple[int, ...] = ()  # descriptors the children inherit (the ephemeral key's)
 
 
@@ -139,7 +139,7 @@ def run_key(args: argparse.Namespace) -> Iterator[RunKey]:
 
     Why not a file in a private temporary folder: ``kill -9`` of ``teleop run`` left it behind
     (nothing runs to remove it); a memory file is gone once the last process holding it exits."""
-    from .. import auth
+    from teleop.session import auth
 
     if args.insecure:
         yield RunKey(["--insecure"], "insecure", auth.key_id(auth.INSECURE_KEY))
@@ -232,7 +232,7 @@ def _as_flag(s: Setting, v: Any) -> list[str]:
 
 def _session_options(params: Any) -> list[str]:
     """The operator's options that make it propose exactly ``params``: every setting of the table
-    (``teleop.settings.SETTINGS``) that has an operator flag."""
+    (``teleop.session.settings.SETTINGS``) that has an operator flag."""
     return [a for s in SETTINGS if s.flag is not None for a in _as_flag(s, getattr(params, s.field))]
 
 
@@ -337,7 +337,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         finally:
             if router is not None:
                 _stop([router])
-    from teleop.logfile import LogError, find_pair
+    from teleop.offline.logfile import LogError, find_pair
 
     try:
         find_pair(logs, params.session)

@@ -13,16 +13,16 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from .. import limits
-from ..codecs import CodecError
-from ..scenarios import SCENARIOS
-from ..settings import DEFAULTS, Channel
-from .args import CliError
+from teleop import limits
+from teleop.cli.args import CliError
+from teleop.control.codecs import CodecError
+from teleop.devices.scenarios import SCENARIOS
+from teleop.session.settings import DEFAULTS, Channel
 
 
 def check_robot(spec: str | None, dof: int) -> None:
     """CliError when ``--robot`` cannot drive ``dof`` DoF (a built-in's check; e.g. mujoco: 1 to 3)."""
-    from ..devices import DeviceError, check
+    from teleop.devices import DeviceError, check
 
     if spec is None:
         return
@@ -70,7 +70,7 @@ def private_dir(path: Path, option: str) -> Path:
     (whatever the umask: a umask of 002 would make it group-writable, and refused), refused if
     another user can write it or a folder on the way, and checked writable; CliError says why.
     ``transport.logdir.reserve`` walks it again."""
-    from ..files import FileRefused, open_dir
+    from teleop.files import FileRefused, open_dir
 
     try:
         fd = open_dir(path, option, create=True)
@@ -109,7 +109,7 @@ def netem(args: argparse.Namespace, direction: str) -> str:
 def channel(args: argparse.Namespace) -> Channel:
     """The channel's settings (impairment, reconstruction, passivity), parsed once from the command
     line and the same for `teleop sim` and a real session; an option a command lacks keeps the
-    one default (``teleop.settings.DEFAULTS``)."""
+    one default (``teleop.session.settings.DEFAULTS``)."""
     no_controller = getattr(args, "no_controller", not DEFAULTS.controller)
     on_loss = getattr(args, "on_loss", None)
     return Channel(
@@ -130,8 +130,8 @@ def channel(args: argparse.Namespace) -> Channel:
 def sim_config(args: argparse.Namespace) -> Any:
     """The resolved ``SimConfig`` of a simulating command (sim, sweep, experiment): the model,
     impairment and passivity options; CliError says what is wrong."""
-    from ..codecs import CodecError
-    from ..sim import SimConfig
+    from teleop.control.codecs import CodecError
+    from teleop.offline.sim import SimConfig
 
     try:
         return SimConfig(
@@ -151,7 +151,7 @@ def sim_config(args: argparse.Namespace) -> Any:
 
 def session_params(args: argparse.Namespace, session: int) -> Any:
     """The SessionParams an operator proposes (``run`` and ``operator``), every default filled in."""
-    from teleop.protocol import SessionParams
+    from teleop.session.protocol import SessionParams
 
     sc = SCENARIOS[args.scenario]
     dof = args.dof if args.dof is not None else sc.dof
@@ -180,7 +180,7 @@ NO_KEY = (
 
 def read_key(path: str) -> bytes:
     """The pre-shared key in ``path``; CliError (one line: which file, what is wrong, the fix) if bad."""
-    from .. import auth
+    from teleop.session import auth
 
     try:
         key = auth.read_key_file(path)
@@ -193,7 +193,7 @@ def read_key(path: str) -> bytes:
 
 def endpoint_key(args: argparse.Namespace) -> tuple[bytes, bool]:
     """(psk, insecure) of one process: --key-file's key, or with --insecure the key everyone knows."""
-    from .. import auth
+    from teleop.session import auth
 
     if args.insecure:
         return auth.INSECURE_KEY, True

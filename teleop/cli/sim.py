@@ -7,11 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from ..codecs import ACCEPTED, CodecError
-from ..devices import describe
-from ..files import write_new
-from ..scenarios import SCENARIOS
-from .args import (
+from teleop.cli.args import (
     CliError,
     Subcommands,
     add_device_args,
@@ -21,7 +17,11 @@ from .args import (
     codec,
     nonneg_float,
 )
-from .settings import check_duration, fresh_out, sim_config, writable_dir
+from teleop.cli.settings import check_duration, fresh_out, sim_config, writable_dir
+from teleop.control.codecs import ACCEPTED, CodecError
+from teleop.devices import describe
+from teleop.devices.scenarios import SCENARIOS
+from teleop.files import write_new
 
 
 def format_table(cases: list[dict[str, Any]]) -> str:
@@ -109,7 +109,7 @@ def format_tdpa(cases: list[dict[str, Any]]) -> str:
 
 def _write_results(out: Path, doc: dict[str, Any], cases: list[Any]) -> None:
     """OUT/results.json and one PNG of velocities and forces per case."""
-    from .. import plots
+    from teleop.offline import plots
 
     write_new(out / "results.json", (json.dumps(doc, indent=2) + "\n").encode())
     for c in cases:
@@ -127,7 +127,7 @@ def _write_results(out: Path, doc: dict[str, Any], cases: list[Any]) -> None:
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
-    from ..sim import SECTION_V_CODECS, run_set
+    from teleop.offline.sim import SECTION_V_CODECS, run_set
 
     sc = SCENARIOS[args.scenario]
     duration = args.duration if args.duration is not None else sc.duration
@@ -146,7 +146,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
         f"{base.duration:g} s at {1 / base.dt:g} Hz, wave range +-{base.full_scale:g}"
     )
     if base.passivity == "tdpa":
-        from ..port import power_ranges
+        from teleop.session.port import power_ranges
 
         v_fs, f_fs = power_ranges(base.full_scale, base.b)
         print(f"passivity tdpa: velocity range +-{v_fs:.4g} m/s forward, force range +-{f_fs:.4g} N back")

@@ -8,11 +8,19 @@ import os
 import sys
 from pathlib import Path
 
-from ..codecs import ACCEPTED, CodecError
-from ..files import write_new
-from ..scenarios import SCENARIOS
-from .args import CliError, Subcommands, add_model_args, add_netem_args, add_passivity_args, codec, int_range
-from .settings import check_duration, fresh_out, sim_config, writable_dir
+from teleop.cli.args import (
+    CliError,
+    Subcommands,
+    add_model_args,
+    add_netem_args,
+    add_passivity_args,
+    codec,
+    int_range,
+)
+from teleop.cli.settings import check_duration, fresh_out, sim_config, writable_dir
+from teleop.control.codecs import ACCEPTED, CodecError
+from teleop.devices.scenarios import SCENARIOS
+from teleop.files import write_new
 
 
 def _progress(done: int, total: int, spec: str) -> None:
@@ -30,8 +38,8 @@ def _progress(done: int, total: int, spec: str) -> None:
 def _grid(args: argparse.Namespace, passivity: str) -> list[str]:
     """The codecs of one front: --codec, or the default grid (under tdpa, its codecs that apply to
     power variables)."""
-    from ..codecs import POWER_CODECS
-    from ..sweep import DEFAULT_GRID
+    from teleop.control.codecs import POWER_CODECS
+    from teleop.offline.sweep import DEFAULT_GRID
 
     codecs = list(args.codec or DEFAULT_GRID)
     if passivity == "tdpa":
@@ -40,8 +48,8 @@ def _grid(args: argparse.Namespace, passivity: str) -> list[str]:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from .. import plots
-    from ..sweep import format_table, run_sweep
+    from teleop.offline import plots
+    from teleop.offline.sweep import format_table, run_sweep
 
     sc = SCENARIOS[args.scenario]
     duration = args.duration if args.duration is not None else sc.duration

@@ -1,0 +1,442 @@
+"""``teleop sim``: a deterministic virtual-time run of the two nodes joined by a channel.
+
+The runner owns the clock.  Tick ``n`` is ``now = n dt``; within it the operator ticks first, its
+packet enters the forward link, then the teleoperator ticks with whatever is due, and its packet
+enters the backward link.  With delay ``T`` per direction a forward packet is played at tick
+``n + T/dt`` and a backward one at tick ``n + T/dt + 1``: closing the loop through two nodes that
+each tick once costs one tick, the floor of any causal implementation (two real processes cannot
+do better).  The paper's ``I_ref = 0`` assumes the loop solved algebraically across the channel;
+here ``none`` at ``T = 0`` shows the small residual of that one-tick floor and of 16-bit
+quantisation, and the report says so.
+
+Packets cross the links as wire bytes (``teleop.session.wire``), so the sim exercises the same parsing as
+the real processes, and payload and packet sizes are counted, not estimated.
+
+Impairment: each direction may carry a netem spec (``SimConfig.netem_forward`` /
+``netem_backward``, grammar in ``teleop.session.link.netem``; ``trace FILE`` gives a Mahimahi trace link).  A
+spec *replaces* ``delay_ms`` for its direction (write ``delay`` into the spec); ``delay_ms`` still
+applies to a direction without one.  Direction ``i`` (0 forward, 1 backward) is seeded
+``2 seed + i``, so the two directions (and neighbouring seeds) draw independent streams and the
+same config gives the same bits.  What each link actually did is measured at the receiver by
+``teleop.session.link.linkstats.LinkObserver`` and reported per case under ``link``.  The sim delivers at
+tick granularity: a packet due at ``t`` is taken at the first tick ``n dt >= t``, so the observed
+one-way delay is the link's delay rounded *up* to the tick (e.g. netem's uniform jitter on
+50 +- 5 ms is observed on a 1 ms grid, mean about 0.5 ms higher).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from teleop import devices
+from teleop.control import metrics
+from teleop.control.codecs import Codec, make_codec
+from teleop.devices import scenarios
+from teleop.session import wire
+from teleop.session.link.netem import Link
+from teleop.session.node import PortOptions
+from teleop.session.port import ConstantDelayLink, MemorySink, Port, make_node, make_shim, wire_block
+from teleop.session.settings import DEFAULT_ENVELOPE, Channel, Envelope
+
+if TYPE_CHECKING:
+    from teleop.session.protocol import SessionParams
+
+Array = npt.NDArray[np.float64]
+
+#: The paper's Section V set.
+SECTION_V_CODECS = ("none", "ids:2", "ids:50", "eds:2", "eds:50", "cq:8")
+__all__ = ["ConstantDelayLink", "SimConfig", "run_case", "run_set"]
+ENERGY_TOLERANCE = 1e-9  # J: float rounding in cumulative sums, far below any real violation
+
+
+@dataclass(frozen=True)
+class SimConfig(Channel):
+    """One run: the channel's settings (:class:`teleop.session.settings.Channel`, the same as a real
+    session's) and the model's.  ``None`` means the scenario's default (``teleop.devices.scenarios``)."""
+
+    codec: str = "none"
+    delay_ms: float = 0.0  # constant one-way delay of a direction without a netem spec
+    duration: float | None = None
+    dt: float = 0.001
+    dof: int | None = None
+    b: float | None = None
+    full_scale: float | None = None
+    scenario: str = "step"
+    window_ms: float = 100.0
+    session: int = 1
+    # Ticks ``auto`` keeps at least, at the teleoperator (forward) and the operator (backward):
+    # what a real run's buffers settled on, to compare with one (teleop.offline.report).
+    playout_floor: tuple[int, int] = (0, 0)
+    hsi: str | None = None  # --hsi spec (teleop.devices); None: the scenario's human
+    robot: str | None = None  # --robot spec; None: the scenario's environment
+    envelope: Envelope | None = None  # the robot's (teleop.session.settings); None: :meth:`robot_envelope`
+
+    @classmethod
+    def of_session(cls, p: SessionParams, **sim: Any) -> SimConfig:
+        """The simulation of a real session with parameters ``p`` (``sim``: the sim's own fields)."""
+        model = {
+            "codec": p.codec,
+            "scenario": p.scenario,
+            "dof": p.dof,
+            "b": p.b,
+            "full_scale": p.full_scale,
+            "duration": p.duration,
+            "dt": p.dt,
+            "session": p.session,  # its size on the wire counts in the byte figures
+        }
+        return cls(**{**model, **p.channel_fields(), **sim})
+
+    def resolved(self) -> SimConfig:
+        """A copy with every default filled in and every value checked (ValueError says what is wrong)."""
+        sc = scenarios.get(self.scenario)
+        c = replace(
+            self,
+            duration=sc.duration if self.duration is None else self.duration,
+            dof=sc.dof if self.dof is None else self.dof,
+            b=sc.b if self.b is None else self.b,
+            full_scale=sc.full_scale if self.full_scale is None else self.full_scale,
+        )
+        if not c.dt > 0:
+            raise ValueError(f"dt must be > 0 s, got {c.dt}")
+        if not c.duration or not c.duration > 0:
+            raise ValueError(f"duration must be > 0 s, got {c.duration}")
+        if not c.delay_ms >= 0:
+            raise ValueError(f"delay must be >= 0 ms, got {c.delay_ms}")
+        if not c.dof or c.dof < 1:
+            raise ValueError(f"dof must be >= 1, got {c.dof}")
+        dof = c.dof
+        c = replace(c, playout=c.check_channel(netem_files=True))  # canonical; ValueError says what is wrong
+        if c.passivity == "tdpa" and c.full_scale is not None:
+            make_codec(c.codec, dof, c.full_scale, power=True)  # CodecError: not on power variables
+        scenarios.get(c.scenario).make(dof, c.dt, c.seed, c.variation)  # ModelError says what is wrong
+        if not c.window_ms >= c.dt * 1e3:
+            raise ValueError(f"window must be at least one tick ({c.dt * 1e3} ms), got {c.window_ms}")
+        for role, dev in (("hsi", c.hsi), ("robot", c.robot)):
+            if dev is not None:
+                devices.resolve(dev, role)  # DeviceError (a ValueError) lists what is available
+        return c
+
+    def port_options(self) -> PortOptions:
+        return PortOptions.of(self)
+
+    def robot_envelope(self) -> Envelope:
+        """The robot's envelope in this run: ``envelope``, else a default robot's widened to admit
+        this run's own settings (``Envelope.admitting``), as ``teleop run`` starts its
+        teleoperator: what a real robot started for this run's settings runs inside."""
+        if self.envelope is not None:
+            return self.envelope
+        assert self.full_scale is not None and self.b is not None and self.dof is not None, "resolved() first"
+        return DEFAULT_ENVELOPE.admitting(self)  # type: ignore[arg-type]
+
+    def shims(self) -> dict[str, Link | None]:
+        """One shim per direction: the netem spec if given, else ``delay_ms`` of constant delay."""
+        specs = (self.netem_forward, self.netem_backward)
+        return {
+            d: make_shim(specs[i], self.seed, i, self.delay_ms / 1e3) for i, d in enumerate(wire.DIRECTIONS)
+        }
+
+
+@dataclass
+class Trace:
+    """Per-tick signals, shape (ticks, dof), and per-tick byte counts per direction."""
+
+    t: Array
+    v_hsi: Array
+    f_hsi: Array
+    v_to: Array
+    f_to: Array
+    margin_fwd: Array  # J, energy sent minus played, forward (eq. 5, first integral)
+    margin_bwd: Array
+    payload_bytes: dict[str, Array] = field(default_factory=dict)
+    packet_bytes: dict[str, Array] = field(default_factory=dict)
+    wire_bytes: dict[str, Array] = field(default_factory=dict)  # on the wire as it left the shim
+
+
+@dataclass
+class CaseResult:
+    codec: str
+    summary: dict[str, Any]
+    trace: Trace
+
+
+def _ports(cfg: SimConfig) -> tuple[Port, Port, Codec]:
+    assert cfg.dof is not None and cfg.duration is not None and cfg.b is not None
+    assert cfg.full_scale is not None
+    n_ticks = round(cfg.duration / cfg.dt)
+    opts = cfg.port_options()
+    shims = cfg.shims()
+    ports = []
+    for role, d, peer_spec in (
+        ("operator", "forward", cfg.netem_backward),
+        ("teleoperator", "backward", cfg.netem_forward),
+    ):
+        node = make_node(
+            role,
+            scenario=cfg.scenario,
+            dof=cfg.dof,
+            dt=cfg.dt,
+            b=cfg.b,
+            codec=cfg.codec,
+            full_scale=cfg.full_scale,
+            session=cfg.session,
+            options=opts,
+            device=cfg.hsi if role == "operator" else cfg.robot,
+            seed=cfg.seed,
+            variation=cfg.variation,
+        )
+        if role == "teleoperator":
+            node.confine(cfg.robot_envelope())
+        window = max(1, round(cfg.window_ms / 1e3 / cfg.dt))
+        ports.append(
+            Port(
+                node,
+                ticks=n_ticks,
+                shim=shims[d],
+                peer_spec=peer_spec,
+                window_ticks=window,
+                playout_floor=cfg.playout_floor[0 if role == "teleoperator" else 1],
+            )
+        )
+    return ports[0], ports[1], ports[0].node.tx_codec
+
+
+def run_case(cfg: SimConfig) -> CaseResult:
+    """One deterministic run of two ports joined by virtual links; same config, same bits out.
+
+    Within tick ``n``: the backward datagrams due by now reach the operator, the operator ticks and
+    its forward datagrams due by now reach the teleoperator, which ticks; its own datagrams wait
+    for the next tick (the one-tick loop floor, see the module docstring).
+    """
+    cfg = cfg.resolved()
+    op, to, codec = _ports(cfg)
+    dt, n_ticks = cfg.dt, _ticks(op)
+    backward: list[bytes] = []
+    for n in range(n_ticks):
+        now = n * dt
+        for data in backward + to.flush(now, n):
+            op.receive(data, now, n)
+        for data in op.tick(n, now):
+            to.receive(data, now, n)
+        op.sent(n, now)
+        backward = to.tick(n, now)
+        to.sent(n, now)
+    for data in backward:  # sent at the last tick: observed, not played
+        op.receive(data, n_ticks * dt, n_ticks - 1, play=False)
+    _drain(to, op, n_ticks, dt)
+    _drain(op, to, n_ticks, dt)
+    return CaseResult(codec.spec, _summary(cfg, op, to, codec), _trace(op, to, dt))
+
+
+def _trace(op: Port, to: Port, dt: float) -> Trace:
+    """Whole-session arrays from the two ports' in-memory records."""
+    op.finish()
+    to.finish()
+    assert isinstance(op.sink, MemorySink) and isinstance(to.sink, MemorySink) and op.ticks is not None
+    ao, at = op.sink.arrays(op.ticks), to.sink.arrays(op.ticks)
+    tr = Trace(
+        t=np.arange(op.ticks, dtype=np.float64) * dt,
+        v_hsi=ao["v"],
+        f_hsi=ao["f"],
+        v_to=at["v"],
+        f_to=at["f"],
+        margin_fwd=ao["energy_sent"] - at["energy_played"],
+        margin_bwd=at["energy_sent"] - ao["energy_played"],
+    )
+    tr.payload_bytes = {"forward": ao["produced_payload"], "backward": at["produced_payload"]}
+    tr.packet_bytes = {"forward": ao["produced_packet"], "backward": at["produced_packet"]}
+    tr.wire_bytes = {"forward": ao["tx_wire"], "backward": at["tx_wire"]}
+    return tr
+
+
+def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]:
+    n_ticks, dt = _ticks(op), cfg.dt
+    tr = _trace(op, to, dt)
+    window = max(1, round(cfg.window_ms / 1e3 / dt))
+    raw_per_tick = np.full(n_ticks, float(codec.raw_bytes_per_tick))
+    baseline_total = 2.0 * n_ticks * codec.raw_bytes_per_tick
+    pay = tr.payload_bytes
+    per_dir: dict[str, Any] = {}
+    for d in wire.DIRECTIONS:
+        per_dir[d] = {
+            "packets": int(np.count_nonzero(pay[d])),
+            "payload_bytes": int(pay[d].sum()),
+            "packet_bytes": int(tr.packet_bytes[d].sum()),
+            "compression": metrics.compression(n_ticks * codec.raw_bytes_per_tick, float(pay[d].sum())),
+            "min_instant_compression": metrics.min_instant_compression(raw_per_tick, pay[d], window),
+        }
+    sent_total = float(sum(a.sum() for a in pay.values()))
+    side = {
+        "forward": op.summary(peer_produced=_sent_into(to.shim, to), peer_dropped_by_limit=_dropped(to)),
+        "backward": to.summary(peer_produced=_sent_into(op.shim, op), peer_dropped_by_limit=_dropped(op)),
+    }
+    # side["forward"] is the operator's own view: it sent forward and received (observed) backward.
+    o, t = side["forward"], side["backward"]
+    margins = np.concatenate([tr.margin_fwd, tr.margin_bwd])
+    min_margin = float(margins.min())
+    summary: dict[str, Any] = {
+        "codec": codec.spec,
+        "class": codec.klass,
+        "I": metrics.transparency(tr.v_hsi, tr.v_to, tr.f_hsi, tr.f_to, dt),
+        # Per phase of the scenario (free, foam, wall; ``all``: the run): I per DoF, wire rates (Fig. 15).
+        "phases": metrics.phase_summary(
+            tr.v_hsi,
+            tr.v_to,
+            tr.f_hsi,
+            tr.f_to,
+            dt,
+            _phases(cfg),
+            tr.wire_bytes,
+        ),
+        "compression": metrics.compression(baseline_total, sent_total),
+        "min_instant_compression": min(per_dir[d]["min_instant_compression"] for d in wire.DIRECTIONS),
+        "passive": bool(min_margin >= -ENERGY_TOLERANCE),
+        "min_energy_margin": min_margin,
+        "added_delay_ticks": codec.added_delay_ticks,
+        # Eq. (4): energy into the communication two-port = forward margin + backward margin.
+        "two_port_min_energy": float((tr.margin_fwd + tr.margin_bwd).min()),
+        "energy": {
+            "forward": {
+                "sent": o["energy"]["sent"],
+                "played": t["energy"]["played"],
+                "min_margin": float(tr.margin_fwd.min()),
+            },
+            "backward": {
+                "sent": t["energy"]["sent"],
+                "played": o["energy"]["played"],
+                "min_margin": float(tr.margin_bwd.min()),
+            },
+        },
+        # The watchdog of each direction, at its receiver (margins from in-band reports).
+        "passivity": {"forward": _no_dir(t["passivity"]), "backward": _no_dir(o["passivity"])},
+        "directions": per_dir,
+        # The same per-direction block as report.json's: counted where the datagrams leave and arrive.
+        "wire": {
+            "forward": wire_block(o["sent"], t["received"]),
+            "backward": wire_block(t["sent"], o["received"]),
+        },
+        "counters": {"operator": op.node.counters.as_dict(), "teleoperator": to.node.counters.as_dict()},
+        "link": {"forward": t["link_received"], "backward": o["link_received"]},
+        # The data-rate cap of each direction, at its sender, and whether it held (teleop.control.ratecap).
+        "rate_cap": {"forward": o["rate_cap"], "backward": t["rate_cap"]},
+        # Each direction's playout buffer, at its receiver (teleop.session.playout).
+        "playout": {"forward": t["playout"], "backward": o["playout"]},
+        # What each receiver refused (teleop.session.auth): forgeries, corruption, replays and duplicates.
+        "security": {"forward": t["security"], "backward": o["security"]},
+        # Each side's device (teleop.devices): its spec and, if it keeps one, its own port observer.
+        "devices": {"hsi": o["device"], "robot": t["device"]},
+        "passivity_architecture": cfg.passivity,
+    }
+    summary.update(_delay_and_distortion(cfg, tr, summary))
+    return summary
+
+
+def _delay_and_distortion(cfg: SimConfig, tr: Trace, summary: dict[str, Any]) -> dict[str, Any]:
+    """Figures next to eq. (7) that separate delay from distortion (issue 23): ``I_dc``, eq. (7)
+    with the measured one-way delays taken out (``teleop.control.metrics.delay_compensated``), the
+    position drift between HSI and TO, and the energy the passivity controllers dissipated."""
+    dt = cfg.dt
+    shift = {d: metrics.one_way_ticks(summary["playout"][d], summary["link"][d], dt) for d in wire.DIRECTIONS}
+    pv = summary["passivity"]
+    out: dict[str, Any] = {
+        "I_dc": metrics.delay_compensated(
+            tr.v_hsi, tr.v_to, tr.f_hsi, tr.f_to, dt, shift["forward"], shift["backward"]
+        ),
+        "delay_compensation_ms": {d: shift[d] * dt * 1e3 for d in wire.DIRECTIONS},
+        "drift_m": metrics.position_drift(tr.v_hsi, tr.v_to, dt, shift["forward"]),
+        # How hard the contact felt at each end (N, norm over DoF): eq. (7) compares the two ends
+        # only, so a soft wall rendered alike at both scores well; this shows it.
+        "peak_force_N": {
+            "hsi": float(np.sqrt((tr.f_hsi**2).sum(axis=1)).max(initial=0.0)),
+            "to": float(np.sqrt((tr.f_to**2).sum(axis=1)).max(initial=0.0)),
+        },
+        "energy_dissipated": {
+            "forward": pv["forward"]["energy_dissipated"],
+            "backward": pv["backward"]["energy_dissipated"],
+            "total": pv["forward"]["energy_dissipated"] + pv["backward"]["energy_dissipated"],
+        },
+    }
+    if cfg.passivity == "tdpa":
+        # TDPA's watchdog per direction (Artigas et al.'s observer): E_in at the sending port, E_out
+        # at the receiving one, as each counted them; the receiver's view of E_in is the report.
+        en = summary["energy"]
+        out["tdpa"] = {
+            d: {
+                "energy_in": en[d]["sent"],
+                "energy_out": en[d]["played"],
+                "min_margin": en[d]["min_margin"],
+                "controller_active_ticks": pv[d]["controller_active_ticks"],
+                "energy_dissipated": pv[d]["energy_dissipated"],
+                "violations_observed": pv[d]["violations"],
+            }
+            for d in wire.DIRECTIONS
+        }
+    return out
+
+
+def _phases(cfg: SimConfig) -> list[tuple[str, float, float]]:
+    assert cfg.duration is not None
+    return scenarios.get(cfg.scenario).phases(cfg.seed, cfg.variation, cfg.duration)
+
+
+def _ticks(port: Port) -> int:
+    """The simulated session's length (a simulation always has one)."""
+    assert port.ticks is not None
+    return port.ticks
+
+
+def _no_dir(p: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in p.items() if k != "direction"}
+
+
+def _sent_into(shim: Link | None, sender: Port) -> int:
+    """Packets the sender put on its link (the shim's count, or every packet without a shim)."""
+    return shim.stats.sent if shim is not None else sender.produced()
+
+
+def _dropped(sender: Port) -> int:
+    return sender.shim.stats.dropped_by_limit if sender.shim is not None else 0
+
+
+def _drain(sender: Port, receiver: Port, n: int, dt: float) -> None:
+    """Show the receiver what was still in flight at the end, at the ticks it would have arrived.
+
+    The nodes have stopped and do not play these; without them the observer would count the last
+    ``delay / dt`` packets as lost and miss the longest delays (a rate-limited queue's backlog).
+    """
+    while (t := sender.next_due()) is not None:
+        n = max(n, math.ceil(t / dt - 1e-6))
+        for data in sender.flush(n * dt, _ticks(sender) - 1):
+            receiver.receive(data, n * dt, _ticks(receiver) - 1, play=False)
+        n += 1
+
+
+def run_set(codecs: list[str], base: SimConfig) -> tuple[dict[str, Any], list[CaseResult]]:
+    """Run each codec with the same config; returns the ``results.json`` document and the traces."""
+    base = base.resolved()
+    cases = [run_case(replace(base, codec=spec)) for spec in codecs]
+    i_max = max((c.summary["I"] for c in cases), default=0.0)
+    for c in cases:
+        c.summary["I_norm"] = c.summary["I"] / i_max if i_max > 0 else 0.0
+    doc: dict[str, Any] = {
+        "dt": base.dt,
+        "duration": base.duration,
+        "delay_ms": base.delay_ms,
+        "scenario": base.scenario,
+        "dof": base.dof,
+        "b": base.b,
+        "full_scale": base.full_scale,
+        "window_ms": base.window_ms,
+        "netem": {"forward": base.netem_forward, "backward": base.netem_backward},
+        "seed": base.seed,
+        "hsi": base.hsi or base.scenario,
+        "robot": base.robot or base.scenario,
+        "variation": base.variation,
+        "passivity": base.passivity,
+        "cases": [c.summary for c in cases],
+    }
+    return doc, cases

@@ -1,0 +1,1052 @@
+"""One side's whole session, sans I/O: handshake, start, ticks, rejoin, takeover, busy, bye, linger.
+
+An :class:`Endpoint` has aioquic's ``QuicConnection`` surface, the same for both roles::
+
+    ep.receive_datagram(data, addr, now_ns)      # every datagram, with its receive time
+    for data, addr in ep.datagrams_to_send(now_ns): sock.sendto(data, addr)
+    ep.get_timer()  /  ep.handle_timer(now_ns)   # when to come back even if nothing arrives
+    ep.tick(k, now_ns)                           # the 1 kHz tick, once the session runs
+    ep.next_event()                              # SessionStarted, PeerRestarted, Replaced, ...
+
+It never reads a clock, opens a socket or a file, or sleeps: ``now_ns`` is the caller's monotonic
+clock, so the same object runs live in ``transport.session`` and in virtual time in the tests
+(two endpoints joined by the seeded link model, with faults and an adversary).  Every protocol
+decision and constant of the session lives here; the runner only waits, drains, feeds and sends.
+
+**The session's life.** ``HANDSHAKE`` (``teleop.session.protocol``'s state machines: the operator's hellos,
+the teleoperator's cookie, welcome and start) -> ``STARTING`` (agreed; tick ``k0`` is due at
+``t0_ns``; a start resent because our started was lost is still answered) -> ``RUNNING`` ->
+``LINGER`` (the shim's last datagrams, ``bye``, packets still in flight counted) -> ``CLOSED``; or
+``FAILED`` with a :class:`Failure`.  A teleoperator whose operator was replaced goes from
+``RUNNING`` straight to ``STARTING`` of the new session (event :class:`Replaced`).
+
+**Rejoin** (operator, link lost): an offer (a hello of the running session, ``rejoin``) every
+:data:`REJOIN_OFFER_INTERVAL_NS`, so that a restarted teleoperator can take the session over.  A
+retry's cookie is taken and the offer resent at once; so is the next offer after each welcome,
+until :data:`REJOIN_SAMPLES` welcomes of one teleoperator nonce (or :data:`REJOIN_COLLECT_NS`).  The
+exchange with the smallest round trip places the start on the teleoperator's clock: its error is
+at most half that round trip (NTP: the one-way delays differ by at most the round trip), which
+PROTOCOL.md states as the rejoin's bound; slow answers are used, not refused.
+
+**Takeover** (teleoperator, link lost): handshake datagrams, and session datagrams that are not
+our operator's, go to a handshake of their own; the session is replaced only when that handshake
+completes, i.e. when a start proved the key and our fresh nonce.  Our own operator's rejoin offers
+(an outage both sides saw) are dropped and counted: this process did not restart.
+
+**Busy** (teleoperator, link up): another operator's hello gets a retry until it carries a valid
+cookie for its address, then ``reject`` "busy"; no reply is ever larger than what was received.
+"""
+
+from __future__ import annotations
+
+import enum
+import secrets
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, NamedTuple, TypeAlias
+
+from teleop.session import auth, protocol, wire
+from teleop.session.link import Addr
+from teleop.session.port import Port, PortKeys
+from teleop.session.protocol import Failure, SessionParams
+from teleop.session.settings import Envelope
+from teleop.session.summary import EndpointSummary, RejoinFigures
+
+__all__ = [
+    "FLOOD_SAMPLE",
+    "GRACE_RESUME_TICKS",
+    "JOIN_AHEAD_TICKS",
+    "REJOIN_COLLECT_NS",
+    "REJOIN_OFFER_INTERVAL_NS",
+    "REJOIN_SAMPLES",
+    "Admission",
+    "EndReason",
+    "Endpoint",
+    "Event",
+    "Failed",
+    "Failure",
+    "HandshakeLimiter",
+    "HelloRejected",
+    "LinkLost",
+    "LinkRestored",
+    "PeerBye",
+    "PeerRestarted",
+    "PortFactory",
+    "Replaced",
+    "SessionEnded",
+    "SessionStarted",
+    "State",
+    "Strangers",
+]
+
+REJOIN_OFFER_INTERVAL_NS = 250_000_000  # operator, link lost: an offer this often
+REJOIN_SAMPLES = 4  # welcomes of one restarted teleoperator before the start is placed
+REJOIN_COLLECT_NS = 2_000_000_000  # or this long after the first of them
+START_RESEND_NS = 20_000_000  # a rejoin's start, until started (or the new peer's data) arrives ...
+START_RESENDS = 50  # ... at most this often, each max(START_RESEND_NS, rtt / 8) apart: >= 6 round trips
+JOIN_AHEAD_TICKS = 20  # a late joiner starts this many ticks ahead of now (it still has to set up)
+START_GUARD_NS = 2_000_000  # a start closer than this (or past) is joined late
+#: The peer's first data packet is due by tick 0 (or the commit, if later) plus the larger of this
+#: and, at the operator, two round trips, at the teleoperator, what was left of the start's lead when
+#: it committed (>= 1.5 round trips, PROTOCOL.md 4.3); a link never heard from is lost a link timeout
+#: after that, and a teleoperator then ends the session (a ghost) and waits for an operator again.
+SILENT_MIN_NS = 1_000_000_000
+BYE_COPIES = 3
+LINGER_SHIM_GRACE_NS = 2_000_000_000  # how long after the linger the shim's backlog may still go out
+GRACE_STREAK = 3  # grace waits missed in a row before grace rests
+GRACE_RESUME_TICKS = 200  # ... for this many ticks (the link is late by ms, not us)
+EVENTS_KEPT = 1024  # a flood of rejected hellos cannot grow the event queue
+HANDSHAKE_RATE = 50.0  # handshake datagrams/s one source address may cost us (burst 20) ...
+HANDSHAKE_BURST = 20.0
+HANDSHAKE_RATE_ALL = 1000.0  # ... and all sources together (burst 200): bounds the loop's cost
+HANDSHAKE_BURST_ALL = 200.0
+#: Reserved for hellos with a valid cookie (a sender proven to receive at its address): a flood of
+#: cookie-less hellos (recordings replayed from many ports) cannot spend it.
+HANDSHAKE_RATE_COOKIE = 250.0
+HANDSHAKE_BURST_COOKIE = 50.0
+LIMITER_SOURCES = 4096  # source addresses remembered (oldest forgotten first)
+#: Under a handshake flood (the limiter dropped within FLOOD_HOLD_NS) a transport that can filter
+#: keeps strangers' handshake datagrams 1 in FLOOD_SAMPLE (see Admission).
+FLOOD_SAMPLE = 64
+FLOOD_HOLD_NS = 1_000_000_000
+
+
+class Strangers(enum.IntEnum):
+    """What an endpoint takes from addresses other than its peer (:class:`Admission`)."""
+
+    ALL = 0  # anything (no peer yet, or a takeover is possible)
+    HANDSHAKE = 1  # handshake-key datagrams only (another operator's hello gets busy or a retry)
+    NONE = 2  # nothing (an operator in session: only its teleoperator speaks to it)
+
+
+class Admission(NamedTuple):
+    """What the endpoint can take now, for a transport able to refuse datagrams before they reach
+    the process (``transport.udp`` compiles it into a kernel socket filter).  Only a coarse
+    prefilter: the endpoint still checks every datagram that passes, and a transport that ignores
+    this (Zenoh, a test) only counts the refusals elsewhere; the sampling under a flood may also
+    drop another operator's hello the limiter would have passed (during a session it could only
+    have been answered busy or with a retry, and hellos are retried).  Issue 21: a flood
+    costs a syscall and a Python loop turn per datagram if it reaches the process, nothing if the
+    kernel refuses it."""
+
+    max_bytes: int  # any datagram longer than this (either key kind)
+    peer: Addr | None  # None: no peer (yet), everyone is treated as the peer
+    strangers: Strangers
+    max_handshake_bytes: int  # a stranger's handshake datagram longer than this is refused
+    sample: int  # strangers' handshake datagrams kept 1 in ``sample`` (1: all; >1 under a flood)
+
+
+class HandshakeLimiter:
+    """Token buckets on handshake work: per source address and for all sources together.
+
+    A hello costs an unpack, maybe a full parse (~0.2 ms) and a reply; a genuine operator sends a
+    few a second.  **Who may spend a budget** (issue 35): while the robot waits for an operator (or
+    may be taken over), a handshake datagram is charged only once its MAC verified, so junk, whatever
+    address it claims, spends no one's budget (it costs a MAC and is counted ``unauthenticated``);
+    a hello with a valid cookie for its source is charged to buckets of its own (per source, and a
+    global share reserved for them), so recorded cookie-less hellos replayed from many ports cannot
+    spend what a genuine operator's second hello needs.  While a session runs with its link up, no
+    stranger can start anything (busy): strangers' handshake datagrams are charged before the MAC
+    (``cookie`` False), which keeps a flood's cost to a dictionary lookup each and drives the kernel
+    filter's sampling (:class:`Admission`).  The running session's peer is never limited."""
+
+    def __init__(self) -> None:
+        # (source, cookie-bearing) -> (tokens, last refill ns): the two kinds never share a bucket
+        self._per: dict[tuple[Addr, bool], tuple[float, int]] = {}
+        self._all = (HANDSHAKE_BURST_ALL, 0)
+        self._cookie = (HANDSHAKE_BURST_COOKIE, 0)
+        self.dropped = 0
+        self.last_drop_ns: int | None = None
+
+    @staticmethod
+    def _take(tokens: float, last: int, now_ns: int, rate: float, burst: float) -> tuple[float, bool]:
+        tokens = min(burst, tokens + max(0, now_ns - last) * rate / 1e9)
+        return (tokens - 1.0, True) if tokens >= 1.0 else (tokens, False)
+
+    def allow(self, addr: Addr, now_ns: int, cookie: bool = False) -> bool:
+        """Whether one more handshake datagram from ``addr`` may be worked on (``cookie``: a hello
+        whose MAC verified and whose cookie is valid for ``addr``)."""
+        key = (addr, cookie)
+        tokens, last = self._per.pop(key, (HANDSHAKE_BURST, now_ns))
+        tokens, ok = self._take(tokens, last, now_ns, HANDSHAKE_RATE, HANDSHAKE_BURST)
+        self._per[key] = (tokens, now_ns)  # newest last
+        if len(self._per) > LIMITER_SOURCES:
+            del self._per[next(iter(self._per))]
+        if ok and cookie:
+            rate, burst = HANDSHAKE_RATE_COOKIE, HANDSHAKE_BURST_COOKIE
+            c_tokens, reserved = self._take(*self._cookie, now_ns, rate, burst)
+            self._cookie = (c_tokens, now_ns)
+            if reserved:
+                return True  # (else the general share, below)
+        if ok:
+            all_tokens, ok = self._take(*self._all, now_ns, HANDSHAKE_RATE_ALL, HANDSHAKE_BURST_ALL)
+            self._all = (all_tokens, now_ns)
+        if not ok:
+            self.dropped += 1
+            self.last_drop_ns = now_ns
+        return ok
+
+
+class State(enum.Enum):
+    HANDSHAKE = "handshake"
+    STARTING = "starting"
+    RUNNING = "running"
+    LINGER = "linger"
+    CLOSED = "closed"
+    FAILED = "failed"
+
+
+class EndReason(enum.Enum):
+    COMPLETED = "completed"  # the agreed ticks ran
+    STOPPED = "stopped"  # stopped locally (a signal)
+    PEER_BYE = "peer_bye"  # an open session whose peer said bye
+    REPLACED = "replaced"  # teleoperator: a new operator took the silent one's place
+    DEVICE_FAULT = "device_fault"  # this side's device ended the session (a reflex): bye says why
+    PEER_FAULT = "peer_fault"  # the peer's device ended it: its bye said why
+    PEER_SILENT = "peer_silent"  # teleoperator: not one packet from the operator since its start
+
+
+@dataclass(frozen=True)
+class SessionStarted:
+    params: SessionParams
+    peer: Addr
+    start_ns: int  # the session's tick 0 on this clock
+    t0_ns: int  # when tick 0 is due on this clock (the teleoperator runs ``phase`` behind)
+    k0: int  # the first tick this process runs (> 0: it joined a running session)
+    joined_late: bool
+    offset_ns: int = 0  # operator: teleoperator's clock - ours, and the exchange's round trip
+    rtt_ns: int = 0
+
+
+@dataclass(frozen=True)
+class PeerRestarted:
+    """Operator: a restarted teleoperator took the session over (re-keyed, new energy epoch)."""
+
+    k: int
+    rtt_ns: int  # of the exchange that placed its start: the start's error is at most half this
+
+
+@dataclass(frozen=True)
+class Replaced:
+    old_session: int
+    new_session: int
+
+
+@dataclass(frozen=True)
+class PeerBye:
+    produced: int
+
+
+@dataclass(frozen=True)
+class LinkLost:
+    k: int
+
+
+@dataclass(frozen=True)
+class LinkRestored:
+    k: int
+
+
+@dataclass(frozen=True)
+class HelloRejected:
+    why: str
+
+
+@dataclass(frozen=True)
+class SessionEnded:
+    reason: EndReason
+    summary: EndpointSummary  # SessionSummary(summary).document() is its JSON map
+
+
+@dataclass(frozen=True)
+class Failed:
+    reason: Failure
+    detail: str
+
+
+Event: TypeAlias = (
+    SessionStarted
+    | PeerRestarted
+    | Replaced
+    | PeerBye
+    | LinkLost
+    | LinkRestored
+    | HelloRejected
+    | SessionEnded
+    | Failed
+)
+#: Makes a session's port: (params, first tick, keys, tick 0 on this clock) -> Port.  The shell's
+#: factory adds its log sink and device; tests give one with an in-memory record.
+PortFactory: TypeAlias = Callable[[SessionParams, int, PortKeys, int], Port]
+
+
+def _addr(a: Addr) -> str:
+    return f"{a[0]}:{a[1]}"
+
+
+class Endpoint:
+    """One side of a session (see the module docstring).  Build it with :meth:`operator` or
+    :meth:`teleoperator`."""
+
+    def __init__(
+        self,
+        role: str,
+        make_port: PortFactory,
+        *,
+        now_ns: int,
+        psk: bytes,
+        connect_timeout_s: float = 10.0,
+        linger_s: float = 0.2,
+        grace_us: float = 400.0,
+        rng: Callable[[int], bytes] = secrets.token_bytes,
+    ) -> None:
+        if role not in ("operator", "teleoperator"):
+            raise ValueError(f"role must be operator or teleoperator, got {role!r}")
+        self.role = role
+        self._make_port = make_port
+        self.psk = psk
+        self.connect_timeout_s = connect_timeout_s
+        self.linger_ns = round(linger_s * 1e9)
+        self.grace_limit_ns = round(grace_us * 1e3)
+        self._rng = rng
+        self.state = State.HANDSHAKE
+        self._events: deque[Event] = deque(maxlen=EVENTS_KEPT)
+        self._out: list[tuple[bytes, Addr]] = []
+        self.port: Port | None = None
+        self.params: SessionParams | None = None
+        self.peer: Addr | None = None
+        self.start_ns = 0
+        self.t0_ns = 0
+        self.k0 = 0
+        self.k = 0  # the last tick run (or k0 before the first)
+        # The tick a datagram received now belongs to: the one about to run (what the playout
+        # buffer measures transit against; counting it against the last one run plays a tick early).
+        self._rx_k = 0
+        self._stopped = False
+        self._ended: EndReason | None = None
+        self.peer_bye: protocol.Bye | None = None
+        self.fault_why = ""  # what this side's device said when it ended the session (fault)
+        self.foreign = 0
+        self._handshake_info: dict[str, Any] = {}
+        self.peer_nonce: bytes | None = None  # operator: the teleoperator's, from the welcome it took
+        self.offset_ns = 0  # operator: the teleoperator's clock minus ours
+        self._link_lost = False
+        # operator
+        self._op_hs: protocol.OperatorHandshake | None = None
+        # t_ns of rejoin offers not yet answered: at a 2 s round trip some 16 are in flight
+        self._offers: deque[int] = deque(maxlen=64)
+        self._next_offer = 0
+        self._rj_cookie: bytes | None = None
+        self._rj_nonce: bytes | None = None
+        self._rj_samples: list[tuple[int, int]] = []  # (rtt, offset) of one teleoperator nonce
+        self._rj_first = 0
+        # A rejoin's start, resent until confirmed: sealed anew each time (a byte-identical copy
+        # would be a replay, refused unanswered by the teleoperator that took the first).
+        self._rj_start: protocol.Start | None = None
+        self._rj_resends = 0
+        self._rj_next = 0
+        self._rj_interval = START_RESEND_NS
+        self.rejoin_offers = self.rejoins = self.rejoin_retries = 0
+        # teleoperator
+        self._to_hs: protocol.TeleoperatorHandshake | None = None
+        self._takeover: protocol.TeleoperatorHandshake | None = None
+        self._expect = protocol.Pins()
+        self._limits = Envelope()
+        self._cookie_secret = rng(32)
+        self._limiter = HandshakeLimiter()
+        # The longest datagram of each key kind (index: auth.HANDSHAKE, auth.SESSION); the session
+        # bound is narrowed to the agreed DoF once a session starts.
+        self._max_len = [wire.MAX_HANDSHAKE_DATAGRAM_BYTES, wire.MAX_DATAGRAM_BYTES]
+        self.oversize = 0
+        self._rejections_seen = 0
+        self.own_offers_ignored = 0
+        self.busy_rejects = 0
+        self.retries_sent = 0
+        self.replaced = False
+        # grace
+        self.grace = {"limit_us": grace_us, "waits": 0, "missed": 0, "waited_us_total": 0.0}
+        self._grace_streak = self._grace_resume = 0
+        # linger
+        self._linger_end = 0
+        self._bye_sent = False
+
+    # --- construction -----------------------------------------------------------------------
+    @classmethod
+    def operator(
+        cls, params: SessionParams, peer: Addr, make_port: PortFactory, *, now_ns: int, psk: bytes, **kw: Any
+    ) -> Endpoint:
+        """The operator's endpoint: it says hello to ``peer`` at once (``datagrams_to_send``)."""
+        ep = cls("operator", make_port, now_ns=now_ns, psk=psk, **kw)
+        ep.params, ep.peer = params, peer
+        ep._op_hs = protocol.OperatorHandshake(
+            params, now_ns=now_ns, timeout_s=ep.connect_timeout_s, psk=psk, nonce=ep._rng(auth.NONCE_BYTES)
+        )
+        return ep
+
+    @classmethod
+    def teleoperator(
+        cls,
+        expect: protocol.Pins | Mapping[str, object],
+        make_port: PortFactory,
+        *,
+        now_ns: int,
+        psk: bytes,
+        local_limits: Envelope | None = None,
+        **kw: Any,
+    ) -> Endpoint:
+        """The teleoperator's endpoint: it waits for an operator whose hello suits ``expect`` (fields
+        of :class:`SessionParams`; None: the operator's choice, within ``local_limits``)."""
+        ep = cls("teleoperator", make_port, now_ns=now_ns, psk=psk, **kw)
+        ep._expect = protocol.Pins.of(expect)
+        ep._limits = local_limits or Envelope()
+        ep._to_hs = ep._new_to_handshake(now_ns)
+        return ep
+
+    def _new_to_handshake(self, now_ns: int) -> protocol.TeleoperatorHandshake:
+        return protocol.TeleoperatorHandshake(
+            self._expect,
+            now_ns=now_ns,
+            timeout_s=self.connect_timeout_s,
+            psk=self.psk,
+            nonce=self._rng(auth.NONCE_BYTES),
+            cookie_secret=self._cookie_secret,
+            local_limits=self._limits,
+            defer_t3=True,
+            admit=self._limiter.allow,
+        )
+
+    # --- the surface ------------------------------------------------------------------------
+    def next_event(self) -> Event | None:
+        return self._events.popleft() if self._events else None
+
+    @property
+    def running(self) -> bool:
+        """Ticks are due (``STARTING`` or ``RUNNING``)."""
+        return self.state in (State.STARTING, State.RUNNING)
+
+    @property
+    def finished(self) -> bool:
+        return self.state in (State.CLOSED, State.FAILED)
+
+    @property
+    def max_datagram_bytes(self) -> int:
+        """The longest datagram this endpoint can take now (either key kind): a transport may refuse
+        a longer one by its length alone, before copying it (``transport.udp``)."""
+        return max(self._max_len)
+
+    def admission(self, now_ns: int) -> Admission:
+        """What this endpoint can take now (:class:`Admission`); the runner passes it to its transport
+        when it changes.  A teleoperator in session takes strangers' handshake datagrams (another
+        operator is told it is busy), sampled while its limiter is dropping them; once its operator
+        is silent (a takeover is possible, PROTOCOL.md 4.5) everything.  An operator in session takes
+        only its teleoperator's.  In the handshake: an operator its teleoperator's, a teleoperator
+        anyone's."""
+        hs_max = self._max_len[auth.HANDSHAKE]
+        running = self.state in (State.STARTING, State.RUNNING, State.LINGER)
+        if self.role == "operator":
+            return Admission(max(self._max_len), self.peer, Strangers.NONE, hs_max, 1)
+        if not running or self.port is None or self._takeover_possible(self.port):
+            return Admission(max(self._max_len), None, Strangers.ALL, hs_max, 1)
+        last = self._limiter.last_drop_ns
+        flooded = last is not None and now_ns - last < FLOOD_HOLD_NS
+        return Admission(
+            max(self._max_len), self.peer, Strangers.HANDSHAKE, hs_max, FLOOD_SAMPLE if flooded else 1
+        )
+
+    @property
+    def handshake_throttled(self) -> int:
+        """Handshake datagrams dropped over the per-source or global budget (HandshakeLimiter)."""
+        return self._limiter.dropped
+
+    def receive_datagram(self, data: bytes, addr: Addr, now_ns: int) -> None:
+        """A datagram from ``addr`` received at ``now_ns``.  Never raises: whatever it is, it is
+        taken, or counted and dropped."""
+        hdr = auth.peek(data)
+        if hdr is not None and len(data) > self._max_len[hdr[0]]:
+            self.oversize += 1  # longer than any message of its key kind: refused by length alone
+            return
+        handshake = hdr is not None and hdr[0] == auth.HANDSHAKE
+        if handshake and addr != self.peer and self._busy() and not self._limiter.allow(addr, now_ns):
+            return  # busy, over the handshake budget: dropped before the MAC (HandshakeLimiter)
+        if self.state == State.HANDSHAKE:
+            if self._op_hs is not None:
+                if addr == self.peer:
+                    self._op_hs.receive(data, now_ns)
+                else:
+                    self.foreign += 1
+                self._check_operator_handshake(now_ns)
+            elif self._to_hs is not None:
+                self._out += self._to_hs.receive(data, addr, now_ns)
+                self._report_rejections(self._to_hs)
+                if self._to_hs.done:
+                    self._from_to_handshake(self._to_hs, now_ns)
+        elif self.state in (State.STARTING, State.RUNNING, State.LINGER):
+            self._session_datagram(data, hdr, addr, now_ns)
+
+    def datagrams_to_send(self, now_ns: int) -> list[tuple[bytes, Addr]]:
+        """What to send now (a welcome is stamped with ``now_ns`` as it leaves: NTP's t3)."""
+        if self.state == State.HANDSHAKE and self._op_hs is not None:
+            assert self.peer is not None
+            self._out += [(d, self.peer) for d in self._op_hs.poll(now_ns)]
+            self._check_operator_handshake(now_ns)
+        if self.role == "teleoperator":
+            for hs in (self._to_hs, self._takeover):
+                if hs is not None:
+                    self._out += hs.datagrams_to_send(now_ns)
+        if self.state == State.LINGER:
+            self._linger(now_ns)
+        out, self._out = self._out, []
+        return out
+
+    def get_timer(self) -> int | None:
+        """When :meth:`handle_timer` must be called next (ns on the caller's clock), None: never.
+        Ticks are not timers: :meth:`tick` is called at each tick's deadline."""
+        if self.state == State.HANDSHAKE:
+            hs = self._op_hs or self._to_hs
+            assert hs is not None
+            return hs.next_timer()
+        if self.state == State.RUNNING and self.role == "operator":
+            timers = [t for t in (self._rj_next if self._rj_start is not None else None,) if t is not None]
+            if self._link_lost:
+                timers.append(self._next_offer)
+            return min(timers) if timers else None
+        if self.state == State.LINGER:
+            if not self._bye_sent:
+                due = self._shim_due_ns()
+                return min(due, self._linger_end + LINGER_SHIM_GRACE_NS) if due is not None else 0
+            return self._linger_end
+        return None
+
+    def handle_timer(self, now_ns: int) -> None:
+        if self.state == State.HANDSHAKE and self._to_hs is not None:
+            self._to_hs.poll(now_ns)
+            if self._to_hs.error is not None:
+                self._fail(self._to_hs.failure or Failure.NO_OPERATOR, self._to_hs.error)
+        elif self.state == State.HANDSHAKE:
+            self._check_operator_handshake(now_ns)  # datagrams_to_send polls it
+        elif self.state == State.RUNNING and self.role == "operator":
+            self._operator_timers(now_ns)
+        elif self.state == State.LINGER:
+            self._linger(now_ns)
+
+    def fault(self, now_ns: int, why: str) -> None:
+        """This side's device ended the session (a robot's reflex): the session lingers and ends, and
+        its bye carries ``why`` so the peer can say it.  Nothing is ticked after it."""
+        self.fault_why = why
+        self._stopped = True
+        if self.state in (State.STARTING, State.RUNNING):
+            self._end(EndReason.DEVICE_FAULT, now_ns)
+        elif self.state == State.HANDSHAKE:
+            self.state = State.CLOSED
+
+    def stop(self, now_ns: int) -> None:
+        """Stop locally (a signal): the session lingers and ends (:class:`SessionEnded`)."""
+        self._stopped = True
+        if self.state in (State.STARTING, State.RUNNING):
+            self._end(EndReason.STOPPED, now_ns)
+        elif self.state == State.HANDSHAKE:
+            self.state = State.CLOSED
+
+    # --- ticks --------------------------------------------------------------------------------
+    def session_time(self, now_ns: int) -> float:
+        """Seconds on the common session clock (tick 0 of the session is 0)."""
+        return (now_ns - self.start_ns) / 1e9
+
+    def tick(self, k: int, now_ns: int) -> None:
+        """Run tick ``k`` at ``now_ns``; its datagrams go out with :meth:`datagrams_to_send`.  A
+        ``k`` at or past the session's end (a stall skipped over it) ends the session instead."""
+        assert self.port is not None and self.params is not None and self.peer is not None
+        if not self.running:
+            return
+        if k >= self.params.ticks:
+            self._end(EndReason.COMPLETED, now_ns)
+            return
+        self.state = State.RUNNING
+        port, t = self.port, self.session_time(now_ns)
+        if self.role == "operator":
+            self._operator_timers(now_ns)
+        for data in port.tick(k, t):
+            self._out.append((data, self.peer))
+        # Stamped once the sample exists and before it leaves: the peer cannot play it earlier,
+        # so the true margin (teleop.offline.report) never counts a sample as played before it was sent.
+        port.sent(k, t)
+        self.k, self._rx_k = k, k + 1
+        lost = port.node.link_lost
+        if lost != self._link_lost:
+            self._link_lost = lost
+            self._events.append(LinkLost(k) if lost else LinkRestored(k))
+            if lost:
+                self._next_offer = now_ns
+        if lost and self.role == "teleoperator" and port.node.counters.accepted == 0:
+            self._end(EndReason.PEER_SILENT, now_ns)  # a ghost: free the robot for an operator
+        elif k + 1 >= self.params.ticks:
+            self._end(EndReason.COMPLETED, now_ns)
+        elif self.params.until_stopped and self.peer_bye is not None:
+            self._end(EndReason.PEER_BYE, now_ns)
+        elif self.peer_bye is not None and self.peer_bye.why:
+            self._end(EndReason.PEER_FAULT, now_ns)
+
+    def grace_needed(self, k: int) -> bool:
+        """Whether tick ``k`` would wait for its payload (:meth:`grace_until`), without counting a wait."""
+        port = self.port
+        if port is None or not self.grace_limit_ns or k < self._grace_resume:
+            return False
+        return not port.payload_ready(k) and port.node.counters.accepted > 0
+
+    def grace_until(self, k: int, deadline_ns: int) -> int | None:
+        """Grace: tick ``k``'s payload is due and not here yet; poll for it until the returned time
+        rather than play a gap (None: do not wait).  Report the outcome with :meth:`grace_result`."""
+        if not self.grace_needed(k):
+            return None
+        self.grace["waits"] += 1
+        return deadline_ns + self.grace_limit_ns
+
+    def payload_ready(self, k: int) -> bool:
+        return self.port is not None and self.port.payload_ready(k)
+
+    def grace_result(self, k: int, waited_ns: int) -> None:
+        self.grace["waited_us_total"] += waited_ns / 1e3
+        if self.payload_ready(k):
+            self._grace_streak = 0
+            return
+        self.grace["missed"] += 1
+        self._grace_streak += 1
+        if self._grace_streak >= GRACE_STREAK:  # a delayed or jittery link: packets are ms late; rest
+            self._grace_resume = k + GRACE_RESUME_TICKS
+            self._grace_streak = 0
+
+    # --- handshake outcomes ------------------------------------------------------------------
+    def _check_operator_handshake(self, now_ns: int) -> None:
+        hs = self._op_hs
+        if hs is None or self.state != State.HANDSHAKE:
+            return
+        if hs.error is not None:
+            self._fail(hs.failure or Failure.NO_ANSWER, hs.error)
+        elif hs.done:
+            assert hs.tx_sealer is not None and hs.rx_opener is not None and self.params and self.peer
+            keys = PortKeys(hs.tx_sealer, hs.rx_opener, hs.hs_sealer, hs.hs_opener, self.psk, hs.nonce)
+            self._handshake_info = {"clock_offset_ns": hs.offset_ns, "handshake_rtt_us": hs.rtt_ns / 1e3}
+            self.peer_nonce, self.offset_ns = hs.peer_nonce, hs.offset_ns
+            first_due = hs.start_ns + max(SILENT_MIN_NS, 2 * hs.rtt_ns)
+            self._begin(
+                self.params, self.peer, hs.start_ns, hs.start_ns, 0, False, keys, first_due, hs.offset_ns,
+                hs.rtt_ns,
+            )  # fmt: skip
+
+    def _from_to_handshake(self, hs: protocol.TeleoperatorHandshake, now_ns: int) -> None:
+        """A teleoperator handshake completed: run its session (late, if it already runs)."""
+        assert hs.done and hs.params is not None and hs.peer is not None
+        assert hs.tx_sealer is not None and hs.rx_opener is not None
+        keys = PortKeys(hs.tx_sealer, hs.rx_opener, hs.hs_sealer, hs.hs_opener, self.psk, hs.nonce)
+        p = hs.params
+        period = round(p.dt * 1e9)
+        t0 = hs.start_ns + round(p.phase * p.dt * 1e9)
+        late = hs.rejoin or now_ns > t0 - START_GUARD_NS
+        k0 = max(0, -(-(now_ns - t0) // period) + JOIN_AHEAD_TICKS) if late else 0
+        self._handshake_info = {"joined_late": late}
+        # The operator's first packet leaves at its tick 0 (a rejoin's: at once); the lead left of a
+        # fresh start bounds when it arrives (it is >= 1.5 round trips: PROTOCOL.md 4.3 step 5).
+        first_due = max(hs.start_ns, now_ns) + max(SILENT_MIN_NS, hs.start_ns - now_ns)
+        self._begin(p, hs.peer, hs.start_ns, t0, k0, late, keys, first_due)
+
+    def _begin(
+        self,
+        params: SessionParams,
+        peer: Addr,
+        start_ns: int,
+        t0_ns: int,
+        k0: int,
+        late: bool,
+        keys: PortKeys,
+        first_due_ns: int,
+        offset_ns: int = 0,
+        rtt_ns: int = 0,
+    ) -> None:
+        self.params, self.peer, self.start_ns, self.t0_ns, self.k0, self.k = (
+            params,
+            peer,
+            start_ns,
+            t0_ns,
+            k0,
+            k0,
+        )
+        self._rx_k = k0
+        self._max_len[auth.SESSION] = wire.max_session_datagram_bytes(params.dof)
+        self.port = self._make_port(params, k0, keys, start_ns)
+        if self.role == "teleoperator":
+            # Whatever the factory built, the robot runs inside its own envelope: saturated
+            # commands and an energy guard bounded by its limits, never the operator's numbers.
+            self.port.node.confine(self._limits)
+        if k0:
+            self.port.node.joined_late()
+        self.port.node.expect_first_by((first_due_ns - start_ns) / 1e9)
+        self.state = State.STARTING
+        self._link_lost = False
+        self._events.append(SessionStarted(params, peer, start_ns, t0_ns, k0, late, offset_ns, rtt_ns))
+
+    def _fail(self, reason: Failure, detail: str) -> None:
+        self.state = State.FAILED
+        self._events.append(Failed(reason, detail))
+
+    def _report_rejections(self, hs: protocol.TeleoperatorHandshake) -> None:
+        new = hs.rejected - self._rejections_seen
+        self._rejections_seen = hs.rejected
+        for why in list(hs.rejections)[-min(new, 3) :] if new > 0 else ():
+            self._events.append(HelloRejected(why))
+
+    # --- during the session -------------------------------------------------------------------
+    def _session_datagram(
+        self, data: bytes, hdr: tuple[int, int, int] | None, addr: Addr, now_ns: int
+    ) -> None:
+        """``hdr``: ``auth.peek(data)``, read once by :meth:`receive_datagram` (the 1 kHz path)."""
+        port = self.port
+        assert port is not None
+        if addr != self.peer and (hdr is None or hdr[0] == auth.SESSION):
+            # Not our peer's and not a handshake datagram: unless a takeover may be under way (our
+            # operator went silent, PROTOCOL.md 4.5) it can only be refused.  Counted as the full
+            # path would count it, for a fraction of its cost (a flood of junk: issue 21).
+            possible = self._takeover_possible(port)
+            if not possible:
+                self._takeover = None
+            if hdr is None or not possible:
+                self.foreign += 1
+                port.refuse_foreign(hdr is not None)
+                return
+        if self._to_takeover(data, hdr, addr, now_ns):
+            return
+        if hdr is not None and hdr[0] == auth.HANDSHAKE:
+            self._handshake_datagram(data, addr, now_ns)
+            return
+        t = self.session_time(now_ns)
+        k = self.k if self.state == State.LINGER else self._rx_k
+        play = self.state != State.LINGER  # STARTING too: the peer's first payload may come first
+        if addr != self.peer:
+            port.receive(data, t, k, play, from_peer=False)  # counted as a rejection
+            self.foreign += 1
+            return
+        msg = port.receive(data, t, k, play)
+        if msg is not None:
+            self._control(msg, now_ns)
+
+    def _control(self, msg: protocol.Message, now_ns: int) -> None:
+        """An in-session control message from the peer (session key)."""
+        assert self.params is not None and self.port is not None
+        if getattr(msg, "session", None) != self.params.session:
+            return
+        if isinstance(msg, protocol.Start) and self.role == "teleoperator":
+            self._out.append((self.port.seal(protocol.Started(self.params.session)), self._peer()))
+        elif isinstance(msg, protocol.Started) and self._rj_start is not None:
+            self._rj_start = None  # the restarted teleoperator confirmed our rejoin's start
+        elif isinstance(msg, protocol.Bye) and self.peer_bye is None:
+            self.peer_bye = msg
+            self._events.append(PeerBye(msg.produced))
+
+    def _handshake_datagram(self, data: bytes, addr: Addr, now_ns: int) -> None:
+        """A handshake-key datagram mid-session: a rejoin's retry or welcome (operator), another
+        operator's hello or our own operator's rejoin offer (teleoperator)."""
+        port, params = self.port, self.params
+        assert port is not None and params is not None
+        body = port.open_handshake(data)
+        if body is None:
+            return
+        if self.role == "teleoperator":
+            seen = protocol.peek_hello(body)
+            if seen is None:
+                return
+            session, t_ns, nonce, cookie = seen
+            if session == params.session:
+                self.own_offers_ignored += 1  # our operator offering a rejoin: we did not restart
+                return
+            if type(nonce) is not bytes or len(nonce) != auth.NONCE_BYTES:
+                return
+            if not protocol.cookie_ok(self._cookie_secret, cookie, addr, nonce, now_ns):
+                self.retries_sent += 1
+                retry = protocol.Retry(
+                    session, t_ns, protocol.make_cookie(self._cookie_secret, addr, nonce, now_ns)
+                )
+                self._out.append((port.seal(retry), addr))
+                return
+            self.busy_rejects += 1
+            self._out.append((port.seal(protocol.Reject(session, protocol.BUSY, t_ns)), addr))
+            return
+        if addr != self.peer:
+            self.foreign += 1
+            return
+        msg = port.control(body)
+        if isinstance(msg, protocol.Retry) and msg.session == params.session and msg.t_ns in self._offers:
+            self._offers.remove(msg.t_ns)
+            self._rj_cookie = msg.cookie
+            self.rejoin_retries += 1
+            self._next_offer = now_ns  # offer again at once, with the cookie
+            self._operator_timers(now_ns)
+        elif isinstance(msg, protocol.Welcome) and msg.session == params.session and msg.t_ns in self._offers:
+            self._offers.remove(msg.t_ns)
+            self._rejoin_sample(msg, now_ns)
+
+    def _peer(self) -> Addr:
+        assert self.peer is not None
+        return self.peer
+
+    # --- operator: rejoin a restarted teleoperator ----------------------------------------------
+    def _operator_timers(self, now_ns: int) -> None:
+        port, params = self.port, self.params
+        assert port is not None and params is not None
+        if self._rj_start is not None and now_ns >= self._rj_next:
+            if self._rj_resends >= START_RESENDS:
+                self._rj_start = None
+            else:
+                self._out.append((port.seal(self._rj_start), self._peer()))
+                self._rj_resends += 1
+                self._rj_next = now_ns + self._rj_interval
+        if not port.node.link_lost or now_ns < self._next_offer:
+            return
+        self._next_offer = now_ns + REJOIN_OFFER_INTERVAL_NS
+        self._offers.append(now_ns)
+        hello = protocol.Hello(
+            params, t_ns=now_ns, rejoin=True, nonce=port.keys.nonce, cookie=self._rj_cookie
+        )
+        self._out.append((port.seal(hello), self._peer()))
+        self.rejoin_offers += 1
+
+    def _rejoin_sample(self, m: protocol.Welcome, t4: int) -> None:
+        """A restarted teleoperator welcomed an offer: one NTP exchange; with enough, the start."""
+        port, params = self.port, self.params
+        assert port is not None and params is not None
+        t1 = m.t_ns
+        offset, rtt = protocol.ntp_offset(t1, m.t2, m.t3, t4)
+        if rtt < 0:
+            return
+        if m.nonce != self._rj_nonce:  # another (newer) teleoperator process: start over
+            self._rj_nonce, self._rj_samples, self._rj_first = m.nonce, [], t4
+        self._rj_samples.append((rtt, offset))
+        if len(self._rj_samples) < REJOIN_SAMPLES and t4 - self._rj_first < REJOIN_COLLECT_NS:
+            self._next_offer = t4  # the next offer at once: the handshake's cadence
+            self._operator_timers(t4)
+            return
+        rtt, offset = min(self._rj_samples)
+        port.peer_restarted(m.nonce)  # its new nonce keys the rest of the session
+        start = protocol.Start(params.session, start_ns=self.start_ns + offset, rejoin=True)
+        self._rj_start, self._rj_resends, self._rj_next = start, 0, t4
+        self._rj_interval = max(START_RESEND_NS, rtt // protocol.START_RESEND_DIV)
+        self._rj_nonce, self._rj_samples = None, []
+        self._offers.clear()
+        self.rejoins += 1
+        self._events.append(PeerRestarted(self.k, rtt))
+        self._operator_timers(t4)
+
+    # --- teleoperator: takeover by a new operator --------------------------------------------
+    def _to_takeover(self, data: bytes, hdr: tuple[int, int, int] | None, addr: Addr, now_ns: int) -> bool:
+        """Teleoperator whose operator went silent: handshake datagrams, and session datagrams that
+        are not our peer's, go to a handshake of their own.  Returns whether ``data`` was taken."""
+        port, params = self.port, self.params
+        assert port is not None and params is not None
+        if not self._takeover_possible(port):
+            self._takeover = None
+            return False
+        if hdr is None or (hdr[0] == auth.SESSION and port.verifies(data)):
+            return False
+        if hdr[0] == auth.HANDSHAKE and addr == self.peer and self._own_offer(data):
+            self.own_offers_ignored += 1
+            return True
+        hs = self._takeover
+        if hs is not None:
+            hs.poll(now_ns)
+        if hs is None or hs.error is not None:
+            if hdr[0] != auth.HANDSHAKE:
+                return False
+            hs = self._takeover = self._new_to_handshake(now_ns)
+        self._out += hs.receive(data, addr, now_ns)
+        if hs.done:
+            old = params.session
+            self.replaced = True
+            self._end(EndReason.REPLACED, now_ns)
+            self._takeover = None
+            self._out += hs.datagrams_to_send(now_ns)
+            self._reset_session_state()
+            self._from_to_handshake(hs, now_ns)
+            assert self.params is not None
+            self._events.append(Replaced(old, self.params.session))
+        return True
+
+    def _busy(self) -> bool:
+        """A teleoperator whose session runs with its link up: a stranger can start nothing here."""
+        running = self.state in (State.STARTING, State.RUNNING, State.LINGER)
+        return self.role == "teleoperator" and running and not self._takeover_possible(self.port)
+
+    def _takeover_possible(self, port: Port | None) -> bool:
+        """A teleoperator whose running session's link is lost may be taken over (PROTOCOL.md 4.5)."""
+        running = self.role == "teleoperator" and self.state == State.RUNNING
+        return running and port is not None and port.node.link_lost
+
+    def _own_offer(self, data: bytes) -> bool:
+        """Whether ``data`` is an authentic hello of this very session (our operator's rejoin offer)."""
+        assert self.port is not None and self.params is not None
+        try:
+            body = self.port.keys.hs_rx.verify(data)[1]
+        except auth.AuthError:
+            return False
+        seen = protocol.peek_hello(body)
+        return seen is not None and seen[0] == self.params.session
+
+    def _listen_again(self, now_ns: int) -> None:
+        """Teleoperator: back to the handshake, as at start-up (a new nonce, its connect timeout)."""
+        self._reset_session_state()
+        self.state = State.HANDSHAKE
+        self.port, self.params, self.peer, self._takeover = None, None, None, None
+        self._max_len[auth.SESSION] = wire.MAX_DATAGRAM_BYTES
+        self._rejections_seen = 0
+        self._to_hs = self._new_to_handshake(now_ns)
+
+    def _reset_session_state(self) -> None:
+        self._stopped = False
+        self._ended = None
+        self.peer_bye = None
+        self.fault_why = ""
+        self.replaced = False
+        self.foreign = 0
+        self.own_offers_ignored = self.busy_rejects = self.retries_sent = 0
+        self.grace = {"limit_us": self.grace["limit_us"], "waits": 0, "missed": 0, "waited_us_total": 0.0}
+        self._grace_streak = self._grace_resume = 0
+        self._bye_sent = False
+
+    # --- the end ------------------------------------------------------------------------------
+    def _end(self, reason: EndReason, now_ns: int) -> None:
+        """The ticks are over: linger (unless replaced: its operator is gone), then close."""
+        self._ended = reason
+        if reason == EndReason.REPLACED:
+            self._close()
+            return
+        if reason == EndReason.PEER_SILENT:
+            # Nobody to linger for: the session ends at once and the robot waits for an operator
+            # again (a late one of this session gets welcomed as a rejoin, PROTOCOL.md 4.4).
+            self._close()
+            self._listen_again(now_ns)
+            return
+        self.state = State.LINGER
+        self._linger_end = now_ns + self.linger_ns
+        self._bye_sent = False
+        self._linger(now_ns)
+
+    def _shim_due_ns(self) -> int | None:
+        assert self.port is not None
+        due = self.port.next_due()
+        return None if due is None else self.start_ns + round(due * 1e9)
+
+    def _linger(self, now_ns: int) -> None:
+        """Deliver what the shim still holds, say bye, and count what is still in flight, so that
+        sender and receiver counts can be compared; the bye tells the receiver how many packets
+        there were."""
+        port, params = self.port, self.params
+        assert port is not None and params is not None
+        if not self._bye_sent:
+            for data in port.flush(self.session_time(now_ns), max(port.rec.last, 0)):
+                self._out.append((data, self._peer()))
+            if port.next_due() is None or now_ns >= self._linger_end + LINGER_SHIM_GRACE_NS:
+                shim = port.shim_stats()
+                bye = protocol.Bye(
+                    params.session, port.produced(), shim["dropped_by_limit"] if shim else 0, self.fault_why
+                )
+                # Sealed one by one: each copy its own counter (a byte-identical copy is a replay).
+                self._out += [(port.seal(bye), self._peer()) for _ in range(BYE_COPIES)]
+                self._bye_sent = True
+        if self._bye_sent and now_ns >= self._linger_end:
+            self._close()
+
+    def _close(self) -> None:
+        assert self._ended is not None
+        summary = self.summary()
+        self.state = State.CLOSED
+        self._events.append(SessionEnded(self._ended, summary))
+
+    def summary(self) -> EndpointSummary:
+        """This session's figures: the port's, and the session's around it (the runner adds the
+        loop's, the process's and the transport's: :class:`teleop.session.summary.ProcessSummary`)."""
+        port, params = self.port, self.params
+        assert port is not None and params is not None
+        bye = self.peer_bye
+        shim = port.shim_stats()
+        spec_tx = params.netem_forward if self.role == "operator" else params.netem_backward
+        ended = self._ended
+        completed = ended == EndReason.COMPLETED or (
+            params.until_stopped and ended in (EndReason.STOPPED, EndReason.PEER_BYE)
+        )
+        return EndpointSummary(
+            role=self.role,
+            peer=_addr(self._peer()),
+            completed=bool(completed),
+            end=ended.value if ended else None,
+            peer_said_bye=bye is not None,
+            first_tick=self.k0,
+            replaced_by_new_session=ended == EndReason.REPLACED,
+            rejoin=RejoinFigures(
+                offers=self.rejoin_offers,
+                retries=self.rejoin_retries,
+                rejoins=self.rejoins,
+                own_offers_ignored=self.own_offers_ignored,
+            ),
+            busy_rejects=self.busy_rejects,
+            handshake_throttled=self._limiter.dropped,
+            oversize_refused=self.oversize,
+            retries_sent=self.retries_sent,
+            foreign=self.foreign,
+            shim={"spec": spec_tx, **shim} if shim else None,
+            grace=dict(self.grace),
+            params=params,
+            handshake=dict(self._handshake_info),
+            port=port.summary(
+                peer_produced=bye.produced if bye else None,
+                peer_dropped_by_limit=bye.dropped_by_limit if bye else 0,
+            ),
+            fault=self.fault_why or (bye.why if bye is not None else ""),
+        )
+
+
+# A real loop and transport deliver a payload a fraction of a tick late now and then (a stalled
+# sender, the scheduler, Zenoh's threads): ``--playout auto`` keeps one tick of allowance for that.
+REAL_PLAYOUT_FLOOR_TICKS = 1
+
+
+def session_port(
+    role: str,
+    params: SessionParams,
+    k0: int,
+    keys: PortKeys,
+    *,
+    header_bytes: int,
+    sink: Any = None,
+    device: str | None = None,
+    playout_floor: int = REAL_PLAYOUT_FLOOR_TICKS,
+) -> Port:
+    """A session's port as a real process runs it: its node (``device`` or the scenario's), its
+    outgoing shim (seeded as in ``teleop sim``), its counters, and ``sink`` for the record."""
+    from teleop.session.port import make_node, make_shim
+
+    node = make_node(
+        role,
+        scenario=params.scenario,
+        dof=params.dof,
+        dt=params.dt,
+        b=params.b,
+        codec=params.codec,
+        full_scale=params.full_scale,
+        session=params.session,
+        options=params.port_options(),
+        device=device,
+        seed=params.seed,
+        variation=params.variation,
+    )
+    fwd, bwd = params.netem_forward, params.netem_backward
+    spec_tx, spec_rx = (fwd, bwd) if role == "operator" else (bwd, fwd)
+    return Port(
+        node,
+        ticks=params.ticks,
+        shim=make_shim(spec_tx, params.seed, node.tx_direction),
+        peer_spec=spec_rx,
+        header_bytes=header_bytes,
+        first_tick=k0,
+        keys=keys,
+        playout_floor=playout_floor,
+        sink=sink,
+        window_ticks=max(1, round(0.1 / params.dt)),
+    )

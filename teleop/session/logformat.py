@@ -1,0 +1,22 @@
+"""The log format: a session's MCAP topics and the per-tick fields each carries.
+
+Here, beside the port whose chunks fill them, so the writer (``transport.mcaplog``) and the reader
+(``teleop.offline.logfile``) import one definition and cannot drift apart.
+"""
+
+from __future__ import annotations
+
+PER_TICK_TOPICS = ("signals", "waves", "energy", "wire", "loop")
+TOPICS = (*PER_TICK_TOPICS, "link", "events", "session", "summary")
+
+#: /ROLE/wire fields and the chunk arrays they come from.
+WIRE_FIELDS = {
+    "send_time": "send_time_s", "tx_seq": "tx_seq", "rx_seq": "rx_seq",
+    "produced_payload": "produced_payload", "produced_packet": "produced_packet",
+    "tx_wire": "tx_wire", "tx_payload": "tx_payload", "tx_baseline_wire": "tx_baseline_wire",
+    "tx_baseline_payload": "tx_baseline_payload", "rx_wire": "rx_wire", "rx_payload": "rx_payload",
+}  # fmt: skip
+ENERGY_FIELDS = {
+    "sent": "energy_sent", "played": "energy_played", "margin_observed": "energy_margin_observed",
+    "played_epoch": "energy_played_epoch", "peer_epoch": "peer_epoch",
+}  # fmt: skip

@@ -1,0 +1,460 @@
+"""One session's channel settings, and the one place each of their defaults is set.
+
+A session's settings have three users: the command line, ``teleop sim``
+(:class:`teleop.offline.sim.SimConfig`) and the handshake (:class:`teleop.session.protocol.SessionParams`,
+what both processes agree on); the ports get theirs from either through
+:meth:`teleop.session.node.PortOptions.of`.  All of them are :class:`Channel`:
+the fields below are declared here once, with their defaults, and checked here once
+(:meth:`Channel.checked`), so a real session and its simulation cannot disagree on what an option
+left out means.  What a *missing* optional field of a hello means is the protocol's business, not
+a default: see :data:`teleop.session.protocol.WIRE_ABSENT`.
+
+The model's settings (scenario, DoF, b, range, duration) default to the scenario's
+(:mod:`teleop.devices.scenarios`); the codec to the command's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from teleop import limits
+from teleop.control.passivity import DEFAULT_LINK_TIMEOUT, ON_LOSS
+from teleop.control.ratecap import RateCap
+from teleop.session.link.netem import NetemError, make_link
+from teleop.session.playout import MAX_EXTRA_MS, parse_playout
+
+#: The two architectures: scattering waves (eq. 3-5) or TDPA on power variables (teleop.control.passivity).
+PASSIVITY = ("wave", "tdpa")
+#: What an operator proposes when not told (``teleop operator`` and ``teleop run``): the codec that
+#: cuts 98% of the packets at the paper's protocol, and the paper's Section VI task.
+DEFAULT_CODEC = "eds:50"
+DEFAULT_SCENARIO = "protocol"
+
+
+@dataclass(frozen=True, kw_only=True)
+class Channel:
+    """How the channel between the two ports behaves: impairment, reconstruction, passivity.
+
+    Text fields hold the canonical spelling, which is also what a hello carries; :meth:`checked`
+    parses each once and says what is wrong."""
+
+    netem_forward: str = ""  # impairment of operator -> TO (applied by the operator's shim)
+    netem_backward: str = ""  # impairment of TO -> operator (applied by the TO's shim)
+    seed: int = 0  # link seeds: 2 seed forward, 2 seed + 1 backward (a spec's own ``seed N`` wins)
+    on_loss: str = "conceal"  # receivers' reconstruction when nothing is queued (teleop.control.passivity)
+    controller: bool = True  # passivity controller on both receivers
+    link_timeout: float = DEFAULT_LINK_TIMEOUT  # s of silence before a side goes to its safe state
+    rate_cap: float = 0.0  # bit/s per direction in any 100 ms window (teleop.control.ratecap); 0: none
+    playout: str = "auto"  # receivers' playout buffer: off, auto or extra ms (teleop.session.playout)
+    variation: float = 0.0  # scale of the human's seeded variation (devices.models.ProtocolPlan); 0: none
+    passivity: str = "wave"  # "wave" (scattering, eq. 3-5) or "tdpa" (power variables + TDPA)
+
+    def check_channel(self, *, netem_files: bool) -> str:
+        """Check every channel field; return the canonical playout (ValueError says what is wrong).
+
+        ``netem_files``: a ``trace FILE`` spec is loaded to check it (settings typed locally); a
+        peer's settings never open a file (:meth:`teleop.session.protocol.SessionParams.from_msg` checks
+        their specs without it)."""
+        if self.on_loss not in ON_LOSS:
+            raise ValueError(f"on_loss must be one of {', '.join(ON_LOSS)}, got {self.on_loss!r}")
+        if not self.link_timeout > 0:
+            raise ValueError(f"link_timeout must be > 0 s, got {self.link_timeout!r}")
+        if self.rate_cap:
+            RateCap(self.rate_cap, 1e-3)  # ValueError saying the allowed range
+        if self.passivity not in PASSIVITY:
+            raise ValueError(f"passivity must be one of {', '.join(PASSIVITY)}, got {self.passivity!r}")
+        if netem_files:
+            for name in ("netem_forward", "netem_backward"):
+                text = getattr(self, name)
+                if not text.strip():
+                    continue
+                try:
+                    make_link(text, self.seed)  # NetemError (a ValueError) names the bad token
+                except NetemError as e:  # a trace file refused (teleop.files): say for which direction
+                    if text.split()[:1] == ["trace"]:
+                        raise ValueError(f"{name}: {e}") from None
+                    raise
+        return parse_playout(self.playout)
+
+    def channel_fields(self) -> dict[str, Any]:
+        """This object's :class:`Channel` fields, to build another settings type from them."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(Channel)}
+
+    @classmethod
+    def fields_from(cls, m: Mapping[str, Any]) -> dict[str, Any]:
+        """The :class:`Channel` fields present in ``m`` (the rest keep their defaults)."""
+        return {f.name: m[f.name] for f in dataclasses.fields(Channel) if f.name in m}
+
+
+#: Every default in one object: ``DEFAULTS.playout`` is what a left-out ``--playout`` means.
+DEFAULTS = Channel()
+
+
+# --- the robot's envelope ------------------------------------------------------------------------
+
+
+def _num(x: float) -> str:
+    """A number as a reject reason says it: ``0.25``, ``1e+06``."""
+    return f"{x:g}"
+
+
+class Proposal(Protocol):
+    """What :meth:`Envelope.check` reads of a proposed session (``teleop.session.protocol.SessionParams``)."""
+
+    @property
+    def codec(self) -> str: ...
+    @property
+    def dof(self) -> int: ...
+    @property
+    def b(self) -> float: ...
+    @property
+    def full_scale(self) -> float: ...
+    @property
+    def dt(self) -> float: ...
+    @property
+    def on_loss(self) -> str: ...
+    @property
+    def controller(self) -> bool: ...
+    @property
+    def link_timeout(self) -> float: ...
+    @property
+    def playout(self) -> str: ...
+    @property
+    def passivity(self) -> str: ...
+
+
+@dataclass(frozen=True)
+class Envelope:
+    """The robot's own limits: what it affords whatever a key-holding operator proposes.
+
+    A key proves who the operator is, not that its settings are safe (DESIGN.md): every setting an
+    operator proposes is held to one of these by the rule :data:`SETTINGS` gives it, and a proposal
+    outside them is refused with a reject naming the field and the limit.  The robot also saturates
+    what it is commanded to ``max_velocity`` and ``max_force`` per DoF (``teleop.session.node``: saturation
+    only removes energy), and its energy guard is bounded by these numbers, never the operator's.
+    The defaults are the built-in scenarios' own (range 2, b 1 to 20) with room for their peaks
+    (1.0 m/s and 7 N measured in every Section V and VI run)."""
+
+    max_range: float = 2.0  # sqrt(W): the largest wave range of any codec the robot plays (CQ's RANGE too)
+    min_b: float = 1.0  # N s/m: a low impedance turns a small wave into a fast motion (v = sqrt(2/b) g)
+    max_b: float = 20.0  # N s/m: a high one into a large force (F = sqrt(2 b) g)
+    max_dof: int = limits.MAX_DOF  # the robot device's own (teleop.devices.max_dof)
+    dt: float = 0.001  # s: the robot's own period; a session runs at it or not at all
+    passivity: tuple[str, ...] = ("wave", "tdpa")  # the architectures this robot runs
+    on_loss: tuple[str, ...] = ON_LOSS  # the reconstructions it plays on a loss
+    # The reconstructions it plays with the passivity controller off: none (the default) refuses the
+    # controller off; a robot that allows it names which (zero is passive; hold and conceal are not).
+    uncontrolled_on_loss: tuple[str, ...] = ()
+    max_link_timeout: float = 0.25  # s: the longest it keeps acting on a silent link
+    max_playout_ms: float = 200.0  # ms: the largest fixed playout delay it adds
+    max_velocity: float = 1.5  # m/s per DoF: what it is ever commanded
+    max_force: float = 50.0  # N per DoF: the contact force it pushes to at most
+
+    def __post_init__(self) -> None:
+        for name in ("max_range", "min_b", "max_b", "max_link_timeout", "max_velocity", "max_force", "dt"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+        if self.min_b > self.max_b:
+            raise ValueError(f"min_b {_num(self.min_b)} must not exceed max_b {_num(self.max_b)}")
+        if not 0 <= self.max_playout_ms <= MAX_EXTRA_MS:
+            raise ValueError(f"max_playout_ms must be 0..{_num(MAX_EXTRA_MS)}, got {self.max_playout_ms!r}")
+        if not set(self.passivity) <= set(PASSIVITY) or not self.passivity:
+            raise ValueError(f"passivity must be some of {', '.join(PASSIVITY)}, got {self.passivity!r}")
+        if not set(self.on_loss) <= set(ON_LOSS) or not self.on_loss:
+            raise ValueError(f"on_loss must be some of {', '.join(ON_LOSS)}, got {self.on_loss!r}")
+        if not set(self.uncontrolled_on_loss) <= set(ON_LOSS):
+            raise ValueError(
+                f"uncontrolled_on_loss must be some of {', '.join(ON_LOSS)}, "
+                f"got {self.uncontrolled_on_loss!r}"
+            )
+
+    def check(self, p: Proposal) -> str | None:
+        """The first proposed setting outside this envelope, said as a reject reason (the field,
+        what was proposed, the limit and the robot's flag that sets it), or None.  Each field's
+        rule is the one :data:`SETTINGS` documents."""
+        for field_name, got, lo, hi, unit in (
+            ("range", p.full_scale, None, self.max_range, ""),
+            ("b", p.b, self.min_b, self.max_b, " N s/m"),
+            ("dof", p.dof, None, self.max_dof, ""),
+            ("link_timeout", p.link_timeout, None, self.max_link_timeout, " s"),
+        ):
+            flags = ROBOT_FLAGS[field_name]
+            if hi is not None and got > hi:
+                limit = f"this robot's limit {_num(hi)}{unit} ({flags[-1]})"
+                return f"{field_name} {_num(got)}{unit} exceeds {limit}"
+            if lo is not None and got < lo:
+                limit = f"this robot's limit {_num(lo)}{unit} ({flags[0]})"
+                return f"{field_name} {_num(got)}{unit} is below {limit}"
+        if p.dt != self.dt:
+            return f"dt {_num(p.dt)} is not this robot's period {_num(self.dt)} s (a session runs at it)"
+        if p.passivity not in self.passivity:
+            return (
+                f"passivity {p.passivity} is not allowed by this robot, which runs "
+                f"{', '.join(self.passivity)} (--allow-passivity)"
+            )
+        if not p.controller and not self.uncontrolled_on_loss:
+            return "controller off is not allowed by this robot (--allow-no-controller)"
+        allowed = self.on_loss if p.controller else self.uncontrolled_on_loss
+        if p.on_loss not in allowed:
+            if p.controller:
+                return (
+                    f"on_loss {p.on_loss} is not allowed by this robot; it allows "
+                    f"{', '.join(allowed)} (--allow-on-loss)"
+                )
+            return (
+                f"on_loss {p.on_loss} is not allowed by this robot without the passivity controller; "
+                f"it allows {', '.join(allowed)} there (--allow-no-controller)"
+            )
+        if p.playout not in ("off", "auto") and float(p.playout) > self.max_playout_ms:
+            return (
+                f"playout {p.playout} ms exceeds this robot's limit {_num(self.max_playout_ms)} ms "
+                "(--max-playout)"
+            )
+        return self._check_codec(p)
+
+    def _check_codec(self, p: Proposal) -> str | None:
+        """Every wave range the proposed codec would play (CQ's RANGE included) within
+        ``max_range``: the range bounds the power the robot may be commanded with
+        (P <= b range^2 / 2 per DoF in waves; TDPA's power ranges follow from it and b)."""
+        needed = codec_range(p)
+        if needed > self.max_range * (1 + 1e-12):
+            return (
+                f"codec {p.codec} plays a wave range of {_num(needed)}, beyond this robot's limit "
+                f"{_num(self.max_range)} (--max-range)"
+            )
+        return None
+
+    def admitting(self, p: Proposal) -> Envelope:
+        """This envelope widened just enough to admit ``p``: the robot of a user who chose ``p``
+        for both sides (``teleop run``'s teleoperator, ``teleop sim``'s robot), and nothing more."""
+        fixed = p.playout not in ("off", "auto")
+        return dataclasses.replace(
+            self,
+            max_range=max(self.max_range, p.full_scale, codec_range(p)),
+            min_b=min(self.min_b, p.b),
+            max_b=max(self.max_b, p.b),
+            max_dof=max(self.max_dof, p.dof),
+            dt=p.dt,
+            passivity=tuple(dict.fromkeys((*self.passivity, p.passivity))),
+            on_loss=tuple(dict.fromkeys((*self.on_loss, p.on_loss))),
+            uncontrolled_on_loss=self.uncontrolled_on_loss
+            if p.controller
+            else tuple(dict.fromkeys((*self.uncontrolled_on_loss, p.on_loss))),
+            max_link_timeout=max(self.max_link_timeout, p.link_timeout),
+            max_playout_ms=max(self.max_playout_ms, float(p.playout) if fixed else 0.0),
+        )
+
+
+def codec_range(p: Proposal) -> float:
+    """The largest wave range (sqrt(W)) the proposed codec plays: the session's range, or CQ's own
+    RANGE; under TDPA the wave range its power ranges (``teleop.session.port.power_ranges``) stand for.
+    0 for a codec spec that does not parse (the handshake's own checks say what is wrong)."""
+    from teleop.control.codecs import CodecError, make_codec
+
+    tdpa = p.passivity == "tdpa"
+    # (the range the port gives the codec, what one unit of wave range is in that range)
+    ranges = (
+        [
+            (p.full_scale * math.sqrt(2.0 / p.b), math.sqrt(2.0 / p.b)),
+            (p.full_scale * math.sqrt(2.0 * p.b), math.sqrt(2.0 * p.b)),
+        ]
+        if tdpa
+        else [(p.full_scale, 1.0)]
+    )
+    needed = 0.0
+    for session_range, unit in ranges:
+        try:
+            c = make_codec(p.codec, p.dof, session_range, power=tdpa)
+        except CodecError:
+            return 0.0
+        needed = max(needed, c.raw.full_scale / unit)
+    return needed
+
+
+DEFAULT_ENVELOPE = Envelope()
+
+
+# --- the settings table --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One session setting: where it is typed, what it is called in a hello, and the robot's rule."""
+
+    field: str  # the attribute of SessionParams (and SimConfig)
+    key: str  # its key in a hello's parameters (PROTOCOL.md 4.2)
+    default: str | None  # what it is when no one says; None: a channel field's, read from DEFAULTS
+    proposable: bool  # may the operator propose it?
+    rule: str  # the robot's rule: pin, cap, floor, allowed set, or its own
+    flag: str | None  # the operator's command-line flag (None: not typed)
+    robot_flags: tuple[str, ...] = ()  # the robot's flags that set its rule
+
+
+#: Every setting of a session, once: the hello's keys (``SessionParams.to_msg``), the robot's rules
+#: (:class:`Envelope`, ``teleop.session.protocol.Pins``), its command-line flags and the docs' table
+#: (``tools/docgen.py``) are all read from here.
+SETTINGS: tuple[Setting, ...] = (
+    Setting("session", "session", "random", True, "the operator's: a fresh id per session", "--session"),
+    Setting(
+        "codec",
+        "codec",
+        DEFAULT_CODEC,
+        True,
+        "pinned by --codec; every range it plays (CQ's RANGE included) capped by --max-range",
+        "--codec",
+        ("--codec", "--max-range"),
+    ),
+    Setting(
+        "scenario", "scenario", DEFAULT_SCENARIO, True, "pinned by --scenario", "--scenario", ("--scenario",)
+    ),
+    Setting(
+        "dof",
+        "dof",
+        "the scenario's",
+        True,
+        "pinned by --dof; the robot device's own DoF",
+        "--dof",
+        ("--dof",),
+    ),
+    Setting(
+        "b",
+        "b",
+        "the scenario's",
+        True,
+        f"pinned by --b; within --min-b and --max-b (default {_num(DEFAULT_ENVELOPE.min_b)} to "
+        f"{_num(DEFAULT_ENVELOPE.max_b)} N s/m)",
+        "--b",
+        ("--b", "--min-b", "--max-b"),
+    ),
+    Setting(
+        "full_scale",
+        "range",
+        "the scenario's",
+        True,
+        f"pinned by --range; capped by --max-range (default {_num(DEFAULT_ENVELOPE.max_range)})",
+        "--range",
+        ("--range", "--max-range"),
+    ),
+    Setting(
+        "duration", "duration", "the scenario's", True, "pinned by --duration", "--duration", ("--duration",)
+    ),
+    Setting("dt", "dt", "0.001 s", False, "the robot's own period: anything else is refused", None),
+    Setting("phase", "phase", "0.5", True, "the operator's, in [0, 1) periods", "--phase"),
+    Setting(
+        "netem_forward",
+        "netem_forward",
+        None,
+        True,
+        "pinned by --netem/--netem-forward; a trace FILE only if the robot named it",
+        "--netem-forward",
+        ("--netem", "--netem-forward"),
+    ),
+    Setting(
+        "netem_backward",
+        "netem_backward",
+        None,
+        True,
+        "pinned by --netem/--netem-backward; a trace FILE only if the robot named it",
+        "--netem-backward",
+        ("--netem", "--netem-backward"),
+    ),
+    Setting("seed", "seed", None, True, "the operator's (seeds the shims and the human)", "--seed"),
+    Setting(
+        "on_loss",
+        "on_loss",
+        None,
+        True,
+        "one of --allow-on-loss (default all); without the controller one of --allow-no-controller's",
+        "--on-loss",
+        ("--allow-on-loss",),
+    ),
+    Setting(
+        "controller",
+        "controller",
+        None,
+        True,
+        "refused off unless the robot says --allow-no-controller [LIST] (default zero)",
+        "--no-controller",
+        ("--allow-no-controller",),
+    ),
+    Setting(
+        "link_timeout",
+        "link_timeout",
+        None,
+        True,
+        f"capped by --max-link-timeout (default {_num(DEFAULT_ENVELOPE.max_link_timeout * 1e3)} ms)",
+        "--link-timeout",
+        ("--max-link-timeout",),
+    ),
+    Setting(
+        "rate_cap",
+        "rate_cap",
+        None,
+        True,
+        "pinned by --rate-cap (a cap only holds payloads back: it removes energy, never adds)",
+        "--rate-cap",
+        ("--rate-cap",),
+    ),
+    Setting(
+        "playout",
+        "playout",
+        None,
+        True,
+        f"a fixed delay capped by --max-playout (default {_num(DEFAULT_ENVELOPE.max_playout_ms)} ms)",
+        "--playout",
+        ("--max-playout",),
+    ),
+    Setting("variation", "variation", None, True, "the operator's (the human's variation)", "--variation"),
+    Setting(
+        "passivity",
+        "passivity",
+        None,
+        True,
+        "one of --allow-passivity (default wave,tdpa)",
+        "--passivity",
+        ("--allow-passivity",),
+    ),
+)
+
+#: The robot's flags of each envelope check, by the field name a reject reason says.
+ROBOT_FLAGS: dict[str, tuple[str, ...]] = {
+    "range": ("--max-range",),
+    "b": ("--min-b", "--max-b"),
+    "dof": ("--robot",),
+    "link_timeout": ("--max-link-timeout",),
+}
+
+
+def _default_text(s: Setting) -> str:
+    """A setting's default as the docs' table says it: a channel field's is read from DEFAULTS."""
+    if s.default is not None:
+        return s.default
+    v = getattr(DEFAULTS, s.field)
+    if s.field == "link_timeout":
+        return f"{_num(v * 1e3)} ms"
+    if s.field == "on_loss":
+        return f"{v} (zero without the controller)"
+    if isinstance(v, bool):
+        return "on" if v else "off"
+    if v in ("", 0.0):
+        return "none" if s.field in ("netem_forward", "netem_backward", "rate_cap") else str(v)
+    return str(v)
+
+
+def settings_table() -> str:
+    """The docs' table of :data:`SETTINGS` (Markdown), generated: nothing about it is typed twice."""
+    rows = [
+        "| setting | hello key | default | operator proposes | robot's rule | operator flag |",
+        "|---|---|---|---|---|---|",
+    ]
+    for s in SETTINGS:
+        rows.append(
+            f"| {s.field} | `{s.key}` | {_default_text(s)} | {'yes' if s.proposable else 'no'} | {s.rule} | "
+            f"{f'`{s.flag}`' if s.flag else '-'} |"
+        )
+    return "\n".join(rows) + "\n"
