@@ -7,6 +7,7 @@ reserved ``.invalid`` name are used.
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -19,7 +20,7 @@ import teleop.offline.sim
 import transport.session
 from teleop import limits
 from teleop.cli import build_parser, main
-from teleop.cli.settings import writable_dir
+from teleop.cli.settings import private_dir
 
 BAD_HOST = "no-such-host.invalid"
 PEER = ["--peer", "127.0.0.1:9", "--connect-timeout", "1"]
@@ -187,8 +188,8 @@ def test_unwritable_report_folder(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert f"--out {bad.parent}: cannot create or write to this folder: {bad.parent} is a file" in err
 
 
-def test_writable_dir_creates_and_leaves_nothing(tmp_path: Path) -> None:
-    d = writable_dir(tmp_path / "a" / "b", "--out")
+def test_private_dir_creates_and_leaves_nothing(tmp_path: Path) -> None:
+    d = private_dir(tmp_path / "a" / "b", "--out")
     assert d.is_dir() and list(d.iterdir()) == []
 
 
@@ -278,3 +279,34 @@ def test_the_tripwire_sees_a_session(argv: list[str], tmp_path: Path) -> None:
     out = ["--out", str(tmp_path)] if argv[0] in ("sim", "run") else ["--log", str(tmp_path)]
     with pytest.raises(SessionStarted):
         main([*argv, *out])
+
+
+def test_an_out_folder_others_can_write_on_the_way_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--out`` is walked like a log folder (``teleop.files.open_dir``): a folder on the way that
+    another user could rename in (0777 without the sticky bit) is refused before any work."""
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)
+    err = _error(["sim", "--duration", "0.1", "--out", str(shared / "out")], capsys)
+    assert f"--out {shared / 'out'}: the folder {shared} on the way is writable by other users" in err
+    assert not (shared / "out").exists()
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="planting a symlink as another user (nobody) needs root")
+@pytest.mark.parametrize("command", [["sim", "--duration", "0.1"], ["sweep", "--duration", "0.1"]])
+def test_an_out_folder_that_is_another_users_symlink_is_never_written_through(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], command: list[str]
+) -> None:
+    """A symlink planted as ``--out`` by another user in a sticky shared folder (``/tmp``'s kind)
+    is refused, and nothing lands where it points."""
+    sticky, victim = tmp_path / "sticky", tmp_path / "victim"
+    sticky.mkdir()
+    sticky.chmod(0o1777)
+    victim.mkdir()
+    (sticky / "out").symlink_to(victim)
+    os.lchown(sticky / "out", 65534, 65534)
+    err = _error([*command, "--out", str(sticky / "out")], capsys)
+    assert "is a symlink of uid 65534 that another user could have placed" in err
+    assert list(victim.iterdir()) == []

@@ -30,7 +30,7 @@ from teleop.cli.args import (
     int_range,
     nonneg_float,
 )
-from teleop.cli.settings import channel, check_duration, fresh_out, sim_config, writable_dir
+from teleop.cli.settings import channel, check_duration, fresh_out, private_dir, sim_config
 from teleop.control.codecs import ACCEPTED
 from teleop.devices.scenarios import SCENARIOS
 from teleop.files import write_new
@@ -132,7 +132,7 @@ def _real_runs(args: argparse.Namespace, codecs: list[str], out: Path, progress:
     # slows every codec alike, instead of the codecs that happen to run last.
     for seed in range(args.seed, args.seed + args.runs):
         for spec in codecs:
-            folder = writable_dir(out / "runs" / f"{safe_name(spec)}-seed{seed}", "--out")
+            folder = private_dir(out / "runs" / f"{safe_name(spec)}-seed{seed}", "--out")
             r, rc = _real_run(args, spec, seed, folder)
             runs.append(r)
             progress.step(f"{spec} seed {seed}" + (f" FAILED: {r.error}" if r.error else ""))
@@ -155,7 +155,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
         raise CliError("--transport and --keep-logs apply to real sessions: add --real")
     if args.real and args.delay:
         raise CliError("--delay is for the simulation; real sessions take --netem 'delay N ms'")
-    out = writable_dir(Path(args.out), "--out")
+    out = private_dir(Path(args.out), "--out")
     fresh_out(out, ["experiment.json", "runs"])  # a run's report.json is read back: none stale
     codecs = list(dict.fromkeys(args.codec or SECTION_V_CODECS))
     where = f"real sessions over {args.transport}" if args.real else "simulation"

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from teleop.cli.args import CliError, Subcommands, session_id
-from teleop.cli.settings import writable_dir
+from teleop.cli.settings import private_dir
 
 #: What a log whose summary was edited or damaged can raise while the report reads it: one line.
 _DAMAGE = (KeyError, TypeError, ValueError, ArithmeticError, IndexError, AttributeError)
@@ -86,7 +86,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     logs = Path(args.logs)
     if not logs.is_dir():
         raise CliError(f"{logs}: not a folder: pass the folder both processes wrote with --log")
-    out = writable_dir(Path(args.out) if args.out else logs.parent, "--out")
+    out = private_dir(Path(args.out) if args.out else logs.parent, "--out")
     write_report(logs, out, args, args.transport, session=args.session)
     return 0
 

@@ -43,7 +43,7 @@ from teleop.cli.args import (
 )
 from teleop.cli.endpoints import envelope_flags
 from teleop.cli.report import write_report
-from teleop.cli.settings import check_robot, private_dir, read_key, session_params, writable_dir
+from teleop.cli.settings import check_robot, private_dir, read_key, session_params
 from teleop.session.settings import DEFAULT_CODEC, DEFAULT_ENVELOPE, DEFAULT_SCENARIO, SETTINGS, Setting
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
@@ -307,7 +307,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     params = session_params(args, new_session_id())
     check_robot(args.robot, params.dof)
-    out = writable_dir(Path(args.out), "--out")
+    out = private_dir(Path(args.out), "--out")
     logs = private_dir(out / "logs", "--out")
     # Logs of earlier runs stay: this run's files get names of their own (transport.logdir), and
     # the report pairs them by this session's id.

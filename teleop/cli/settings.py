@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -50,23 +49,10 @@ def _file_in_the_way(path: Path) -> Path | None:
     return None
 
 
-def writable_dir(path: Path, option: str) -> Path:
-    """Create ``path`` and check a file can be created in it; CliError naming the path and why not."""
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(dir=path, prefix=".teleop-write-check-")
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as e:
-        blocker = _file_in_the_way(path)
-        why = f"{blocker} is a file, not a folder" if blocker is not None else (e.strerror or str(e))
-        raise CliError(f"{option} {path}: cannot create or write to this folder: {why}") from None
-    return path
-
-
 def private_dir(path: Path, option: str) -> Path:
-    """A log folder, opened where the user named it (``teleop.files.open_dir``: never through a
-    symlink another user could have placed, on the way or as the folder), made 0755 if missing
+    """An output or log folder (every ``--out`` and ``--log``), opened where the user named it
+    (``teleop.files.open_dir``: never through a symlink another user could have placed, on the way
+    or as the folder), made 0755 if missing
     (whatever the umask: a umask of 002 would make it group-writable, and refused), refused if
     another user can write it or a folder on the way, and checked writable; CliError says why.
     ``transport.logdir.reserve`` walks it again."""

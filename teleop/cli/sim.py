@@ -17,7 +17,7 @@ from teleop.cli.args import (
     codec,
     nonneg_float,
 )
-from teleop.cli.settings import check_duration, fresh_out, sim_config, writable_dir
+from teleop.cli.settings import check_duration, fresh_out, private_dir, sim_config
 from teleop.control.codecs import ACCEPTED, CodecError
 from teleop.devices import describe
 from teleop.devices.scenarios import SCENARIOS
@@ -132,7 +132,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     sc = SCENARIOS[args.scenario]
     duration = args.duration if args.duration is not None else sc.duration
     check_duration(duration, args.dof if args.dof is not None else sc.dof, in_memory=True)
-    out = writable_dir(Path(args.out), "--out") if args.out is not None else None
+    out = private_dir(Path(args.out), "--out") if args.out is not None else None
     if out is not None:
         fresh_out(out, ["results.json"])
     codecs = args.codec or list(SECTION_V_CODECS)

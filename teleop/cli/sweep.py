@@ -17,7 +17,7 @@ from teleop.cli.args import (
     codec,
     int_range,
 )
-from teleop.cli.settings import check_duration, fresh_out, sim_config, writable_dir
+from teleop.cli.settings import check_duration, fresh_out, private_dir, sim_config
 from teleop.control.codecs import ACCEPTED, CodecError
 from teleop.devices.scenarios import SCENARIOS
 from teleop.files import write_new
@@ -54,7 +54,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     sc = SCENARIOS[args.scenario]
     duration = args.duration if args.duration is not None else sc.duration
     check_duration(duration, args.dof if args.dof is not None else sc.dof)
-    out = writable_dir(Path(args.out), "--out")
+    out = private_dir(Path(args.out), "--out")
     netems = list(dict.fromkeys(args.netem or [None]))  # one front per --netem, in order, each once
     passivities = list(dict.fromkeys(args.passivity or ["wave"]))
     many = len(netems) * len(passivities) > 1
