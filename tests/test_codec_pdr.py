@@ -138,14 +138,14 @@ def test_reflection_finds_a_constant_coefficient(g: np.ndarray, rho: float) -> N
 @pytest.mark.parametrize(
     "spec,msg",
     [
-        ("pdr", "takes PCT"),
+        ("pdr", "takes pdr:PCT"),
         ("pdr:0", "PCT must be in"),
         ("pdr:101", "PCT must be in"),
         ("pdr:x", "PCT must be a number"),
         ("pdr:1:0", "MAXMS must be in"),
         ("pdr:1:1.5", "MAXMS must be an integer"),
-        ("pdr:1:100:3:1", "takes PCT"),
-        ("pdr:1:100:1:2:3:4:5:6", "takes PCT"),
+        ("pdr:1:100:3:1", "takes pdr:PCT"),
+        ("pdr:1:100:1:2:3:4:5:6", "takes pdr:PCT"),
         ("pdr:1:100:0", "BPCT must be in"),
         ("pdr:1:100:x", "BPCT must be a number"),
         ("pdr:1:100:1:x:100", "FR must be a number"),

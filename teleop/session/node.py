@@ -179,7 +179,7 @@ class _Port:
         self.datagram_overhead = auth.OVERHEAD + 28
         self.guard = self._make_guard(dt, opts, wave, tx, rx)
         # A codec whose reconstruction refers to the wave this side receives (pdr, eq. 3's
-        # reflection) pairs its two ends here, and a pooling one (pdr's POOL) its guard; the others
+        # reflection) pairs its two ends here, and a self-crediting one (pdr's cKAPPA) its guard; the others
         # have no ``pair``.
         pair = getattr(self.encoder, "pair", None)
         if pair is not None:
@@ -422,9 +422,9 @@ class _Port:
             round(now * 1e6),
             self.tx_codec.codec_id,
             payload,
-            # Plus what this side's guard granted the direction it sends (pooling, eq. 5 over both
-            # directions; 0.0 otherwise, which leaves the sum bit for bit).
-            self.energy_sent + self.encoder.granted,
+            # Less what this side self-credited (pdr's cKAPPA, eq. 1 via 4; 0.0 otherwise, which
+            # leaves the sum bit for bit).
+            self.energy_sent - self.encoder.withheld,
         )
         cap = self.rate_cap
         if cap is not None:
