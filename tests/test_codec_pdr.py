@@ -27,6 +27,7 @@ from teleop.control.codecs.reflective import (
 from teleop.control.passivity import EnergyGuard
 from teleop.offline.sim import SimConfig, run_case
 from teleop.session import wire
+from teleop.session.settings import Passivity
 from tests.test_watchdog_matrix import IMPAIRMENTS
 from tests.test_watchdog_matrix import run as run_matrix_case
 
@@ -212,7 +213,7 @@ def test_split_loop_is_passive_and_in_step(x: np.ndarray, spec: str, keep: list[
 
 
 @pytest.mark.parametrize("passivity", ["wave", "tdpa"])
-def test_winner_in_the_sim_beats_pdp_on_packets_and_stays_passive(passivity: str) -> None:
+def test_winner_in_the_sim_beats_pdp_on_packets_and_stays_passive(passivity: Passivity) -> None:
     """The frontier point, measured short: fewer packets than pdp:1 each way at zero delay."""
     s = run_case(SimConfig(codec=WINNER, scenario="protocol", duration=6.0, passivity=passivity)).summary
     assert s["passive"] and s["min_energy_margin"] >= -1e-9 and s["two_port_min_energy"] >= -1e-9

@@ -56,7 +56,7 @@ from teleop.control.ratecap import RateCap
 from teleop.control.wave import WaveImpedance
 from teleop.devices.models import Environment, Human
 from teleop.session import auth, wire
-from teleop.session.settings import DEFAULTS, Channel, Envelope
+from teleop.session.settings import DEFAULTS, Channel, Envelope, Passivity
 
 SPARSE_MARGIN_S = 0.010  # s: how late the payload after a lost one may be before the link is lost
 #: J of input energy a TDPA port may leave unreported before an event-based (deadband) encoder must
@@ -118,9 +118,9 @@ class PortOptions:
     controller: bool = DEFAULTS.controller  # passivity controller on (never play more energy than was sent)
     link_timeout: float = DEFAULTS.link_timeout  # s of silence before the safe state
     fade_time: float = 0.1  # s to fade the coupling out (and back in)
-    rate_cap: float = DEFAULTS.rate_cap  # bit/s on the wire in any 100 ms window (control.ratecap); 0: no cap
-    playout: str = DEFAULTS.playout  # the receiver's playout buffer: off, auto or extra ms (session.playout)
-    passivity: str = DEFAULTS.passivity  # "wave" (scattering, eq. 3-5) or "tdpa" (power variables)
+    rate_cap: float = DEFAULTS.rate_cap  # bit/s on the wire in any 100 ms window (teleop.control.ratecap); 0: no cap
+    playout: str = DEFAULTS.playout  # the receiver's playout buffer: off, auto or extra ms (teleop.session.playout)
+    passivity: Passivity = DEFAULTS.passivity  # scattering waves (eq. 3-5) or TDPA on power variables
 
     @classmethod
     def of(cls, settings: Channel) -> PortOptions:
@@ -146,6 +146,7 @@ class PortOptions:
         )
         # canonical, or ValueError saying what is allowed (the same checks as every settings type)
         object.__setattr__(self, "playout", channel.check_channel(netem_files=False))
+        object.__setattr__(self, "passivity", channel.passivity)
 
 
 class _Port:

@@ -94,10 +94,10 @@ GRAMMARS: dict[str, tuple[str, tuple[Param, ...]]] = {
             Param(
                 "BPCT", False, 0.0, MAX_BAND_PCT, lo_open=True, same="PCT", what="backward band (default PCT)"
             ),
-            Param("FR", False, 0.0, MAX_RESERVE_PCT, default=100.0, what="forward reserve scale, %"),
-            Param("BR", False, 0.0, MAX_RESERVE_PCT, default=100.0, what="backward reserve scale, %"),
+            Param("FR", False, 0.0, MAX_RESERVE_PCT, default=100.0, what="forward reserve scale in percent"),
+            Param("BR", False, 0.0, MAX_RESERVE_PCT, default=100.0, what="backward reserve scale in percent"),
             Param(
-                "KAPPA", False, 0.0, 100.0, hi_open=True, optional=True, what="self-credit, % (default off)"
+                "KAPPA", False, 0.0, 100.0, hi_open=True, optional=True, what="self-credit in percent (default off)"
             ),
         ),
     ),
