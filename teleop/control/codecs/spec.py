@@ -97,7 +97,13 @@ GRAMMARS: dict[str, tuple[str, tuple[Param, ...]]] = {
             Param("FR", False, 0.0, MAX_RESERVE_PCT, default=100.0, what="forward reserve scale in percent"),
             Param("BR", False, 0.0, MAX_RESERVE_PCT, default=100.0, what="backward reserve scale in percent"),
             Param(
-                "KAPPA", False, 0.0, 100.0, hi_open=True, optional=True, what="self-credit in percent (default off)"
+                "KAPPA",
+                False,
+                0.0,
+                100.0,
+                hi_open=True,
+                optional=True,
+                what="self-credit in percent (default off)",
             ),
         ),
     ),
