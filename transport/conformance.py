@@ -26,7 +26,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from teleop.control.codecs import Codec, CodecSpec
+from teleop.control.codecs import Codec, CodecSpec, make_codec
 from teleop.control.codecs.base import RAW_BITS, CodecError, RawFormat, unpack16
 from teleop.control.codecs.deadband import SLOPE_SCALE
 from teleop.session import auth, protocol, wire
@@ -564,7 +564,7 @@ def stream_checks(
     when each tick's packet came, and what the energy reports allow the payloads to play.  ``t0_ns``:
     when the peer's tick 0 is due on this process's clock; ``timing`` the section(s) its timing
     rules cite."""
-    codec = CodecSpec.parse(codec_spec).bind(dof, full_scale, power=passivity == Passivity.TDPA)
+    codec = make_codec(CodecSpec.parse(codec_spec), dof, full_scale, power=passivity == Passivity.TDPA)
     stream = sorted(d.stream, key=lambda e: e[1].seq)
     if not stream:
         return
@@ -844,7 +844,7 @@ def _session_as_operator(
     if not ep.running or ep.port is None:
         return
     _, bwd = auth.session_keys(k_r, session, ep.port.keys.nonce, _nonce(ep.peer_nonce))
-    data = _DataCheck(bwd, wire.BACKWARD, session, CodecSpec.parse(codec).bind(2, 2.0).codec_id)
+    data = _DataCheck(bwd, wire.BACKWARD, session, make_codec(CodecSpec.parse(codec), 2, 2.0).codec_id)
     # A resent start (under the reference's own sealer: its counter goes on) gets another started.
     a.send(ep.port.seal(protocol.Start(session, ep.start_ns + ep.offset_ns)), peer)
     # A rejoin offer of the running session, from the operator's address: MUST NOT be answered (4.4).
@@ -1066,7 +1066,8 @@ def check_operator(
             return r
         p = ep.params
         fwd, _ = auth.session_keys(k_r, p.session, hello.nonce, ep.port.keys.nonce)
-        data.append(_DataCheck(fwd, wire.FORWARD, p.session, p.codec_spec.bind(p.dof, p.full_scale).codec_id))
+        codec_id = make_codec(p.codec_spec, p.dof, p.full_scale).codec_id
+        data.append(_DataCheck(fwd, wire.FORWARD, p.session, codec_id))
         now = time.monotonic_ns()
         r.check(
             "4.3 step 5",

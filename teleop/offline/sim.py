@@ -35,7 +35,7 @@ import numpy.typing as npt
 
 from teleop import devices
 from teleop.control import metrics
-from teleop.control.codecs import Codec
+from teleop.control.codecs import Codec, make_codec
 from teleop.devices import scenarios
 from teleop.session import wire
 from teleop.session.link.netem import Link
@@ -110,7 +110,7 @@ class SimConfig(Channel):
         dof = c.dof
         c = replace(c, playout=c.check_channel(netem_files=True))  # canonical; ValueError says what is wrong
         if c.tdpa and c.full_scale is not None:
-            c.codec_spec.bind(dof, c.full_scale, power=True)  # CodecError: not on power variables
+            make_codec(c.codec_spec, dof, c.full_scale, power=True)  # CodecError: not on power variables
         scenarios.get(c.scenario).make(dof, c.dt, c.seed, c.variation)  # ModelError says what is wrong
         if not c.window_ms >= c.dt * 1e3:
             raise ValueError(f"window must be at least one tick ({c.dt * 1e3} ms), got {c.window_ms}")

@@ -118,8 +118,8 @@ class PortOptions:
     controller: bool = DEFAULTS.controller  # passivity controller on (never play more energy than was sent)
     link_timeout: float = DEFAULTS.link_timeout  # s of silence before the safe state
     fade_time: float = 0.1  # s to fade the coupling out (and back in)
-    rate_cap: float = DEFAULTS.rate_cap  # bit/s on the wire in any 100 ms window (teleop.control.ratecap); 0: no cap
-    playout: str = DEFAULTS.playout  # the receiver's playout buffer: off, auto or extra ms (teleop.session.playout)
+    rate_cap: float = DEFAULTS.rate_cap  # bit/s on the wire in any 100 ms window (control.ratecap); 0: no cap
+    playout: str = DEFAULTS.playout  # the receiver's playout buffer: off, auto or extra ms (session.playout)
     passivity: Passivity = DEFAULTS.passivity  # scattering waves (eq. 3-5) or TDPA on power variables
 
     @classmethod

@@ -38,7 +38,7 @@ import numpy as np
 import numpy.typing as npt
 
 from teleop import devices
-from teleop.control.codecs import CodecSpec
+from teleop.control.codecs import CodecSpec, make_codec
 from teleop.control.codecs.base import RAW_BITS, packed_size
 from teleop.control.wave import WaveImpedance
 from teleop.devices import scenarios
@@ -155,7 +155,7 @@ def make_node(
     node: Node
     codec_spec = CodecSpec.parse(codec)
     if options.passivity == Passivity.TDPA:
-        v_codec, f_codec = (codec_spec.bind(dof, r, power=True) for r in power_ranges(full_scale, b))
+        v_codec, f_codec = (make_codec(codec_spec, dof, r, power=True) for r in power_ranges(full_scale, b))
         if role == "operator":
             node = TdpaOperatorNode(
                 human=dev, wave=wave, tx=v_codec, rx=f_codec, session=session, dt=dt, options=options
@@ -166,7 +166,7 @@ def make_node(
             )
         node.device_spec = spec
         return node
-    c = codec_spec.bind(dof, full_scale)
+    c = make_codec(codec_spec, dof, full_scale)
     if role == "operator":
         node = OperatorNode(human=dev, wave=wave, tx=c, rx=c, session=session, dt=dt, options=options)
     else:

@@ -43,7 +43,7 @@ from typing import Any, ClassVar, TypeAlias
 import msgpack
 
 from teleop import limits
-from teleop.control.codecs import CodecError, CodecSpec
+from teleop.control.codecs import CodecError, CodecSpec, make_codec
 from teleop.control.passivity import ON_LOSS
 from teleop.control.ratecap import MAX_RATE_BPS, MIN_RATE_BPS
 from teleop.control.wave import WaveImpedance
@@ -249,7 +249,8 @@ def configured_netem(expect: Mapping[str, object]) -> frozenset[str]:
 
 
 #: What an optional field left out of a hello means (PROTOCOL.md 4.2): what a session meant before the
-#: field existed, so an older peer's hello keeps its meaning.  Not a default (teleop.session.settings has those).
+#: field existed, so an older peer's hello keeps its meaning.  Not a default
+#: (teleop.session.settings has those).
 WIRE_ABSENT: dict[str, Any] = {
     "rate_cap": 0.0,
     "playout": "off",
@@ -311,7 +312,7 @@ class SessionParams(Channel):
             text = getattr(self, name)
             if text.split()[:1] not in ([], ["trace"]):
                 _check_netem_numbers(name, parse_netem(text))
-        self.codec_spec.bind(self.dof, self.full_scale, power=self.tdpa)  # CodecError: not under TDPA
+        make_codec(self.codec_spec, self.dof, self.full_scale, power=self.tdpa)  # CodecError: not under TDPA
         return dataclasses.replace(self, playout=playout)
 
     def port_options(self) -> PortOptions:
@@ -371,7 +372,7 @@ class SessionParams(Channel):
                 _check_peer_netem(name, getattr(p, name), local_netem)
             WaveImpedance.of(p.b, p.dof)
             playout = p.check_channel(netem_files=False)
-            p.codec_spec.bind(p.dof, p.full_scale, power=p.tdpa)  # CodecError: not under TDPA
+            make_codec(p.codec_spec, p.dof, p.full_scale, power=p.tdpa)  # CodecError: not under TDPA
         except ProtocolError:
             raise
         except (CodecError, ValueError, ArithmeticError) as e:  # the validators of other modules

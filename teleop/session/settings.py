@@ -23,6 +23,7 @@ from enum import StrEnum
 from typing import Any, Protocol
 
 from teleop import limits
+from teleop.control.codecs import make_codec
 from teleop.control.codecs.spec import CodecSpec
 from teleop.control.passivity import DEFAULT_LINK_TIMEOUT, ON_LOSS
 from teleop.control.ratecap import RateCap
@@ -74,7 +75,7 @@ class Channel:
     link_timeout: float = DEFAULT_LINK_TIMEOUT  # s of silence before a side goes to its safe state
     rate_cap: float = 0.0  # bit/s per direction in any 100 ms window (teleop.control.ratecap); 0: none
     playout: str = "auto"  # receivers' playout buffer: off, auto or extra ms (teleop.session.playout)
-    variation: float = 0.0  # scale of the human's seeded variation (teleop.devices.models.ProtocolPlan); 0: scripted
+    variation: float = 0.0  # scale of the human's seeded variation (devices.models.ProtocolPlan); 0: none
     passivity: Passivity = Passivity.WAVE  # scattering waves (eq. 3-5) or TDPA on power variables
 
     def __post_init__(self) -> None:
@@ -309,7 +310,7 @@ def codec_range(p: Proposal) -> float:
     needed = 0.0
     for session_range, unit in ranges:
         try:
-            c = CodecSpec.parse(p.codec).bind(p.dof, session_range, power=tdpa)  # a spec: no parsing
+            c = make_codec(CodecSpec.parse(p.codec), p.dof, session_range, power=tdpa)  # a spec: no parsing
         except CodecError:
             return 0.0
         needed = max(needed, c.raw.full_scale / unit)

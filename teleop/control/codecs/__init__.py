@@ -54,7 +54,6 @@ from teleop.control.codecs.spec import (
     CodecSpec,
     expand,
 )
-from teleop.session.wire import POWER_CODEC_BASE
 
 __all__ = [
     "ACCEPTED",
@@ -308,7 +307,7 @@ def on_power_variable(c: Codec) -> Codec:
 
 
 def build(spec: CodecSpec, dof: int, full_scale: float, power: bool = False) -> Codec:
-    """``spec`` bound to ``dof`` values of ``full_scale`` (:meth:`CodecSpec.bind`); ``power``: for a
+    """``spec`` bound to ``dof`` values of ``full_scale`` ; ``power``: for a
     power variable under TDPA (:func:`on_power_variable`)."""
     if dof < 1:
         raise CodecError(f"dof must be >= 1, got {dof}")
@@ -320,5 +319,5 @@ def make_codec(
     spec: str | CodecSpec, dof: int = 1, full_scale: float = DEFAULT_FULL_SCALE, power: bool = False
 ) -> Codec:
     """Parse ``spec`` (unless it is a :class:`CodecSpec` already) and bind it; raises
-    :class:`CodecError` listing what is accepted.  Code that holds a parsed spec calls its ``bind``."""
+    :class:`CodecError` listing what is accepted.  A parsed spec is not parsed again."""
     return build(CodecSpec.parse(spec), dof, full_scale, power)

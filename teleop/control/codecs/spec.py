@@ -5,7 +5,8 @@ it must be one canonical string on both sides; and it is what every codec is bui
 parameters must be numbers, checked once.  :meth:`CodecSpec.parse` reads the three spellings a user
 may type, checks them against :data:`GRAMMARS` and returns the canonical spec, a ``str`` (so the
 wire, the logs and every comparison with a spelled-out spec keep working) that also holds its name
-and typed parameters; :meth:`CodecSpec.bind` builds the codec from those without parsing again.
+and typed parameters; :func:`teleop.control.codecs.make_codec` builds the codec from those
+without parsing again.
 
 * positional, as on the wire: ``eds:50``, ``pdr:0.8:100:0.8:30:30:c0.5``;
 * named parameters, for a user who does not want to count colons: ``pdr:pct=0.8,bpct=0.8,fr=30,
@@ -21,14 +22,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 from teleop.control.codecs.base import RAW_BITS, CodecError
 from teleop.control.codecs.deadband import DEFAULT_HEARTBEAT_MS
 from teleop.control.codecs.frequency import MAX_FRAME
-
-if TYPE_CHECKING:
-    from teleop.control.codecs import Codec
 
 MAX_K = 100_000  # ticks (100 s at 1 kHz): any longer frame, horizon or heartbeat is meaningless
 MAX_BAND_PCT = 100.0
@@ -214,12 +211,6 @@ class CodecSpec(str):
         # beyond %g's 6 digits is rounded there, and both sides must use the same one).
         return cls(canon, name, _read(canon, canon, False)[1])
 
-    def bind(self, dof: int = 1, full_scale: float | None = None, power: bool = False) -> Codec:
-        """This codec for ``dof`` values of the session's ``full_scale`` (sqrt(W), or the power
-        variable's range under TDPA with ``power``); no parsing."""
-        from teleop.control.codecs import DEFAULT_FULL_SCALE, build
-
-        return build(self, dof, DEFAULT_FULL_SCALE if full_scale is None else full_scale, power)
 
 
 def _read(spec: str, text: str, local: bool) -> tuple[str, dict[str, float]]:
