@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from teleop.offline.sim import SimConfig, run_case
+from teleop.session.settings import Passivity
 from tests.test_watchdog_matrix import IMPAIRMENTS
 
 PDR = (
@@ -60,7 +61,7 @@ def _two_port(codec: str) -> bool:
 TARGET_PPS = 40.0
 
 
-def _case(codec: str, duration: float, passivity: str = "wave") -> dict[str, Any]:
+def _case(codec: str, duration: float, passivity: Passivity = Passivity.WAVE) -> dict[str, Any]:
     s = run_case(SimConfig(codec=codec, scenario="protocol", duration=duration, passivity=passivity)).summary
     return {
         "codec": codec,
@@ -124,7 +125,7 @@ def _matrix(codec: str, duration: float) -> list[dict[str, Any]]:
 
 def run(duration: float, pool: bool = False) -> dict[str, Any]:
     cases = [_case(c, duration) for c in (*REFERENCES, *PDR, *(POOL if pool else ()))]
-    cases += [_case(c, duration, "tdpa") for c in TDPA]
+    cases += [_case(c, duration, Passivity.TDPA) for c in TDPA]
     ids2 = next(c for c in cases if c["codec"] == "ids:2")
     pdr = [c for c in cases if c["codec"].startswith("pdr") and c["passivity"] == "wave"]
     within = [c for c in pdr if c["I"] <= ids2["I"]]

@@ -75,11 +75,11 @@ def _case(c: dict[str, Any], duration: float) -> dict[str, Any]:
 def _bounded(passivity: str, codec: str, netem: str) -> dict[str, float]:
     """Largest 1-s RMS of v_to and F_to in the last third over the largest before it (run in-process)."""
     from teleop.offline.sim import SimConfig, run_case
+    from teleop.session.settings import Passivity
 
+    arch = Passivity.of(passivity)
     tr = run_case(
-        SimConfig(
-            codec=codec, scenario="protocol", passivity=passivity, netem_forward=netem, netem_backward=netem
-        )
+        SimConfig(codec=codec, scenario="protocol", passivity=arch, netem_forward=netem, netem_backward=netem)
     ).trace
     out = {}
     for name, a in (("v_to", tr.v_to), ("f_to", tr.f_to)):

@@ -28,6 +28,7 @@ from teleop.devices.models import LtiEnvironment, StepHuman
 from teleop.session import wire
 from teleop.session.node import OperatorNode, PortOptions, TeleoperatorNode
 from teleop.session.port import Port, make_node
+from teleop.session.settings import Passivity
 
 CODECS = ("none", "ids:50", "eds:50", "cq:8")
 TDPA_CODECS = ("none", "eds:50", "pdp:1")  # the port's hot path under TDPA (issue 23)
@@ -92,7 +93,7 @@ def bench_nodes(spec: str, dof: int, ticks: int, repeats: int) -> list[float]:
 
 
 def _port_pair(
-    spec: str, dof: int, ticks: int, scenario: str = "step", passivity: str = "wave"
+    spec: str, dof: int, ticks: int, scenario: str = "step", passivity: Passivity = Passivity.WAVE
 ) -> tuple[Port, Port]:
     """The two ports as the real runner makes them: playout ``auto`` with its one-tick floor."""
     opts = PortOptions(playout="auto", passivity=passivity)
@@ -117,7 +118,9 @@ def _port_pair(
     return op, to
 
 
-def bench_ports(spec: str, dof: int, ticks: int, repeats: int, passivity: str = "wave") -> list[float]:
+def bench_ports(
+    spec: str, dof: int, ticks: int, repeats: int, passivity: Passivity = Passivity.WAVE
+) -> list[float]:
     """Both ports per tick: node, wire encode and parse, counters, link observer, playout buffer
     (``auto`` with the real runner's one-tick floor), recorder; ``passivity`` ``tdpa``: power
     variables, the energy reports and both dampers instead of the wave transform."""
@@ -224,7 +227,7 @@ def main() -> None:
                 f"({mn / 10:.1f}% of 1 ms)   both ports {mp:7.2f} us ({mp / 10:.1f}%)"
             )
         for spec in TDPA_CODECS:
-            mt = statistics.median(bench_ports(spec, dof, a.ticks, a.repeats, passivity="tdpa"))
+            mt = statistics.median(bench_ports(spec, dof, a.ticks, a.repeats, passivity=Passivity.TDPA))
             res["results"].append(
                 {
                     "dof": dof,

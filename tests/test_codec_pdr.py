@@ -27,6 +27,7 @@ from teleop.control.codecs.reflective import (
 from teleop.control.passivity import EnergyGuard
 from teleop.offline.sim import SimConfig, run_case
 from teleop.session import wire
+from teleop.session.settings import Passivity
 from tests.test_watchdog_matrix import IMPAIRMENTS
 from tests.test_watchdog_matrix import run as run_matrix_case
 
@@ -138,14 +139,14 @@ def test_reflection_finds_a_constant_coefficient(g: np.ndarray, rho: float) -> N
 @pytest.mark.parametrize(
     "spec,msg",
     [
-        ("pdr", "takes PCT"),
+        ("pdr", "takes pdr:PCT"),
         ("pdr:0", "PCT must be in"),
         ("pdr:101", "PCT must be in"),
         ("pdr:x", "PCT must be a number"),
         ("pdr:1:0", "MAXMS must be in"),
         ("pdr:1:1.5", "MAXMS must be an integer"),
-        ("pdr:1:100:3:1", "takes PCT"),
-        ("pdr:1:100:1:2:3:4:5:6", "takes PCT"),
+        ("pdr:1:100:3:1", "takes pdr:PCT"),
+        ("pdr:1:100:1:2:3:4:5:6", "takes pdr:PCT"),
         ("pdr:1:100:0", "BPCT must be in"),
         ("pdr:1:100:x", "BPCT must be a number"),
         ("pdr:1:100:1:x:100", "FR must be a number"),
@@ -212,7 +213,7 @@ def test_split_loop_is_passive_and_in_step(x: np.ndarray, spec: str, keep: list[
 
 
 @pytest.mark.parametrize("passivity", ["wave", "tdpa"])
-def test_winner_in_the_sim_beats_pdp_on_packets_and_stays_passive(passivity: str) -> None:
+def test_winner_in_the_sim_beats_pdp_on_packets_and_stays_passive(passivity: Passivity) -> None:
     """The frontier point, measured short: fewer packets than pdp:1 each way at zero delay."""
     s = run_case(SimConfig(codec=WINNER, scenario="protocol", duration=6.0, passivity=passivity)).summary
     assert s["passive"] and s["min_energy_margin"] >= -1e-9 and s["two_port_min_energy"] >= -1e-9

@@ -167,7 +167,7 @@ def test_padding_bits_rejected() -> None:
     [
         ("", "empty codec spec"),
         ("zip", "unknown codec 'zip'"),
-        ("ids", "takes one parameter K"),
+        ("ids", "takes ids:K, got 0"),
         ("ids:x", "K must be an integer, got 'x'"),
         ("eds:0", "K must be in 1..100000, got 0"),
         ("cq:1", "BITS must be in 2..16, got 1"),

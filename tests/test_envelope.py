@@ -19,7 +19,7 @@ from teleop.session.endpoint import Failed, Failure, HelloRejected, SessionEnded
 from teleop.session.node import TeleoperatorNode
 from teleop.session.port import make_node
 from teleop.session.protocol import SessionParams
-from teleop.session.settings import DEFAULT_ENVELOPE, SETTINGS, Envelope, settings_table
+from teleop.session.settings import DEFAULT_ENVELOPE, SETTINGS, Envelope, Passivity, settings_table
 
 from .vnet import VirtualNet, params
 
@@ -69,7 +69,7 @@ def test_a_dof_beyond_the_robot_device_is_refused_not_a_crash() -> None:
 
 
 def test_choices_are_the_robots() -> None:
-    env = Envelope(passivity=("wave",), on_loss=("zero", "conceal"))
+    env = Envelope(passivity=(Passivity.WAVE,), on_loss=("zero", "conceal"))
     assert "--allow-passivity" in _refused(params(passivity="tdpa"), env)
     assert "--allow-on-loss" in _refused(params(on_loss="hold"), env)
     # Without the controller only what the robot named there: zero unless it said more.
@@ -197,7 +197,7 @@ def test_saturation_is_passive_and_within_the_envelope(
 
 
 @pytest.mark.parametrize("passivity", ["wave", "tdpa"])
-def test_the_robot_stays_within_its_velocity_when_the_operator_pushes_past_it(passivity: str) -> None:
+def test_the_robot_stays_within_its_velocity_when_the_operator_pushes_past_it(passivity: Passivity) -> None:
     env = Envelope(max_range=0.5, max_velocity=0.3, max_force=50.0)
     codec = "none" if passivity == "wave" else "pdp:1"
     r = run_case(SimConfig(codec=codec, scenario="step", full_scale=0.5, passivity=passivity, envelope=env))
@@ -207,7 +207,7 @@ def test_the_robot_stays_within_its_velocity_when_the_operator_pushes_past_it(pa
 
 
 @pytest.mark.parametrize("passivity", ["wave", "tdpa"])
-def test_the_robot_pushes_a_wall_no_harder_than_its_max_force(passivity: str) -> None:
+def test_the_robot_pushes_a_wall_no_harder_than_its_max_force(passivity: Passivity) -> None:
     """The protocol task's wall pushes reach about 7 N (wave) and 1.5 N (TDPA): a robot whose
     envelope says 1 N is slowed into the wall, never reversed, and stays passive."""
     env = Envelope(max_force=1.0)
@@ -239,7 +239,7 @@ def test_the_robots_guard_is_bounded_by_its_own_range_not_the_sessions() -> None
 
 @pytest.mark.parametrize("passivity", ["wave", "tdpa"])
 @pytest.mark.parametrize("side", ["robot", "hsi"])
-def test_a_device_that_says_nan_costs_only_the_ticks_it_covers(side: str, passivity: str) -> None:
+def test_a_device_that_says_nan_costs_only_the_ticks_it_covers(side: str, passivity: Passivity) -> None:
     bad = "300,301,700,1200"
     device = f"tests.faulty_devices:Faulty{'Robot' if side == 'robot' else 'Hsi'}:{bad}"
     codec = "eds:50" if passivity == "wave" else "pdp:1"

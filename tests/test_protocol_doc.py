@@ -3,13 +3,12 @@ kind, field name and constant the code uses must be in it, so the document canno
 
 The examples are the fenced blocks after ``<!-- example: NAME -->`` (lines ``offset: hex | meaning``,
 or JSON for ``inputs``); the constants are the block after ``<!-- constants -->`` (lines
-``dotted.name = literal`` or ``dotted.Callable(param) = literal`` for a default).
+``NAME = literal``), each mapped to the code by :func:`_code_map`.
 """
 
 from __future__ import annotations
 
 import ast
-import dataclasses
 import hashlib
 import importlib
 import inspect
@@ -252,8 +251,6 @@ def test_every_control_message_kind_and_field_is_documented() -> None:
             assert mentioned(field), f"{m.kind}: field {field!r} is not in PROTOCOL.md"
     for field in params.to_msg():
         assert mentioned(field), field
-    for f in dataclasses.fields(SessionParams):
-        assert mentioned(f.name), f.name
 
 
 def test_every_data_packet_field_is_documented() -> None:
@@ -294,25 +291,130 @@ def test_flags_table_matches_the_code() -> None:
             assert f"| `0x{flags:02x}` | {names[kind]} | {dirs[direction]} |" in DOC
 
 
-def _resolve(name: str) -> object:
-    """``pkg.mod.NAME``, or ``pkg.mod.Callable(param)`` for a parameter's default."""
-    m = re.fullmatch(r"([\w.]+?)\.(\w+)(?:\((\w+)\))?", name)
-    assert m, name
-    obj = getattr(importlib.import_module(m.group(1)), m.group(2))
-    if m.group(3) is None:
-        return obj
-    default = inspect.signature(obj).parameters[m.group(3)].default
-    assert default is not inspect.Parameter.empty, name
+def _default(callable_: object, param: str) -> object:
+    """The default of ``param`` of a function or class."""
+    default = inspect.signature(callable_).parameters[param].default  # type: ignore[arg-type]
+    assert default is not inspect.Parameter.empty, param
     return default
 
 
+def _code_map() -> dict[str, object]:
+    """Each constant PROTOCOL.md section 7 names, as the code holds it: the document names no code,
+    so the map from its names to the code is here (and in the development docs' code map)."""
+    from teleop import limits
+    from teleop.control import passivity
+    from teleop.control.codecs import base, frequency
+    from teleop.devices import scenarios
+    from teleop.session import endpoint
+    from transport import options, realtime
+
+    hs = protocol.OperatorHandshake
+    return {
+        "KEY_BYTES": auth.KEY_BYTES,
+        "NONCE_BYTES": auth.NONCE_BYTES,
+        "TAG_BYTES": auth.TAG_BYTES,
+        "HEADER_BYTES": auth.HEADER_BYTES,
+        "OVERHEAD": auth.OVERHEAD,
+        "ENVELOPE_VERSION": auth.ENVELOPE_VERSION,
+        "ENVELOPE_MAGIC": auth.MAGIC,
+        "HANDSHAKE": auth.HANDSHAKE,
+        "SESSION": auth.SESSION,
+        "INSECURE_KEY": auth.INSECURE_KEY,
+        "REPLAY_WINDOW": _default(auth.Opener, "window"),
+        "JUMP_BASE": _default(auth.Opener, "jump_base"),
+        "JUMP_RATE": _default(auth.Opener, "jump_rate"),
+        "DATA_MAGIC": wire.MAGIC,
+        "DATA_VERSION": wire.VERSION,
+        "FORWARD": wire.FORWARD,
+        "BACKWARD": wire.BACKWARD,
+        "RAW_BITS": base.RAW_BITS,
+        "POWER_CODEC_BASE": wire.POWER_CODEC_BASE,
+        "MAX_FRAME": frequency.MAX_FRAME,
+        "PROTOCOL_VERSION": protocol.PROTOCOL_VERSION,
+        "KINDS": protocol.KINDS,
+        "COOKIE_BYTES": protocol.COOKIE_BYTES,
+        "COOKIE_BUCKET_SHIFT": protocol.COOKIE_BUCKET_SHIFT,
+        "MAX_CONTROL_BYTES": protocol.MAX_CONTROL_BYTES,
+        "MAX_TIMESTAMP": protocol.MAX_TIMESTAMP,
+        "MAX_COUNT": protocol.MAX_COUNT,
+        "START_AHEAD_NS": protocol.START_AHEAD_NS,
+        "START_SLACK_NS": protocol.START_SLACK_NS,
+        "MAX_RTT_NS": protocol.MAX_RTT_NS,
+        **{
+            name: getattr(limits, name)
+            for name in (
+                "MAX_SESSION",
+                "MAX_SEED",
+                "MAX_VARIATION",
+                "MAX_DOF",
+                "MIN_DT",
+                "MAX_DT",
+                "MIN_DURATION_S",
+                "MAX_DURATION_S",
+                "UNTIL_STOPPED",
+                "MAX_B",
+                "MAX_RANGE",
+                "MIN_LINK_TIMEOUT_S",
+                "MAX_LINK_TIMEOUT_S",
+                "MAX_CODEC_SPEC_LEN",
+                "MAX_NETEM_SPEC_LEN",
+                "MAX_REASON_LEN",
+            )
+        },
+        "MAX_ROBOT_NAME": auth.MAX_ROBOT_NAME,
+        "DEFAULT_ROBOT_NAME": auth.DEFAULT_ROBOT_NAME,
+        "ON_LOSS": passivity.ON_LOSS,
+        "REPORT_BURST_S": passivity.REPORT_BURST_S,
+        "SCENARIOS": scenarios.SCENARIOS,
+        "REFERENCE_MAX_CANDIDATES": protocol.MAX_CANDIDATES,
+        "REFERENCE_CANDIDATE_ADDRS": protocol.CANDIDATE_ADDRS,
+        "BUSY": protocol.BUSY,
+        "REFERENCE_START_LEAD_RTTS": protocol.START_LEAD_RTTS,
+        "REFERENCE_START_LEAD_SLACK_NS": protocol.START_LEAD_SLACK_NS,
+        "REFERENCE_START_RESEND_DIV": protocol.START_RESEND_DIV,
+        "REFERENCE_WELCOMES": _default(hs, "answers"),
+        "REFERENCE_HELLO_INTERVAL_NS": _default(hs, "hello_interval_ns"),
+        "REFERENCE_START_LEAD_NS": _default(hs, "start_lead_ns"),
+        "REFERENCE_START_RESEND_NS": _default(hs, "start_resend_ns"),
+        "REFERENCE_START_MARGIN_NS": _default(hs, "start_margin_ns"),
+        **{
+            f"REFERENCE_{f.upper()}": _default(SessionParams, f)
+            for f in (
+                "dt",
+                "phase",
+                "netem_forward",
+                "netem_backward",
+                "seed",
+                "on_loss",
+                "controller",
+                "variation",
+            )
+        },
+        "REFERENCE_LINK_TIMEOUT_S": _default(SessionParams, "link_timeout"),
+        "REFERENCE_FADE_TIME_S": _default(PortOptions, "fade_time"),
+        "REFERENCE_MAX_CATCHUP": _default(realtime.Ticker, "max_catchup"),
+        "REFERENCE_REJOIN_OFFER_INTERVAL_NS": endpoint.REJOIN_OFFER_INTERVAL_NS,
+        "REFERENCE_REJOIN_SAMPLES": endpoint.REJOIN_SAMPLES,
+        "REFERENCE_REJOIN_COLLECT_NS": endpoint.REJOIN_COLLECT_NS,
+        "REFERENCE_REJOIN_START_RESEND_NS": endpoint.START_RESEND_NS,
+        "REFERENCE_REJOIN_START_RESENDS": endpoint.START_RESENDS,
+        "REFERENCE_JOIN_AHEAD_TICKS": endpoint.JOIN_AHEAD_TICKS,
+        "REFERENCE_SILENT_MIN_NS": endpoint.SILENT_MIN_NS,
+        "REFERENCE_LINGER_S": _default(options.EndpointOptions, "linger"),
+        "REFERENCE_GRACE_US": _default(options.EndpointOptions, "grace_us"),
+        "REFERENCE_CONNECT_TIMEOUT_S": _default(options.EndpointOptions, "connect_timeout"),
+    }
+
+
 def test_constants_match_the_code() -> None:
-    seen = 0
+    code = _code_map()
+    seen = set()
     for line in BLOCKS["constants"].splitlines():
-        m = re.fullmatch(r"(\S+) = (.+?)(?:\s+#.*)?", line)
+        m = re.fullmatch(r"([A-Z][A-Z0-9_]*) = (.+?)(?:\s+#.*)?", line)
         assert m, f"constants: cannot read {line!r}"
         want: object = ast.literal_eval(m.group(2)) if m.group(2) != "bytes(32)" else bytes(32)
-        got = _resolve(m.group(1))
+        assert m.group(1) in code, f"constants: {m.group(1)} is in no code map entry"
+        got = code[m.group(1)]
         if isinstance(got, dict):
             got = tuple(got)
         if isinstance(want, float) or isinstance(got, float):
@@ -320,8 +422,8 @@ def test_constants_match_the_code() -> None:
             assert math.isclose(got, want, rel_tol=1e-12), line
         else:
             assert got == want, line
-        seen += 1
-    assert seen >= 50
+        seen.add(m.group(1))
+    assert seen == set(code), set(code) - seen  # every constant the map holds is in the document
 
 
 def test_the_operator_remembers_64_hellos() -> None:
@@ -657,3 +759,66 @@ def test_the_zenoh_credential_keys_are_the_transports() -> None:
         assert f"`{zenoh._USRPWD}/{key}`" in DOC
     assert auth.ZENOH_USER == "teleop"
 
+
+# --------------------------------------------------------------------------------------------
+# the document is a specification: it names no code (the code map is in the development docs)
+# --------------------------------------------------------------------------------------------
+def _package_names() -> set[str]:
+    """Every public class and function defined in the package's modules (``teleop``, ``transport``)."""
+    import pkgutil
+
+    import teleop
+    import transport
+
+    names: set[str] = set()
+    for pkg in (teleop, transport):
+        for info in pkgutil.walk_packages(pkg.__path__, f"{pkg.__name__}."):
+            if info.name.split(".")[-1].startswith("_"):
+                continue
+            try:
+                mod = importlib.import_module(info.name)
+            except ImportError:  # an optional dependency (a robot driver) is not installed
+                continue
+            for name, obj in vars(mod).items():
+                if name.startswith("_") or getattr(obj, "__module__", None) != mod.__name__:
+                    continue
+                if inspect.isclass(obj) or inspect.isfunction(obj):
+                    names.add(name)
+    return names
+
+
+def _protocol_terms() -> set[str]:
+    """Words a code span of the document may hold although a class or function of the package has
+    that name: the protocol's own terms (message kinds, hello keys, data fields, the test vectors'
+    keys) and the counters of the reference's summary the text cites, not references to the code."""
+    keys: set[str] = set()
+
+    def walk(x: object) -> None:
+        if isinstance(x, dict):
+            keys.update(x)
+            for v in x.values():
+                walk(v)
+
+    from teleop.session.settings import SETTINGS
+
+    walk(INPUTS)
+    return {*protocol.KINDS, *(x.key for x in SETTINGS), *wire.Packet._fields, *keys, "kernel_drops"}
+
+
+def test_the_document_names_no_code() -> None:
+    """No module path, source file, test file, or class or function of the package: an implementer
+    reads the protocol, not the reference's code (which the development docs map to its sections)."""
+    assert not re.findall(r"\b(?:teleop|transport|tests)\.[a-z_]+\.?\w*", DOC), "a module path"
+    assert not re.findall(r"\b(?:teleop|transport|tests|tools|bench)/[\w/]*\.py\b", DOC), "a source file"
+    assert not re.findall(r"\w\.py\b", DOC), "a Python file"
+    assert not re.search(r"\bPython\b|the code is right", DOC)
+    spans = re.findall(r"`([^`\n]+)`", DOC)
+    code = _package_names() - _protocol_terms()
+    named = sorted({w for span in spans for w in re.findall(r"[A-Za-z_]\w*", span) if w in code})
+    assert not named, f"PROTOCOL.md names the package's classes or functions: {named}"
+
+
+def test_the_contents_list_every_section() -> None:
+    contents = DOC.split("## 1. Overview", 1)[0]
+    for number, title in re.findall(r"^## (\d+)\. (.+)$", DOC, re.M):
+        assert f"[{number} " in contents, f"section {number} ({title}) is not in the contents"

@@ -19,6 +19,7 @@ from teleop.session import wire
 from teleop.session.node import PortOptions, TdpaOperatorNode, TdpaTeleoperatorNode
 from teleop.session.port import make_node
 from teleop.session.protocol import SessionParams
+from teleop.session.settings import Passivity
 
 TOL = 1e-9  # J
 DT = 0.001
@@ -96,7 +97,9 @@ def _drive(role: str, data: st.DataObject, codec: str) -> None:
     ticks = data.draw(st.integers(20, 120))
     dof = 2
     rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
-    opts = PortOptions(passivity="tdpa", on_loss=data.draw(st.sampled_from(["conceal", "hold", "zero"])))
+    opts = PortOptions(
+        passivity=Passivity.TDPA, on_loss=data.draw(st.sampled_from(["conceal", "hold", "zero"]))
+    )
     node = make_node(
         role,
         scenario="protocol",
@@ -166,7 +169,7 @@ def test_tdpa_sim_passive_under_netem(
         codec=codec,
         scenario="protocol",
         duration=1.5,
-        passivity="tdpa",
+        passivity=Passivity.TDPA,
         netem_forward=spec,
         netem_backward=spec,
         seed=seed,
@@ -182,7 +185,7 @@ def test_tdpa_sim_passive_under_netem(
 def test_tdpa_bootstrap_renders_contact() -> None:
     """Without the HSI's own damping the robot never enters contact (no energy, no force back):
     the wall phase must show force at both ends, and both architectures stay passive."""
-    s = run_case(SimConfig(codec="none", scenario="protocol", passivity="tdpa")).trace
+    s = run_case(SimConfig(codec="none", scenario="protocol", passivity=Passivity.TDPA)).trace
     assert np.abs(s.f_to).max() > 1.0 and np.abs(s.f_hsi).max() > 1.0
 
 
@@ -191,7 +194,7 @@ def test_codecs_on_power_variables() -> None:
     with pytest.raises(CodecError, match="not available with --passivity tdpa"):
         make_codec("dct:8:2", 2, 1.0, power=True)
     with pytest.raises(CodecError, match="not available"):
-        SimConfig(codec="dct:8:2", passivity="tdpa").resolved()
+        SimConfig(codec="dct:8:2", passivity=Passivity.TDPA).resolved()
 
 
 def test_passivity_is_optional_on_the_wire() -> None:
@@ -202,7 +205,7 @@ def test_passivity_is_optional_on_the_wire() -> None:
     assert SessionParams.from_msg(t.to_msg()).passivity == "tdpa"
     assert SessionParams.from_msg(p.to_msg()).passivity == "wave"
     with pytest.raises(ValueError, match="passivity"):
-        PortOptions(passivity="magic")
+        PortOptions(passivity="magic")  # type: ignore[arg-type]
 
 
 def test_wave_receiver_refuses_tdpa_payloads() -> None:
@@ -227,7 +230,7 @@ def test_wave_receiver_refuses_tdpa_payloads() -> None:
         codec="none",
         full_scale=2.0,
         session=1,
-        options=PortOptions(passivity="tdpa"),
+        options=PortOptions(passivity=Passivity.TDPA),
     )
     pkt = tdpa_op.tick(0.0)
     assert pkt is not None
@@ -297,7 +300,7 @@ def test_drift_compensation_gives_back_the_motion_the_controller_took(
     (measured: final drift 33 mm without, 23 mm with), and the run stays passive."""
     import teleop.session.node as node
 
-    cfg = SimConfig(codec="none", scenario="protocol", passivity="tdpa", delay_ms=200)
+    cfg = SimConfig(codec="none", scenario="protocol", passivity=Passivity.TDPA, delay_ms=200)
     with_comp = run_case(cfg).summary
     monkeypatch.setattr(node, "TDPA_DRIFT_GAIN", 0.0)
     without = run_case(cfg).summary

@@ -26,7 +26,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from teleop.control.codecs import Codec, make_codec
+from teleop.control.codecs import Codec, CodecSpec, make_codec
 from teleop.control.codecs.base import RAW_BITS, CodecError, RawFormat, unpack16
 from teleop.control.codecs.deadband import SLOPE_SCALE
 from teleop.session import auth, protocol, wire
@@ -34,7 +34,7 @@ from teleop.session.endpoint import Endpoint, SessionEnded, SessionStarted, Stat
 from teleop.session.link import Addr
 from teleop.session.port import Port, PortKeys
 from teleop.session.protocol import SessionParams
-from teleop.session.settings import DEFAULT_ENVELOPE
+from teleop.session.settings import DEFAULT_ENVELOPE, Passivity
 
 QUIET_S = 0.3  # how long "no answer" is waited for
 PROBE_TIMEOUT_S = 2.0
@@ -557,14 +557,14 @@ def stream_checks(
     full_scale: float,
     dt: float,
     t0_ns: int,
-    passivity: str,
+    passivity: Passivity,
     timing: str = "5.1",
 ) -> None:
     """PROTOCOL.md 3.2, 3.4, 3.5, 3.6 and 5.1 over the peer's data packets: payload sizes, ``t_us``,
     when each tick's packet came, and what the energy reports allow the payloads to play.  ``t0_ns``:
     when the peer's tick 0 is due on this process's clock; ``timing`` the section(s) its timing
     rules cite."""
-    codec = make_codec(codec_spec, dof, full_scale, power=passivity == "tdpa")
+    codec = make_codec(CodecSpec.parse(codec_spec), dof, full_scale, power=passivity == Passivity.TDPA)
     stream = sorted(d.stream, key=lambda e: e[1].seq)
     if not stream:
         return
@@ -594,14 +594,18 @@ def stream_checks(
     _energy_checks(r, codec, [p for _, p in stream if len(p.payload) == codec.payload_bytes], dt, passivity)
 
 
-def _energy_checks(r: Result, codec: Codec, pkts: list[wire.Packet], dt: float, passivity: str) -> None:
+def _energy_checks(r: Result, codec: Codec, pkts: list[wire.Packet], dt: float, passivity: Passivity) -> None:
     """3.4, 3.6, eq. (5), (10), (11): the energy the payloads play never exceeds what the reports say
     was sent, and (every-tick codecs) each tick's report grows by what its value allows."""
     rule_q = "each tick's value carries no more energy than its report grew by (|Q(x)| <= |x|, eq. 11)"
     rule_o = "energy not over-reported: each tick's report grows by at most what its value allows"
     rule_c = "the payloads never play more energy than the reports say was sent (eq. 5, 10)"
-    if passivity != "wave" or codec.name == "pdr":
-        why = "TDPA reports input energy" if passivity != "wave" else "pdr's reflection is not modelled here"
+    if passivity != Passivity.WAVE or codec.name == "pdr":
+        why = (
+            "TDPA reports input energy"
+            if passivity != Passivity.WAVE
+            else "pdr's reflection is not modelled here"
+        )
         for rule in (rule_q, rule_o, rule_c):
             r.check("3.6", "MUST", rule, None, why)
         return
@@ -840,7 +844,7 @@ def _session_as_operator(
     if not ep.running or ep.port is None:
         return
     _, bwd = auth.session_keys(k_r, session, ep.port.keys.nonce, _nonce(ep.peer_nonce))
-    data = _DataCheck(bwd, wire.BACKWARD, session, make_codec(codec, 2, 2.0).codec_id)
+    data = _DataCheck(bwd, wire.BACKWARD, session, make_codec(CodecSpec.parse(codec), 2, 2.0).codec_id)
     # A resent start (under the reference's own sealer: its counter goes on) gets another started.
     a.send(ep.port.seal(protocol.Start(session, ep.start_ns + ep.offset_ns)), peer)
     # A rejoin offer of the running session, from the operator's address: MUST NOT be answered (4.4).
@@ -1062,9 +1066,8 @@ def check_operator(
             return r
         p = ep.params
         fwd, _ = auth.session_keys(k_r, p.session, hello.nonce, ep.port.keys.nonce)
-        data.append(
-            _DataCheck(fwd, wire.FORWARD, p.session, make_codec(p.codec, p.dof, p.full_scale).codec_id)
-        )
+        codec_id = make_codec(p.codec_spec, p.dof, p.full_scale).codec_id
+        data.append(_DataCheck(fwd, wire.FORWARD, p.session, codec_id))
         now = time.monotonic_ns()
         r.check(
             "4.3 step 5",

@@ -14,7 +14,7 @@ import socket
 from collections.abc import Callable
 from typing import NoReturn, TypeAlias
 
-from teleop.control.codecs import ACCEPTED, CodecError, make_codec
+from teleop.control.codecs import ACCEPTED, CodecError, CodecSpec, expand
 from teleop.devices.scenarios import SCENARIOS
 from teleop.errors import TeleopError
 from teleop.limits import (
@@ -29,7 +29,7 @@ from teleop.limits import (
     MAX_VARIATION,
     MIN_LINK_TIMEOUT_S,
 )
-from teleop.session.settings import DEFAULTS
+from teleop.session.settings import DEFAULTS, Passivity
 
 #: Control characters (C0, DEL, C1) shown escaped: a file name or a log's text in an error must
 #: keep it one line, and must not drive the terminal (an escape sequence in a planted file's name).
@@ -161,14 +161,36 @@ def dof(text: str) -> int:
     return int_range("DoF", 1, MAX_DOF)(text)
 
 
-def codec(text: str) -> str:
-    if len(text) > MAX_CODEC_SPEC_LEN:
+MAX_TYPED_SPEC_LEN = 256  # a spec as typed (named parameters spell more than the wire's 64)
+
+
+def codec(text: str) -> CodecSpec:
+    """One codec: the spec, parsed here once (presets and named parameters resolved)."""
+    return codec_set(text, one=True)[0]
+
+
+def codec_set(text: str, one: bool = False) -> list[CodecSpec]:
+    """One ``--codec`` of a command that runs several: a spec, or a preset naming a set (``paper``)."""
+    if len(text) > MAX_TYPED_SPEC_LEN:
         raise argparse.ArgumentTypeError(
-            f"codec spec must be at most {MAX_CODEC_SPEC_LEN} characters, got {len(text)}"
+            f"codec spec must be at most {MAX_TYPED_SPEC_LEN} characters, got {len(text)}"
         )
     try:
-        return make_codec(text).spec
+        specs = [CodecSpec.parse(text)] if one else expand(text)
     except CodecError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    for spec in specs:  # what goes on the wire: the hello's bound
+        if len(spec) > MAX_CODEC_SPEC_LEN:
+            raise argparse.ArgumentTypeError(
+                f"codec spec {spec} must be at most {MAX_CODEC_SPEC_LEN} characters, got {len(spec)}"
+            )
+    return specs
+
+
+def passivity(text: str) -> Passivity:
+    try:
+        return Passivity.of(text)
+    except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
@@ -398,13 +420,14 @@ def add_netem_args(
 def add_passivity_args(p: argparse.ArgumentParser, repeatable: bool = False) -> None:
     p.add_argument(
         "--passivity",
-        choices=["wave", "tdpa"],
+        type=passivity,
+        choices=list(Passivity),
         default=None if repeatable else DEFAULTS.passivity,
         action="append" if repeatable else "store",
         help="how the channel is kept passive: wave (default) sends scattering waves (eq. 3-5); tdpa "
         "sends velocity forward and force back with each side's input energy, and an adaptive damper "
         "at each side dissipates what the channel would generate (time-domain passivity approach). "
-        "tdpa takes the codecs none, cq, ids, eds, pd and pdp",
+        "tdpa takes every codec but dct",
     )
     p.add_argument(
         "--on-loss",

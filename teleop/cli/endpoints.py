@@ -38,7 +38,7 @@ from teleop.control.passivity import ON_LOSS
 from teleop.devices.scenarios import SCENARIOS
 from teleop.limits import MAX_B, MAX_LINK_TIMEOUT_S, MAX_RANGE, MIN_LINK_TIMEOUT_S
 from teleop.session.playout import MAX_EXTRA_MS
-from teleop.session.settings import DEFAULT_CODEC, DEFAULT_ENVELOPE, DEFAULT_SCENARIO, PASSIVITY
+from teleop.session.settings import DEFAULT_CODEC, DEFAULT_ENVELOPE, DEFAULT_SCENARIO, PASSIVITY, Passivity
 
 
 def cmd_operator(args: argparse.Namespace) -> int:
@@ -122,13 +122,14 @@ def robot_envelope(args: argparse.Namespace) -> Any:
         raise CliError(f"--min-b {min_b:g} exceeds --max-b {max_b:g}")
     from teleop.devices import max_dof
 
+    archs = _names(args.allow_passivity, PASSIVITY, "--allow-passivity")
     try:
         return Envelope(
             max_dof=max_dof(args.robot, "robot"),
             max_range=max_range,
             min_b=min_b,
             max_b=max_b,
-            passivity=_names(args.allow_passivity, PASSIVITY, "--allow-passivity") or e.passivity,
+            passivity=tuple(map(Passivity, archs)) if archs else e.passivity,
             on_loss=_names(args.allow_on_loss, ON_LOSS, "--allow-on-loss") or e.on_loss,
             uncontrolled_on_loss=_names(args.allow_no_controller, ON_LOSS, "--allow-no-controller") or (),
             **{lim.field: getattr(args, lim.dest) / lim.scale for lim in LIMITS if not lim.widens},

@@ -26,7 +26,7 @@ from teleop.cli.args import (
     add_model_args,
     add_netem_args,
     add_passivity_args,
-    codec,
+    codec_set,
     int_range,
     nonneg_float,
 )
@@ -203,10 +203,11 @@ def add_parser(sub: Subcommands) -> None:
     )
     e.add_argument(
         "--codec",
-        action="append",
-        type=codec,
+        action="extend",
+        type=codec_set,
         metavar="SPEC",
-        help=f"codec, repeatable (default: the paper's set). Accepted: {ACCEPTED}",
+        help="codec, repeatable; a set preset (paper) adds each of its codecs (default: the paper's set). "
+        f"Accepted: {ACCEPTED}",
     )
     e.add_argument("--real", action="store_true", help="real two-process sessions instead of the simulation")
     e.add_argument(

@@ -92,13 +92,15 @@ def netem(args: argparse.Namespace, direction: str) -> str:
     return str(specific if specific is not None else (getattr(args, "netem", None) or ""))
 
 
-def channel(args: argparse.Namespace) -> Channel:
-    """The channel's settings (impairment, reconstruction, passivity), parsed once from the command
-    line and the same for `teleop sim` and a real session; an option a command lacks keeps the
-    one default (``teleop.session.settings.DEFAULTS``)."""
+def channel(args: argparse.Namespace, codec: str = DEFAULTS.codec) -> Channel:
+    """The channel's settings (codec, impairment, reconstruction, passivity), parsed once from the
+    command line and the same for `teleop sim` and a real session; an option a command lacks keeps
+    the one default (``teleop.session.settings.DEFAULTS``).  ``codec``: the one codec of a session (a
+    command that runs several sets each case's)."""
     no_controller = getattr(args, "no_controller", not DEFAULTS.controller)
     on_loss = getattr(args, "on_loss", None)
     return Channel(
+        codec=codec,
         netem_forward=netem(args, "forward"),
         netem_backward=netem(args, "backward"),
         seed=getattr(args, "seed", DEFAULTS.seed),
@@ -146,14 +148,13 @@ def session_params(args: argparse.Namespace, session: int) -> Any:
     try:
         return SessionParams(
             session=session,
-            codec=args.codec,
             scenario=args.scenario,
             dof=dof,
             b=args.b if args.b is not None else sc.b,
             full_scale=args.range if args.range is not None else sc.full_scale,
             duration=duration,
             phase=args.phase,
-            **channel(args).channel_fields(),
+            **channel(args, args.codec).channel_fields(),
         ).validate()
     except (ValueError, CodecError, OSError) as e:
         raise CliError(str(e)) from None

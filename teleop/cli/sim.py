@@ -14,7 +14,7 @@ from teleop.cli.args import (
     add_model_args,
     add_netem_args,
     add_passivity_args,
-    codec,
+    codec_set,
     nonneg_float,
 )
 from teleop.cli.settings import check_duration, fresh_out, private_dir, sim_config
@@ -135,7 +135,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     out = private_dir(Path(args.out), "--out") if args.out is not None else None
     if out is not None:
         fresh_out(out, ["results.json"])
-    codecs = args.codec or list(SECTION_V_CODECS)
+    codecs = list(dict.fromkeys(args.codec or SECTION_V_CODECS))
     base = sim_config(args)
     try:
         doc, cases = run_set(codecs, base)
@@ -145,7 +145,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
         f"teleop sim: scenario {base.scenario}, {base.dof} DoF, b = {base.b:g}, delay {base.delay_ms:g} ms, "
         f"{base.duration:g} s at {1 / base.dt:g} Hz, wave range +-{base.full_scale:g}"
     )
-    if base.passivity == "tdpa":
+    if base.tdpa:
         from teleop.session.port import power_ranges
 
         v_fs, f_fs = power_ranges(base.full_scale, base.b)
@@ -165,7 +165,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     if impaired or base.on_loss != "conceal" or not base.controller:
         print(format_watchdog(doc["cases"]))
     print(format_distortion(doc["cases"]))
-    if base.passivity == "tdpa":
+    if base.tdpa:
         print(format_tdpa(doc["cases"]))
     if out is not None:
         _write_results(out, doc, cases)
@@ -182,10 +182,11 @@ def add_parser(sub: Subcommands) -> None:
     )
     s.add_argument(
         "--codec",
-        action="append",
-        type=codec,
+        action="extend",
+        type=codec_set,
         metavar="SPEC",
-        help=f"codec, repeatable (default: the paper's set). Accepted: {ACCEPTED}",
+        help="codec, repeatable; a set preset (paper) adds each of its codecs (default: the paper's set). "
+        f"Accepted: {ACCEPTED}",
     )
     s.add_argument(
         "--delay",

@@ -14,13 +14,14 @@ from teleop.cli.args import (
     add_model_args,
     add_netem_args,
     add_passivity_args,
-    codec,
+    codec_set,
     int_range,
 )
 from teleop.cli.settings import check_duration, fresh_out, private_dir, sim_config
-from teleop.control.codecs import ACCEPTED, CodecError
+from teleop.control.codecs import ACCEPTED, CodecError, CodecSpec
 from teleop.devices.scenarios import SCENARIOS
 from teleop.files import write_new
+from teleop.session.settings import Passivity
 
 
 def _progress(done: int, total: int, spec: str) -> None:
@@ -35,15 +36,15 @@ def _progress(done: int, total: int, spec: str) -> None:
     sys.stderr.flush()
 
 
-def _grid(args: argparse.Namespace, passivity: str) -> list[str]:
+def _grid(args: argparse.Namespace, passivity: Passivity) -> list[CodecSpec]:
     """The codecs of one front: --codec, or the default grid (under tdpa, its codecs that apply to
     power variables)."""
     from teleop.control.codecs import POWER_CODECS
     from teleop.offline.sweep import DEFAULT_GRID
 
-    codecs = list(args.codec or DEFAULT_GRID)
-    if passivity == "tdpa":
-        codecs = [c for c in codecs if c.split(":")[0] in POWER_CODECS]
+    codecs = list(dict.fromkeys(args.codec or [CodecSpec.parse(c) for c in DEFAULT_GRID]))
+    if passivity == Passivity.TDPA:
+        codecs = [c for c in codecs if c.name in POWER_CODECS]
     return codecs
 
 
@@ -56,7 +57,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     check_duration(duration, args.dof if args.dof is not None else sc.dof)
     out = private_dir(Path(args.out), "--out")
     netems = list(dict.fromkeys(args.netem or [None]))  # one front per --netem, in order, each once
-    passivities = list(dict.fromkeys(args.passivity or ["wave"]))
+    passivities = list(dict.fromkeys(args.passivity or [Passivity.WAVE]))
     many = len(netems) * len(passivities) > 1
     fresh_out(out, ["sweep.json", "pareto.png", *(["fronts.png"] if many else [])])
     docs = []
@@ -118,10 +119,11 @@ def add_parser(sub: Subcommands) -> None:
     )
     s.add_argument(
         "--codec",
-        action="append",
-        type=codec,
+        action="extend",
+        type=codec_set,
         metavar="SPEC",
-        help=f"codec, repeatable (default: a grid over every family). Accepted: {ACCEPTED}",
+        help="codec, repeatable; a set preset (paper) adds each of its codecs (default: a grid over every "
+        f"family, every point of the front included). Accepted: {ACCEPTED}",
     )
     add_model_args(s, "protocol")
     add_netem_args(s, repeatable=True)

@@ -84,10 +84,10 @@ class EnergyGuard:
         self.reported_origin = 0.0
         self.played_origin = 0.0
         self._origin_from_next_report = False
-        # Two-port pooling (``pdr``'s POOL, eq. 5 summed over both directions): J of this budget
-        # given to the other direction, announced in this side's own reports (``grant``).
-        self.granted_out = 0.0
-        self.granted_origin = 0.0
+        # Self-credit (``pdr``'s cKAPPA, eq. 1 via 4): J this side credited its own budget out of
+        # energy it sent and withholds from its reports (``credit``).
+        self.credited = 0.0
+        self.credited_origin = 0.0
 
     def bound(self, max_power: float) -> None:
         """Bound the peer's reports by ``max_power`` W from now on (a robot's own limits, set as its
@@ -122,32 +122,17 @@ class EnergyGuard:
         joined a running session late (the first report it sees becomes the origin)."""
         self.reported_in = self.reported_origin = 0.0
         self.played_origin = self.played
-        self.granted_origin = self.granted_out
+        self.credited_origin = self.credited
         self._origin_from_next_report = joined_late
 
     @property
     def margin(self) -> float:
-        # Less what was granted away (0.0 without pooling: ``m - 0.0`` is ``m`` bit for bit).
+        # Plus what was self-credited (0.0 without: ``m - 0.0`` is ``m`` bit for bit).
         return (
             (self.reported_in - self.reported_origin)
             - (self.played - self.played_origin)
-            - (self.granted_out - self.granted_origin)
+            - (self.credited_origin - self.credited)
         )
-
-    def grant(self, total: float) -> None:
-        """Give up budget for the other direction: ``total`` J granted so far (cumulative, never
-        lowered), taken from this budget *before* the node announces it in its energy reports.
-
-        Why it stays passive: the channel is a two-port, and eq. (5) summed over both directions,
-        ``E_g_in - E_g_out + E_h_in - E_h_out >= 0``, is the condition (per direction is sufficient,
-        not necessary).  This side's margin loses ``total`` before the peer's budget can gain it, and
-        a report can only be older than the truth, so the sum of the two guards' margins bounds the
-        channel's stored energy from below at every tick, under any delay or loss.  A grant larger
-        than the margin would make this guard's margin negative: refused (``ValueError``)."""
-        extra = total - self.granted_out
-        if not extra >= 0.0 or extra > max(self.margin, 0.0) + self.tolerance:
-            raise ValueError(f"grant of {extra!r} J exceeds the margin {self.margin!r} J")
-        self.granted_out = total
 
     def credit(self, amount: float) -> None:
         """Add ``amount`` J to this budget out of the energy this side sent and has not reported
@@ -155,7 +140,7 @@ class EnergyGuard:
         over both directions (``teleop.control.codecs.reflective.ReflectiveEncoder._self_credit``)."""
         if not amount >= 0.0:
             raise ValueError(f"credit must be >= 0 J, got {amount!r}")
-        self.granted_out -= amount
+        self.credited += amount
 
     @property
     def played_in_epoch(self) -> float:

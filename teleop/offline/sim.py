@@ -59,7 +59,6 @@ class SimConfig(Channel):
     """One run: the channel's settings (:class:`teleop.session.settings.Channel`, the same as a real
     session's) and the model's.  ``None`` means the scenario's default (``teleop.devices.scenarios``)."""
 
-    codec: str = "none"
     delay_ms: float = 0.0  # constant one-way delay of a direction without a netem spec
     duration: float | None = None
     dt: float = 0.001
@@ -80,7 +79,6 @@ class SimConfig(Channel):
     def of_session(cls, p: SessionParams, **sim: Any) -> SimConfig:
         """The simulation of a real session with parameters ``p`` (``sim``: the sim's own fields)."""
         model = {
-            "codec": p.codec,
             "scenario": p.scenario,
             "dof": p.dof,
             "b": p.b,
@@ -111,8 +109,8 @@ class SimConfig(Channel):
             raise ValueError(f"dof must be >= 1, got {c.dof}")
         dof = c.dof
         c = replace(c, playout=c.check_channel(netem_files=True))  # canonical; ValueError says what is wrong
-        if c.passivity == "tdpa" and c.full_scale is not None:
-            make_codec(c.codec, dof, c.full_scale, power=True)  # CodecError: not on power variables
+        if c.tdpa and c.full_scale is not None:
+            make_codec(c.codec_spec, dof, c.full_scale, power=True)  # CodecError: not on power variables
         scenarios.get(c.scenario).make(dof, c.dt, c.seed, c.variation)  # ModelError says what is wrong
         if not c.window_ms >= c.dt * 1e3:
             raise ValueError(f"window must be at least one tick ({c.dt * 1e3} ms), got {c.window_ms}")
@@ -159,9 +157,13 @@ class Trace:
 
 @dataclass
 class CaseResult:
-    codec: str
     summary: dict[str, Any]
     trace: Trace
+
+    @property
+    def codec(self) -> str:
+        """The case's canonical codec spec (its summary says it)."""
+        return str(self.summary["codec"])
 
 
 def _ports(cfg: SimConfig) -> tuple[Port, Port, Codec]:
@@ -229,7 +231,7 @@ def run_case(cfg: SimConfig) -> CaseResult:
         op.receive(data, n_ticks * dt, n_ticks - 1, play=False)
     _drain(to, op, n_ticks, dt)
     _drain(op, to, n_ticks, dt)
-    return CaseResult(codec.spec, _summary(cfg, op, to, codec), _trace(op, to, dt))
+    return CaseResult(_summary(cfg, op, to, codec), _trace(op, to, dt))
 
 
 def _trace(op: Port, to: Port, dt: float) -> Trace:
@@ -279,7 +281,7 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
     margins = np.concatenate([tr.margin_fwd, tr.margin_bwd])
     min_margin = float(margins.min())
     summary: dict[str, Any] = {
-        "codec": codec.spec,
+        "codec": str(codec.spec),
         "class": codec.klass,
         "I": metrics.transparency(tr.v_hsi, tr.v_to, tr.f_hsi, tr.f_to, dt),
         # Per phase of the scenario (free, foam, wall; ``all``: the run): I per DoF, wire rates (Fig. 15).
@@ -360,7 +362,7 @@ def _delay_and_distortion(cfg: SimConfig, tr: Trace, summary: dict[str, Any]) ->
             "total": pv["forward"]["energy_dissipated"] + pv["backward"]["energy_dissipated"],
         },
     }
-    if cfg.passivity == "tdpa":
+    if cfg.tdpa:
         # TDPA's watchdog per direction (Artigas et al.'s observer): E_in at the sending port, E_out
         # at the receiving one, as each counted them; the receiver's view of E_in is the report.
         en = summary["energy"]

@@ -16,7 +16,8 @@ from typing import Any
 
 from teleop.offline.sim import SECTION_V_CODECS, SimConfig, run_case
 
-#: Every family, the paper's set first: rates from 1000/s down to 10/s per direction.
+#: Every family, the paper's set first: rates from 1000/s down to 10/s per direction, and every point
+#: of the measured front (a test checks it against bench/results).
 DEFAULT_GRID: tuple[str, ...] = (
     *SECTION_V_CODECS,
     "cq:6",
@@ -41,6 +42,12 @@ DEFAULT_GRID: tuple[str, ...] = (
     "pdp:5",
     "pdr:0.8",
     "pdr:2",
+    # The reflective deadband's measured front (bench/results/frontier0*.json): per-direction
+    # reserve, and self-credit; c0.5 has the lowest busier direction at ids:2's I (preset low-rate).
+    "pdr:0.8:100:1:128:86",
+    "pdr:0.6:100:0.6:30:30:c1",
+    "pdr:0.8:100:0.8:30:30:c1",
+    "pdr:0.8:100:0.8:30:30:c0.5",
 )
 
 
@@ -121,15 +128,16 @@ def run_sweep(
 
 
 def format_table(doc: dict[str, Any]) -> str:
+    w = max([10, *(len(c["codec"]) for c in doc["cases"])])  # pdr's self-credit specs are long
     head = (
-        f"{'codec':<10} {'I':>11} {'pkt/s fwd':>9} {'pkt/s bwd':>9} {'kbit/s':>8} {'c:1':>7} "
+        f"{'codec':<{w}} {'I':>11} {'pkt/s fwd':>9} {'pkt/s bwd':>9} {'kbit/s':>8} {'c:1':>7} "
         f"{'min c:1':>8} {'passive':>7} {'pareto':>6}"
     )
     lines = [head, "-" * len(head)]
     for c in sorted(doc["cases"], key=lambda c: sum(c["wire_bps"].values())):
         pps, bps = c["packets_per_s"], sum(c["wire_bps"].values())
         lines.append(
-            f"{c['codec']:<10} {c['I']:>11.4e} {pps['forward']:>9.1f} {pps['backward']:>9.1f} "
+            f"{c['codec']:<{w}} {c['I']:>11.4e} {pps['forward']:>9.1f} {pps['backward']:>9.1f} "
             f"{bps / 1e3:>8.1f} {c['compression']:>7.2f} {c['min_instant_compression']:>8.2f} "
             f"{'yes' if c['passive'] else 'NO':>7} {'*' if c['pareto'] else '':>6}"
         )

@@ -56,7 +56,7 @@ from teleop.control.ratecap import RateCap
 from teleop.control.wave import WaveImpedance
 from teleop.devices.models import Environment, Human
 from teleop.session import auth, wire
-from teleop.session.settings import DEFAULTS, Channel, Envelope
+from teleop.session.settings import DEFAULTS, Channel, Envelope, Passivity
 
 SPARSE_MARGIN_S = 0.010  # s: how late the payload after a lost one may be before the link is lost
 #: J of input energy a TDPA port may leave unreported before an event-based (deadband) encoder must
@@ -120,7 +120,7 @@ class PortOptions:
     fade_time: float = 0.1  # s to fade the coupling out (and back in)
     rate_cap: float = DEFAULTS.rate_cap  # bit/s on the wire in any 100 ms window (control.ratecap); 0: no cap
     playout: str = DEFAULTS.playout  # the receiver's playout buffer: off, auto or extra ms (session.playout)
-    passivity: str = DEFAULTS.passivity  # "wave" (scattering, eq. 3-5) or "tdpa" (power variables)
+    passivity: Passivity = DEFAULTS.passivity  # scattering waves (eq. 3-5) or TDPA on power variables
 
     @classmethod
     def of(cls, settings: Channel) -> PortOptions:
@@ -146,6 +146,7 @@ class PortOptions:
         )
         # canonical, or ValueError saying what is allowed (the same checks as every settings type)
         object.__setattr__(self, "playout", channel.check_channel(netem_files=False))
+        object.__setattr__(self, "passivity", channel.passivity)
 
 
 class _Port:
@@ -179,7 +180,7 @@ class _Port:
         self.datagram_overhead = auth.OVERHEAD + 28
         self.guard = self._make_guard(dt, opts, wave, tx, rx)
         # A codec whose reconstruction refers to the wave this side receives (pdr, eq. 3's
-        # reflection) pairs its two ends here, and a pooling one (pdr's POOL) its guard; the others
+        # reflection) pairs its two ends here, and a self-crediting one (pdr's cKAPPA) its guard; the others
         # have no ``pair``.
         pair = getattr(self.encoder, "pair", None)
         if pair is not None:
@@ -422,9 +423,9 @@ class _Port:
             round(now * 1e6),
             self.tx_codec.codec_id,
             payload,
-            # Plus what this side's guard granted the direction it sends (pooling, eq. 5 over both
-            # directions; 0.0 otherwise, which leaves the sum bit for bit).
-            self.energy_sent + self.encoder.granted,
+            # Less what this side self-credited (pdr's cKAPPA, eq. 1 via 4; 0.0 otherwise, which
+            # leaves the sum bit for bit).
+            self.energy_sent - self.encoder.withheld,
         )
         cap = self.rate_cap
         if cap is not None:

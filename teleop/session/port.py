@@ -38,7 +38,7 @@ import numpy as np
 import numpy.typing as npt
 
 from teleop import devices
-from teleop.control.codecs import make_codec
+from teleop.control.codecs import CodecSpec, make_codec
 from teleop.control.codecs.base import RAW_BITS, packed_size
 from teleop.control.wave import WaveImpedance
 from teleop.devices import scenarios
@@ -54,6 +54,7 @@ from teleop.session.node import (
     TeleoperatorNode,
 )
 from teleop.session.playout import PlayoutBuffer
+from teleop.session.settings import Passivity
 
 Array = npt.NDArray[np.float64]
 Node = OperatorNode | TeleoperatorNode
@@ -80,6 +81,7 @@ WIRE_KEYS = (
 
 NOT_AN_ENVELOPE = "not a teleop envelope"
 FOREIGN_SESSION_DATAGRAM = "a session datagram from another address"
+
 
 class ConstantDelayLink:
     """A lossless link with constant delay: ``send(now, data)``, ``due(now) -> [data]``.
@@ -129,7 +131,7 @@ def make_node(
     dof: int,
     dt: float,
     b: float,
-    codec: str,
+    codec: str,  # a CodecSpec (parsed already) or a spec to parse
     full_scale: float,
     session: int,
     options: PortOptions,
@@ -151,8 +153,9 @@ def make_node(
     dev = devices.make(side, spec, dof, dt, seed=seed, variation=variation)
     wave = WaveImpedance.of(b, dof)
     node: Node
-    if options.passivity == "tdpa":
-        v_codec, f_codec = (make_codec(codec, dof, r, power=True) for r in power_ranges(full_scale, b))
+    codec_spec = CodecSpec.parse(codec)
+    if options.passivity == Passivity.TDPA:
+        v_codec, f_codec = (make_codec(codec_spec, dof, r, power=True) for r in power_ranges(full_scale, b))
         if role == "operator":
             node = TdpaOperatorNode(
                 human=dev, wave=wave, tx=v_codec, rx=f_codec, session=session, dt=dt, options=options
@@ -163,7 +166,7 @@ def make_node(
             )
         node.device_spec = spec
         return node
-    c = make_codec(codec, dof, full_scale)
+    c = make_codec(codec_spec, dof, full_scale)
     if role == "operator":
         node = OperatorNode(human=dev, wave=wave, tx=c, rx=c, session=session, dt=dt, options=options)
     else:

@@ -43,7 +43,7 @@ from typing import Any, ClassVar, TypeAlias
 import msgpack
 
 from teleop import limits
-from teleop.control.codecs import CodecError, make_codec
+from teleop.control.codecs import CodecError, CodecSpec, make_codec
 from teleop.control.passivity import ON_LOSS
 from teleop.control.ratecap import MAX_RATE_BPS, MIN_RATE_BPS
 from teleop.control.wave import WaveImpedance
@@ -54,7 +54,7 @@ from teleop.session import auth
 from teleop.session.link import Addr
 from teleop.session.link.netem import NetemError, NetemSpec, parse_netem
 from teleop.session.node import PortOptions
-from teleop.session.settings import SETTINGS, Channel, Envelope
+from teleop.session.settings import SETTINGS, Channel, Envelope, Passivity
 
 FORWARD, BACKWARD = 0, 1  # the directions of teleop.session.wire: operator -> TO, TO -> operator
 
@@ -251,7 +251,12 @@ def configured_netem(expect: Mapping[str, object]) -> frozenset[str]:
 #: What an optional field left out of a hello means (PROTOCOL.md 4.2): what a session meant before the
 #: field existed, so an older peer's hello keeps its meaning.  Not a default
 #: (teleop.session.settings has those).
-WIRE_ABSENT: dict[str, Any] = {"rate_cap": 0.0, "playout": "off", "variation": 0.0, "passivity": "wave"}
+WIRE_ABSENT: dict[str, Any] = {
+    "rate_cap": 0.0,
+    "playout": "off",
+    "variation": 0.0,
+    "passivity": Passivity.WAVE,
+}
 
 
 @dataclass(frozen=True)
@@ -259,7 +264,6 @@ class SessionParams(Channel):
     """What the handshake agrees on: the model's settings and the channel's (:class:`Channel`)."""
 
     session: int
-    codec: str
     scenario: str
     dof: int
     b: float
@@ -308,8 +312,8 @@ class SessionParams(Channel):
             text = getattr(self, name)
             if text.split()[:1] not in ([], ["trace"]):
                 _check_netem_numbers(name, parse_netem(text))
-        spec = make_codec(self.codec, self.dof, self.full_scale, power=self.passivity == "tdpa").spec
-        return dataclasses.replace(self, codec=spec, playout=playout)
+        make_codec(self.codec_spec, self.dof, self.full_scale, power=self.tdpa)  # CodecError: not under TDPA
+        return dataclasses.replace(self, playout=playout)
 
     def port_options(self) -> PortOptions:
         return PortOptions.of(self)
@@ -338,7 +342,7 @@ class SessionParams(Channel):
         side configured itself); no file is ever opened here."""
         if not isinstance(m, Mapping):
             raise ProtocolError(f"session parameters must be a map, {_got(m)}")
-        p = cls(
+        fields: dict[str, Any] = dict(
             session=_int(m, "session", 1, limits.MAX_SESSION),
             codec=_str(m, "codec", limits.MAX_CODEC_SPEC_LEN),
             scenario=_str(m, "scenario", _MAX_NAME_LEN),
@@ -359,18 +363,21 @@ class SessionParams(Channel):
             variation=_float(m, "variation") if "variation" in m else WIRE_ABSENT["variation"],
             passivity=_str(m, "passivity", _MAX_NAME_LEN) if "passivity" in m else WIRE_ABSENT["passivity"],
         )
+        codec = fields.pop("codec")
         try:
+            # The spec is parsed here, once, as the wire spells it (no presets, no named parameters).
+            p = cls(codec=CodecSpec.parse(codec, local=False), **fields)
             p._check_ranges()
             for name in _NETEM_FIELDS:
                 _check_peer_netem(name, getattr(p, name), local_netem)
             WaveImpedance.of(p.b, p.dof)
             playout = p.check_channel(netem_files=False)
-            spec = make_codec(p.codec, p.dof, p.full_scale, power=p.passivity == "tdpa").spec
+            make_codec(p.codec_spec, p.dof, p.full_scale, power=p.tdpa)  # CodecError: not under TDPA
         except ProtocolError:
             raise
         except (CodecError, ValueError, ArithmeticError) as e:  # the validators of other modules
             raise ProtocolError(str(e)) from None
-        return dataclasses.replace(p, codec=spec, playout=playout)
+        return dataclasses.replace(p, playout=playout)
 
     def to_msg(self) -> dict[str, Any]:
         """The hello's parameters: every setting of ``teleop.session.settings.SETTINGS`` under its key, in

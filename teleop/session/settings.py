@@ -19,16 +19,37 @@ import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
+from enum import StrEnum
 from typing import Any, Protocol
 
 from teleop import limits
+from teleop.control.codecs import make_codec
+from teleop.control.codecs.spec import CodecSpec
 from teleop.control.passivity import DEFAULT_LINK_TIMEOUT, ON_LOSS
 from teleop.control.ratecap import RateCap
 from teleop.session.link.netem import NetemError, make_link
 from teleop.session.playout import MAX_EXTRA_MS, parse_playout
 
-#: The two architectures: scattering waves (eq. 3-5) or TDPA on power variables (teleop.control.passivity).
-PASSIVITY = ("wave", "tdpa")
+
+class Passivity(StrEnum):
+    """The two architectures: scattering waves (eq. 3-5) or TDPA on power variables
+    (``teleop.control.passivity``).  A ``str``: what a hello carries and a report says."""
+
+    WAVE = "wave"
+    TDPA = "tdpa"
+
+    @classmethod
+    def of(cls, text: str) -> Passivity:
+        """``text`` as an architecture; ValueError says what is allowed."""
+        try:
+            return cls(text)
+        except ValueError:
+            raise ValueError(f"passivity must be one of {', '.join(PASSIVITY)}, got {text!r}") from None
+
+
+PASSIVITY = tuple(p.value for p in Passivity)
+#: The codec of a settings object that names none: no LDR (parsed once, here).
+NO_CODEC = CodecSpec.parse("none")
 #: What an operator proposes when not told (``teleop operator`` and ``teleop run``): the codec that
 #: cuts 98% of the packets at the paper's protocol, and the paper's Section VI task.
 DEFAULT_CODEC = "eds:50"
@@ -40,7 +61,11 @@ class Channel:
     """How the channel between the two ports behaves: impairment, reconstruction, passivity.
 
     Text fields hold the canonical spelling, which is also what a hello carries; :meth:`checked`
-    parses each once and says what is wrong."""
+    parses each once and says what is wrong.  The codec is parsed on construction, into a
+    :class:`teleop.control.codecs.CodecSpec` (a ``str``: its canonical spelling; :attr:`codec_spec` gives
+    it typed), and ``passivity`` into :class:`Passivity`; both are passed on, never parsed again."""
+
+    codec: str = NO_CODEC  # LDR codec spec (teleop.control.codecs; presets and named parameters resolved)
 
     netem_forward: str = ""  # impairment of operator -> TO (applied by the operator's shim)
     netem_backward: str = ""  # impairment of TO -> operator (applied by the TO's shim)
@@ -51,7 +76,24 @@ class Channel:
     rate_cap: float = 0.0  # bit/s per direction in any 100 ms window (teleop.control.ratecap); 0: none
     playout: str = "auto"  # receivers' playout buffer: off, auto or extra ms (teleop.session.playout)
     variation: float = 0.0  # scale of the human's seeded variation (devices.models.ProtocolPlan); 0: none
-    passivity: str = "wave"  # "wave" (scattering, eq. 3-5) or "tdpa" (power variables + TDPA)
+    passivity: Passivity = Passivity.WAVE  # scattering waves (eq. 3-5) or TDPA on power variables
+
+    def __post_init__(self) -> None:
+        # CodecSpec.parse and Passivity.of return a value that is parsed already as it is: a copy
+        # (dataclasses.replace) or a settings type built from another parses nothing again.
+        object.__setattr__(self, "codec", CodecSpec.parse(self.codec))
+        object.__setattr__(self, "passivity", Passivity.of(self.passivity))
+
+    @property
+    def codec_spec(self) -> CodecSpec:
+        """The codec spec, typed (parsed on construction)."""
+        assert isinstance(self.codec, CodecSpec)
+        return self.codec
+
+    @property
+    def tdpa(self) -> bool:
+        """Power variables and TDPA rather than waves."""
+        return self.passivity == Passivity.TDPA
 
     def check_channel(self, *, netem_files: bool) -> str:
         """Check every channel field; return the canonical playout (ValueError says what is wrong).
@@ -65,8 +107,6 @@ class Channel:
             raise ValueError(f"link_timeout must be > 0 s, got {self.link_timeout!r}")
         if self.rate_cap:
             RateCap(self.rate_cap, 1e-3)  # ValueError saying the allowed range
-        if self.passivity not in PASSIVITY:
-            raise ValueError(f"passivity must be one of {', '.join(PASSIVITY)}, got {self.passivity!r}")
         if netem_files:
             for name in ("netem_forward", "netem_backward"):
                 text = getattr(self, name)
@@ -124,7 +164,7 @@ class Proposal(Protocol):
     @property
     def playout(self) -> str: ...
     @property
-    def passivity(self) -> str: ...
+    def passivity(self) -> Passivity: ...
 
 
 @dataclass(frozen=True)
@@ -144,7 +184,7 @@ class Envelope:
     max_b: float = 20.0  # N s/m: a high one into a large force (F = sqrt(2 b) g)
     max_dof: int = limits.MAX_DOF  # the robot device's own (teleop.devices.max_dof)
     dt: float = 0.001  # s: the robot's own period; a session runs at it or not at all
-    passivity: tuple[str, ...] = ("wave", "tdpa")  # the architectures this robot runs
+    passivity: tuple[Passivity, ...] = tuple(Passivity)  # the architectures this robot runs
     on_loss: tuple[str, ...] = ON_LOSS  # the reconstructions it plays on a loss
     # The reconstructions it plays with the passivity controller off: none (the default) refuses the
     # controller off; a robot that allows it names which (zero is passive; hold and conceal are not).
@@ -165,6 +205,7 @@ class Envelope:
             raise ValueError(f"max_playout_ms must be 0..{_num(MAX_EXTRA_MS)}, got {self.max_playout_ms!r}")
         if not set(self.passivity) <= set(PASSIVITY) or not self.passivity:
             raise ValueError(f"passivity must be some of {', '.join(PASSIVITY)}, got {self.passivity!r}")
+        object.__setattr__(self, "passivity", tuple(Passivity.of(p) for p in self.passivity))
         if not set(self.on_loss) <= set(ON_LOSS) or not self.on_loss:
             raise ValueError(f"on_loss must be some of {', '.join(ON_LOSS)}, got {self.on_loss!r}")
         if not set(self.uncontrolled_on_loss) <= set(ON_LOSS):
@@ -254,9 +295,9 @@ def codec_range(p: Proposal) -> float:
     """The largest wave range (sqrt(W)) the proposed codec plays: the session's range, or CQ's own
     RANGE; under TDPA the wave range its power ranges (``teleop.session.port.power_ranges``) stand for.
     0 for a codec spec that does not parse (the handshake's own checks say what is wrong)."""
-    from teleop.control.codecs import CodecError, make_codec
+    from teleop.control.codecs import CodecError
 
-    tdpa = p.passivity == "tdpa"
+    tdpa = p.passivity == Passivity.TDPA
     # (the range the port gives the codec, what one unit of wave range is in that range)
     ranges = (
         [
@@ -269,7 +310,7 @@ def codec_range(p: Proposal) -> float:
     needed = 0.0
     for session_range, unit in ranges:
         try:
-            c = make_codec(p.codec, p.dof, session_range, power=tdpa)
+            c = make_codec(CodecSpec.parse(p.codec), p.dof, session_range, power=tdpa)  # a spec: no parsing
         except CodecError:
             return 0.0
         needed = max(needed, c.raw.full_scale / unit)

@@ -25,7 +25,7 @@ payload    bin        the codec's bytes (see ``teleop.control.codecs``)
 energy     float      sender's cumulative transmitted wave energy, J (eq. 4-5); float32/64 only
 =========  =========  ==============================================================
 
-Under ``--passivity tdpa`` (PROTOCOL.md section 9) the layout is the same; ``codec_id`` is
+Under ``--passivity tdpa`` (PROTOCOL.md section 8) the layout is the same; ``codec_id`` is
 ``POWER_CODEC_BASE + id``, the payload carries a power variable (velocity forward, force back) and
 ``energy`` the sender's cumulative TDPA input energy ``E_in``, J (``teleop.control.passivity``).
 

@@ -38,22 +38,40 @@ from teleop.control.codecs.base import (
     RawFormat,
     packed_size,
 )
-from teleop.control.codecs.deadband import DEFAULT_HEARTBEAT_MS, DeadbandDecoder, DeadbandEncoder
+from teleop.control.codecs.deadband import DeadbandDecoder, DeadbandEncoder
 from teleop.control.codecs.direct import DirectDecoder, DirectEncoder
 from teleop.control.codecs.extrapolative import EdsDecoder, EdsEncoder
-from teleop.control.codecs.frequency import MAX_FRAME, DctDecoder, DctEncoder
+from teleop.control.codecs.frequency import DctDecoder, DctEncoder
 from teleop.control.codecs.interpolative import IdsDecoder, IdsEncoder
-from teleop.control.codecs.reflective import POOL_HOLD_TICKS, ReflectiveDecoder, ReflectiveEncoder
+from teleop.control.codecs.reflective import ReflectiveDecoder, ReflectiveEncoder
+from teleop.control.codecs.spec import (
+    ACCEPTED,
+    GRAMMARS,
+    MAX_BAND_PCT,
+    MAX_K,
+    MAX_RESERVE_PCT,
+    PRESETS,
+    CodecSpec,
+    expand,
+)
 
 __all__ = [
+    "ACCEPTED",
     "CODECS",
     "DEFAULT_FULL_SCALE",
+    "GRAMMARS",
+    "MAX_BAND_PCT",
+    "MAX_K",
+    "MAX_RESERVE_PCT",
+    "PRESETS",
     "Array",
     "Codec",
     "CodecError",
+    "CodecSpec",
     "Encoder",
     "PlayoutDecoder",
     "RawFormat",
+    "expand",
     "make_codec",
 ]
 
@@ -61,27 +79,12 @@ __all__ = [
 #: about +-2 (b = 1, unit velocity step); the headroom keeps the protocol scenario unsaturated.
 DEFAULT_FULL_SCALE = 16.0
 
-MAX_K = 100_000  # ticks (100 s at 1 kHz): any longer frame, horizon or heartbeat is meaningless
-MAX_BAND_PCT = 100.0
-MAX_RESERVE_PCT = 1000.0  # pdr's FR, BR: the reserve scale of a direction, percent of the default
-
-ACCEPTED = (
-    "none | ids:K | eds:K | cq:BITS[:RANGE] | pd:PCT[:MAXMS] | pdp:PCT[:MAXMS] | "
-    "pdr:PCT[:MAXMS[:BPCT[:FR:BR[:POOL[:HOLD]]]]] | dct:N:M  "
-    f"(K integer 1..{MAX_K} ticks; BITS integer 2..{RAW_BITS}; RANGE full scale > 0, default session "
-    f"range; PCT deadband in percent, 0 < PCT <= {MAX_BAND_PCT:g}; MAXMS heartbeat in ms, integer "
-    f"1..{MAX_K}, default {DEFAULT_HEARTBEAT_MS}; BPCT pdr's backward band, as PCT, default PCT; "
-    f"FR, BR pdr's forward and backward reserve scale in percent, 0..{MAX_RESERVE_PCT:g}, default 100; "
-    f"POOL, HOLD pdr's two-port pooling, ticks kept and ticks granted for, 0..{MAX_K}; "
-    f"N frame 2..{MAX_FRAME} ticks, M coefficients 1..N)"
-)
-
 
 @dataclass(frozen=True)
 class Codec:
     """A parsed codec spec bound to a DoF count and a raw format: a factory of encoder/decoder."""
 
-    spec: str
+    spec: CodecSpec
     name: str
     codec_id: int
     klass: str
@@ -93,7 +96,7 @@ class Codec:
     make_decoder: Callable[[int, str], PlayoutDecoder]
     values: int = 1  # values per DoF in one payload (pdp: value and slope; dct: M coefficients)
     event_based: bool = False  # sends when the signal asks (deadband): k is its longest interval
-    extra_bytes: int = 0  # beyond the values (pdr's POOL: its cumulative grant, a float64)
+    extra_bytes: int = 0  # beyond the values (pdr's cKAPPA: the lag it measured, 16 bits)
 
     @property
     def payload_bytes(self) -> int:
@@ -129,25 +132,13 @@ class Codec:
         return self.make_decoder(max_queue if max_queue is not None else self.k, on_loss)
 
 
-def _int_param(spec: str, text: str, what: str, lo: int, hi: int | None = None) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise CodecError(
-            f"codec {spec!r}: {what} must be an integer, got {text!r}; accepted: {ACCEPTED}"
-        ) from None
-    if v < lo or (hi is not None and v > hi):
-        bound = f"in {lo}..{hi}" if hi is not None else f">= {lo}"
-        raise CodecError(f"codec {spec!r}: {what} must be {bound}, got {v}; accepted: {ACCEPTED}")
-    return v
+Factory = Callable[[CodecSpec, int, float], Codec]
 
 
-def _none(spec: str, params: list[str], dof: int, fs: float) -> Codec:
-    if params:
-        raise CodecError(f"codec {spec!r}: 'none' takes no parameter; accepted: {ACCEPTED}")
+def _none(spec: CodecSpec, dof: int, fs: float) -> Codec:
     raw = RawFormat(fs)
     return Codec(
-        "none",
+        spec,
         "none",
         0,
         "direct",
@@ -160,57 +151,46 @@ def _none(spec: str, params: list[str], dof: int, fs: float) -> Codec:
     )
 
 
-def _frame(name: str) -> Callable[[str, list[str], int, float], Codec]:
-    def make(spec: str, params: list[str], dof: int, fs: float) -> Codec:
-        if len(params) != 1:
-            raise CodecError(f"codec {spec!r}: '{name}' takes one parameter K; accepted: {ACCEPTED}")
-        k = _int_param(spec, params[0], "K", 1, MAX_K)
-        raw = RawFormat(fs)
-        if name == "ids":
-            return Codec(
-                f"ids:{k}",
-                "ids",
-                1,
-                "interpolative",
-                dof,
-                raw,
-                k,
-                RAW_BITS,
-                lambda: IdsEncoder(raw, k, dof),
-                lambda q, o: IdsDecoder(raw, k, dof, q, o),
-            )
-        return Codec(
-            f"eds:{k}",
-            "eds",
-            2,
-            "extrapolative",
-            dof,
-            raw,
-            k,
-            RAW_BITS,
-            lambda: EdsEncoder(raw, k, dof),
-            lambda q, o: EdsDecoder(raw, k, dof, q, o),
-        )
-
-    return make
+def _ids(spec: CodecSpec, dof: int, fs: float) -> Codec:
+    k, raw = int(spec.values["K"]), RawFormat(fs)
+    return Codec(
+        spec,
+        "ids",
+        1,
+        "interpolative",
+        dof,
+        raw,
+        k,
+        RAW_BITS,
+        lambda: IdsEncoder(raw, k, dof),
+        lambda q, o: IdsDecoder(raw, k, dof, q, o),
+    )
 
 
-def _cq(spec: str, params: list[str], dof: int, fs: float) -> Codec:
-    if len(params) not in (1, 2):
-        raise CodecError(f"codec {spec!r}: 'cq' takes BITS and an optional RANGE; accepted: {ACCEPTED}")
-    bits = _int_param(spec, params[0], "BITS", 2, RAW_BITS)
-    if len(params) == 2:
-        try:
-            fs = float(params[1])
-        except ValueError:
-            raise CodecError(f"codec {spec!r}: RANGE must be a number, got {params[1]!r}") from None
+def _eds(spec: CodecSpec, dof: int, fs: float) -> Codec:
+    k, raw = int(spec.values["K"]), RawFormat(fs)
+    return Codec(
+        spec,
+        "eds",
+        2,
+        "extrapolative",
+        dof,
+        raw,
+        k,
+        RAW_BITS,
+        lambda: EdsEncoder(raw, k, dof),
+        lambda q, o: EdsDecoder(raw, k, dof, q, o),
+    )
+
+
+def _cq(spec: CodecSpec, dof: int, fs: float) -> Codec:
+    bits = int(spec.values["BITS"])
     try:
-        raw = RawFormat(fs)
+        raw = RawFormat(spec.values.get("RANGE", fs))
     except CodecError as e:
         raise CodecError(f"codec {spec!r}: {e}") from None
-    canon = f"cq:{bits}" if len(params) == 1 else f"cq:{bits}:{fs:g}"
     return Codec(
-        canon,
+        spec,
         "cq",
         3,
         "direct",
@@ -223,103 +203,38 @@ def _cq(spec: str, params: list[str], dof: int, fs: float) -> Codec:
     )
 
 
-def _deadband(name: str) -> Callable[[str, list[str], int, float], Codec]:
-    predictive = name in ("pdp", "pdr")
-
-    def make(spec: str, params: list[str], dof: int, fs: float) -> Codec:
-        if name == "pdr" and len(params) in (3, 5, 6, 7):
-            return _pdr(spec, params, dof, fs)
-        if len(params) not in (1, 2):
-            extra = " (pdr: then BPCT, then FR and BR, then POOL and HOLD)" if name == "pdr" else ""
-            raise CodecError(
-                f"codec {spec!r}: '{name}' takes PCT and an optional MAXMS{extra}; accepted: {ACCEPTED}"
-            )
-        try:
-            pct = float(params[0])
-        except ValueError:
-            raise CodecError(f"codec {spec!r}: PCT must be a number, got {params[0]!r}") from None
-        if not 0 < pct <= MAX_BAND_PCT:
-            raise CodecError(f"codec {spec!r}: PCT must be in (0, {MAX_BAND_PCT:g}], got {pct:g}")
-        hb = _int_param(spec, params[1], "MAXMS", 1, MAX_K) if len(params) == 2 else DEFAULT_HEARTBEAT_MS
-        raw = RawFormat(fs)
-        # MAXMS is counted in ticks, which are ms at the default 1 kHz (a codec does not know dt);
-        # the node's link supervision reads k, so it stays consistent at any rate.
-        canon = f"{name}:{pct:g}" + (f":{hb}" if hb != DEFAULT_HEARTBEAT_MS else "")
-        if name == "pdr":  # pdp's payload, the reflection-aware receiver (teleop.control.codecs.reflective)
-            return Codec(
-                canon,
-                name,
-                7,
-                "deadband",
-                dof,
-                raw,
-                hb,
-                RAW_BITS,
-                lambda: ReflectiveEncoder(raw, dof, pct, hb),
-                lambda q, o: ReflectiveDecoder(raw, dof, q, o),
-                values=2,
-                event_based=True,
-            )
-        return Codec(
-            canon,
-            name,
-            5 if predictive else 4,
-            "deadband",
-            dof,
-            raw,
-            hb,
-            RAW_BITS,
-            lambda: DeadbandEncoder(raw, dof, pct, hb, predictive),
-            lambda q, o: DeadbandDecoder(raw, dof, predictive, q, o),
-            values=2 if predictive else 1,
-            event_based=True,
-        )
-
-    return make
+def _deadband(spec: CodecSpec, dof: int, fs: float) -> Codec:
+    """``pd`` and ``pdp`` (``teleop.control.codecs.deadband``)."""
+    predictive = spec.name == "pdp"
+    pct, hb = spec.values["PCT"], int(spec.values["MAXMS"])
+    raw = RawFormat(fs)
+    # MAXMS is counted in ticks, which are ms at the default 1 kHz (a codec does not know dt);
+    # the node's link supervision reads k, so it stays consistent at any rate.
+    return Codec(
+        spec,
+        spec.name,
+        5 if predictive else 4,
+        "deadband",
+        dof,
+        raw,
+        hb,
+        RAW_BITS,
+        lambda: DeadbandEncoder(raw, dof, pct, hb, predictive),
+        lambda q, o: DeadbandDecoder(raw, dof, predictive, q, o),
+        values=2 if predictive else 1,
+        event_based=True,
+    )
 
 
-def _pdr(spec: str, params: list[str], dof: int, fs: float) -> Codec:
-    """``pdr:PCT:MAXMS:BPCT[:FR:BR]``: the per-direction settings (``teleop.control.codecs.reflective``)."""
-    nums = []
-    credit = None
-    if len(params) == 6 and params[5][:1].lower() == "c":  # self-credit: cKAPPA, kappa in percent
-        try:
-            credit = float(params[5][1:]) / 100.0
-        except ValueError:
-            raise CodecError(f"codec {spec!r}: cKAPPA must be c and a number, got {params[5]!r}") from None
-        if not 0.0 <= credit < 1.0:
-            raise CodecError(f"codec {spec!r}: KAPPA must be in [0, 100) percent, got {params[5]!r}")
-        params = params[:5]
-    for what, text in zip(("PCT", "MAXMS", "BPCT", "FR", "BR", "POOL", "HOLD"), params, strict=False):
-        if what == "MAXMS":
-            nums.append(float(_int_param(spec, text, "MAXMS", 1, MAX_K)))
-            continue
-        try:
-            v = float(text)
-        except ValueError:
-            raise CodecError(f"codec {spec!r}: {what} must be a number, got {text!r}") from None
-        if what in ("PCT", "BPCT") and not 0 < v <= MAX_BAND_PCT:
-            raise CodecError(f"codec {spec!r}: {what} must be in (0, {MAX_BAND_PCT:g}], got {v:g}")
-        if what in ("FR", "BR") and not 0 <= v <= MAX_RESERVE_PCT:
-            raise CodecError(f"codec {spec!r}: {what} must be in [0, {MAX_RESERVE_PCT:g}], got {v:g}")
-        if what in ("POOL", "HOLD") and not 0 <= v <= MAX_K:
-            raise CodecError(f"codec {spec!r}: {what} must be in [0, {MAX_K}] ticks, got {v:g}")
-        nums.append(v)
-    pct, hb, bpct = nums[0], int(nums[1]), nums[2]
-    fr, br = (nums[3], nums[4]) if len(nums) >= 5 else (100.0, 100.0)
-    pool = (nums[5], nums[6] if len(nums) == 7 else POOL_HOLD_TICKS) if len(nums) >= 6 else None
-    # Canonical: the shortest form that means the same (pdr:0.8:100:0.8 is pdr:0.8).
-    tail = [f"{bpct:g}", f"{fr:g}", f"{br:g}"] if (fr, br) != (100.0, 100.0) or pool else [f"{bpct:g}"]
-    if pool is not None:
-        tail += [f"{pool[0]:g}", *([f"{pool[1]:g}"] if pool[1] != POOL_HOLD_TICKS else [])]
-    if credit is not None:
-        tail = [f"{bpct:g}", f"{fr:g}", f"{br:g}", f"c{100.0 * credit:g}"]
-    if tail == [f"{pct:g}"]:
-        tail = []
-    canon = ":".join(["pdr", f"{pct:g}", *([str(hb)] if tail or hb != DEFAULT_HEARTBEAT_MS else []), *tail])
+def _pdr(spec: CodecSpec, dof: int, fs: float) -> Codec:
+    """``pdr``: pdp's payload, the reflection-aware receiver, per-direction settings and optional
+    self-credit (``teleop.control.codecs.reflective``)."""
+    v = spec.values
+    pct, hb, bpct, fr, br = v["PCT"], int(v["MAXMS"]), v["BPCT"], v["FR"], v["BR"]
+    credit = v["KAPPA"] / 100.0 if "KAPPA" in v else None
     raw = RawFormat(fs)
     return Codec(
-        canon,
+        spec,
         "pdr",
         7,
         "deadband",
@@ -327,22 +242,19 @@ def _pdr(spec: str, params: list[str], dof: int, fs: float) -> Codec:
         raw,
         hb,
         RAW_BITS,
-        lambda: ReflectiveEncoder(raw, dof, pct, hb, bpct, (fr, br), pool, credit),
-        lambda q, o: ReflectiveDecoder(raw, dof, q, o, pool is not None, credit is not None),
+        lambda: ReflectiveEncoder(raw, dof, pct, hb, bpct, (fr, br), credit),
+        lambda q, o: ReflectiveDecoder(raw, dof, q, o, credit is not None),
         values=2,
         event_based=True,
-        extra_bytes=8 if pool is not None else 2 if credit is not None else 0,
+        extra_bytes=2 if credit is not None else 0,
     )
 
 
-def _dct(spec: str, params: list[str], dof: int, fs: float) -> Codec:
-    if len(params) != 2:
-        raise CodecError(f"codec {spec!r}: 'dct' takes N and M; accepted: {ACCEPTED}")
-    n = _int_param(spec, params[0], "N", 2, MAX_FRAME)
-    m = _int_param(spec, params[1], "M", 1, n)
+def _dct(spec: CodecSpec, dof: int, fs: float) -> Codec:
+    n, m = int(spec.values["N"]), int(spec.values["M"])
     raw = RawFormat(fs)
     return Codec(
-        f"dct:{n}:{m}",
+        spec,
         "dct",
         6,
         "frequency",
@@ -356,15 +268,15 @@ def _dct(spec: str, params: list[str], dof: int, fs: float) -> Codec:
     )
 
 
-#: name -> factory(spec, params, dof, full_scale)
-CODECS: dict[str, Callable[[str, list[str], int, float], Codec]] = {
+#: name -> factory(spec, dof, full_scale): one per grammar of ``teleop.control.codecs.spec.GRAMMARS``.
+CODECS: dict[str, Factory] = {
     "none": _none,
-    "ids": _frame("ids"),
-    "eds": _frame("eds"),
+    "ids": _ids,
+    "eds": _eds,
     "cq": _cq,
-    "pd": _deadband("pd"),
-    "pdp": _deadband("pdp"),
-    "pdr": _deadband("pdr"),
+    "pd": _deadband,
+    "pdp": _deadband,
+    "pdr": _pdr,
     "dct": _dct,
 }
 
@@ -394,17 +306,18 @@ def on_power_variable(c: Codec) -> Codec:
     )
 
 
-def make_codec(spec: str, dof: int = 1, full_scale: float = DEFAULT_FULL_SCALE, power: bool = False) -> Codec:
-    """Parse ``spec`` and bind it; raises :class:`CodecError` listing what is accepted.
-
-    ``power``: for a power variable under TDPA (:func:`on_power_variable`)."""
-    if not isinstance(spec, str) or not spec.strip():
-        raise CodecError(f"empty codec spec; accepted: {ACCEPTED}")
-    name, *params = spec.strip().split(":")
-    factory = CODECS.get(name.lower())
-    if factory is None:
-        raise CodecError(f"unknown codec {name!r} in {spec!r}; accepted: {ACCEPTED}")
+def build(spec: CodecSpec, dof: int, full_scale: float, power: bool = False) -> Codec:
+    """``spec`` bound to ``dof`` values of ``full_scale`` ; ``power``: for a
+    power variable under TDPA (:func:`on_power_variable`)."""
     if dof < 1:
         raise CodecError(f"dof must be >= 1, got {dof}")
-    c = factory(spec, params, dof, full_scale)
+    c = CODECS[spec.name](spec, dof, full_scale)
     return on_power_variable(c) if power else c
+
+
+def make_codec(
+    spec: str | CodecSpec, dof: int = 1, full_scale: float = DEFAULT_FULL_SCALE, power: bool = False
+) -> Codec:
+    """Parse ``spec`` (unless it is a :class:`CodecSpec` already) and bind it; raises
+    :class:`CodecError` listing what is accepted.  A parsed spec is not parsed again."""
+    return build(CodecSpec.parse(spec), dof, full_scale, power)

@@ -185,10 +185,10 @@ class Encoder:
     #: Set by a TDPA node before ``encode`` when its unreported input energy is due: an event-based
     #: encoder sends this tick (an energy-triggered update); periodic ones ignore it.
     urgent = False
-    #: J of its own side's receive budget the encoder has granted the direction it sends (cumulative;
-    #: ``pdr``'s POOL, ``teleop.control.passivity.EnergyGuard.grant``): the node adds it to its
-    #: energy reports.
-    granted = 0.0
+    #: J of the energy this side sent that the encoder credited its own guard with and withholds from
+    #: its reports (cumulative; ``pdr``'s self-credit, ``teleop.control.passivity.EnergyGuard.credit``): the
+    #: node subtracts it from its energy reports.
+    withheld = 0.0
 
     def encode(self, x: Array) -> bytes | None:  # pragma: no cover - interface
         raise NotImplementedError

@@ -42,7 +42,7 @@ part II and Xu et al. (IEEE ToH 2016), where the deadband's updates carry TDPA's
 Between sparse updates the receiver's budget is the last report, so its passivity controller
 damps what the sender has put in but not yet reported.  Xu et al. predict that energy at the
 receiver; a prediction is a claim the sender has not made, and the bound ``E_out <= E_in
-reported`` (PROTOCOL.md section 9) would then hold only approximately.  Here the sender sends
+reported`` (PROTOCOL.md section 8) would then hold only approximately.  Here the sender sends
 instead when its unreported input energy exceeds ``TDPA_REPORT_QUANTUM_J`` (``teleop.session.node`` sets
 ``Encoder.urgent``): an *energy-triggered update*, so the budget lags by at most that quantum and the
 bound stays exact.  The quantum trades packets for damping.  Measured with ``teleop sim

@@ -47,19 +47,16 @@ the backward to the forward direction, and widening the backward band (whose err
 model keeps small), trades the two directions' packets at about the same I.  Each encoder learns
 its direction in ``pair``; unpaired it keeps the forward settings.
 
-*Two-port accounting* (optional ``POOL[:HOLD]`` or ``cKAPPA`` after ``BR``; PROTOCOL.md 3.6).  Eq. (5)
-per direction is sufficient, not necessary: passivity is eq. (1) with (4), the two-port's energy.
-``POOL`` grants the direction a side sends part of its own receive budget (``EnergyGuard.grant``):
-measured, it does not help (``bench.pool_idle``: both directions' budgets run out together, so a grant
-is a permanent move of reserve, as ``FR``/``BR``).  ``cKAPPA`` credits a side's guard with energy it
-sent and has not reported, withheld from its reports (``_self_credit``): in free space each side then
-plays the returning wave on what it sends, and the budget sends nearly vanish (the codec guide).
+*Two-port accounting* (optional ``cKAPPA`` after ``BR``; PROTOCOL.md 3.6).  Eq. (5) per direction is
+sufficient, not necessary: passivity is eq. (1) with (4), the two-port's energy.  ``cKAPPA`` credits a
+side's guard with energy it sent and has not reported, withheld from its reports (``_self_credit``):
+in free space each side then plays the returning wave on what it sends, and the budget sends nearly
+vanish (the codec guide).
 """
 
 from __future__ import annotations
 
 import math
-import struct
 from collections import deque
 
 import numpy as np
@@ -90,10 +87,6 @@ RESERVE_SCALE = 0.01
 RESERVE_FLOOR = 0.003
 RESERVE_MAX_SHRINK = 0.5
 RESERVE_TICKS = 100  # reserve wanted: this many ticks of the current power
-#: POOL's default HOLD: a grant tops the receiver's budget up to this many ticks of the sent power.
-POOL_HOLD_TICKS = 100.0
-#: POOL's measure of the power this side plays: smoothed over about 1/POOL_POWER_ALPHA ticks.
-POOL_POWER_ALPHA = 0.002
 #: cKAPPA: the longest round trip (ticks) over which a sender pairs its model of the peer's credit.
 CREDIT_HISTORY = 4096
 CREDIT_LAGS = 16  # payloads over which the spread of the lags is taken
@@ -145,7 +138,6 @@ class ReflectiveEncoder(Encoder):
         heartbeat: int,
         back_pct: float | None = None,
         reserve_pct: tuple[float, float] = (100.0, 100.0),
-        pool: tuple[float, float] | None = None,
         credit: float | None = None,
     ) -> None:
         self.raw = raw
@@ -180,14 +172,9 @@ class ReflectiveEncoder(Encoder):
         self._undo: tuple[Array, Array, Array, int, bool, float, float, Array] | None = None
         self.sends = {"band": 0, "heartbeat": 0, "budget": 0, "energy": 0}
         self.limited = 0
-        #: Two-port pooling (``POOL``, ``(keep, hold)`` in ticks; the module docstring): armed by
-        #: ``pair`` with this side's guard and decoder.
-        self.pool = pool
+        #: This side's guard and decoder, armed by ``pair`` for self-credit.
         self._guard: EnergyGuard | None = None
         self._rx: ReflectiveDecoder | None = None
-        self._g_budget = 0.0  # own grant (e units) announced with the last payload
-        self._g_undo = 0.0
-        self._p_in = 0.0  # the power this side plays (e units a tick), smoothed
         #: Self-credit (``cKAPPA``; the module docstring): kappa, armed by ``pair``.
         self.credit = credit
         self._kk = (1.0 - credit) ** 2 if credit is not None else 0.0  # (1 - kappa)^2, used every tick
@@ -207,7 +194,6 @@ class ReflectiveEncoder(Encoder):
         if credit is not None:
             self.sends["credit"] = 0
             self.rx_lag = -1  # none measured yet: the payloads say so, and nothing is credited
-        self.grants = 0  # sends that granted something
 
     def pair(self, decoder: PlayoutDecoder, direction: int, guard: EnergyGuard | None = None) -> None:
         """Join this side's decoder (``teleop.session.node`` calls it; ``direction`` is the one this encoder
@@ -220,7 +206,7 @@ class ReflectiveEncoder(Encoder):
             self.k = self._back_k
             self.reserve_scale = RESERVE_SCALE * (self._reserve_pct[1] / 100.0)
         if isinstance(decoder, ReflectiveDecoder) and not self.power:
-            if (self.pool is not None or self.credit is not None) and guard is not None:
+            if self.credit is not None and guard is not None:
                 self._guard, self._rx = guard, decoder
             if direction == BACKWARD:
                 self._dec = decoder  # the teleoperator: its wave refers to the g_r it played
@@ -265,14 +251,7 @@ class ReflectiveEncoder(Encoder):
         pred = self._val + self._slope * self._i + refl
         e_pred = float(pred.dot(pred))
         guard = self._guard
-        # Pooled: the receiver's budget is also what this side granted it, less what the receiver
-        # granted the other direction out of it (announced in its payloads).
-        taken = 0.0
-        if guard is not None and self._rx is not None:
-            taken = self._rx.peer_grant / guard.half_dt
-            d_in = self._rx.played
-            self._p_in += POOL_POWER_ALPHA * (float(d_in.dot(d_in)) - self._p_in)
-        ceiling = self._e_budget + self._g_budget - taken if guard is not None else self._e_budget
+        ceiling = self._e_budget
         c_hold = 0.0
         if self.credit is not None and guard is not None and self._rx is not None:
             # The peer's self-credit on its last tick (what it played of this wave, as modelled
@@ -325,7 +304,6 @@ class ReflectiveEncoder(Encoder):
         self._undo = (
             self._val, self._slope, self._off, self._i, self._sent_once, self._e_budget, self._e_played, pred
         )  # fmt: skip
-        self._g_undo = self._g_budget
         self.sends[reason] += 1
         p = x
         if not self.power:
@@ -337,8 +315,6 @@ class ReflectiveEncoder(Encoder):
                 early = self.reserve_scale * self.full_scale / math.sqrt(self._e_in)
                 shrink = min(RESERVE_MAX_SHRINK, early + RESERVE_FLOOR)
                 p = x * (1.0 - shrink * (1.0 - reserve / target))
-            if guard is not None and self.pool is not None:
-                reserve = self._grant(guard, taken, xx)
             if float(p.dot(p)) > reserve:  # eq. (10): the send tick plays at most the reserve
                 self.limited += 1
                 p = x * math.sqrt(reserve / xx)
@@ -365,14 +341,11 @@ class ReflectiveEncoder(Encoder):
                 else 2 * min(self.rx_lag, 16383) + self._credit_on
             )
             qs = np.concatenate([qs, [lag]])  # the lag seen here (echoed: the round trip) and the state
-        out = pack(np.concatenate([q, qs]), 16)
-        # Pooled: the cumulative grant, for the peer's model of this side's budget (the guard reads
-        # only the energy report, so a wrong value here costs transparency, never passivity).
-        return out + struct.pack("<d", self.granted) if self.pool is not None else out
+        return pack(np.concatenate([q, qs]), 16)
 
     def _self_credit(self, guard: EnergyGuard, c: float) -> None:
         """Credit this side's guard ``c`` (e units) of the energy it sent this tick and has not
-        reported, and withhold it from its reports (``granted`` goes down by it, J).
+        reported, and withhold it from its reports (``withheld`` grows by it, J).
 
         Why it is passive (eqs. 1, 4): with ``C`` a side's credits, its reports are ``S - C`` and its
         guard plays at most ``A_peer + C``; credits since its last report never exceed the energy it
@@ -384,35 +357,9 @@ class ReflectiveEncoder(Encoder):
         if not c > 0.0:
             return
         self._c_own += c
-        total = -self._c_own * guard.half_dt
-        guard.credit(self.granted - total)
-        self.granted = total
-
-    def _grant(self, guard: EnergyGuard, taken: float, xx: float) -> float:
-        """Pooling, on a send tick: grant the receiver of this wave part of this side's own budget
-        (the other direction's, at its receiver here), and return the receiver's budget for this
-        tick's value (e units; what eq. 10 bounds it by).
-
-        Rule: keep ``keep`` ticks of the power this side plays; of the rest, give what the wave sent
-        needs to hold ``hold`` ticks of its current power beyond this tick.  The guard takes the
-        grant before the payload announces it (``EnergyGuard.grant``), so eq. (5) summed over both
-        directions holds at every tick whatever arrives."""
-        assert self.pool is not None and self._rx is not None
-        keep, hold = self.pool
-        hd = guard.half_dt
-        avail = self._e_in + self._g_budget - taken - self._e_played  # the receiver's, before a grant
-        need = (hold + 1.0) * xx - avail
-        spare = guard.margin / hd - keep * self._p_in
-        give = min(need, spare)
-        if give > 0.0:
-            total = self.granted + give * hd
-            if total - self.granted > guard.margin:  # rounding: never more than the margin
-                total = self.granted + max(guard.margin, 0.0)
-            guard.grant(total)
-            self.granted = total
-            self.grants += 1
-        self._g_budget = self.granted / hd
-        return max(self._e_in + self._g_budget - taken - self._e_played, 0.0)
+        withheld = self._c_own * guard.half_dt
+        guard.credit(withheld - self.withheld)
+        self.withheld = withheld
 
     def cancel(self) -> None:
         """The last payload was not sent (rate cap): the receiver goes on with the previous one."""
@@ -421,7 +368,6 @@ class ReflectiveEncoder(Encoder):
         val, slope, off, i, once, budget, played, pred = self._undo
         self._val, self._slope, self._off, self._i, self._sent_once = val, slope, off, i + 1, once
         self._e_budget = budget
-        self._g_budget = self._g_undo  # a grant made stays taken at the guard; the next payload announces it
         self._c_rep = self._c_undo  # the report never left: the invariant keeps the older origin
         self._credit_on = self._on_undo  # nor did the state it announced
         # Without a payload so far the receiver plays zero; else the prediction it had.
@@ -435,16 +381,12 @@ class ReflectiveDecoder(PlayoutDecoder):
     operator's), adds the reflection of what its side's forward model did since the payload
     began; never runs dry once a payload has arrived."""
 
-    def __init__(
-        self, raw: RawFormat, dof: int, max_queue: int, on_loss: str, pool: bool = False, lag: bool = False
-    ) -> None:
+    def __init__(self, raw: RawFormat, dof: int, max_queue: int, on_loss: str, lag: bool = False) -> None:
         super().__init__(dof, max_queue, on_loss)
-        self.pool = pool
         self.lag = lag  # cKAPPA: the payload ends with the peer's rx_lag (16 bits)
         self.peer_lag = 0
         self.peer_lags: deque[int] = deque(maxlen=CREDIT_LAGS)
         self.peer_on = False  # the peer credits, as its newest payload says
-        self.peer_grant = 0.0  # J the peer granted its other direction out of this wave's budget
         self.raw = raw
         self.slope_raw = RawFormat(raw.full_scale * SLOPE_SCALE)
         self._seg: tuple[Array, Array] | None = None
@@ -459,13 +401,6 @@ class ReflectiveDecoder(PlayoutDecoder):
 
     def push(self, payload: bytes) -> None:
         """The newest payload replaces whatever was playing; malformed raises, changes nothing."""
-        if self.pool:
-            if len(payload) != 4 * self.dof + 8:
-                raise CodecError(f"pdr pooled payload has {len(payload)} bytes, expected {4 * self.dof + 8}")
-            (grant,) = struct.unpack("<d", payload[-8:])
-            if not (math.isfinite(grant) and grant >= 0.0):
-                raise CodecError(f"pdr pooled payload has grant {grant!r}")
-            payload = payload[:-8]
         q = unpack(payload, 16, 2 * self.dof + (1 if self.lag else 0))
         if self.lag:
             if q[-1] < -1:
@@ -476,8 +411,6 @@ class ReflectiveDecoder(PlayoutDecoder):
                 self.peer_lags.append(self.peer_lag)
             q = q[:-1]
         seg = self.raw.dequantize(q[: self.dof]), self.slope_raw.dequantize(q[self.dof :])
-        if self.pool:
-            self.peer_grant = max(self.peer_grant, grant)
         if self._seg is not None and self._i == 0:
             self.dropped_samples += 1
         self._seg, self._i = seg, 0
