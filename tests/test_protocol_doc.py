@@ -170,7 +170,7 @@ def _control_examples() -> dict[str, tuple[protocol.Message, bytes, int, int, in
             i["welcome"]["counter"],
         ),
         "start": (
-            protocol.Start(SESSION, i["start"]["start_ns"]),
+            protocol.Start(SESSION, i["start"]["start_ns"], rtt_ns=i["start"]["rtt_ns"]),
             K_FWD,
             auth.SESSION,
             wire.FORWARD,
@@ -198,6 +198,7 @@ def test_the_handshake_numbers_of_the_example() -> None:
     offset, rtt = protocol.ntp_offset(w["t_ns"], w["t2"], w["t3"], w["t4"])
     assert (offset, rtt) == (w["offset_ns"], w["rtt_ns"])
     assert s["start_ns"] == s["S_O"] + offset
+    assert s["rtt_ns"] == rtt  # the start states the round trip of the exchange kept
     assert s["S_O"] - w["t4"] >= 0
 
 
