@@ -54,7 +54,9 @@ def _check_teleoperator(
     return r.returncode, json.loads(out.read_text()), r.stdout
 
 
-def _check_operator(tmp_path: Path, key: str, brk: str | None) -> tuple[int, dict[str, object], str]:
+def _check_operator(
+    tmp_path: Path, key: str, brk: str | None, codec: str = "eds:50"
+) -> tuple[int, dict[str, object], str]:
     port = _free_port()
     out = tmp_path / "conf.json"
     conf = subprocess.Popen(
@@ -64,7 +66,7 @@ def _check_operator(tmp_path: Path, key: str, brk: str | None) -> tuple[int, dic
     )  # fmt: skip
     time.sleep(1.0)
     op = _peer(brk, "operator", "--key-file", key, "--peer", f"127.0.0.1:{port}", "--listen", "127.0.0.1:0",
-               "--codec", "eds:50", "--duration", "1.5", "--connect-timeout", "4", "--quiet")  # fmt: skip
+               "--codec", codec, "--duration", "1.5", "--connect-timeout", "4", "--quiet")  # fmt: skip
     try:
         stdout, _ = conf.communicate(timeout=120)
     finally:
@@ -128,6 +130,11 @@ def _failed_in(result: dict[str, object], section: str, rule: str) -> bool:
         ("oversize-payload", "none", "3.5", "every payload has its codec's size"),
         ("oversize-payload", "none", "4.5", "longer than the largest message of its key kind"),
         ("energy-2x", "none", "3.6", "energy not over-reported"),
+        # (with every codec: the robot's port is passive, so it cannot send back more than it got)
+        ("energy-2x", "eds:50", "3.6", "a passive port sends back no more than it was sent"),
+        ("energy-2x", "ids:10", "3.6", "a passive port sends back no more than it was sent"),
+        ("energy-2x", "dct:50:10", "3.6", "a passive port sends back no more than it was sent"),
+        ("energy-2x", "pd:5", "3.6", "a passive port sends back no more than it was sent"),
         ("t-us-off", "none", "3.2", "t_us = round(tick * dt * 1e6)"),
         ("round-nearest", "none", "3.4", "|Q(x)| <= |x|"),
         ("deadband-no-budget", "pd:5", "3.6", "the payloads never play more energy than the reports"),
@@ -155,17 +162,22 @@ def test_the_projects_teleoperator_conforms_with_a_deadband(tmp_path: Path, key:
 
 
 @pytest.mark.parametrize(
-    "brk,section,rule",
+    "brk,codec,section,rule",
     [
-        ("start-skew", "4.3 step 5", "leaves no earlier than the tick's time"),
-        ("late-5", "5.1", "runs tick k on time"),
-        ("bad-mac", "2.1", "every datagram's tag verifies"),
+        ("start-skew", "eds:50", "4.3 step 5", "leaves no earlier than the tick's time"),
+        ("late-5", "eds:50", "5.1", "runs tick k on time"),
+        ("bad-mac", "eds:50", "2.1", "every datagram's tag verifies"),
+        # (issue 35: once caught with none and cq only; now with the codecs that skip ticks too)
+        ("energy-2x", "eds:50", "3.6", "the reports grow by at most 1.5x what the payloads play"),
+        ("energy-2x", "ids:10", "3.6", "the reports grow by at most 1.5x what the payloads play"),
+        ("energy-2x", "dct:50:10", "3.6", "the reports grow by at most 1.5x what the payloads play"),
+        ("energy-2x", "pd:5", "3.6", "the reports grow by at most 1.5x what the payloads play"),
     ],
 )
 def test_an_operator_with_a_wire_fault_is_caught_by_its_rule(
-    tmp_path: Path, key: str, brk: str, section: str, rule: str
+    tmp_path: Path, key: str, brk: str, codec: str, section: str, rule: str
 ) -> None:
-    rc, result, out = _check_operator(tmp_path, key, brk)
+    rc, result, out = _check_operator(tmp_path, key, brk, codec)
     assert rc == 1, out
     assert _failed_in(result, section, rule), out
 

@@ -1088,7 +1088,7 @@ def test_the_operator_proceeds_at_the_timeout_with_some_answers() -> None:
     t_first = starts[0][0]
     assert t_first == T0 + S and op.start_ns == t_first + 300 * MS
     assert [t for t, _ in starts] == [t_first + i * 20 * MS for i in range(13)]  # until 50 ms before
-    assert {m for _, m in starts} == {Start(7, op.start_ns + 5 * S)}
+    assert {m for _, m in starts} == {Start(7, op.start_ns + 5 * S, rtt_ns=op.rtt_ns)}
     assert counters == [(SESSION, FORWARD, i) for i in range(1, 14)]  # a resent start is not a replay
 
 
@@ -1098,7 +1098,7 @@ def test_the_start_is_confirmed() -> None:
     op.receive(op_hs(encode(welcome(h.t_ns, 10, 10))), T0 + 2 * MS)
     assert op.next_timer() <= T0 + 2 * MS  # poll at once
     (start,) = op.poll(T0 + 2 * MS)
-    assert from_op_ss(start) == Start(7, op.start_ns + op.offset_ns)
+    assert from_op_ss(start) == Start(7, op.start_ns + op.offset_ns, rtt_ns=op.rtt_ns)
     op.receive(op_ss(encode(Started(8))), T0 + 3 * MS)
     assert not op.done and op.rejected == 1
     op.receive(op_ss(encode(Started(7))), T0 + 3 * MS)

@@ -169,7 +169,7 @@ def _control_examples() -> dict[str, tuple[protocol.Message, bytes, int, int, in
             i["welcome"]["counter"],
         ),
         "start": (
-            protocol.Start(SESSION, i["start"]["start_ns"]),
+            protocol.Start(SESSION, i["start"]["start_ns"], rtt_ns=i["start"]["rtt_ns"]),
             K_FWD,
             auth.SESSION,
             wire.FORWARD,
@@ -197,6 +197,7 @@ def test_the_handshake_numbers_of_the_example() -> None:
     offset, rtt = protocol.ntp_offset(w["t_ns"], w["t2"], w["t3"], w["t4"])
     assert (offset, rtt) == (w["offset_ns"], w["rtt_ns"])
     assert s["start_ns"] == s["S_O"] + offset
+    assert s["rtt_ns"] == rtt  # the start states the round trip of the exchange kept
     assert s["S_O"] - w["t4"] >= 0
 
 
@@ -400,6 +401,8 @@ def _code_map() -> dict[str, object]:
         "REFERENCE_REJOIN_START_RESENDS": endpoint.START_RESENDS,
         "REFERENCE_JOIN_AHEAD_TICKS": endpoint.JOIN_AHEAD_TICKS,
         "REFERENCE_SILENT_MIN_NS": endpoint.SILENT_MIN_NS,
+        "REFERENCE_GHOST_MARGIN_NS": endpoint.GHOST_MARGIN_NS,
+        "REFERENCE_LEAD_FIXED_NS": endpoint.LEAD_FIXED_NS,
         "REFERENCE_LINGER_S": _default(options.EndpointOptions, "linger"),
         "REFERENCE_GRACE_US": _default(options.EndpointOptions, "grace_us"),
         "REFERENCE_CONNECT_TIMEOUT_S": _default(options.EndpointOptions, "connect_timeout"),

@@ -4,7 +4,8 @@ Hosts are :class:`teleop.session.endpoint.Endpoint`\\ s at addresses, each with 
 the network's), joined by links with a one-way delay per direction and seeded loss.  The loop jumps
 from one instant to the next: a datagram's arrival, an endpoint's timer, a tick's deadline.  An
 adversary sees every datagram (``tap``) and may drop, copy, redirect or inject; a host can be killed
-and another started at its address (a restart), and the link can go dark for a while (an outage).
+and another started at its address (a restart), the link can go dark for a while (an outage), and a
+host's loop can stall (``stall``: a starved process, which then drains its socket and catches up).
 """
 
 from __future__ import annotations
@@ -92,6 +93,7 @@ class VirtualNet:
         self.dark: list[tuple[int, int]] = []  # outages: [start, end) of the network's time
         self.tap: Tap | None = None
         self.delivered = self.dropped = 0
+        self.stalled: dict[Addr, int] = {}  # host -> the network time its loop runs again
 
     def rand(self) -> Callable[[int], bytes]:
         return self.rng.randbytes
@@ -145,6 +147,17 @@ class VirtualNet:
         self._flush(h)
         return h
 
+    def stall(self, addr: Addr, until_ns: int) -> None:
+        """The host's loop runs nothing before ``until_ns`` (network time): no tick, no timer, and
+        what reaches it waits in its socket, read in order when it wakes, before its next tick."""
+        self.stalled[addr] = until_ns
+
+    def _asleep(self, addr: Addr) -> bool:
+        until = self.stalled.get(addr)
+        if until is not None and self.now >= until:
+            del self.stalled[addr]
+        return addr in self.stalled
+
     def kill(self, addr: Addr) -> Host:
         """The process at ``addr`` dies: it sends nothing more, and what reaches it is lost."""
         return self.hosts.pop(addr)
@@ -180,6 +193,8 @@ class VirtualNet:
     # --- time ---------------------------------------------------------------------------------
     def _deadline(self, h: Host) -> int | None:
         """The network time of the host's next tick, or of its timer."""
+        if self._asleep(h.addr):
+            return self.stalled[h.addr]
         times = []
         if h.next_k is not None and h.ep.params is not None:
             times.append(h.ep.t0_ns + h.next_k * round(h.ep.params.dt * 1e9) - h.offset_ns)
@@ -201,10 +216,16 @@ class VirtualNet:
                 if h is None:
                     self.dropped += 1
                     continue
+                if self._asleep(dst):  # in its socket until it wakes (and before its ticks then)
+                    self._seq += 1
+                    heapq.heappush(self._q, (self.stalled[dst], self._seq, src, dst, data))
+                    continue
                 self.delivered += 1
                 h.ep.receive_datagram(data, src, h.clock(self.now))
                 self._flush(h)
             for h in list(self.hosts.values()):
+                if self._asleep(h.addr):
+                    continue
                 timer = h.ep.get_timer()
                 if timer is not None and h.clock(self.now) >= timer:
                     h.ep.handle_timer(h.clock(self.now))

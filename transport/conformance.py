@@ -250,6 +250,7 @@ class _Driver:
         self.sock, self.ep, self.tap = sock, ep, tap
         self.next_k: int | None = None
         self.events: list[Any] = []
+        self.reports: list[tuple[int, float]] = []  # (send time ns, energy) of our data packets
 
     def run(self, until: Callable[[], bool], timeout_s: float) -> None:
         ep, sock = self.ep, self.sock
@@ -273,10 +274,48 @@ class _Driver:
                     self.next_k += 1
             for data, dst in ep.datagrams_to_send(time.monotonic_ns()):
                 sock.send(data, dst)
+                self._sent(data)
             if time.monotonic_ns() - now < 300_000:
                 time.sleep(0.0003)
         while (ev := ep.next_event()) is not None:
             self.events.append(ev)
+
+    def _sent(self, data: bytes) -> None:
+        """Keeps the energy report of each data packet of ours as it leaves (envelopes are readable
+        without a key: 10 bytes in front, 16 behind)."""
+        body = data[auth.HEADER_BYTES : -auth.TAG_BYTES]
+        if body[:1] == b"\x9a" and self.ep.params is not None:
+            try:
+                pkt = wire.decode(body)
+            except wire.WireError:
+                return
+            if pkt.session == self.ep.params.session:
+                self.reports.append((time.monotonic_ns(), pkt.energy))
+
+
+def passive_port_check(
+    r: Result, d: _DataCheck, ours: list[tuple[int, float]], codec: str, passivity: Passivity
+) -> None:
+    """3.6 with 3.7 step 7 and eq. (4), checking a teleoperator: it plays at most what our reports
+    allow (its guard, MUST), and the protocol scenario's robot and environment are passive, so the
+    wave it sends back carries at most what it played.  Each of its reports is held to the largest
+    report we had sent when it arrived: a report over-stated shows whatever the codec."""
+    if passivity != Passivity.WAVE:  # (pdr's two-port accounting keeps it: a credit or a grant comes
+        r.check("3.6", "MUST", RULE_PASSIVE, None, "TDPA reports input energy")  # off the report)
+        return
+    ours = sorted(ours)
+    bad, worst, i, sent, detail = 0, 0.0, 0, 0.0, ""
+    for t, pkt in sorted(d.stream, key=lambda e: e[0]):
+        while i < len(ours) and ours[i][0] < t:
+            sent = max(sent, ours[i][1])
+            i += 1
+        if pkt.energy > sent * (1 + 1e-9) + 1e-12:
+            bad += 1
+            detail = detail or f"tick {pkt.tick}: reported {pkt.energy:.6g} J, it had been sent {sent:.6g} J"
+        if sent > 0:
+            worst = max(worst, pkt.energy / sent)
+    r.check("3.6", "MUST", RULE_PASSIVE, bad == 0 if d.stream else None,
+            f"{bad} of {len(d.stream)} reports above; largest {worst:.3f}x; {detail}")  # fmt: skip
 
 
 #: The probe's forward reports: this fraction of the energy sent (section 3.7 step 7: safe, the
@@ -540,10 +579,11 @@ def _values(codec: Codec, payload: bytes) -> tuple[list[tuple[np.ndarray, int]],
     """What a receiver plays of ``payload``: runs of (value, ticks), and a slope per tick (pd, pdp:
     played as ``value + slope * i`` until the next payload; zero for the others)."""
     dof, raw = codec.dof, codec.raw
-    if codec.name in ("pd", "pdp"):
-        q = unpack16(payload, dof * codec.values)
+    if codec.name in ("pd", "pdp", "pdr"):
+        values = 2 if codec.name == "pdr" else codec.values  # pdr: as pdp, then its own fields
+        q = unpack16(payload[: 2 * dof * values], dof * values)
         slope = np.zeros(dof)
-        if codec.name == "pdp":
+        if codec.name != "pd":
             slope = RawFormat(raw.full_scale * SLOPE_SCALE).dequantize(q[dof:])
         return [(raw.dequantize(q[:dof]), 1)], slope
     return codec.decoder().runs(payload), np.zeros(dof)
@@ -559,11 +599,12 @@ def stream_checks(
     t0_ns: int,
     passivity: Passivity,
     timing: str = "5.1",
+    ratio: bool = False,
 ) -> None:
     """PROTOCOL.md 3.2, 3.4, 3.5, 3.6 and 5.1 over the peer's data packets: payload sizes, ``t_us``,
     when each tick's packet came, and what the energy reports allow the payloads to play.  ``t0_ns``:
     when the peer's tick 0 is due on this process's clock; ``timing`` the section(s) its timing
-    rules cite."""
+    rules cite; ``ratio``: also the session-wide over-reporting rule (:data:`OVER_REPORT_RATIO`)."""
     codec = make_codec(CodecSpec.parse(codec_spec), dof, full_scale, power=passivity == Passivity.TDPA)
     stream = sorted(d.stream, key=lambda e: e[1].seq)
     if not stream:
@@ -591,33 +632,56 @@ def stream_checks(
         r.check(timing, "MUST", rule, ok, f"median {median / 1e3:+.0f} us after its tick")
     else:
         r.check(timing, "MUST", "runs tick k on time", None, f"only {len(late)} packets")
-    _energy_checks(r, codec, [p for _, p in stream if len(p.payload) == codec.payload_bytes], dt, passivity)
+    pkts = [p for _, p in stream if len(p.payload) == codec.payload_bytes]
+    _energy_checks(r, codec, pkts, dt, passivity, ratio)
 
 
-def _energy_checks(r: Result, codec: Codec, pkts: list[wire.Packet], dt: float, passivity: Passivity) -> None:
+#: Over-reporting with a codec that does not carry every tick's value (eDS, iDS, DCT, deadbands):
+#: over a session the reports may grow by at most this much more than the payloads play.  What a
+#: codec drops of a smooth wave is a small part of its energy (the reference's ratio: 1.00 to 1.10
+#: for every codec, the protocol scenario); a report doubled shows as 2.
+OVER_REPORT_RATIO = 1.5
+#: Below this much energy played, the ratio says nothing (a wave that stayed near zero).
+OVER_REPORT_MIN_J = 1e-6
+RULE_OVER_REPORT = "energy not over-reported: each tick's report grows by at most what its value allows"
+RULE_OVER_RATIO = "energy not over-reported: the reports grow by at most 1.5x what the payloads play"
+RULE_PASSIVE = "energy not over-reported: a passive port sends back no more than it was sent"
+
+
+def _energy_checks(
+    r: Result, codec: Codec, pkts: list[wire.Packet], dt: float, passivity: Passivity, ratio: bool = False
+) -> None:
     """3.4, 3.6, eq. (5), (10), (11): the energy the payloads play never exceeds what the reports say
-    was sent, and (every-tick codecs) each tick's report grows by what its value allows."""
+    was sent, and (every-tick codecs) each tick's report grows by what its value allows; ``ratio``:
+    over the session, the reports grow by at most :data:`OVER_REPORT_RATIO` times what the payloads
+    play (over-reporting with any codec)."""
     rule_q = "each tick's value carries no more energy than its report grew by (|Q(x)| <= |x|, eq. 11)"
-    rule_o = "energy not over-reported: each tick's report grows by at most what its value allows"
+    rule_o = RULE_OVER_REPORT
     rule_c = "the payloads never play more energy than the reports say was sent (eq. 5, 10)"
-    if passivity != Passivity.WAVE or codec.name == "pdr":
-        why = (
-            "TDPA reports input energy"
-            if passivity != Passivity.WAVE
-            else "pdr's reflection is not modelled here"
-        )
-        for rule in (rule_q, rule_o, rule_c):
-            r.check("3.6", "MUST", rule, None, why)
+    rules = (rule_q, rule_o, rule_c, *((RULE_OVER_RATIO,) if ratio else ()))
+    if passivity != Passivity.WAVE:
+        for rule in rules:
+            r.check("3.6", "MUST", rule, None, "TDPA reports input energy")
         return
+    two_port = codec.name == "pdr"  # its reports carry the two-port's account (a credit off, a
+    if two_port:  # grant on), not the per-direction rule; only the session-wide ratio applies
+        for rule in (rule_q, rule_o, rule_c):
+            r.check("3.6", "MUST", rule, None, "pdr's two-port account is not the per-direction rule")
+        if ratio and codec.payload_bytes > 4 * codec.dof:  # (its cKAPPA field follows pdp's)
+            why = "pdr with cKAPPA: a credit the wire does not show moves its reports"
+            r.check("3.6", "MUST", RULE_OVER_RATIO, None, why)
+        if not ratio or codec.payload_bytes > 4 * codec.dof:
+            return
+        rules = (RULE_OVER_RATIO,)
     half = 0.5 * dt
     if not pkts or pkts[0].seq != 0:
-        for rule in (rule_q, rule_o, rule_c):
+        for rule in rules:
             r.check("3.6", "MUST", rule, None, "the first packet (seq 0) did not arrive")
         return
     try:
         played = [_values(codec, p.payload) for p in pkts]
     except CodecError as e:
-        r.check("3.6", "MUST", rule_c, False, f"a payload does not decode: {e}")
+        r.check("3.6", "MUST", rules[-1] if two_port else rule_c, False, f"a payload does not decode: {e}")
         return
     if codec.klass == "direct":  # a value every tick: the report's growth is that tick's |x|^2 dt/2
         step = codec.raw.step * 2 ** (RAW_BITS - codec.bits)
@@ -649,10 +713,12 @@ def _energy_checks(r: Result, codec: Codec, pkts: list[wire.Packet], dt: float, 
     # sender models the receiver, no delay) against the newest report, up to the first gap.
     committed, bad, detail = 0.0, 0, ""
     checked = 0
-    event = codec.name in ("pd", "pdp")
+    event = codec.name in ("pd", "pdp", "pdr")  # (pdr forward: played as pdp)
+    last = pkts[0]
     for i, (p, (runs, slope)) in enumerate(zip(pkts, played, strict=True)):
         if i and p.seq != pkts[i - 1].seq + 1:
             break
+        last = p
         if event:
             value = runs[0][0]
             nxt = pkts[i + 1] if i + 1 < len(pkts) and pkts[i + 1].seq == p.seq + 1 else None
@@ -671,7 +737,18 @@ def _energy_checks(r: Result, codec: Codec, pkts: list[wire.Packet], dt: float, 
             if committed > p.energy + 1e-12 + 1e-12 * p.energy:
                 bad += 1
                 detail = detail or f"tick {p.tick}: payloads {committed:.6g} J > reported {p.energy:.6g} J"
-    r.check("3.6", "MUST", rule_c, bad == 0, f"{bad} of {checked} ticks; {detail}")
+    if not two_port:
+        r.check("3.6", "MUST", rule_c, bad == 0, f"{bad} of {checked} ticks; {detail}")
+    if ratio:
+        # The upper side of the same account: a report is the energy of every tick's wave, of which
+        # the payloads carry all but what the codec dropped (eq. 8's mean, the DCT's dropped rows,
+        # a deadband's band), small for a smooth wave; a doubled report is twice the payloads'.
+        got = f"reported {last.energy:.6g} J by tick {last.tick}, the payloads play {committed:.6g} J"
+        if committed < OVER_REPORT_MIN_J:
+            r.check("3.6", "MUST", RULE_OVER_RATIO, None, f"too little energy to tell: {got}")
+        else:
+            ok = last.energy <= OVER_REPORT_RATIO * committed
+            r.check("3.6", "MUST", RULE_OVER_RATIO, ok, f"{got}: {last.energy / committed:.2f}x")
 
 
 # --------------------------------------------------------------------------------------------
@@ -896,6 +973,7 @@ def _session_as_operator(
     _data_checks(r, data, codec, p.ticks)
     t0 = ep.start_ns + round(p.phase * p.dt * 1e9)  # the teleoperator's tick 0 on this clock (5.1)
     stream_checks(r, data, codec, p.dof, p.full_scale, p.dt, t0, p.passivity)
+    passive_port_check(r, data, drv.reports, codec, p.passivity)
     fwd, bwd = auth.session_keys(k_r, session, ep.port.keys.nonce, _nonce(ep.peer_nonce))
     log = a.log + (b.log if a.distinct_addresses else [])
     audit_envelopes(r, log, peer if a.distinct_addresses else None, wire.BACKWARD, k_hs, bwd, fwd, p.dof)
@@ -1081,7 +1159,9 @@ def check_operator(
         _data_checks(r, data[0], p.codec, p.ticks)
         # The operator's tick 0 is start_ns on this clock (4.3 step 5: start_ns = S_O + offset).
         timing = "4.3 step 5, 5.1"  # a start_ns off S_O + offset shows as ticks off on this clock
-        stream_checks(r, data[0], p.codec, p.dof, p.full_scale, p.dt, ep.start_ns, p.passivity, timing)
+        stream_checks(
+            r, data[0], p.codec, p.dof, p.full_scale, p.dt, ep.start_ns, p.passivity, timing, ratio=True
+        )
         _, bwd = auth.session_keys(k_r, p.session, hello.nonce, ep.port.keys.nonce)
         sender = peer_addr[0] if peer_addr and sock.distinct_addresses else None
         audit_envelopes(r, sock.log, sender, wire.FORWARD, k_hs, fwd, bwd, p.dof)

@@ -55,6 +55,7 @@ from teleop.session.summary import EndpointSummary, RejoinFigures
 
 __all__ = [
     "FLOOD_SAMPLE",
+    "GHOST_MARGIN_NS",
     "GRACE_RESUME_TICKS",
     "JOIN_AHEAD_TICKS",
     "REJOIN_COLLECT_NS",
@@ -87,11 +88,19 @@ START_RESEND_NS = 20_000_000  # a rejoin's start, until started (or the new peer
 START_RESENDS = 50  # ... at most this often, each max(START_RESEND_NS, rtt / 8) apart: >= 6 round trips
 JOIN_AHEAD_TICKS = 20  # a late joiner starts this many ticks ahead of now (it still has to set up)
 START_GUARD_NS = 2_000_000  # a start closer than this (or past) is joined late
-#: The peer's first data packet is due by tick 0 (or the commit, if later) plus the larger of this
-#: and, at the operator, two round trips, at the teleoperator, what was left of the start's lead when
-#: it committed (>= 1.5 round trips, PROTOCOL.md 4.3); a link never heard from is lost a link timeout
-#: after that, and a teleoperator then ends the session (a ghost) and waits for an operator again.
+#: Operator: the teleoperator's first data packet is due by tick 0 plus the larger of this and two
+#: round trips; a link never heard from is lost a link timeout after that (rejoin offers follow).
 SILENT_MIN_NS = 1_000_000_000
+#: Teleoperator: a session whose operator sent no data packet by tick 0 (or the commit, if later)
+#: plus the start's round trip ``R`` plus this is a ghost: its link is lost then, and the robot ends
+#: the session and waits for an operator again (PROTOCOL.md 4.3 step 8).  The first packet of a live
+#: session arrives by about ``R`` (its one-way delay and the offset's error, jitter up to half the
+#: delay); the rest is margin for an operator whose first tick is late (a loop starved or still
+#: setting up under load: issue 35), kept within the stated bound ``2 s + R``.
+GHOST_MARGIN_NS = 1_900_000_000
+#: The part of a start's lead that is not round trips (PROTOCOL.md 4.3 step 5: 3 rtt + 150 ms): a
+#: start without ``rtt_ns`` bounds its round trip by (what is left of its lead - this) / 2.
+LEAD_FIXED_NS = 150_000_000
 BYE_COPIES = 3
 LINGER_SHIM_GRACE_NS = 2_000_000_000  # how long after the linger the shim's backlog may still go out
 GRACE_STREAK = 3  # grace waits missed in a row before grace rests
@@ -281,6 +290,15 @@ Event: TypeAlias = (
 PortFactory: TypeAlias = Callable[[SessionParams, int, PortKeys, int], Port]
 
 
+def ghost_round_trip(stated_ns: int | None, lead_left_ns: int) -> int:
+    """The round trip a teleoperator allows its operator's first packet (PROTOCOL.md 4.3 step 8):
+    the one the start states, else what a lead of 3 rtt + 150 ms leaves room for (without jitter,
+    2.5 rtt + 150 ms of it are left when the start arrives, whatever the path's asymmetry); at
+    most ``MAX_RTT_NS``."""
+    rtt = stated_ns if stated_ns is not None else (lead_left_ns - LEAD_FIXED_NS) // 2
+    return min(max(rtt, 0), protocol.MAX_RTT_NS)
+
+
 def _addr(a: Addr) -> str:
     return f"{a[0]}:{a[1]}"
 
@@ -364,6 +382,7 @@ class Endpoint:
         self.busy_rejects = 0
         self.retries_sent = 0
         self.replaced = False
+        self.ghost_ns: int | None = None  # teleoperator: when a session never heard from ends
         # grace
         self.grace = {"limit_us": grace_us, "waits": 0, "missed": 0, "waited_us_total": 0.0}
         self._grace_streak = self._grace_resume = 0
@@ -645,10 +664,9 @@ class Endpoint:
         late = hs.rejoin or now_ns > t0 - START_GUARD_NS
         k0 = max(0, -(-(now_ns - t0) // period) + JOIN_AHEAD_TICKS) if late else 0
         self._handshake_info = {"joined_late": late}
-        # The operator's first packet leaves at its tick 0 (a rejoin's: at once); the lead left of a
-        # fresh start bounds when it arrives (it is >= 1.5 round trips: PROTOCOL.md 4.3 step 5).
-        first_due = max(hs.start_ns, now_ns) + max(SILENT_MIN_NS, hs.start_ns - now_ns)
-        self._begin(p, hs.peer, hs.start_ns, t0, k0, late, keys, first_due)
+        self.ghost_ns = max(hs.start_ns, now_ns) + ghost_round_trip(hs.start_rtt_ns, hs.start_ns - now_ns)
+        self.ghost_ns += GHOST_MARGIN_NS
+        self._begin(p, hs.peer, hs.start_ns, t0, k0, late, keys, self.ghost_ns, lost_at=True)
 
     def _begin(
         self,
@@ -662,7 +680,10 @@ class Endpoint:
         first_due_ns: int,
         offset_ns: int = 0,
         rtt_ns: int = 0,
+        lost_at: bool = False,
     ) -> None:
+        """``first_due_ns``: when the peer's first packet is due (its link lost a link timeout
+        later); ``lost_at``: when the link is lost if no packet came (the teleoperator's ghost)."""
         self.params, self.peer, self.start_ns, self.t0_ns, self.k0, self.k = (
             params,
             peer,
@@ -680,7 +701,8 @@ class Endpoint:
             self.port.node.confine(self._limits)
         if k0:
             self.port.node.joined_late()
-        self.port.node.expect_first_by((first_due_ns - start_ns) / 1e9)
+        due_s = (first_due_ns - start_ns) / 1e9
+        self.port.node.expect_first_by(due_s - self.port.node.link_timeout if lost_at else due_s)
         self.state = State.STARTING
         self._link_lost = False
         self._events.append(SessionStarted(params, peer, start_ns, t0_ns, k0, late, offset_ns, rtt_ns))
@@ -826,7 +848,7 @@ class Endpoint:
             return
         rtt, offset = min(self._rj_samples)
         port.peer_restarted(m.nonce)  # its new nonce keys the rest of the session
-        start = protocol.Start(params.session, start_ns=self.start_ns + offset, rejoin=True)
+        start = protocol.Start(params.session, start_ns=self.start_ns + offset, rejoin=True, rtt_ns=rtt)
         self._rj_start, self._rj_resends, self._rj_next = start, 0, t4
         self._rj_interval = max(START_RESEND_NS, rtt // protocol.START_RESEND_DIV)
         self._rj_nonce, self._rj_samples = None, []

@@ -493,12 +493,15 @@ class Retry:
 
 @dataclass(frozen=True)
 class Start:
-    """operator -> TO: tick 0 of the session at ``start_ns`` on the TO's clock."""
+    """operator -> TO: tick 0 of the session at ``start_ns`` on the TO's clock; ``rtt_ns``: the round
+    trip of the exchange that placed it (optional), which bounds when the TO may call the session a
+    ghost (PROTOCOL.md 4.3 step 8)."""
 
     kind: ClassVar[str] = "start"
     session: int
     start_ns: int
     rejoin: bool = False
+    rtt_ns: int | None = None
 
 
 @dataclass(frozen=True)
@@ -548,6 +551,7 @@ def encode(msg: Message) -> bytes:
         fields = {
             "session": msg.session,
             "start_ns": msg.start_ns,
+            **({"rtt_ns": msg.rtt_ns} if msg.rtt_ns is not None else {}),
             **({"rejoin": True} if msg.rejoin else {}),
         }
     elif isinstance(msg, Started):
@@ -636,7 +640,8 @@ def _parse_fields(kind: str, m: Mapping[str, object], local_netem: Collection[st
             raise ProtocolError(f"t3 (reply sent) must not precede t2 (hello received), got {t3} < {t2}")
         return Welcome(session, t_ns, t2, t3, _nonce(m))
     if kind == "start":
-        return Start(session, _timestamp(m, "start_ns"), _bool(m, "rejoin", False))
+        rtt = _timestamp(m, "rtt_ns") if "rtt_ns" in m else None
+        return Start(session, _timestamp(m, "start_ns"), _bool(m, "rejoin", False), rtt)
     if kind == "started":
         return Started(session)
     why = m.get("why", "")
@@ -904,7 +909,8 @@ class OperatorHandshake:
             self._next_start = now_ns + self.start_resend_ns
             self.starts_sent += 1
             assert self.tx_sealer is not None
-            return [self.tx_sealer.seal(encode(Start(self.params.session, self.start_ns + self.offset_ns)))]
+            start = Start(self.params.session, self.start_ns + self.offset_ns, rtt_ns=self.rtt_ns)
+            return [self.tx_sealer.seal(encode(start))]
         return []
 
     def _unanswered(self) -> tuple[str, Failure]:
@@ -1051,6 +1057,7 @@ class TeleoperatorHandshake:
         self.peer: Addr | None = None
         self.start_ns = 0
         self.rejoin = False
+        self.start_rtt_ns: int | None = None  # the round trip the start states (``Start.rtt_ns``)
         self.done = False
         self.error: str | None = None
         self.failure: Failure | None = None  # why, when ``error`` is set
@@ -1233,6 +1240,7 @@ class TeleoperatorHandshake:
         self.params, self.peer = cand.params, addr
         self.rx_opener, self.tx_sealer = cand.rx_opener, cand.tx_sealer
         self.start_ns, self.rejoin, self.done = msg.start_ns, msg.rejoin, True
+        self.start_rtt_ns = msg.rtt_ns
         self._candidates.clear()
         return [(self.tx_sealer.seal(encode(Started(msg.session))), addr)]
 
