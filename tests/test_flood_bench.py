@@ -94,6 +94,7 @@ def test_a_run_records_a_baseline_per_transport_and_the_table_reads_it(
 ) -> None:
     calls: list[tuple[Any, ...]] = []
     monkeypatch.setattr(flood, "session", _fake_session(calls))
+    monkeypatch.setattr("bench.commit", lambda root=None: "abc1234")  # no git process in a fast test
     out = tmp_path / "flood.json"
     argv = ["--classes", "big_session", "zenoh_oversize", "--rates", "1000", "--duration", "4"]
     assert flood.main([*argv, "--udp-rcvbuf", "8192", "--out", str(out)]) == 0
@@ -162,6 +163,7 @@ def test_a_case_of_several_runs_is_its_median_run_and_the_worst_of_what_must_hol
 def test_the_control_runs_each_udp_case_into_a_sink(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     calls: list[tuple[Any, ...]] = []
     monkeypatch.setattr(flood, "session", _fake_session(calls))
+    monkeypatch.setattr("bench.commit", lambda root=None: "abc1234")  # no git process in a fast test
     out = tmp_path / "flood.json"
     argv = ["--classes", "random", "--rates", "1000", "--duration", "4", "--repeats", "2", "--control"]
     assert flood.main([*argv, "--out", str(out)]) == 0

@@ -192,6 +192,7 @@ def test_quantiles_bin_their_exact_samples_as_they_bin_later_ones() -> None:
 
 
 # --- MCAP --------------------------------------------------------------------------------------
+@pytest.mark.integration  # the log's writer process
 def test_the_writer_process_yields_to_the_loops(tmp_path: Path) -> None:
     """The log's writer runs under SCHED_IDLE, so that a waking 1 kHz loop preempts it at once
     (bench/soak.py measured what a niced writer cost the loops' p99)."""
@@ -207,6 +208,7 @@ def test_the_writer_process_yields_to_the_loops(tmp_path: Path) -> None:
     assert log.error is None
 
 
+@pytest.mark.integration  # the log's writer process
 def test_the_writer_finishes_at_the_processs_priority_once_no_loop_ticks(tmp_path: Path) -> None:
     """At the close the writer's threads leave SCHED_IDLE (with the privilege that takes): on a
     host whose cores other work keeps busy, an idle writer's backlog kept the process alive for
@@ -232,6 +234,7 @@ def test_the_writer_finishes_at_the_processs_priority_once_no_loop_ticks(tmp_pat
     assert log.error is None
 
 
+@pytest.mark.integration  # the log's writer process
 @pytest.mark.parametrize("promoted", [False, True])
 def test_a_close_that_waits_for_an_idle_writer_says_why(
     promoted: bool, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
@@ -303,6 +306,7 @@ def test_a_replaced_sessions_log_keeps_its_writer_idle_until_no_loop_ticks() -> 
     assert calls[-1] == "promote" and calls.count("promote") == 1
 
 
+@pytest.mark.integration  # the log's writer process
 def test_mcap_log_channels_counts_and_contents(tmp_path: Path) -> None:
     """Both sides log to ROLE.mcap; read back with the mcap library, the file has the documented
     channels (JSON, with a JSON schema each), one message per tick on each per-tick channel, and
@@ -388,6 +392,7 @@ async def _live_client(port: int, want: int) -> tuple[set[str], list[dict[str, A
     return topics, got
 
 
+@pytest.mark.integration  # the log's writer process
 def test_live_view_serves_the_channels_over_foxglove_websocket() -> None:
     port = _free_port()
     log = McapLog(None, "operator", wall0_ns=0, live_port=port)
@@ -519,6 +524,7 @@ def test_the_peers_bye_ends_an_open_session(tmp_path: Path) -> None:
 
 
 # --- the streamed report ------------------------------------------------------------------------
+@pytest.mark.integration  # the log's writer process
 def test_the_streamed_report_equals_the_whole_session_figures(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -630,6 +636,7 @@ def test_a_damaged_log_is_a_clear_error_not_a_crash_or_a_huge_allocation(
             pass
 
 
+@pytest.mark.integration  # the log's writer process
 def test_teleop_report_on_a_damaged_log_says_what_is_wrong(tmp_path: Path) -> None:
     logs = tmp_path / "logs"
     logs.mkdir()
@@ -642,6 +649,7 @@ def test_teleop_report_on_a_damaged_log_says_what_is_wrong(tmp_path: Path) -> No
     assert "operator.mcap: not a readable MCAP file (InvalidMagic" in r.stderr and "Traceback" not in r.stderr
 
 
+@pytest.mark.integration  # the log's writer process
 @pytest.mark.parametrize("kind", ["directory", "fifo", "device", "swapped", "transport"])
 def test_teleop_report_refuses_what_is_not_a_log_in_one_line(tmp_path: Path, kind: str) -> None:
     """A directory, a FIFO (a read would block) or a device where a log should be is never opened;

@@ -393,6 +393,7 @@ def deployed(name: str, certs: Path, dest: Path) -> str:
     return str(path)
 
 
+@pytest.mark.integration  # openssl makes the certificates (the certs fixture)
 @pytest.mark.parametrize("kind", ["tls", "mtls"])
 async def test_tls_clients_through_tls_router(kind: str, certs: Path, tmp_path: Path) -> None:
     ep = f"tls/127.0.0.1:{free_port()}"
@@ -403,6 +404,7 @@ async def test_tls_clients_through_tls_router(kind: str, certs: Path, tmp_path: 
             await exchange(op, to, n=50)
 
 
+@pytest.mark.integration  # openssl makes the certificates (the certs fixture)
 async def test_mtls_router_refuses_client_without_certificate(certs: Path, tmp_path: Path) -> None:
     ep = f"tls/127.0.0.1:{free_port()}"
     async with router([ep], deployed("router-mtls", certs, tmp_path)):
