@@ -13,7 +13,6 @@ every datagram already had.  Writes JSON (default ``bench/results/auth.json``).
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import statistics
 import time
@@ -22,6 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from bench import write_result
 from teleop.session.auth import SESSION, Opener, Sealer, generate_key
 
 BODY = bytes(range(40))
@@ -93,7 +93,7 @@ def main() -> None:
         print(f"{part:<17} {med:6.3f} us  (batch p99 {p99:6.3f}, min {low:6.3f})")
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=2) + "\n")
+    write_result(out, res)
     print(f"wrote {out}")
 
 

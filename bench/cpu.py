@@ -7,7 +7,7 @@ Runs, one after the other:
    loopback UDP, drain and verify what arrived);
 2. ``teleop run`` (``protocol`` scenario, UDP, authenticated, log on) for ``none``, ``eds:50`` and
    ``pdp:1`` at 2 and 6 DoF and ``none`` at 64 DoF, each with an empty reference loop
-   (``bench.loop``'s: the same scheduler with today's fixed 100 us spin and nothing to do) running
+   (``bench.floor --empty``: the same scheduler with the former fixed 100 us spin and nothing to do) running
    alongside, so a stall of the shared host hits both;
 3. the floor again: the figure each ratio divides by is the mean of the four floor processes.
 
@@ -42,6 +42,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench import commit, write_result
 from teleop.cli.args import float_range, int_range
 
 CASES: tuple[tuple[str, int], ...] = (
@@ -88,8 +89,8 @@ def run_case(codec: str, dof: int, duration: float, tmp: Path, root: Path | None
         [
             sys.executable,
             "-m",
-            "bench.loop",
-            "--empty-only",
+            "bench.floor",
+            "--empty",
             str(empty_json),
             "--duration",
             str(duration),
@@ -141,17 +142,6 @@ def _vs_reference(r: dict[str, Any]) -> str:
     return f"  x reference: CPU {r['cpu_ratio']:.2f}, port tick {r['port_tick_ratio']:.2f}"
 
 
-def _commit(root: Path) -> str:
-    """The commit checked out at ``root`` (or why it is not known), and whether tracked files
-    differ from it: a figure measured on uncommitted changes says so."""
-    r = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True)
-    if r.returncode != 0:
-        return f"unknown ({r.stderr.strip()})"
-    status = ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"]
-    st = subprocess.run(status, capture_output=True, text=True)
-    return r.stdout.strip() + (" with uncommitted changes" if st.stdout.strip() else "")
-
-
 def add_repeats(out: Path, others: list[Path]) -> None:
     """Record in ``out`` (a bench.cpu result) how the targets fared in ``others`` (more runs of
     it, made right after from the same tree): the ``repeats`` block its table's note reads."""
@@ -182,7 +172,7 @@ def add_repeats(out: Path, others: list[Path]) -> None:
             for r in runs
         ],
     }
-    out.write_text(json.dumps(doc, indent=2) + "\n")
+    out.write_text(json.dumps(doc, indent=2) + "\n")  # the runs' file, its commit as measured
     print(f"{out}: CPU targets met {doc['repeats']['cpu_met']}, port tick {doc['repeats']['port_tick_met']}")
 
 
@@ -290,7 +280,7 @@ def main() -> None:
     }
     res: dict[str, Any] = {
         "what": "CPU per process of teleop run against the floor reference, same invocation, same host",
-        "commit": _commit(Path(__file__).resolve().parent.parent),  # the tree measured
+        "commit": commit(),  # the tree measured
         # Some hosts pin OpenBLAS's kernels (OPENBLAS_CORETYPE, OPENBLAS_L2_SIZE): they change the
         # numpy calls' cost, so a run says which it had.
         "openblas_env": {k: v for k, v in sorted(os.environ.items()) if k.startswith("OPENBLAS_")},
@@ -306,13 +296,13 @@ def main() -> None:
     }
     if root is not None:
         res["reference"] = {
-            "commit": _commit(root),
+            "commit": commit(root),
             "what": "every case also run from this commit, alternated case by case; per process its"
             " CPU and port tick, and this tree's as a ratio to them",
         }
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=2) + "\n")
+    write_result(out, res)
     print(f"floor: CPU {100 * floor_cpu:.1f}% per process")
     for c in cases:
         for role in ROLES:

@@ -48,6 +48,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from bench import write_result
 from teleop.session import auth, protocol
 
 LOOPBACK = "127.0.0.1"
@@ -454,7 +455,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     path = Path(a.out)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(out, indent=2) + "\n")
+    write_result(path, out)
     print(f"{out['targets_met']} of {out['cases_run']} cases within the targets; wrote {path}")
     return 0
 

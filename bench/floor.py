@@ -7,12 +7,19 @@ socket and verify what arrived (``teleop.session.auth.Opener``).  No models, no 
 counters, no recorder, no event loop.  ``bench.cpu`` runs the pair beside ``teleop run`` and
 divides each process's CPU by this one's.
 
+The empty loop is the other reference, for timing: the session's scheduler
+(``transport.realtime.Ticker``, same spin, same real-time setup, one event-loop pass per tick) with
+nothing to do, run as a process of its own beside a session, so that a shared host's stalls hit
+both and a session's period error is judged against it (``bench.cpu``).
+
     python -m bench.floor --duration S [--spin-us US] [--out FILE]     # the pair, one JSON
+    python -m bench.floor --empty FILE --duration S [--spin-us US] [--fixed-spin]   # the empty loop
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
 import json
 import socket
 import subprocess
@@ -21,8 +28,10 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench import write_result
 from teleop.session.auth import Opener, Sealer
-from transport.realtime import setup_realtime
+from transport.realtime import Ticker, setup_realtime
+from transport.udp import new_event_loop
 
 KEY = bytes(range(32))
 BODY = bytes(40)
@@ -70,16 +79,43 @@ def one_side(
     }
 
 
+async def _empty_loop(duration: float, spin_us: int, fixed_spin: bool = False) -> dict[str, Any]:
+    min_spin = spin_us * 1000 if fixed_spin else 10_000
+    ticker = Ticker(spin_ns=spin_us * 1000, capacity=int(duration * 1000) + 16, min_spin_ns=min_spin)
+    ticker.start(time.monotonic_ns() + 50_000_000)
+    n = int(duration * 1000)
+    while ticker.k < n:
+        ticker.wait()
+        await asyncio.sleep(0)
+    return ticker.stats().summary()
+
+
+def run_empty(duration: float, spin_us: int, out: Path, fixed_spin: bool = False) -> None:
+    """The empty loop; ``fixed_spin``: always spin ``spin_us`` (the scheduler before issue 22)."""
+    warnings = setup_realtime(10)
+    loop, name = new_event_loop()
+    try:
+        summary = loop.run_until_complete(_empty_loop(duration, spin_us, fixed_spin))
+    finally:
+        loop.close()
+    out.write_text(json.dumps({**summary, "event_loop": name, "warnings": warnings}))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--spin-us", type=int, default=100)
     ap.add_argument("--out", default=None, help="JSON file (default: print only)")
+    ap.add_argument("--empty", metavar="FILE", type=Path, help="run the empty loop instead, its JSON to FILE")
+    ap.add_argument("--fixed-spin", action="store_true", help="the empty loop always spins --spin-us")
     ap.add_argument("--side", type=int, choices=(0, 1), help=argparse.SUPPRESS)
     ap.add_argument("--fd", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--peer-port", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--t0", type=int, help=argparse.SUPPRESS)
     a = ap.parse_args()
+    if a.empty is not None:
+        run_empty(a.duration, a.spin_us, a.empty, a.fixed_spin)
+        return
     ticks = round(a.duration * 1000)
     if a.side is not None:  # one of the pair, started below: print its JSON on stdout
         warnings = setup_realtime(10)
@@ -123,7 +159,7 @@ def main() -> None:
     for i, s in enumerate(sides):
         print(f"floor side {i}: CPU {100 * s['cpu_fraction']:5.1f}%  received {s['received']}/{ticks}")
     if a.out:
-        Path(a.out).write_text(json.dumps(res, indent=2) + "\n")
+        write_result(a.out, res)
 
 
 if __name__ == "__main__":

@@ -21,13 +21,13 @@ Virtual time only (a few seconds of CPU per case); nothing here measures wall-cl
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from bench import write_result
 from teleop.offline.sim import SimConfig, run_case
 from teleop.session.settings import Passivity
 from tests.test_watchdog_matrix import IMPAIRMENTS
@@ -159,7 +159,7 @@ def main() -> None:
     if a.out is None:
         a.out = Path("bench/results/frontier0_pool.json" if a.pool else "bench/results/frontier0.json")
     doc = run(a.duration, a.pool)
-    a.out.write_text(json.dumps(doc, indent=1) + "\n")
+    write_result(a.out, doc, indent=1)
     f = doc["frontier"]
     pps = f["packets_per_s"]
     print(

@@ -58,6 +58,7 @@ from typing import Any
 
 import msgpack
 
+from bench import write_result
 from teleop.session import auth, protocol, wire
 from teleop.session.protocol import PROTOCOL_VERSION, SessionParams
 
@@ -1418,7 +1419,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=2, default=str) + "\n")
+    write_result(out, res)
     print(summary_text(res))
     print(f"wrote {out}")
     return 0 if res["verdict"]["ok"] else 1

@@ -5,9 +5,9 @@ Why: on a shared VM the CPU figures of ``bench.cpu`` and the microseconds of ``b
 change worth 5 % cannot be told from noise by timing it.  The instructions a tick executes do not
 depend on the neighbours: cachegrind counts every one (``I refs``) on a simulated CPU, the same count
 on every run of the same code and inputs (``PYTHONHASHSEED`` fixed): two runs of ``none`` at 2 DoF
-gave 547 845.27 and 547 844.62 a tick.  They are not time (a cache
-miss after the loop's sleep costs more than ten instructions; ``bench.phases`` measures that), but
-a tick that executes fewer instructions for the same bits did less work.
+gave 547 845.27 and 547 844.62 a tick.  They are not time (a cache miss after the loop's sleep
+costs more than ten instructions; the retired ``bench.phases`` measured that), but a tick that
+executes fewer instructions for the same bits did less work.
 
 Each case runs ``bench.tick.port_side_ticks`` (both ports as their processes run them: receive what
 arrived, tick, sent; the ``protocol`` scenario) under cachegrind twice, for ``--from`` and ``--to``
@@ -23,7 +23,6 @@ count does not depend on the host's load).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import re
@@ -35,7 +34,8 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from bench.cpu import CASES, _commit  # the CPU bench's cases: the two tables read side by side
+from bench import commit, write_result
+from bench.cpu import CASES  # the CPU bench's cases: the two tables read side by side
 
 #: The default span: ticks 2000-7000 of the protocol task cross from free space into the foam (5 s).
 FROM_TICKS, TO_TICKS = 2000, 7000
@@ -126,13 +126,13 @@ def main(argv: list[str] | None = None) -> int:
         "ticks": [a.lo, a.hi],
         "python": platform.python_version(),
         "machine": platform.machine(),
-        "commit": _commit(Path.cwd()),
-        **({"reference": {"path": str(a.reference), "commit": _commit(a.reference)}} if a.reference else {}),
+        "commit": commit(Path.cwd()),
+        **({"reference": {"path": str(a.reference), "commit": commit(a.reference)}} if a.reference else {}),
         **res,
         "wall_s": time.monotonic() - t0,
     }
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1) + "\n")
+    write_result(out, doc, indent=1)
     for c in doc["cases"]:
         ratio = f"  x{c['ratio_to_reference']:.3f} of the reference" if "reference" in c else ""
         print(f"{c['codec']:<7} {c['dof']:>2} DoF  {c['tree']['per_tick']:10.0f} instructions a tick{ratio}")

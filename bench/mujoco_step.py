@@ -16,7 +16,6 @@ This machine is shared (other jobs, a VM that steals CPU in bursts): p99 and max
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
 from pathlib import Path
@@ -24,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from bench import write_result
 from teleop.devices import make
 from teleop.devices.models import Array
 from teleop.offline.sim import SimConfig, run_case
@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=2) + "\n")
+    write_result(out, doc)
     print(f"wrote {out}")
     return 0
 

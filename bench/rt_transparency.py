@@ -26,6 +26,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench import write_result
+
 CODECS = ("none", "ids:2", "ids:50", "eds:2", "eds:50", "cq:8")  # the paper's Section V set
 IMPAIRMENTS = ("", "loss 2%", "delay 20ms 5ms")
 
@@ -104,7 +106,7 @@ def main() -> None:
     }
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=2) + "\n")
+    write_result(out, doc)
     print(f"wrote {out}")
 
 

@@ -46,6 +46,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from bench import write_result
+
 TELEOP = [sys.executable, "-m", "teleop.cli"]
 ROLES = ("operator", "teleoperator")
 # Samples before this are left out of the growth fit: imports, the first chunks, and the loop's
@@ -403,7 +405,7 @@ def main() -> None:
             if part not in res and part in old:
                 res[part] = {**old[part], "from_an_earlier_invocation": True}
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=2) + "\n")
+    write_result(out, res)
     for role in ROLES if "soak" in res else ():
         w = res["soak"].get(f"{role}-writer", {})
         if w.get("rss_samples"):

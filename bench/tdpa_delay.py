@@ -9,7 +9,6 @@ packets/s a direction; ``ratio`` is its ``I_dc`` over wave ``none``'s (the issue
 run with the largest before it (a growing oscillation would make it exceed 1).
 
     python -m bench.tdpa_delay [--out bench/results/tdpa_delay.json]
-    python -m bench.tdpa_delay --table [bench/results/tdpa_delay.json]   # docs/tdpa.md's table
 
 Virtual time only (about 1.5 s of CPU per case); nothing here measures wall-clock time.
 """
@@ -25,6 +24,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from bench import write_result
 
 LINKS = {
     "50ms": "delay 50ms",
@@ -90,36 +91,10 @@ def _bounded(passivity: str, codec: str, netem: str) -> dict[str, float]:
     return out
 
 
-def table(doc: dict[str, Any]) -> str:
-    """The results as a Markdown table (docs/tdpa.md)."""
-    rows = [
-        "| link | architecture | codec | packets/s fwd/bwd | I (7) | I_dc | drift max/end mm | "
-        "PC energy J | peak F hsi/to N | passive |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for name, b in doc["links"].items():
-        for arch in ("wave", "tdpa"):
-            for c in b[arch]["cases"]:
-                pps = c["packets_per_s"]
-                rows.append(
-                    f"| {name} | {arch} | `{c['codec']}` | {pps['forward']:.0f}/{pps['backward']:.0f} | "
-                    f"{c['I']:.3g} | {c['I_dc']:.3g} | "
-                    f"{c['drift_mm']['max']:.1f}/{c['drift_mm']['final']:.1f} | "
-                    f"{c['energy_dissipated_J']['total']:.3g} | "
-                    f"{c['peak_force_N']['hsi']:.2f}/{c['peak_force_N']['to']:.2f} | "
-                    f"{'yes' if c['passive'] else 'NO'} |"
-                )
-    return "\n".join(rows)
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="bench/results/tdpa_delay.json")
-    ap.add_argument("--table", nargs="?", const="bench/results/tdpa_delay.json", metavar="JSON")
     args = ap.parse_args()
-    if args.table:
-        print(table(json.loads(Path(args.table).read_text())))
-        return 0
     doc: dict[str, Any] = {"scenario": "protocol", "max_packets_per_s": MAX_PPS, "links": {}}
     for name, spec in LINKS.items():
         block: dict[str, Any] = {"netem": spec}
@@ -145,7 +120,7 @@ def main() -> int:
             f"{block['best_tdpa']} I_dc {best_dc}  ratio {ratio}",
             flush=True,
         )
-    Path(args.out).write_text(json.dumps(doc, indent=2) + "\n")
+    write_result(args.out, doc)
     print(f"wrote {args.out}")
     return 0
 

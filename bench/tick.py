@@ -12,7 +12,6 @@ repeats; writes JSON (default ``bench/results/tick.json``).
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import statistics
 import time
@@ -22,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from bench import write_result
 from teleop.control.codecs import make_codec
 from teleop.control.wave import WaveImpedance
 from teleop.devices.models import LtiEnvironment, StepHuman
@@ -144,7 +144,7 @@ def port_side_ticks(
     op: Port, to: Port, ticks: int, wait: Callable[[], object] | None = None
 ) -> tuple[list[int], list[int]]:
     """Each side's port, per tick (ns), as its process runs it: receive what arrived, tick, sent;
-    ``wait`` (if given) is called before each tick (``bench.phases`` paces it at 1 kHz)."""
+    ``wait`` (if given) is called before each tick (the retired ``bench.phases`` paced it at 1 kHz)."""
     clock = time.perf_counter_ns
     t_op: list[int] = []
     t_to: list[int] = []
@@ -240,7 +240,7 @@ def main() -> None:
             print(f"dof {dof}  {spec:<7} tdpa: both ports {mt:7.2f} us ({mt / 10:.1f}%)")
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=2) + "\n")
+    write_result(out, res)
     print(f"wrote {out}")
 
 

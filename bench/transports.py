@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from bench import write_result
 from transport.base import Transport
 from transport.realtime import Ticker, percentiles_us, setup_realtime
 from transport.udp import UdpTransport, new_event_loop
@@ -257,7 +258,7 @@ def main() -> None:
         )
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=2) + "\n")
+    write_result(out, res)
     print(f"wrote {out}")
 
 

@@ -1,8 +1,19 @@
 """Shared by every test: Hypothesis without a per-example deadline (a timed test fails on a loaded
-machine, not on a defect: speed is measured in bench/, never asserted in tests), and the ``key``
-fixture (a pre-shared key file)."""
+machine, not on a defect: speed is measured in bench/, never asserted in tests), the ``key``
+fixture (a pre-shared key file), and the guard that keeps the fast suite fast: a test that starts
+an OS process (subprocess, asyncio's subprocesses, multiprocessing, a fork) and is not marked
+``integration`` fails, naming what it started, so ``pytest -m "not integration"`` never starts one.
+"""
 
+from __future__ import annotations
+
+import multiprocessing.process
+import os
+import platform
+import subprocess
+from collections.abc import Callable, Generator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hypothesis import settings
@@ -19,3 +30,59 @@ def key(tmp_path: Path) -> str:
     path = tmp_path / "teleop.key"
     auth.write_key_file(path, auth.generate_key())
     return str(path)
+
+
+# --- processes only in integration tests -----------------------------------------------------
+
+_STARTED: list[str] = []  # what each process start was, in order, for the whole session
+
+
+def _recording(what: Callable[..., str], original: Callable[..., Any]) -> Callable[..., Any]:
+    def start(*args: Any, **kwargs: Any) -> Any:
+        _STARTED.append(what(*args, **kwargs))
+        return original(*args, **kwargs)
+
+    return start
+
+
+def _argv(_self: Any, args: Any, *_rest: Any, **_kw: Any) -> str:
+    return " ".join(map(str, args)) if isinstance(args, list | tuple) else str(args)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # Every way the stack and the tests start a process ends in one of these three: subprocess.run,
+    # Popen and asyncio.create_subprocess_* in Popen._execute_child; multiprocessing (any start
+    # method) in BaseProcess.start; a bare fork in os.fork.
+    # The stdlib's one cached process: platform.processor() runs `uname -p` once per interpreter
+    # (benches record the host); run it before the guard, so no test is charged with it.
+    platform.processor()
+    popen: Any = subprocess.Popen
+    popen._execute_child = _recording(_argv, popen._execute_child)
+    base: Any = multiprocessing.process.BaseProcess
+    base.start = _recording(lambda self: f"multiprocessing {self.name}", base.start)
+    os.fork = _recording(lambda: "os.fork()", os.fork)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Generator[None, None, None]:
+    item.stash[_FIRST] = len(_STARTED)
+    yield
+
+
+_FIRST = pytest.StashKey[int]()
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Generator[None, Any, None]:
+    outcome = yield
+    report: pytest.TestReport = outcome.get_result()
+    if report.when != "teardown" or item.get_closest_marker("integration") is not None:
+        return
+    started = _STARTED[item.stash.get(_FIRST, len(_STARTED)) :]
+    if started:
+        report.outcome = "failed"
+        report.longrepr = (
+            f"{item.nodeid} started {len(started)} process(es) (first: {started[0][:200]}) "
+            "but is not marked integration (pytest.mark.integration): the fast suite, "
+            '`pytest -m "not integration"`, starts none'
+        )

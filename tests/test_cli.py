@@ -45,12 +45,14 @@ def test_sim_writes_contract(tmp_path: Path, capsys: pytest.CaptureFixture[str])
         (["sim", "--b", "0"], "wave impedance b must be > 0"),
     ],
 )
+@pytest.mark.integration  # the CLI as a process
 def test_bad_arguments(args: list[str], msg: str) -> None:
     r = subprocess.run([sys.executable, "-m", "teleop.cli", *args], capture_output=True, text=True)
     assert r.returncode == 2
     assert msg in r.stderr
 
 
+@pytest.mark.integration  # the CLI as a process
 def test_sweep_draws_one_front_per_impairment_and_architecture(tmp_path: Path) -> None:
     """--netem and --passivity repeat: sweep.json holds one document per (impairment, architecture)
     and fronts.png one panel per impairment with both architectures."""

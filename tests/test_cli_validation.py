@@ -251,6 +251,7 @@ def test_other_helps(cmd: str, capsys: pytest.CaptureFixture[str]) -> None:
         (["sim", "--duration", "1e12"], DURATION),
     ],
 )
+@pytest.mark.integration  # the CLI as a process
 def test_as_a_process(args: list[str], msg: str | None) -> None:
     """`python -m teleop.cli`: the same one line and no traceback in a real process."""
     r = subprocess.run(

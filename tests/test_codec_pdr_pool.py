@@ -133,6 +133,7 @@ def test_credit_in_the_sim_cuts_packets_and_stays_two_port_passive() -> None:
         assert s["wire"][d]["packets"] < 0.8 * ref["wire"][d]["packets"], d
 
 
+@pytest.mark.integration  # a real session: two processes
 def test_a_real_self_crediting_session_is_passive_on_the_session_clock(tmp_path: Path) -> None:
     """Two real processes with cKAPPA: the report's eq. (4) on the session clock (each side's energy
     sent by a tick, reported or not) never goes negative, while the margins that count a sender's

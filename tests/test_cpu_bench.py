@@ -11,6 +11,7 @@ from typing import Any
 
 import pytest
 
+import bench
 from bench import cpu
 
 
@@ -19,7 +20,7 @@ def test_a_report_without_a_process_stops_the_bench_and_keeps_the_run(
 ) -> None:
     class Empty:  # the empty loop alongside
         def __init__(self, cmd: list[str], **kw: Any) -> None:
-            Path(cmd[cmd.index("--empty-only") + 1]).write_text(json.dumps({"period_error_us": {}}))
+            Path(cmd[cmd.index("--empty") + 1]).write_text(json.dumps({"period_error_us": {}}))
 
         def wait(self, timeout: float | None = None) -> int:
             return 0
@@ -44,6 +45,7 @@ def test_a_report_without_a_process_stops_the_bench_and_keeps_the_run(
     shutil.rmtree(kept)
 
 
+@pytest.mark.integration  # git: processes
 def test_the_commit_of_a_measured_tree_says_when_it_has_uncommitted_changes(tmp_path: Path) -> None:
     def git(*args: str) -> str:
         return subprocess.run(
@@ -56,10 +58,10 @@ def test_the_commit_of_a_measured_tree_says_when_it_has_uncommitted_changes(tmp_
     git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "m")
     head = git("rev-parse", "HEAD").strip()
     (tmp_path / "new.txt").write_text("untracked: not the measured code\n")
-    assert cpu._commit(tmp_path) == head
+    assert bench.commit(tmp_path) == head
     (tmp_path / "f.py").write_text("x = 2\n")
-    assert cpu._commit(tmp_path) == f"{head} with uncommitted changes"
-    assert cpu._commit(tmp_path / "no-such").startswith("unknown (")
+    assert bench.commit(tmp_path) == f"{head} with uncommitted changes"
+    assert bench.commit(tmp_path / "no-such").startswith("unknown (")
 
 
 @pytest.mark.parametrize(

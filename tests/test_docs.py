@@ -95,6 +95,31 @@ def test_every_table_figure_is_its_json_value(name: str) -> None:
     assert not wrong, f"{name}: {wrong}"
 
 
+def test_every_result_records_the_commit_it_measured() -> None:
+    """Issue 38: a figure without the commit it measured cannot be compared with anything.  Every
+    result file names it (``bench.write_result`` writes it; older files say what git knows), and
+    every table's line shows it."""
+    results = sorted(tables.RESULTS.rglob("*.json"))
+    assert results
+    for path in results:
+        commit = json.loads(path.read_text()).get("commit")
+        assert isinstance(commit, str) and commit.strip(), path
+    for name, make in tables.TABLES.items():
+        assert f"Measured at commit {tables.measured_commit(make().source)}." in make().markdown(), name
+
+
+@pytest.mark.integration  # git rev-parse and git status: processes
+def test_the_bench_writer_records_the_commit(tmp_path: Path) -> None:
+    import bench
+
+    out = tmp_path / "r.json"
+    bench.write_result(out, {"what": "x"})
+    doc = json.loads(out.read_text())
+    assert list(doc) == ["commit", "what"] and doc["commit"] == bench.commit()
+    bench.write_result(out, {"what": "x", "commit": "abc (another tree)"})  # a bench that measured another
+    assert json.loads(out.read_text())["commit"] == "abc (another tree)"
+
+
 def test_a_figure_that_is_not_the_json_value_is_caught() -> None:
     """The check fails on a table whose figure does not match its JSON path."""
     table = tables.sweep()

@@ -293,6 +293,7 @@ def test_experiment_exits_1_when_a_run_is_not_passive(
         (["--seed", str(MAX_SEED), "--runs", "2"], "--seed + --runs - 1 must be at most"),
     ],
 )
+@pytest.mark.integration  # the CLI as a process
 def test_experiment_bad_arguments(tmp_path: Path, args: list[str], msg: str) -> None:
     cmd = [sys.executable, "-m", "teleop.cli", "experiment", *args, "--out", str(tmp_path)]
     r = subprocess.run(cmd, capture_output=True, text=True)
@@ -300,6 +301,7 @@ def test_experiment_bad_arguments(tmp_path: Path, args: list[str], msg: str) -> 
     assert r.stderr.startswith("teleop: error:") and msg in r.stderr
 
 
+@pytest.mark.integration  # the CLI as a process
 def test_real_experiment_runs_sessions_with_the_seeded_human(tmp_path: Path) -> None:
     """Two real processes per run; the teleoperator learns seed and variation from the handshake."""
     args = ["experiment", "--real", "--runs", "1", "--seed", "6", "--variation", "1.5", "--codec", "eds:2"]

@@ -20,12 +20,14 @@ def _fake_valgrind(tmp_path: Path, stderr: str, code: int = 0) -> dict[str, str]
     return {"PATH": f"{tmp_path}{os.pathsep}{os.environ['PATH']}"}
 
 
+@pytest.mark.integration  # a fake valgrind: a shell script run as a process
 def test_reads_the_i_refs_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     for k, v in _fake_valgrind(tmp_path, "==7== \n==7== I   refs:      1,806,733,016\n").items():
         monkeypatch.setenv(k, v)
     assert instructions.instructions("none", 2, 100, None) == 1_806_733_016
 
 
+@pytest.mark.integration  # a fake valgrind: a shell script run as a process
 def test_a_failed_run_says_which_and_why(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     for k, v in _fake_valgrind(tmp_path, "Traceback ...\nValueError: bad codec", code=1).items():
         monkeypatch.setenv(k, v)
@@ -56,6 +58,7 @@ def test_refuses_bad_arguments_in_one_line(
     assert says in err
 
 
+@pytest.mark.integration  # valgrind
 @pytest.mark.skipif(shutil.which("valgrind") is None, reason="valgrind is not installed here")
 def test_a_real_count_is_the_same_twice() -> None:
     """Two counts of the same code give the same figure to a few instructions a tick: the yardstick

@@ -171,6 +171,7 @@ def test_a_full_disk_is_one_line_and_leaves_no_partial_summary(
 
 
 # --- a killed writer ------------------------------------------------------------------------------
+@pytest.mark.integration  # the log's writer process
 def test_a_killed_writer_is_reported_and_its_chunks_stay_readable(
     tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:
@@ -197,6 +198,7 @@ def test_a_killed_writer_is_reported_and_its_chunks_stay_readable(
     assert ran >= 2000 and ran % 1000 == 0  # every chunk finished before the kill
 
 
+@pytest.mark.integration  # the log's writer process
 def test_a_full_disk_under_the_writer_is_one_line_and_the_log_stays_readable(
     tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:

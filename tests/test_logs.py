@@ -31,6 +31,7 @@ from teleop.session.link.counters import DirectionCounters
 from teleop.session.link.quantiles import MOVE_PER_ADD, Quantiles
 from teleop.session.node import PortOptions
 from teleop.session.port import MemorySink, Port, make_node
+from tests.waiting import ticks_logged, udp_bound, wait_for
 from transport.mcaplog import PER_TICK_TOPICS, TOPICS, McapLog, read_log
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
@@ -192,21 +193,21 @@ def test_quantiles_bin_their_exact_samples_as_they_bin_later_ones() -> None:
 
 
 # --- MCAP --------------------------------------------------------------------------------------
+@pytest.mark.integration  # the log's writer process
 def test_the_writer_process_yields_to_the_loops(tmp_path: Path) -> None:
     """The log's writer runs under SCHED_IDLE, so that a waking 1 kHz loop preempts it at once
     (bench/soak.py measured what a niced writer cost the loops' p99)."""
     log = McapLog(tmp_path / "operator.mcap", "operator", wall0_ns=0)
     try:
         pid = log._proc.pid
-        deadline = time.monotonic() + 30  # it sets its policy as it starts, before it imports
-        while os.sched_getscheduler(pid) != os.SCHED_IDLE and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert os.sched_getscheduler(pid) == os.SCHED_IDLE
+        # It sets its policy as it starts, before it imports.
+        wait_for(lambda: os.sched_getscheduler(pid) == os.SCHED_IDLE, 30, "SCHED_IDLE")
     finally:
         log.close()
     assert log.error is None
 
 
+@pytest.mark.integration  # the log's writer process
 def test_the_writer_finishes_at_the_processs_priority_once_no_loop_ticks(tmp_path: Path) -> None:
     """At the close the writer's threads leave SCHED_IDLE (with the privilege that takes): on a
     host whose cores other work keeps busy, an idle writer's backlog kept the process alive for
@@ -214,10 +215,7 @@ def test_the_writer_finishes_at_the_processs_priority_once_no_loop_ticks(tmp_pat
     log = McapLog(tmp_path / "operator.mcap", "operator", wall0_ns=0)
     try:
         pid = log._proc.pid
-        deadline = time.monotonic() + 30
-        while os.sched_getscheduler(pid) != os.SCHED_IDLE and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert os.sched_getscheduler(pid) == os.SCHED_IDLE
+        wait_for(lambda: os.sched_getscheduler(pid) == os.SCHED_IDLE, 30, "SCHED_IDLE")
         if os.geteuid() != 0:
             assert log.promote() is False  # refused without CAP_SYS_NICE: stays idle
             assert os.sched_getscheduler(pid) == os.SCHED_IDLE
@@ -232,6 +230,7 @@ def test_the_writer_finishes_at_the_processs_priority_once_no_loop_ticks(tmp_pat
     assert log.error is None
 
 
+@pytest.mark.integration  # the log's writer process
 @pytest.mark.parametrize("promoted", [False, True])
 def test_a_close_that_waits_for_an_idle_writer_says_why(
     promoted: bool, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
@@ -303,6 +302,7 @@ def test_a_replaced_sessions_log_keeps_its_writer_idle_until_no_loop_ticks() -> 
     assert calls[-1] == "promote" and calls.count("promote") == 1
 
 
+@pytest.mark.integration  # the log's writer process
 def test_mcap_log_channels_counts_and_contents(tmp_path: Path) -> None:
     """Both sides log to ROLE.mcap; read back with the mcap library, the file has the documented
     channels (JSON, with a JSON schema each), one message per tick on each per-tick channel, and
@@ -388,6 +388,7 @@ async def _live_client(port: int, want: int) -> tuple[set[str], list[dict[str, A
     return topics, got
 
 
+@pytest.mark.integration  # the log's writer process
 def test_live_view_serves_the_channels_over_foxglove_websocket() -> None:
     port = _free_port()
     log = McapLog(None, "operator", wall0_ns=0, live_port=port)
@@ -396,8 +397,8 @@ def test_live_view_serves_the_channels_over_foxglove_websocket() -> None:
 
         async def feed_and_listen() -> tuple[set[str], list[dict[str, Any]]]:
             client = asyncio.create_task(_live_client(port, want=30))
-            for k in range(0, 4000, 20):
-                await asyncio.sleep(0.005)
+            for k in range(0, 4000, 20):  # fed until the client has what it wants, at 200 a second
+                await asyncio.wait([client], timeout=0.005)
                 msgs = {"signals": {"k": k, "t": k * 1e-3, "v": [0.1, 0.2], "f": [1.0, 2.0]}}
                 log.live(k, k * 1e-3, msgs)
                 if client.done():
@@ -428,10 +429,9 @@ def test_run_until_stopped_reports_and_both_exit_cleanly(
     )
     # Ctrl-C once both loops have ticked a while: both logs exist once a session has started (on a
     # loaded host the processes take seconds to import, and a fixed 3 s could interrupt the start).
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline and len(list((out / "logs").glob("*.mcap"))) < 2:
-        time.sleep(0.1)
-    time.sleep(1.5)
+    # Both processes' logs hold 1000 ticks (the checks below need 500 ticks of each loop).
+    logs = [out / "logs" / f"{role}.mcap" for role in ("operator", "teleoperator")]
+    wait_for(lambda: all(ticks_logged(p) >= 1000 for p in logs), 60, "1000 ticks in both logs", poll=0.2)
     os.killpg(p.pid, signal.SIGINT)  # Ctrl-C: the way an open session ends
     _, stderr = p.communicate(timeout=30)
     assert p.returncode == 0, stderr
@@ -492,11 +492,12 @@ def test_the_peers_bye_ends_an_open_session(tmp_path: Path) -> None:
     common = ["--log", str(logs), "--insecure", "--no-rt", "--quiet"]
     to = subprocess.Popen([*TELEOP, "teleoperator", "--listen", f"127.0.0.1:{port}", *common], text=True)
     try:
-        time.sleep(0.5)
+        wait_for(lambda: udp_bound(port), 60, "the teleoperator's socket")
         op = subprocess.Popen(
             [*TELEOP, "operator", "--peer", f"127.0.0.1:{port}", "--duration", "0", *common], text=True
         )
-        time.sleep(3.0)
+        # The report below compares over 1000 ticks: let the teleoperator log more than that.
+        wait_for(lambda: ticks_logged(logs / "teleoperator.mcap") >= 1500, 60, "1500 ticks", poll=0.2)
         op.send_signal(signal.SIGTERM)
         assert op.wait(timeout=20) == 0
         assert to.wait(timeout=20) == 0
@@ -519,6 +520,7 @@ def test_the_peers_bye_ends_an_open_session(tmp_path: Path) -> None:
 
 
 # --- the streamed report ------------------------------------------------------------------------
+@pytest.mark.integration  # the log's writer process
 def test_the_streamed_report_equals_the_whole_session_figures(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -630,6 +632,7 @@ def test_a_damaged_log_is_a_clear_error_not_a_crash_or_a_huge_allocation(
             pass
 
 
+@pytest.mark.integration  # the log's writer process
 def test_teleop_report_on_a_damaged_log_says_what_is_wrong(tmp_path: Path) -> None:
     logs = tmp_path / "logs"
     logs.mkdir()
@@ -642,6 +645,7 @@ def test_teleop_report_on_a_damaged_log_says_what_is_wrong(tmp_path: Path) -> No
     assert "operator.mcap: not a readable MCAP file (InvalidMagic" in r.stderr and "Traceback" not in r.stderr
 
 
+@pytest.mark.integration  # the log's writer process
 @pytest.mark.parametrize("kind", ["directory", "fifo", "device", "swapped", "transport"])
 def test_teleop_report_refuses_what_is_not_a_log_in_one_line(tmp_path: Path, kind: str) -> None:
     """A directory, a FIFO (a read would block) or a device where a log should be is never opened;

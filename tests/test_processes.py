@@ -106,7 +106,7 @@ def test_counts_and_compression(
         assert loop["ticks"] + loop["skipped"] == 3000, role  # every tick of the session ran or was skipped
         assert abs(loop["wall_s"] - 3.0) < 0.1, role  # at 1 kHz of wall-clock time
         # A scheduler that kept time (a bound, not a timing: a noisy host's stall moved the p50 to
-        # 115 us in a fresh-clone CI run; bench.loop measures the timing).
+        # 115 us in a fresh-clone CI run; bench.cpu measures the timing).
         assert loop["period_error_us"]["p50"] < 500, role
         # Datagrams leave once the loop reached the deadline, never before it (either mode).
         assert loop["send_lateness_us"]["p50"] >= loop["lateness_us"]["p50"] >= 0, role

@@ -80,6 +80,7 @@ print("ok")
 """
 
 
+@pytest.mark.integration  # a child python
 def test_freeze_heap_frees_an_earlier_sessions_port_then_freezes_the_rest() -> None:
     """The runner freezes the heap at each session's start (a full collection during the ticks would
     walk the imports' objects); a cycle frozen would never be freed, and a port is one, so it

@@ -61,6 +61,7 @@ def _one_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
 
 
 # --- 1. the log folder is the one the user named -------------------------------------------------
+@pytest.mark.integration  # the log's writer process
 @as_root
 @pytest.mark.parametrize("parent_mode", [0o777, 0o1777])  # world-writable, and sticky as /tmp
 @pytest.mark.parametrize("where", ["folder", "on the way"])

@@ -172,6 +172,7 @@ def test_socket_activation_serves_on_the_socket_systemd_bound(tmp_path: Path, ke
     assert t["local"] == f"127.0.0.1:{port}" and t["completed"]
 
 
+@pytest.mark.integration  # a teleoperator process
 def test_a_teleoperator_that_cannot_bind_says_so_in_one_line(key: str) -> None:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as squatter:
         squatter.bind(("127.0.0.1", 0))

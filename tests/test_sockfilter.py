@@ -5,13 +5,14 @@ counted in the socket's kernel drops (issue 21)."""
 from __future__ import annotations
 
 import socket
-import time
 from collections.abc import Iterator
+from typing import Any
 
 import pytest
 
 from teleop.session import auth, wire
 from teleop.session.endpoint import FLOOD_SAMPLE, Admission, State, Strangers
+from tests.waiting import wait_for
 from transport.sockfilter import compile_filter
 from transport.udp import UdpTransport, kernel_drops
 
@@ -20,6 +21,7 @@ from .vnet import EVE, MS, TO, VirtualNet, params
 HS = b"T\x10" + b"\x00" * 7 + b"\x01"  # a handshake envelope's header (kind 0, direction 0)
 HS_BACK = b"T\x11" + b"\x00" * 7 + b"\x01"  # direction 1
 SESSION = b"T\x12" + b"\x00" * 7 + b"\x01"  # session key
+MARKER = b"m"  # the peer's last datagram of an exchange (see _exchange)
 
 
 def _udp() -> socket.socket:
@@ -51,12 +53,21 @@ def sock_of(tr: UdpTransport) -> socket.socket:
 
 
 def _exchange(tr: UdpTransport, sends: list[tuple[socket.socket, bytes]]) -> list[tuple[bytes, bool]]:
-    """Send each, then drain: (data, from the peer?) of what got through."""
+    """Send each, then drain: (data, from the peer?) of what got through.  A marker from the peer
+    (which every admission here takes) follows them: once it is read, each of them has been
+    filtered, taken or dropped (loopback keeps one sender's datagrams in order)."""
     me = tr.local_address
     for s, d in sends:
         s.sendto(d, me)
-    time.sleep(0.05)  # loopback delivers at once; the filter runs in the sender's call
-    return [(d, a == sends[0][0].getsockname()) for d, a, _ in tr.drain()]
+    sends[0][0].sendto(MARKER, me)
+    got: list[tuple[bytes, Any, int]] = []
+
+    def marked() -> bool:
+        got.extend(tr.drain())
+        return any(d == MARKER for d, _, _ in got)
+
+    wait_for(marked, 5.0, "the marker")
+    return [(d, a == sends[0][0].getsockname()) for d, a, _ in got if d != MARKER]
 
 
 def test_a_teleoperator_in_session_takes_its_peer_and_strangers_handshakes(socks: Socks) -> None:
@@ -110,8 +121,13 @@ def test_under_a_flood_strangers_handshakes_are_sampled(socks: Socks) -> None:
         eve.sendto(HS + bytes(10), me)
     for _ in range(100):
         peer.sendto(b"p", me)
-    time.sleep(0.05)
-    got = tr.drain()
+    got: list[tuple[bytes, Any, int]] = []
+
+    def peers_all_in() -> bool:  # the peer's last came after every stranger's (one host, in order)
+        got.extend(tr.drain())
+        return sum(1 for _, a, _ in got if a == peer.getsockname()) >= 100
+
+    wait_for(peers_all_in, 5.0, "the peer's 100 datagrams")
     strangers = sum(1 for _, a, _ in got if a == eve.getsockname())
     assert sum(1 for _, a, _ in got if a == peer.getsockname()) == 100
     assert 10 <= strangers <= 120  # expected 50; a binomial this far out has odds below 1e-9

@@ -3,12 +3,13 @@ buffer, address parsing."""
 
 from __future__ import annotations
 
-import asyncio
 import socket
 import time
+from typing import Any
 
 import pytest
 
+from tests.waiting import await_for, udp_queued
 from transport.udp import (
     MAX_RCVBUF_BYTES,
     MIN_RCVBUF_BYTES,
@@ -29,8 +30,13 @@ async def test_exchange_and_wait() -> None:
         for i in range(5):
             a.send(bytes([i]), b.local_address)
         assert await b.wait(1.0)
-        await asyncio.sleep(0.01)
-        got = b.drain()
+        got: list[tuple[bytes, Any, int]] = []
+
+        def all_five() -> bool:
+            got.extend(b.drain())
+            return len(got) >= 5
+
+        await await_for(all_five, 5.0, "the five datagrams")
         assert [d for d, _, _ in got] == [bytes([i]) for i in range(5)]
         assert all(addr == a.local_address for _, addr, _ in got)
         assert all(t0 <= t <= time.monotonic_ns() for _, _, t in got)
@@ -45,9 +51,13 @@ async def test_drain_budget_leaves_the_rest_in_the_kernel() -> None:
     a = await UdpTransport.bind(("127.0.0.1", 0))
     b = await UdpTransport.bind(("127.0.0.1", 0), budget=10)
     try:
+        a.send(b"..", b.local_address)  # one datagram of the same size: what the kernel counts for it
+        assert await b.wait(5.0)
+        one = udp_queued(b.local_address[1])
+        assert one > 0 and len(b.drain()) == 1
         for i in range(25):
             a.send(i.to_bytes(2, "big"), b.local_address)
-        await asyncio.sleep(0.05)
+        await await_for(lambda: udp_queued(b.local_address[1]) >= 25 * one, 5.0, "the 25 datagrams queued")
         got = [b.drain() for _ in range(4)]
         assert [len(g) for g in got] == [10, 10, 5, 0]
         assert [d for g in got for d, _, _ in g] == [i.to_bytes(2, "big") for i in range(25)]

@@ -23,6 +23,7 @@ import pytest
 import zenoh
 
 from teleop.session import auth, wire
+from tests.waiting import await_for, pace, tcp_listening
 from transport.zenoh import (
     ZENOH_PEER,
     TransportError,
@@ -41,36 +42,39 @@ def free_port(kind: socket.SocketKind = socket.SOCK_STREAM) -> int:
 
 
 async def until_listening(port: int, timeout: float = 5.0) -> None:
-    """Poll until something accepts TCP on 127.0.0.1:port (the router task opened its listener)."""
-    give_up = time.monotonic() + timeout
-    while True:
-        try:
-            _, w = await asyncio.open_connection("127.0.0.1", port)
-        except OSError:
-            if time.monotonic() > give_up:
-                raise
-            await asyncio.sleep(0.01)
-            continue
-        w.close()
-        return
+    """Until something listens on TCP 127.0.0.1:port (the router task opened its listener)."""
+    await await_for(lambda: tcp_listening(port), timeout, f"a listener on {port}")
+
+
+SYNC_END = b"sync end"
 
 
 async def sync(a: ZenohTransport, b: ZenohTransport, timeout: float = 5.0) -> None:
-    """Ping both ways until each side hears the other: the link is up and subscriptions are known."""
-    give_up = time.monotonic() + timeout
+    """Ping both ways until each side hears the other: the link is up and subscriptions are known.
+    Then each sends SYNC_END and each reads up to the other's: a Zenoh publisher's samples arrive
+    in order, so no ping is left in flight behind it."""
     heard = {id(a): False, id(b): False}
-    while not all(heard.values()):
-        assert time.monotonic() < give_up, "Zenoh transports did not hear each other"
+
+    def ping() -> bool:
         for tx, rx in ((a, b), (b, a)):
             if not heard[id(rx)]:
                 tx.send(b"sync", ZENOH_PEER)
-        await asyncio.sleep(0.01)
         for t in (a, b):
             if t.drain():
                 heard[id(t)] = True
-    await asyncio.sleep(0.05)  # let stragglers arrive, then forget them
-    a.drain()
-    b.drain()
+        return all(heard.values())
+
+    await await_for(ping, timeout, "the Zenoh transports to hear each other")
+    a.send(SYNC_END, ZENOH_PEER)
+    b.send(SYNC_END, ZENOH_PEER)
+    ended = {id(a): False, id(b): False}
+
+    def to_the_end() -> bool:
+        for t in (a, b):
+            ended[id(t)] = ended[id(t)] or any(d == SYNC_END for d, _, _ in t.drain())
+        return all(ended.values())
+
+    await await_for(to_the_end, timeout, "each side's last ping")
 
 
 async def exchange(op: ZenohTransport, to: ZenohTransport, n: int = 200) -> None:
@@ -81,7 +85,7 @@ async def exchange(op: ZenohTransport, to: ZenohTransport, n: int = 200) -> None
     for i in range(n):
         op.send(b"f" + i.to_bytes(4, "little"), ("ignored", 1))
         to.send(b"b" + i.to_bytes(4, "little"), ("ignored", 1))
-        await asyncio.sleep(0.001)
+        await pace(0.001)
         for t in (op, to):
             got[id(t)] += t.drain()
     give_up = time.monotonic() + 5
@@ -226,10 +230,8 @@ async def test_inbox_overflow_keeps_the_latest() -> None:
             await sync(op, to)
             for i in range(30):
                 op.send(i.to_bytes(2, "big"), ZENOH_PEER)
-                await asyncio.sleep(0.001)  # paced: Zenoh itself must not drop (congestion DROP)
-            give_up = time.monotonic() + 5
-            while to.inbox_overflow < 25 and time.monotonic() < give_up:
-                await asyncio.sleep(0.01)
+                await pace(0.001)  # Zenoh itself must not drop (congestion DROP)
+            await await_for(lambda: to.inbox_overflow >= 25, 5.0, "the overflow")
             got = to.drain()
             assert len(got) == 5 and to.inbox_overflow == 25
             assert [d for d, _, _ in got] == [i.to_bytes(2, "big") for i in range(25, 30)]
@@ -347,7 +349,7 @@ async def test_plain_zenoh_subscriber_decodes_live_packets() -> None:
                 op.send(sealer.seal(wire.encode(p)), ZENOH_PEER)
                 op.send(sealer.seal(msgpack.packb({"t": "hello", "session": 1})), ZENOH_PEER)  # a control map
                 k += 1
-                await asyncio.sleep(0.002)
+                await pace(0.002)
 
         pub = asyncio.create_task(publish())
         try:
@@ -393,6 +395,7 @@ def deployed(name: str, certs: Path, dest: Path) -> str:
     return str(path)
 
 
+@pytest.mark.integration  # openssl makes the certificates (the certs fixture)
 @pytest.mark.parametrize("kind", ["tls", "mtls"])
 async def test_tls_clients_through_tls_router(kind: str, certs: Path, tmp_path: Path) -> None:
     ep = f"tls/127.0.0.1:{free_port()}"
@@ -403,6 +406,7 @@ async def test_tls_clients_through_tls_router(kind: str, certs: Path, tmp_path: 
             await exchange(op, to, n=50)
 
 
+@pytest.mark.integration  # openssl makes the certificates (the certs fixture)
 async def test_mtls_router_refuses_client_without_certificate(certs: Path, tmp_path: Path) -> None:
     ep = f"tls/127.0.0.1:{free_port()}"
     async with router([ep], deployed("router-mtls", certs, tmp_path)):
