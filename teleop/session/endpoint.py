@@ -610,6 +610,7 @@ class Endpoint:
         shift = port.clock.advance(k)
         if shift:
             self.start_ns -= shift * period
+            port.playout.forget_transits()
             self._events.append(ClockShifted(k, shift))
         self.t0_ns = self.start_ns + round(port.clock.phase * params.dt * 1e9)
 

@@ -57,6 +57,7 @@ FUTURE_LIMIT = 10_000  # ticks: a payload stamped further ahead than this is rel
 HIST_TICKS = 4096  # bins of the delay histograms (transits beyond are counted in the last)
 TRANSIT_LO = -64  # ticks: the lowest transit told apart (below: a clock offset's error, clipped)
 CHECK_EVERY = 100  # ticks between looks at the quantiles when nothing forces one
+STEP_TICKS = 50  # a payload this much earlier than the lowest transit: the link stepped, start over
 
 
 def parse_playout(text: str) -> str:
@@ -212,6 +213,11 @@ class PlayoutBuffer:
         if tick > k + FUTURE_LIMIT:
             st.future += 1
             return [pkt]
+        a_min = self._a_min
+        if a_min is not None and k - tick < a_min - STEP_TICKS:
+            # Far earlier than any payload of the window: the link or the sender's clock stepped
+            # (a peer whose tick 0 moved, teleop.session.link.phase), not jitter: its old transits are stale.
+            self.forget_transits()
         # Lateness is judged against the target this payload was due under (target(), inlined).
         a_min = self._a_min
         before = None if a_min is None else a_min + self.extra
@@ -259,6 +265,16 @@ class PlayoutBuffer:
     def pending(self, k: int) -> bool:
         """Whether a payload is held for release by tick ``k``."""
         return bool(self._heap) and self._heap[0][0] + (self.target() or 0) <= k
+
+    def forget_transits(self) -> None:
+        """This side's tick 0 moved (``teleop.session.link.phase``: a skewed clock put right): the transits
+        seen so far were measured on the old ticks; what is held is released on the new ones."""
+        self._hist = array("q", bytes(8 * len(self._hist)))
+        self._window_k.clear()
+        self._window_b.clear()
+        self._a_min = None
+        self._next_check = 0
+        self.extra = self.fixed if not self._auto else self.auto_floor
 
     def clear(self) -> None:
         """The sender was replaced: forget what it sent (its ticks and transit start anew)."""
