@@ -469,7 +469,7 @@ def test_every_event_is_typed_and_failures_are_enums() -> None:
 
 def test_a_session_of_two_endpoints_is_teleop_sim_to_the_bit() -> None:
     """One code path: two endpoints on a 0.1 ms virtual link play exactly what ``teleop sim`` plays
-    with the real runner's one tick of playout floor at both receivers (eq. 7's I equal to the bit).
+    with the real runner's playout floor (none) at both receivers (eq. 7's I equal to the bit).
     A receive counted against the wrong tick, or a first payload dropped before tick 0, breaks it."""
     from teleop.control import metrics
     from teleop.offline.sim import SimConfig, run_case
@@ -484,6 +484,6 @@ def test_a_session_of_two_endpoints_is_teleop_sim_to_the_bit() -> None:
     ao, at = pa.sink.arrays(pa.ticks), pt.sink.arrays(pa.ticks)
     i_endpoints = metrics.transparency(ao["v"], at["v"], ao["f"], at["f"], 1e-3)
     sim = run_case(
-        SimConfig(codec="eds:50", scenario="protocol", duration=3.0, playout="auto", playout_floor=(1, 1))
+        SimConfig(codec="eds:50", scenario="protocol", duration=3.0, playout="auto", playout_floor=(0, 0))
     )
     assert i_endpoints == sim.summary["I"]

@@ -6,6 +6,10 @@ whole summary, on OpenBLAS's SkylakeX kernels; ``ON_HASWELL`` holds the cases wh
 its Haswell kernels (``tests/blas.py``: the same code, recorded on an AMD EPYC host that sets them,
 after checking that it gives every SkylakeX figure with SkylakeX's kernels).  A faster encoder that
 changes one wire byte, or an in-place update that reorders one floating-point sum, fails here.
+Recorded again once (issue 37) when the teleoperator began to tick when the operator's packet is
+due and ``auto`` playout stopped following bursts of lateness: the zero-delay cases' ``I`` stayed
+bit-identical (only the backward link delay, now measured from the teleoperator's tick, and the new
+``latency`` block moved their hashes); the delayed cases moved by one tick of round trip.
 The hashes were recorded again once (issue 34) when the summary's counters gained
 ``device_stale`` and ``saturated``: every ``I`` and every trace array stayed bit-identical (checked
 with the trace-only digest on both kernels before and after), only those two keys were added.
@@ -30,32 +34,32 @@ GOLDEN: dict[str, tuple[SimConfig, float, str]] = {
     "none-step": (
         SimConfig(codec="none"),
         0.0004995202139319017,
-        "697194f5dcf9b08c16000ced419fd4c9a51b6cb638353ff49bc7ea19056e20b0",
+        "6c74c6d2f91f11d394985cb772f78edd1204f25a16dd75e817d14d3998cda863",
     ),
     "none-6dof": (
         SimConfig(codec="none", dof=6, **P),  # type: ignore[arg-type]
         4.2454925259061775e-05,
-        "e1356307ac96d42b5debece4f9c4e0d8f679b9abc61a9e83992b2dc01db300f0",
+        "5e4052755b07d3e253903a2cf7027179a6f1363aeb5cb6e25b21524e7e793d5c",
     ),
     "eds-delay": (
         SimConfig(codec="eds:50", delay_ms=10, **P),  # type: ignore[arg-type]
-        0.15249833045860367,
-        "645f68aecb91731d3d3292b340e6c3387c42f5e9b89ac5f5d4891506941961fe",
+        0.1599995729980531,
+        "8b07cd9c3abd649af3825e713ed2f345bc0739058d7cdbe74b0d998a2d52e7b4",
     ),
     "pdp-netem": (
         SimConfig(codec="pdp:1", netem_forward=NET, netem_backward=NET, seed=5, **P),  # type: ignore[arg-type]
-        0.09663898368785266,
-        "3cb35c73ec32e54bf56570066a97933f1d58f27a0afe3b66e71350bed862d265",
+        0.10887515060501461,
+        "366b13d515cf610b224a79a49a978ce8e18566eb73dab65c92a0017390418e10",
     ),
     "cq8-netem": (
         SimConfig(codec="cq:8", netem_forward=NET, netem_backward=NET, seed=7, **P),  # type: ignore[arg-type]
-        0.07171201470244709,
-        "4f9b5caa0f9c8b166614605267c88f9665898e35f17215a8b11ba9b0f4494d49",
+        0.07460541092628195,
+        "cf13e85b7897d662589e0b2b9291416f9b68ba4a92b96f913665415d01be0f3b",
     ),
     "tdpa-pdp": (
         SimConfig(codec="pdp:1", delay_ms=20, passivity="tdpa", **P),  # type: ignore[arg-type]
         0.02544233898123922,
-        "db4b17f368125fa12e03db15698532fdb7ee0cd68c86dc0ad39cf36e8d70ff29",
+        "d4e714c295805dcb08f500fce2fd3f1eb22ad43ca7a4395963f28ebb3011dff6",
     ),
     # The whole Section VI task (free space, foam, wall), a varied plan at 3 DoF: the human's push
     # profile and the environment's contact branches, which the 2 s cases never reach.  Recorded
@@ -63,12 +67,12 @@ GOLDEN: dict[str, tuple[SimConfig, float, str]] = {
     "pdp-protocol-15s-varied": (
         SimConfig(codec="pdp:1", dof=3, scenario="protocol", duration=15.0, variation=1.0, seed=3),
         0.001160279259017192,
-        "dd63659e1fce715d1bb948053e88b9a3bf1241d0e16c5440b76b30ede398448e",
+        "654bfa8b02b6f66eb2d297a340a561d5f175a786b4ecf7d4bad88677a84c06bd",
     ),
     "tdpa-none-netem": (
         SimConfig(codec="none", netem_forward=NET, netem_backward=NET, seed=2, passivity="tdpa", **P),  # type: ignore[arg-type]
-        0.025495322116358087,
-        "4a8fe80a2c6adb5db4d4797db326cbc38b8b7a8ab602814553d3e33a21d80eab",
+        0.025494941278658558,
+        "274105b83405fa5ff0df7f44687751000303a2e511d97213a2552c93381329e2",
     ),
 }
 
@@ -76,21 +80,21 @@ GOLDEN: dict[str, tuple[SimConfig, float, str]] = {
 # The same code's figures on OpenBLAS's Haswell kernels, where they differ (recorded at ae61552 on an
 # AMD EPYC host with OPENBLAS_CORETYPE=Haswell; with SkylakeX's kernels it gave every figure above).
 ON_HASWELL: dict[str, tuple[float, str]] = {
+    "cq8-netem": (
+        0.07460541092631576,
+        "9d3d90d8d4d99de67accbdf61ba9262ed885c0879f322b45fc38fb8cc72e0fb6",
+    ),
     "none-6dof": (
         4.2454925259061775e-05,
-        "885f76646afdd2c4c68e91b16c0dba7eade6736b551c2593ec7882880f6c216c",
+        "b8376d544d9b4667542b0a87c63e0bfef81fc2108151cda3aa7bf7b21b7e2d47",
     ),
     "pdp-netem": (
-        0.09663937842999064,
-        "d8e660114d03de335c429ea6a050e0013f54d7474dd6e62ee52dc0646d169cad",
-    ),
-    "cq8-netem": (
-        0.07171201470244817,
-        "d8b1b769009f2e9c949e661452deb6d9c5ebdd40eab991130918a5a5ca8610af",
+        0.10889774952409378,
+        "4f90d611df8e2529960ca402947400f047412206899c4ae3729b8184231b2e1e",
     ),
     "pdp-protocol-15s-varied": (
         0.001169762527841878,
-        "178558bef71ca71c29b4f725793f61eaec84d8f09372cc48dd44545517551199",
+        "65d52fe09752964e781a641b8ef5854e18c4f61e41d535854b54e7daae5e7de1",
     ),
 }
 

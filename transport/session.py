@@ -27,6 +27,7 @@ from teleop.devices import DeviceError
 from teleop.errors import TeleopError
 from teleop.session import auth
 from teleop.session.endpoint import (
+    ClockShifted,
     Endpoint,
     EndReason,
     Failed,
@@ -225,6 +226,7 @@ class _Runner:
                 self._close_device(device)
             return
         while ep.running and not self.stop.requested and self.ticker is ticker:
+            ticker.t0 = ep.t0_ns  # the endpoint's schedule: the phase it follows (teleop.session.link.phase)
             ticker.sleep()  # until the spin before the deadline; then, in the spin's time,
             self.drain_early(ticker.next_deadline - EARLY_MARGIN_NS)  # what arrived so far,
             early = self.tick_early(ticker, session) if wake else None  # and the tick itself
@@ -436,6 +438,15 @@ class _Runner:
             elif isinstance(ev, PeerRestarted | LinkLost | LinkRestored) and self.log is not None:
                 name = {PeerRestarted: "peer_rejoined", LinkLost: "link_lost", LinkRestored: "link_restored"}
                 self.log.event(ep.session_time(self.clock()), name[type(ev)], f"tick {ev.k}")
+            elif isinstance(ev, ClockShifted):
+                msg = (
+                    f"tick 0 moved {ev.ticks} ticks earlier at tick {ev.k}:"
+                    " the peer's packets came before they left"
+                )
+                if not o.quiet:
+                    print(f"teleop {o.role}: clock skew: {msg}", file=sys.stderr, flush=True)
+                if self.log is not None:
+                    self.log.event(ep.session_time(self.clock()), "clock_shifted", msg)
             elif isinstance(ev, SessionEnded):
                 if ev.reason == EndReason.PEER_SILENT:
                     print(

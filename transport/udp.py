@@ -152,6 +152,24 @@ def kernel_drops(sock: socket.socket) -> int | None:
     return int(struct.unpack_from("I", info, 4 * _SK_MEMINFO_DROPS)[0])
 
 
+#: Linux's SO_TIMESTAMPNS (also its control message's type; Python 3.11 does not name it): each
+#: datagram's arrival as a struct timespec of the real-time clock.
+_SO_TIMESTAMPNS = 35
+_TIMESPEC = struct.Struct("=qq")
+_STAMP_SPACE = socket.CMSG_SPACE(_TIMESPEC.size) if hasattr(socket, "CMSG_SPACE") else 0
+
+
+def _kernel_stamps(sock: socket.socket) -> bool:
+    """Ask the kernel to stamp each datagram's arrival; False where it cannot (then read times)."""
+    if not sys.platform.startswith("linux") or not _STAMP_SPACE:
+        return False
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+    except OSError:
+        return False
+    return True
+
+
 def _wake(fut: asyncio.Future[None]) -> None:
     if not fut.done():
         fut.set_result(None)
@@ -160,7 +178,8 @@ def _wake(fut: asyncio.Future[None]) -> None:
 class UdpTransport:
     """A bound UDP socket: ``send(data, addr)``, ``drain() -> [(data, addr, t_rx_ns)]``.
 
-    ``t_rx_ns`` is the monotonic clock when ``drain`` read the datagram.  ``max_datagram``: longer
+    ``t_rx_ns`` is the datagram's arrival on the monotonic clock: the kernel's stamp on Linux, else
+    when ``drain`` read it.  ``max_datagram``: longer
     datagrams are counted in ``oversize`` and dropped (see the module's docstring).
     """
 
@@ -179,6 +198,7 @@ class UdpTransport:
         self.socket_errors = 0
         self.last_socket_error = ""
         self._sock: socket.socket | None = None
+        self._stamps = False  # the kernel stamps arrivals (SO_TIMESTAMPNS)
         self._buf = bytearray(0)
         self._view = memoryview(self._buf)
         self.max_datagram = MAX_DATAGRAM_BYTES
@@ -209,6 +229,7 @@ class UdpTransport:
             sock = _bind(local)
         sock.setblocking(False)
         self._sock = sock
+        self._stamps = _kernel_stamps(sock)
         self.rcvbuf_bytes, warning = set_rcvbuf(sock, rcvbuf)
         if warning is not None:
             self.warnings.append(warning)
@@ -250,6 +271,8 @@ class UdpTransport:
         if sock is None:
             return out
         buf, view, limit, clock = self._buf, self._view, len(self._buf), time.monotonic_ns
+        if self._stamps:
+            return self._drain_stamped(sock, out)
         recv = sock.recvfrom_into
         for _ in range(self.budget):
             try:
@@ -263,6 +286,39 @@ class UdpTransport:
                 self.oversize += 1
                 continue
             out.append((bytes(view[:n]), addr, clock()))
+        self.drain_budget_hits += 1
+        return out
+
+    def _drain_stamped(
+        self, sock: socket.socket, out: list[tuple[bytes, Addr, int]]
+    ) -> list[tuple[bytes, Addr, int]]:
+        """:meth:`drain` with each datagram's arrival as the kernel stamped it (``SO_TIMESTAMPNS``,
+        the real-time clock, moved onto the monotonic one): where the peer's packets land on our tick
+        grid is what the teleoperator's phase follows (``teleop.session.link.phase``), and the loop reads
+        its socket only when it wakes for a tick, which would stamp them all at its own wake-up."""
+        view, limit = self._view, len(self._buf)
+        mono = time.monotonic_ns()
+        to_mono = mono - time.time_ns()
+        recv = sock.recvmsg_into
+        for _ in range(self.budget):
+            try:
+                n, anc, _flags, addr = recv([view], _STAMP_SPACE, socket.MSG_TRUNC)
+            except BlockingIOError:
+                return out
+            except OSError as e:
+                self._error(e)
+                return out
+            if n > limit:
+                self.oversize += 1
+                continue
+            t_rx = 0
+            for level, kind, data in anc:
+                if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(data) >= 16:
+                    sec, nsec = _TIMESPEC.unpack_from(data)
+                    t_rx = sec * 1_000_000_000 + nsec + to_mono
+            # Never later than now, nor before the drain began reading (a clock step in between).
+            now = time.monotonic_ns()
+            out.append((bytes(view[:n]), addr, min(t_rx, now) if t_rx else now))
         self.drain_budget_hits += 1
         return out
 

@@ -1,13 +1,15 @@
 """``teleop sim``: a deterministic virtual-time run of the two nodes joined by a channel.
 
-The runner owns the clock.  Tick ``n`` is ``now = n dt``; within it the operator ticks first, its
-packet enters the forward link, then the teleoperator ticks with whatever is due, and its packet
-enters the backward link.  With delay ``T`` per direction a forward packet is played at tick
-``n + T/dt`` and a backward one at tick ``n + T/dt + 1``: closing the loop through two nodes that
-each tick once costs one tick, the floor of any causal implementation (two real processes cannot
-do better).  The paper's ``I_ref = 0`` assumes the loop solved algebraically across the channel;
-here ``none`` at ``T = 0`` shows the small residual of that one-tick floor and of 16-bit
-quantisation, and the report says so.
+The runner owns the clock.  Tick ``n`` of the operator is ``now = n dt``; its packet enters the
+forward link, then the teleoperator ticks at ``(n + phase) dt`` with whatever is due, and its packet
+enters the backward link.  ``phase`` is where a real teleoperator ticks too: when the operator's
+packet is due, from the forward transit it measured (``teleop.session.link.phase``; here the link's delay
+and no jitter, so just past the arrival).  With delay ``T`` per direction a forward packet is played
+at tick ``n + T/dt`` and a backward one at the operator's tick ``n + ceil(2 T/dt + phase)``: the
+round trip of two loops that each tick once, the floor of any causal implementation (two real
+processes cannot do better).  The paper's ``I_ref = 0`` assumes the loop solved algebraically
+across the channel; here ``none`` at ``T = 0`` shows the small residual of that one-tick floor and
+of 16-bit quantisation, and the report says so.
 
 Packets cross the links as wire bytes (``teleop.session.wire``), so the sim exercises the same parsing as
 the real processes, and payload and packet sizes are counted, not estimated.
@@ -39,6 +41,7 @@ from teleop.control.codecs import Codec, make_codec
 from teleop.devices import scenarios
 from teleop.session import wire
 from teleop.session.link.netem import Link
+from teleop.session.link.phase import latency
 from teleop.session.node import PortOptions
 from teleop.session.port import ConstantDelayLink, MemorySink, Port, make_node, make_shim, wire_block
 from teleop.session.settings import DEFAULT_ENVELOPE, Channel, Envelope
@@ -210,23 +213,28 @@ def _ports(cfg: SimConfig) -> tuple[Port, Port, Codec]:
 def run_case(cfg: SimConfig) -> CaseResult:
     """One deterministic run of two ports joined by virtual links; same config, same bits out.
 
-    Within tick ``n``: the backward datagrams due by now reach the operator, the operator ticks and
-    its forward datagrams due by now reach the teleoperator, which ticks; its own datagrams wait
-    for the next tick (the one-tick loop floor, see the module docstring).
+    Within tick ``n``: the backward datagrams the teleoperator's last tick released reach the
+    operator, the operator ticks and its forward datagrams due by now reach the teleoperator, which
+    ticks at its phase; its own datagrams wait for the operator's next tick (the module docstring).
     """
     cfg = cfg.resolved()
     op, to, codec = _ports(cfg)
     dt, n_ticks = cfg.dt, _ticks(op)
     backward: list[bytes] = []
+    t_back = 0.0
     for n in range(n_ticks):
         now = n * dt
-        for data in backward + to.flush(now, n):
-            op.receive(data, now, n)
+        for data in backward:
+            op.receive(data, t_back, n)
         for data in op.tick(n, now):
             to.receive(data, now, n)
         op.sent(n, now)
-        backward = to.tick(n, now)
-        to.sent(n, now)
+        op.clock.advance(n)  # both clocks are the sim's: nothing to shift, as a real run's should not
+        # The teleoperator ticks when the operator's packet is due, as a real one does.
+        t_back = (n + to.clock.phase) * dt
+        backward = to.tick(n, t_back)
+        to.sent(n, t_back)
+        to.clock.advance(n)
     for data in backward:  # sent at the last tick: observed, not played
         op.receive(data, n_ticks * dt, n_ticks - 1, play=False)
     _drain(to, op, n_ticks, dt)
@@ -327,6 +335,12 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
         "rate_cap": {"forward": o["rate_cap"], "backward": t["rate_cap"]},
         # Each direction's playout buffer, at its receiver (teleop.session.playout).
         "playout": {"forward": t["playout"], "backward": o["playout"]},
+        # Sent -> played per direction and the round trip, against the link's floor (teleop.session.link.phase).
+        "latency": latency(
+            {"forward": t["playout"], "backward": o["playout"]},
+            {"forward": t["clock"], "backward": o["clock"]},
+            dt,
+        ),
         # What each receiver refused (teleop.session.auth): forgeries, corruption, replays and duplicates.
         "security": {"forward": t["security"], "backward": o["security"]},
         # Each side's device (teleop.devices): its spec and, if it keeps one, its own port observer.

@@ -62,6 +62,7 @@ __all__ = [
     "REJOIN_OFFER_INTERVAL_NS",
     "REJOIN_SAMPLES",
     "Admission",
+    "ClockShifted",
     "EndReason",
     "Endpoint",
     "Event",
@@ -237,6 +238,15 @@ class PeerRestarted:
 
 
 @dataclass(frozen=True)
+class ClockShifted:
+    """The peer's packets seemed to arrive before they were sent: this side's tick 0 moved
+    ``ticks`` earlier (its loop skips them), after tick ``k`` (``teleop.session.link.phase``)."""
+
+    k: int
+    ticks: int
+
+
+@dataclass(frozen=True)
 class Replaced:
     old_session: int
     new_session: int
@@ -276,6 +286,7 @@ class Failed:
 
 Event: TypeAlias = (
     SessionStarted
+    | ClockShifted
     | PeerRestarted
     | Replaced
     | PeerBye
@@ -591,6 +602,7 @@ class Endpoint:
         # so the true margin (teleop.offline.report) never counts a sample as played before it was sent.
         port.sent(k, t)
         self.k, self._rx_k = k, k + 1
+        self._retime(k)
         lost = port.node.link_lost
         if lost != self._link_lost:
             self._link_lost = lost
@@ -605,6 +617,21 @@ class Endpoint:
             self._end(EndReason.PEER_BYE, now_ns)
         elif self.peer_bye is not None and self.peer_bye.why:
             self._end(EndReason.PEER_FAULT, now_ns)
+
+    def _retime(self, k: int) -> None:
+        """The schedule follows where the peer's packets land (``teleop.session.link.phase``): the
+        teleoperator's phase, so that it ticks when the operator's packet is due; and, on either side,
+        tick 0 moved earlier by whole ticks if the peer's packets seem to arrive before they were sent
+        (the handshake's offset was skewed).  The runner reads :attr:`t0_ns` before each tick."""
+        port, params = self.port, self.params
+        assert port is not None and params is not None
+        period = round(params.dt * 1e9)
+        shift = port.clock.advance(k)
+        if shift:
+            self.start_ns -= shift * period
+            port.playout.forget_transits()
+            self._events.append(ClockShifted(k, shift))
+        self.t0_ns = self.start_ns + round(port.clock.phase * params.dt * 1e9)
 
     def grace_needed(self, k: int) -> bool:
         """Whether tick ``k`` would wait for its payload (:meth:`grace_until`), without counting a wait."""
@@ -1024,9 +1051,10 @@ class Endpoint:
         )
 
 
-# A real loop and transport deliver a payload a fraction of a tick late now and then (a stalled
-# sender, the scheduler, Zenoh's threads): ``--playout auto`` keeps one tick of allowance for that.
-REAL_PLAYOUT_FLOOR_TICKS = 1
+# ``--playout auto``'s floor in a real process: none, as in ``teleop sim``.  A payload a fraction of a
+# tick late (a stalled sender, the scheduler) is waited for by grace, and the teleoperator ticks when
+# the operator's payload is due (``teleop.session.link.phase``); a floor of one tick cost every payload a tick.
+REAL_PLAYOUT_FLOOR_TICKS = 0
 
 
 def session_port(
@@ -1071,4 +1099,5 @@ def session_port(
         playout_floor=playout_floor,
         sink=sink,
         window_ticks=max(1, round(0.1 / params.dt)),
+        phase=params.phase,
     )

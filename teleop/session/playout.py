@@ -14,12 +14,13 @@ plus an *extra* allowance:
 
 * ``off``: no buffer; a payload goes to the decoder when it arrives (the behaviour before).
 * ``MS``: a fixed extra of ``MS`` milliseconds, rounded up to ticks.
-* ``auto``: the extra follows the observed lateness ``a - a_min``: the smallest allowance that the
-  latest payload of every 100 ms of the last ``AUTO_WINDOW`` ticks met, but for the
-  ``OUTLIER_BUCKETS`` worst 100 ms (network jitter delays payloads all the time, so it is covered; a
-  host stall delays a burst of payloads once, and following it would add its delay to every payload
-  for seconds), never below ``auto_floor`` ticks.  It rises at once and falls by one tick per
-  ``DECREASE_EVERY`` ticks.
+* ``auto``: the extra follows the observed lateness ``a - a_min``: the smallest allowance that
+  all but ``LATE_SHARE`` (1%) of the payloads of the last ``AUTO_WINDOW`` ticks met, and at least all
+  but one of them (jitter that delays more than one payload in a hundred is covered; a host stall,
+  a burst of a few payloads once, is not: following it would add its delay to every payload for
+  seconds), never below ``auto_floor`` ticks.  So: ``d`` ticks of lateness in more than 1% of the
+  payloads add ``d`` ticks of delay to all of them; rarer lateness adds nothing, and those payloads
+  are played late (counted).  It rises at once and falls by one tick per ``DECREASE_EVERY`` ticks.
 
 On a constant-delay channel ``a`` never varies, so ``auto`` with no floor adds nothing and
 ``teleop sim`` gives the same bits as without a buffer.  A payload that arrives after its release
@@ -48,15 +49,15 @@ from teleop.session import wire
 
 MAX_EXTRA_MS = 500.0  # the largest allowance a user may ask for (and auto may reach)
 MAX_HELD = 4096  # packets the buffer holds at most; beyond it the oldest is released at once
-AUTO_WINDOW = 5000  # ticks: the auto target looks at the lateness of the payloads of the last 5 s
+AUTO_WINDOW = 2000  # ticks: the auto target looks at the transits of the payloads of the last 2 s
 LOW_QUANTILE = 0.05  # of the transits lie below a_min: early payloads, held a little longer
-BUCKET = 100  # ticks: the auto allowance looks at the latest payload of each 100 ms ...
-OUTLIER_BUCKETS = 2  # ... and covers all but the 2 worst buckets of the window: a stall is no jitter
-DECREASE_EVERY = 1000  # ticks between one-tick decreases of the auto target
+LATE_SHARE = 0.01  # auto: the share of the window's payloads its allowance may leave late
+DECREASE_EVERY = 200  # ticks between one-tick decreases of the auto target
 FUTURE_LIMIT = 10_000  # ticks: a payload stamped further ahead than this is released at once
 HIST_TICKS = 4096  # bins of the delay histograms (transits beyond are counted in the last)
 TRANSIT_LO = -64  # ticks: the lowest transit told apart (below: a clock offset's error, clipped)
 CHECK_EVERY = 100  # ticks between looks at the quantiles when nothing forces one
+STEP_TICKS = 50  # a payload this much earlier than the lowest transit: the link stepped, start over
 
 
 def parse_playout(text: str) -> str:
@@ -114,7 +115,6 @@ class PlayoutBuffer:
         self._a_min: int | None = None
         self._next_check = 0
         self._last_decrease = 0
-        self._buckets: deque[tuple[int, int]] = deque()  # (100-ms bucket, its latest payload's lateness)
         self._max_seen_tick = -1
         self.stats = PlayoutStats()
         # Histograms (flat memory, whatever the session's length): ticks from each payload's send
@@ -161,8 +161,6 @@ class PlayoutBuffer:
         a_min = self._a_min
         if a_min is None:
             a_min = self._a_min = a
-        if self._auto:
-            self._note_bucket(k, a - a_min if a > a_min else 0)
         # The quantiles are looked at only when they may have moved: a payload below the lowest
         # transit or later than the allowance, or every CHECK_EVERY ticks.
         if not (a < a_min or a - a_min > self.extra or k >= self._next_check):
@@ -171,7 +169,7 @@ class PlayoutBuffer:
         self._a_min = self._low_quantile(a)
         if not self._auto:
             return
-        need = self._bucket_allowance()
+        need = self._allowance()
         if need > self.extra:
             self.extra = need
             self._last_decrease = k
@@ -179,29 +177,22 @@ class PlayoutBuffer:
             self.extra -= 1
             self._last_decrease = k
 
-    def _note_bucket(self, k: int, late: int) -> None:
-        """The latest payload of each BUCKET ticks of the window (auto mode)."""
-        b = k // BUCKET
-        buckets = self._buckets
-        if buckets and (last := buckets[-1])[0] == b:
-            if late > last[1]:
-                buckets[-1] = (b, late)
-            return  # the oldest bucket left when this one was opened
-        buckets.append((b, late))
-        while buckets[0][0] <= b - AUTO_WINDOW // BUCKET:
-            buckets.popleft()
+    def _allowance(self) -> int:
+        """The lateness all but LATE_SHARE of the window's payloads (and at least all but one) met.
 
-    def _bucket_allowance(self) -> int:
-        """The allowance that every 100 ms bucket of the window met but the OUTLIER_BUCKETS worst.
-
-        Jitter delays payloads in every bucket, so it is covered; a host stall delays a burst of
-        payloads in one or two buckets, and following it would add its delay to every payload for
-        seconds (it did: one 25 ms stall of a sender held `none`'s playout at 25 ms for a whole run).
-        """
-        lates = sorted((late for _, late in self._buckets), reverse=True)
-        # Until the window holds enough buckets to tell a stall from jitter, cover the worst seen.
-        e = lates[OUTLIER_BUCKETS] if len(lates) > 2 * OUTLIER_BUCKETS + 1 else lates[0]
-        return max(min(e, self.max_extra), self.auto_floor)
+        Jitter delays payloads all the time, so it is covered; a host stall delays a burst of
+        payloads once, and following it would add its delay to every payload for seconds (it did:
+        one 25 ms stall of a sender held `none`'s playout at 25 ms for a whole run)."""
+        a_min = self._a_min
+        assert a_min is not None
+        n = len(self._window_k)
+        allowed = max(1, int(LATE_SHARE * n))
+        if n <= allowed:
+            return self.auto_floor
+        below = np.cumsum(np.frombuffer(self._hist, dtype=np.int64))
+        # the smallest transit with at most ``allowed`` payloads above it
+        a_hi = int(np.searchsorted(below, n - allowed, side="left")) + TRANSIT_LO
+        return max(min(a_hi - a_min, self.max_extra), self.auto_floor)
 
     def _low_quantile(self, a: int) -> int:
         """The transit LOW_QUANTILE of the recent payloads undercut: the lowest, but for the few a
@@ -222,6 +213,11 @@ class PlayoutBuffer:
         if tick > k + FUTURE_LIMIT:
             st.future += 1
             return [pkt]
+        a_min = self._a_min
+        if a_min is not None and k - tick < a_min - STEP_TICKS:
+            # Far earlier than any payload of the window: the link or the sender's clock stepped
+            # (a peer whose tick 0 moved, teleop.session.link.phase), not jitter: its old transits are stale.
+            self.forget_transits()
         # Lateness is judged against the target this payload was due under (target(), inlined).
         a_min = self._a_min
         before = None if a_min is None else a_min + self.extra
@@ -270,6 +266,16 @@ class PlayoutBuffer:
         """Whether a payload is held for release by tick ``k``."""
         return bool(self._heap) and self._heap[0][0] + (self.target() or 0) <= k
 
+    def forget_transits(self) -> None:
+        """This side's tick 0 moved (``teleop.session.link.phase``: a skewed clock put right): the transits
+        seen so far were measured on the old ticks; what is held is released on the new ones."""
+        self._hist = array("q", bytes(8 * len(self._hist)))
+        self._window_k.clear()
+        self._window_b.clear()
+        self._a_min = None
+        self._next_check = 0
+        self.extra = self.fixed if not self._auto else self.auto_floor
+
     def clear(self) -> None:
         """The sender was replaced: forget what it sent (its ticks and transit start anew)."""
         self._heap.clear()
@@ -278,7 +284,6 @@ class PlayoutBuffer:
         self._window_b.clear()
         self._a_min = None
         self._next_check = 0
-        self._buckets.clear()
         self._max_seen_tick = -1
 
     def summary(self) -> dict[str, Any]:

@@ -46,6 +46,7 @@ from teleop.session import auth, protocol, wire
 from teleop.session.link.counters import UDP_IPV4_HEADER, DirectionCounters
 from teleop.session.link.linkstats import LinkObserver
 from teleop.session.link.netem import Link, NetemStats, make_link
+from teleop.session.link.phase import ClockTracker
 from teleop.session.node import (
     OperatorNode,
     PortOptions,
@@ -556,6 +557,7 @@ class Port:
         playout_floor: int = 0,
         sink: ChunkSink | None = None,
         window_ticks: int = 100,
+        phase: float = 0.5,
     ) -> None:
         self.node = node
         node.datagram_overhead = auth.OVERHEAD + header_bytes
@@ -575,6 +577,10 @@ class Port:
         # ``auto`` keeps at least ``playout_floor`` ticks of allowance: the real-time runner asks for
         # one (its loops and transport jitter by a fraction of a tick; the simulation by none).
         self.playout = PlayoutBuffer(node.options.playout, node.dt, auto_floor=playout_floor)
+        # Where the peer's packets land on our tick grid: the teleoperator's phase follows it (it
+        # ticks when the operator's packet is due), and either side's tick 0 moves if it lies.
+        teleoperator = node.tx_direction == wire.BACKWARD
+        self.clock = ClockTracker(node.dt, phase if teleoperator else 0.0, moves_phase=teleoperator)
         self.sink: ChunkSink = sink if sink is not None else MemorySink()
         self.rec = Recorder(node.wave.dof, self.sink, self.tx, self.rx, self._baseline, self.raw_payload_len)
         self.control_rejected = 0  # control messages that did not parse (counted, dropped)
@@ -622,9 +628,14 @@ class Port:
             node.malformed(str(e))
             return None
         self.rx.packet(k, len(data), len(pkt.payload))
-        if pkt.session == node.session and pkt.direction == node.rx_direction:
+        ours = pkt.session == node.session and pkt.direction == node.rx_direction
+        if ours:
             self.observer.observe(t, pkt.seq, pkt.t_us / 1e6, len(data))
-        if self._accept(counter, t) and play:
+        if not self._accept(counter, t):
+            return None
+        if ours:
+            self.clock.observe(k, t - pkt.tick * self.dt)
+        if play:
             for p in self.playout.add(pkt, k) if node.takes(pkt) else [pkt]:
                 node.receive_packet(p)
         return None
@@ -704,6 +715,7 @@ class Port:
         new = port_keys(keys.psk, node.tx_direction, node.session, *nonces, counter=keys.tx.counter)
         keys.tx, keys.rx = new.tx, new.rx
         self.playout.clear()
+        self.clock = ClockTracker(self.dt, self.clock.phase, self.clock.moves_phase)  # another peer's
         node.peer_restarted()
         self.observer = LinkObserver(self.observer.spec)
 
@@ -805,6 +817,7 @@ class Port:
             ),
             "rate_cap": self._rate_cap_summary(),
             "playout": self.playout.summary(),
+            "clock": self.clock.summary(),
             "control_rejected": self.control_rejected,
             "security": {
                 **asdict(self.security),

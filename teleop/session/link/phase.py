@@ -1,0 +1,166 @@
+"""Where the peer's packets land on this side's tick grid, and what the schedule should do about it.
+
+Each side measures, in session, the *apparent transit* of its peer's data packets: the arrival on
+its own session clock minus the packet's ``t_us`` (``tick * dt``), in ticks.  It is the one-way
+delay plus the error of the handshake's clock offset (where tick 0 landed on this clock), and
+since both sides measure against the same nominal tick times, the two errors have opposite signs.
+So, with no wire field beyond ``t_us`` (PROTOCOL.md 5.1):
+
+* **Phase** (teleoperator; issue 37): it ticks when the operator's packet is due, i.e. its phase
+  ``phi`` (periods after the nominal tick) is the high quantile of the forward transit plus a
+  processing margin, modulo a period, held within ``[PHASE_MIN, PHASE_MAX]``.  Then each forward
+  payload is played at the first tick after it arrives, and the backward one leaves as early as
+  it can, which is what brings the round trip to ``ceil(2 d + processing)``.  The whole-tick part
+  of the delay stays with the playout buffer: tick ``k`` keeps meaning the same instant at both
+  ends (eq. 7 compares them tick by tick).
+* **Skew** (both sides; issue 35): a transit below ``-SKEW_TICKS`` cannot be a delay: this side's
+  tick 0 landed later than its peer's (an on-path delayer during the handshake made the offset
+  wrong by half of what it added).  The side then moves its tick 0 earlier by whole ticks, just
+  enough that no transit is negative (its loop skips those ticks, counted), which leaves at most
+  a tick of misplacement on a quiet link; what a side cannot see (a skew hidden under a long link's
+  delay) is reported, as the shift each side made and the transits it measured.
+
+Sans-I/O and deterministic: ``observe`` takes session times, ``advance`` the tick just run; the
+real-time endpoint and ``teleop sim`` call the same methods, so they keep the same schedule.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+#: The teleoperator's phase stays within these fractions of a period (it starts at the handshake's
+#: ``phase``, 0.5 by default): a tick never coincides with the operator's.
+PHASE_MIN = 0.1
+PHASE_MAX = 0.9
+#: Between a packet's arrival and the tick that plays it: the loop's early drain runs up to its spin
+#: (10-100 us) before the deadline; this much is kept (s).
+PHASE_MARGIN_S = 150e-6
+HIGH_QUANTILE = 0.99  # of the transits the phase covers
+LOW_QUANTILE = 0.05  # the skew check looks at this one (a lone early packet moves nothing)
+WINDOW_TICKS = 2000  # the transits of the packets of the last 2 s ...
+CAPACITY = 2048  # ... at most this many of them
+CHECK_EVERY = 100  # ticks between looks at the quantiles
+MIN_SAMPLES = 8  # packets before the first look
+#: Periods the phase moves at most per tick: a move is one shorter or longer period, not a slew (a
+#: slew earlier would leave each tick's backward packet a little later for its link than the last).
+MAX_STEP = 0.5
+DEADBAND = 0.02  # periods: a target this close to the phase moves nothing
+SKEW_TICKS = 0.5  # a transit below minus this many ticks is a misplaced tick 0, not a delay
+
+
+class ClockTracker:
+    """The transits of one side's incoming data packets, and the schedule they call for."""
+
+    def __init__(self, dt: float, phase: float = 0.0, moves_phase: bool = False) -> None:
+        self.dt = dt
+        self.phase = phase  # periods after the nominal tick this side runs (the operator: 0)
+        self.target = phase
+        self.moves_phase = moves_phase
+        self.margin = PHASE_MARGIN_S / dt
+        self._x = np.zeros(CAPACITY)  # transits, ticks (a ring)
+        self._k = np.zeros(CAPACITY, dtype=np.int64)  # the tick each was taken in
+        self._n = 0
+        self._next_check = 0
+        self.shifted_ticks = 0  # tick 0 moved earlier by this many ticks in all (skew)
+        self.shifts = 0
+        self.phase_moves = 0  # looks that changed the target
+        self.first_transit: float | None = None  # ticks, of the first packet (before any shift)
+
+    def observe(self, k: int, transit_s: float) -> None:
+        """A data packet of the peer taken during tick ``k``, ``transit_s`` after its ``t_us``."""
+        x = transit_s / self.dt
+        if self.first_transit is None:
+            self.first_transit = x
+        i = self._n % CAPACITY
+        self._x[i] = x
+        self._k[i] = k
+        self._n += 1
+
+    def _window(self, k: int) -> np.ndarray:
+        n = min(self._n, CAPACITY)
+        x, ks = self._x[:n], self._k[:n]
+        return x[ks > k - WINDOW_TICKS]
+
+    def advance(self, k: int) -> int:
+        """After tick ``k``: the ticks to move tick 0 earlier by now (0 mostly), and :attr:`phase`
+        set for the next tick."""
+        shift = 0
+        if k >= self._next_check and self._n >= MIN_SAMPLES:
+            self._next_check = k + CHECK_EVERY
+            x = self._window(k)
+            if x.size >= MIN_SAMPLES:
+                lo, hi = np.quantile(x, [LOW_QUANTILE, HIGH_QUANTILE])
+                if lo < -SKEW_TICKS:
+                    shift = math.ceil(-lo)
+                    self._x += shift  # the same arrivals, on the moved clock
+                    hi += shift
+                    self.shifted_ticks += shift
+                    self.shifts += 1
+                if self.moves_phase:
+                    target = min(max((hi + self.margin) % 1.0, PHASE_MIN), PHASE_MAX)
+                    if abs(target - self.target) > DEADBAND:
+                        self.target = float(target)
+                        self.phase_moves += 1
+        if self.phase != self.target:
+            step = min(max(self.target - self.phase, -MAX_STEP), MAX_STEP)
+            self.phase = self.target if abs(self.target - self.phase) <= MAX_STEP else self.phase + step
+        return shift
+
+    def summary(self) -> dict[str, Any]:
+        """The transits (ms) of the last window, the phase and what the tracker moved."""
+        n = min(self._n, CAPACITY)
+        ms = self.dt * 1e3
+        transit: dict[str, float | None]
+        if n:
+            p50, p99 = np.quantile(self._x[:n], [0.5, 0.99])
+            transit = {"p50": float(p50) * ms, "p99": float(p99) * ms, "min": float(self._x[:n].min()) * ms}
+        else:
+            transit = {"p50": None, "p99": None, "min": None}
+        return {
+            "transit_ms": transit,
+            "phase": self.phase,
+            "phase_moves": self.phase_moves,
+            "skew_shift_ms": self.shifted_ticks * ms,
+            "skew_shifts": self.shifts,
+            "first_transit_ms": None if self.first_transit is None else self.first_transit * ms,
+        }
+
+
+def latency(
+    playout: dict[str, dict[str, Any] | None], clock: dict[str, dict[str, Any] | None], dt: float
+) -> dict[str, Any]:
+    """Sent -> played per direction and the round trip (ms, p50/p99/max), with the floor of the
+    measured link beside it, from the receivers' playout and clock summaries (``forward``: the
+    teleoperator's, ``backward``: the operator's).
+
+    A payload of tick ``k`` is released at the receiver's tick ``k + n`` (its playout's delay), which
+    the teleoperator runs ``phase`` of a period after the operator: forward takes ``n + phase``
+    ticks, backward ``n - phase``.  The round trip adds the two (its percentiles the sum of theirs:
+    no better than the real one's).  The floor is the smallest whole number of ticks not below the
+    link's round trip: the two transits' medians less the phase (the handshake offset's error
+    cancels in the sum), at least one tick (two loops that each tick once)."""
+    ms = dt * 1e3
+    fwd_clock = clock.get("forward") or {}
+    phase = float(fwd_clock.get("phase") or 0.0)
+    out: dict[str, Any] = {"phase": phase}
+    shift = {"forward": phase * ms, "backward": -phase * ms}
+    for d in ("forward", "backward"):
+        delay = (playout.get(d) or {}).get("delay_ms") or {}
+        out[d] = {q: None if delay.get(q) is None else delay[q] + shift[d] for q in ("p50", "p99", "max")}
+    out["round_trip"] = {
+        q: None
+        if out["forward"][q] is None or out["backward"][q] is None
+        else out["forward"][q] + out["backward"][q]
+        for q in ("p50", "p99", "max")
+    }
+    tf = (fwd_clock.get("transit_ms") or {}).get("p50")
+    tb = ((clock.get("backward") or {}).get("transit_ms") or {}).get("p50")
+    link = None if tf is None or tb is None else max(0.0, tf + tb - phase * ms)
+    out["link_round_trip_ms"] = link
+    # plus the teleoperator's processing between a packet's arrival and its tick
+    need = None if link is None else link + PHASE_MARGIN_S * 1e3
+    out["floor_ms"] = None if need is None else max(1, math.ceil(need / ms - 1e-6)) * ms
+    return out
