@@ -335,7 +335,7 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
         "rate_cap": {"forward": o["rate_cap"], "backward": t["rate_cap"]},
         # Each direction's playout buffer, at its receiver (teleop.session.playout).
         "playout": {"forward": t["playout"], "backward": o["playout"]},
-        # Sent -> played per direction and the round trip, against the link's floor (teleop.session.link.phase).
+        # Sent -> played per direction and the round trip, against the link's floor (session.link.phase).
         "latency": latency(
             {"forward": t["playout"], "backward": o["playout"]},
             {"forward": t["clock"], "backward": o["clock"]},

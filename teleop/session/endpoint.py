@@ -1053,7 +1053,7 @@ class Endpoint:
 
 # ``--playout auto``'s floor in a real process: none, as in ``teleop sim``.  A payload a fraction of a
 # tick late (a stalled sender, the scheduler) is waited for by grace, and the teleoperator ticks when
-# the operator's payload is due (``teleop.session.link.phase``); a floor of one tick cost every payload a tick.
+# the operator's payload is due (``session.link.phase``); a floor of one tick cost every payload a tick.
 REAL_PLAYOUT_FLOOR_TICKS = 0
 
 
