@@ -16,6 +16,7 @@ from teleop.cli.args import (
     add_key_args,
     add_robot_name_arg,
     add_transport_args,
+    codec,
     float_range,
     udp_addr,
 )
@@ -78,7 +79,12 @@ def add_parser(sub: Subcommands) -> None:
     )
     add_robot_name_arg(c, "--robot-name", "the robot name both sides' keys derive from")
     c.add_argument(
-        "--codec", default="none", help="codec of the session proposed to a teleoperator (default none)"
+        "--codec",
+        type=codec,
+        default="none",
+        metavar="SPEC",
+        help="codec of the session proposed to a teleoperator (default none; any form --codec of "
+        "teleop run takes)",
     )
     c.add_argument(
         "--duration",

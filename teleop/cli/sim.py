@@ -24,14 +24,21 @@ from teleop.devices.scenarios import SCENARIOS
 from teleop.files import write_new
 
 
+def codec_width(cases: list[dict[str, Any]]) -> int:
+    """The codec column's width: 10, or the longest spec (pdr's self-credit specs are longer)."""
+    return max([10, *(len(c["codec"]) for c in cases)])
+
+
 def format_table(cases: list[dict[str, Any]]) -> str:
+    w = codec_width(cases)
     head = (
-        f"{'codec':<10} {'I':>11} {'I_norm':>7} {'c:1':>7} {'min c:1':>8} {'passive':>8} {'min margin J':>13}"
+        f"{'codec':<{w}} {'I':>11} {'I_norm':>7} {'c:1':>7} {'min c:1':>8} {'passive':>8} "
+        f"{'min margin J':>13}"
     )
     lines = [head, "-" * len(head)]
     for c in cases:
         lines.append(
-            f"{c['codec']:<10} {c['I']:>11.4e} {c['I_norm']:>7.3f} {c['compression']:>7.2f} "
+            f"{c['codec']:<{w}} {c['I']:>11.4e} {c['I_norm']:>7.3f} {c['compression']:>7.2f} "
             f"{c['min_instant_compression']:>8.2f} {'yes' if c['passive'] else 'NO':>8} "
             f"{c['min_energy_margin']:>13.3e}"
         )
@@ -41,20 +48,22 @@ def format_table(cases: list[dict[str, Any]]) -> str:
 def format_phases(cases: list[dict[str, Any]]) -> str:
     """Per case: I of each phase of the scenario (free, foam, wall) next to the whole run's; a
     phase the run did not reach (shorter than the scenario) shows "-", not an I of 0."""
+    w = codec_width(cases)
     names = [n for n in cases[0]["phases"] if n != "all"] if cases else []
-    head = f"{'codec':<10} " + " ".join(f"{'I ' + n:>11}" for n in names) + f" {'I all':>11}"
+    head = f"{'codec':<{w}} " + " ".join(f"{'I ' + n:>11}" for n in names) + f" {'I all':>11}"
     lines = [head, "-" * len(head)]
     for c in cases:
         ph = c["phases"]
         cells = [f"{ph[n]['I']:>11.4e}" if ph[n]["ticks"] else f"{'-':>11}" for n in [*names, "all"]]
-        lines.append(f"{c['codec']:<10} " + " ".join(cells))
+        lines.append(f"{c['codec']:<{w}} " + " ".join(cells))
     return "\n".join(lines)
 
 
 def format_watchdog(cases: list[dict[str, Any]]) -> str:
     """Per case and direction: what the link did (observed) and what the watchdog saw and did."""
+    w = codec_width(cases)
     lines = [
-        f"{'codec':<10} {'dir':<9} {'loss %':>7} {'delay ms':>9} {'reord':>6} {'dup':>5} "
+        f"{'codec':<{w}} {'dir':<9} {'loss %':>7} {'delay ms':>9} {'reord':>6} {'dup':>5} "
         f"{'violations':>10} {'ctrl ticks':>10} {'dissipated J':>12} {'lost':>5}"
     ]
     for c in cases:
@@ -62,7 +71,7 @@ def format_watchdog(cases: list[dict[str, Any]]) -> str:
             lk, pv = c["link"][d], c["passivity"][d]
             delay = "-" if lk["delay_ms"]["mean"] is None else f"{lk['delay_ms']['mean']:.2f}"
             lines.append(
-                f"{c['codec']:<10} {d:<9} {100 * lk['loss']:>7.2f} {delay:>9} {lk['reordered']:>6} "
+                f"{c['codec']:<{w}} {d:<9} {100 * lk['loss']:>7.2f} {delay:>9} {lk['reordered']:>6} "
                 f"{lk['duplicates']:>5} {pv['violations']:>10} {pv['controller_active_ticks']:>10} "
                 f"{pv['energy_dissipated']:>12.3e} {pv['link_lost_events']:>5}"
             )
@@ -72,8 +81,9 @@ def format_watchdog(cases: list[dict[str, Any]]) -> str:
 def format_distortion(cases: list[dict[str, Any]]) -> str:
     """Per case: eq. (7) next to its delay-compensated form, the HSI-TO drift and the energy the
     passivity controllers dissipated (what separates delay from distortion)."""
+    w = codec_width(cases)
     head = (
-        f"{'codec':<10} {'I':>11} {'I_dc':>11} {'shift ms':>9} {'drift max mm':>12} "
+        f"{'codec':<{w}} {'I':>11} {'I_dc':>11} {'shift ms':>9} {'drift max mm':>12} "
         f"{'drift end mm':>12} {'dissipated J':>12} {'peak F hsi/to N':>15}"
     )
     lines = [head, "-" * len(head)]
@@ -82,7 +92,7 @@ def format_distortion(cases: list[dict[str, Any]]) -> str:
         shift = f"{sh['forward']:g}/{sh['backward']:g}"
         peak = f"{c['peak_force_N']['hsi']:.2f}/{c['peak_force_N']['to']:.2f}"
         lines.append(
-            f"{c['codec']:<10} {c['I']:>11.4e} {c['I_dc']:>11.4e} {shift:>9} "
+            f"{c['codec']:<{w}} {c['I']:>11.4e} {c['I_dc']:>11.4e} {shift:>9} "
             f"{1e3 * c['drift_m']['max']:>12.3f} {1e3 * c['drift_m']['final']:>12.3f} "
             f"{c['energy_dissipated']['total']:>12.3e} {peak:>15}"
         )
@@ -92,8 +102,9 @@ def format_distortion(cases: list[dict[str, Any]]) -> str:
 def format_tdpa(cases: list[dict[str, Any]]) -> str:
     """Per case and direction: TDPA's observer (energy in at the sender, out at the receiver) and
     its controller (active ticks, dissipated energy)."""
+    cw = codec_width(cases)
     head = (
-        f"{'codec':<10} {'dir':<9} {'E_in J':>11} {'E_out J':>11} {'min margin J':>13} "
+        f"{'codec':<{cw}} {'dir':<9} {'E_in J':>11} {'E_out J':>11} {'min margin J':>13} "
         f"{'ctrl ticks':>10} {'dissipated J':>12}"
     )
     lines = [head, "-" * len(head)]
@@ -101,7 +112,7 @@ def format_tdpa(cases: list[dict[str, Any]]) -> str:
         for d in ("forward", "backward"):
             w = c["tdpa"][d]
             lines.append(
-                f"{c['codec']:<10} {d:<9} {w['energy_in']:>11.4e} {w['energy_out']:>11.4e} "
+                f"{c['codec']:<{cw}} {d:<9} {w['energy_in']:>11.4e} {w['energy_out']:>11.4e} "
                 f"{w['min_margin']:>13.3e} {w['controller_active_ticks']:>10} {w['energy_dissipated']:>12.3e}"
             )
     return "\n".join(lines)
@@ -159,7 +170,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     print(format_table(doc["cases"]))
     for c in doc["cases"]:
         if (line := describe(c["devices"]["robot"])) is not None:
-            print(f"{c['codec']:<10} {line}")
+            print(f"{c['codec']:<{codec_width(doc['cases'])}} {line}")
     if len(doc["cases"][0]["phases"]) > 1:
         print(format_phases(doc["cases"]))
     if impaired or base.on_loss != "conceal" or not base.controller:

@@ -167,7 +167,8 @@ def aggregate(
 def format_table(doc: dict[str, Any]) -> str:
     """Per codec and phase: I mean +- std over the runs, and whether every run stayed passive."""
     names = [n for n in PHASE_ORDER if any(n in c["phases"] for c in doc["cases"])]
-    head = f"{'codec':<10} " + " ".join(f"{'I ' + n + ' (mean +- std)':>24}" for n in names) + "  passive"
+    w = max([10, *(len(c["codec"]) for c in doc["cases"])])  # pdr's self-credit specs are longer
+    head = f"{'codec':<{w}} " + " ".join(f"{'I ' + n + ' (mean +- std)':>24}" for n in names) + "  passive"
     lines = [head, "-" * len(head)]
     for c in doc["cases"]:
         cells = []
@@ -178,7 +179,7 @@ def format_table(doc: dict[str, Any]) -> str:
             )
         ok = "yes" if all(r["passive"] for r in c["per_run"]) else "NO"
         runs = f"{c['completed']}/{doc['runs']} runs complete"
-        lines.append(f"{c['codec']:<10} " + " ".join(cells) + f"  {ok} ({runs})")
+        lines.append(f"{c['codec']:<{w}} " + " ".join(cells) + f"  {ok} ({runs})")
     return "\n".join(lines)
 
 
