@@ -1,5 +1,7 @@
-"""LDR codecs on wave variables, chosen by a spec string (``none``, ``ids:K``, ``eds:K``, ``cq:BITS``,
-``pd:K``, ``pdp:K``, ``pdr:K``, ``dct:N:M``).
+"""LDR codecs on wave variables, chosen by a spec (``none``, ``ids:K``, ``eds:K``, ``cq:BITS``,
+``pd:PCT``, ``pdp:PCT``, ``pdr:PCT``, ``dct:N:M``; every grammar, preset and named form in
+:mod:`teleop.codecs.spec`, which parses a spec once into a :class:`CodecSpec` that ``bind`` turns
+into a :class:`Codec` without parsing again).
 
 Each codec is an encoder/decoder pair that enforces its class's passivity condition:
 
@@ -10,9 +12,9 @@ none        direct          raw 16-bit, rounded toward zero (eq. 11)     none
 cq:BITS     direct          eq. (11), rounding toward zero               none
 ids:K       interpolative   eq. (8), frame mean (Cauchy-Schwarz)         one frame
 eds:K       extrapolative   eq. (10), budgeted hold                      none
-pd:K        deadband        Weber band; budgeted hold (sender + guard)   none
-pdp:K       deadband        predictive band; budgeted extrapolation      none
-pdr:K       deadband        as pdp, predicting the reflection (eq. 3)    none
+pd:PCT      deadband        Weber band; budgeted hold (sender + guard)   none
+pdp:PCT     deadband        predictive band; budgeted extrapolation      none
+pdr:PCT     deadband        as pdp, predicting the reflection (eq. 3)    none
 dct:N:M     frequency       eq. (8) by Parseval, M of N DCT-II coeffs    one frame
 ==========  ==============  ===========================================  ==================
 
