@@ -524,7 +524,8 @@ def test_the_link_loss_table_is_what_the_node_does() -> None:
     ("given", "canonical"),
     [("EDS:050", "eds:50"), ("cq:8:1.50", "cq:8:1.5"), ("pd:5.0", "pd:5"), ("pd:5:100", "pd:5"),
      ("dct:020:02", "dct:20:2"), ("cq:8:1.2345678", "cq:8:1.23457"), ("eds:+5", "eds:5"),
-     ("eds:5_0", "eds:50")],
+     ("eds:5_0", "eds:50"), ("pdr:0.8:100:0.8", "pdr:0.8"),
+     ("pdr:0.8:100:0.8:30:30:C0.50", "pdr:0.8:100:0.8:30:30:c0.5")],
 )  # fmt: skip
 def test_canonical_codec_specs(given: str, canonical: str) -> None:
     """Section 3.5: the canonical form both sides build their codec from."""
