@@ -210,7 +210,7 @@ def test_a_peer_variation_out_of_range_is_refused(bad: object) -> None:
 # --------------------------------------------------------------------------------------------
 # aggregation and the command
 # --------------------------------------------------------------------------------------------
-def _run(codec: str, seed: int, i_free: float, passive: bool = True) -> experiment.RunResult:
+def _run(seed: int, i_free: float, passive: bool = True) -> experiment.RunResult:
     def block(i: float) -> dict[str, object]:
         return {
             "I": i,
@@ -222,13 +222,15 @@ def _run(codec: str, seed: int, i_free: float, passive: bool = True) -> experime
             "wire_bps": {"forward": 1e5, "backward": 5e4},
         }
 
-    return experiment.RunResult(codec, seed, passive, {"free": block(i_free), "all": block(2 * i_free)})
+    return experiment.RunResult(seed, passive, {"free": block(i_free), "all": block(2 * i_free)})
 
 
 def test_aggregate_mean_and_sample_spread() -> None:
-    runs = [_run("none", s, x) for s, x in enumerate((1.0, 2.0, 4.0))]
-    runs += [_run("eds:2", s, 3.0, passive=s != 1) for s in range(3)]
-    doc = experiment.aggregate(runs, ["none", "eds:2"], 3, False, {"scenario": "protocol"})
+    runs = {
+        "none": [_run(s, x) for s, x in enumerate((1.0, 2.0, 4.0))],
+        "eds:2": [_run(s, 3.0, passive=s != 1) for s in range(3)],
+    }
+    doc = experiment.aggregate(runs, 3, False, {"scenario": "protocol"})
     assert doc["runs"] == 3 and doc["real"] is False and doc["scenario"] == "protocol"
     none, eds = doc["cases"]
     assert none["reference"] and not eds["reference"]
@@ -277,7 +279,7 @@ def test_experiment_command_writes_json_and_figure(
 def test_experiment_exits_1_when_a_run_is_not_passive(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    monkeypatch.setattr(experiment, "sim_run", lambda base, codec, seed: _run(codec, seed, 1.0, seed != 1))
+    monkeypatch.setattr(experiment, "sim_run", lambda base, codec, seed: _run(seed, 1.0, seed != 1))
     rc = main(["experiment", "--runs", "3", "--codec", "eds:2", "--out", str(tmp_path)])
     assert rc == 1
     assert "eds:2 seed 1: NOT PASSIVE" in capsys.readouterr().out

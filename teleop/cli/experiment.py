@@ -75,15 +75,15 @@ def _settings(args: argparse.Namespace, dof: int, duration: float) -> dict[str, 
     }
 
 
-def _sim_runs(args: argparse.Namespace, codecs: list[str], progress: Progress) -> list[Any]:
+def _sim_runs(args: argparse.Namespace, codecs: list[str], progress: Progress) -> dict[str, list[Any]]:
     from teleop.offline.experiment import sim_run
 
     base = sim_config(args)
-    runs = []
+    runs: dict[str, list[Any]] = {spec: [] for spec in codecs}
     for seed in range(args.seed, args.seed + args.runs):
         for spec in codecs:
-            runs.append(sim_run(base, spec, seed))
-            progress.step(f"{spec} seed {seed}" + ("" if runs[-1].passive else " NOT PASSIVE"))
+            runs[spec].append(r := sim_run(base, spec, seed))
+            progress.step(f"{spec} seed {seed}" + ("" if r.passive else " NOT PASSIVE"))
     return runs
 
 
@@ -113,7 +113,7 @@ def _real_run(args: argparse.Namespace, spec: str, seed: int, out: Path) -> Any:
         with contextlib.redirect_stdout(buf):
             rc = cmd_run(ns)
     except CliError as e:
-        return RunResult(spec, seed, False, error=str(e)), 1
+        return RunResult(seed, False, error=str(e)), 1
     finally:
         write_new(out / "run.log", buf.getvalue().encode())
         if not args.keep_logs:
@@ -121,20 +121,22 @@ def _real_run(args: argparse.Namespace, spec: str, seed: int, out: Path) -> Any:
     rep = json.loads((out / "report.json").read_text())
     error = None if rc == 0 else f"teleop run exited with {rc} (exit codes {rep.get('exit_codes')})"
     error = error or incomplete(rep)
-    return RunResult(rep["codec"], seed, real_passive(rep), rep["phases"], error, host_figures(rep)), rc
+    return RunResult(seed, real_passive(rep), rep["phases"], error, host_figures(rep)), rc
 
 
-def _real_runs(args: argparse.Namespace, codecs: list[str], out: Path, progress: Progress) -> list[Any]:
+def _real_runs(
+    args: argparse.Namespace, codecs: list[str], out: Path, progress: Progress
+) -> dict[str, list[Any]]:
     from teleop.offline.plots import safe_name
 
-    runs = []
+    runs: dict[str, list[Any]] = {spec: [] for spec in codecs}
     # Seed by seed, every codec in turn: a host that gets busier during the experiment then
     # slows every codec alike, instead of the codecs that happen to run last.
     for seed in range(args.seed, args.seed + args.runs):
         for spec in codecs:
             folder = private_dir(out / "runs" / f"{safe_name(spec)}-seed{seed}", "--out")
             r, rc = _real_run(args, spec, seed, folder)
-            runs.append(r)
+            runs[spec].append(r)
             progress.step(f"{spec} seed {seed}" + (f" FAILED: {r.error}" if r.error else ""))
             if rc == 130:
                 raise KeyboardInterrupt
@@ -167,7 +169,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     )
     progress = Progress(len(codecs) * args.runs, sys.stderr)
     runs = _real_runs(args, codecs, out, progress) if args.real else _sim_runs(args, codecs, progress)
-    doc = aggregate(runs, codecs, args.runs, args.real, _settings(args, dof, duration))
+    doc = aggregate(runs, args.runs, args.real, _settings(args, dof, duration))
     write_new(out / "experiment.json", (json.dumps(doc, indent=2) + "\n").encode())
     from teleop.offline import plots
 

@@ -14,7 +14,7 @@ two-process sessions (their ``report.json``).  Both give the same per-phase bloc
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -28,9 +28,9 @@ REFERENCE = "none"  # the no-LDR case
 
 @dataclass
 class RunResult:
-    """One run of one codec: passivity and the per-phase block; ``error`` when it did not complete."""
+    """One run of one codec (:func:`aggregate` holds the runs by codec): passivity and the per-phase
+    block; ``error`` when it did not complete."""
 
-    codec: str
     seed: int
     passive: bool
     phases: dict[str, dict[str, Any]] = field(default_factory=dict)
@@ -42,7 +42,7 @@ class RunResult:
 def sim_run(base: SimConfig, codec: str, seed: int) -> RunResult:
     """Run ``codec`` in virtual time with the human of ``seed`` (the rest of ``base`` unchanged)."""
     r = run_case(replace(base, codec=codec, seed=seed))
-    return RunResult(r.codec, seed, bool(r.summary["passive"]), r.summary["phases"])
+    return RunResult(seed, bool(r.summary["passive"]), r.summary["phases"])
 
 
 def real_passive(report: dict[str, Any]) -> bool:
@@ -111,15 +111,15 @@ def _phase_names(runs: Sequence[RunResult]) -> list[str]:
 
 
 def aggregate(
-    runs: Sequence[RunResult], codecs: Sequence[str], n_runs: int, real: bool, settings: dict[str, Any]
+    runs: Mapping[str, Sequence[RunResult]], n_runs: int, real: bool, settings: dict[str, Any]
 ) -> dict[str, Any]:
-    """The ``experiment.json`` document: per codec (in the given order), per phase, I's mean,
-    spread, min and max over the completed runs, I per DoF, the mean packet and wire rates, and
-    (with the reference among the runs) ``I_over_reference``: I over the reference's, seed by seed."""
+    """The ``experiment.json`` document from the runs of each codec: per codec (in ``runs``' order),
+    per phase, I's mean, spread, min and max over the completed runs, I per DoF, the mean packet and
+    wire rates, and (with the reference among the runs) ``I_over_reference``: I over the
+    reference's, seed by seed."""
     cases = []
-    ref = {r.seed: r.phases for r in runs if r.codec == REFERENCE and r.error is None}
-    for spec in codecs:
-        mine = [r for r in runs if r.codec == spec]
+    ref = {r.seed: r.phases for r in runs.get(REFERENCE, ()) if r.error is None}
+    for spec, mine in runs.items():
         done = [r for r in mine if r.error is None]
         phases: dict[str, Any] = {}
         for name in _phase_names(done):
