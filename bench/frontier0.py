@@ -127,7 +127,7 @@ def run(duration: float, pool: bool = False) -> dict[str, Any]:
     cases = [_case(c, duration) for c in (*REFERENCES, *PDR, *(POOL if pool else ()))]
     cases += [_case(c, duration, Passivity.TDPA) for c in TDPA]
     ids2 = next(c for c in cases if c["codec"] == "ids:2")
-    pdr = [c for c in cases if c["codec"].startswith("pdr") and c["passivity"] == "wave"]
+    pdr = [c for c in cases if c["codec"].startswith("pdr") and c["passivity"] == Passivity.WAVE]
     within = [c for c in pdr if c["I"] <= ids2["I"]]
     # The fewest packets within ids:2's I, else (a short run) the lowest I.
     if within:
