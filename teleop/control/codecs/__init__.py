@@ -1,7 +1,7 @@
 """LDR codecs on wave variables, chosen by a spec (``none``, ``ids:K``, ``eds:K``, ``cq:BITS``,
 ``pd:PCT``, ``pdp:PCT``, ``pdr:PCT``, ``dct:N:M``; every grammar, preset and named form in
-:mod:`teleop.codecs.spec`, which parses a spec once into a :class:`CodecSpec` that ``bind`` turns
-into a :class:`Codec` without parsing again).
+:mod:`teleop.control.codecs.spec`, which parses a spec once into a :class:`CodecSpec`;
+:func:`make_codec` turns one into a :class:`Codec` without parsing it again).
 
 Each codec is an encoder/decoder pair that enforces its class's passivity condition:
 
