@@ -329,19 +329,7 @@ UNDER_REPORT = 0.9
 def _factory(role: str, under_report: float = 1.0) -> Callable[[SessionParams, int, PortKeys, int], Port]:
     def make(p: SessionParams, k0: int, keys: PortKeys, start_ns: int) -> Port:
         port = session_port(role, p, k0, keys, header_bytes=28)
-        if under_report != 1.0:
-            node = port.node
-            transmit = node._transmit
-
-            def under(now: float, x: Any) -> wire.Packet | None:
-                sent = node.energy_sent
-                node.energy_sent = sent * under_report
-                try:
-                    return transmit(now, x)
-                finally:
-                    node.energy_sent = sent
-
-            node._transmit = under  # type: ignore[method-assign]
+        port.node.report_scale = under_report
         return port
 
     return make

@@ -199,6 +199,9 @@ class _Port:
         self.peer_restarts = 0  # energy epochs: the peer process was replaced this many times
         self.counters = PortCounters()
         self.energy_sent = 0.0  # J carried into the channel by the transmitted wave
+        # The fraction of it the packets report: 1 in every session; a conformance probe reports less
+        # (safe, PROTOCOL.md 3.7 step 7: the receiver's guard only cuts more).
+        self.report_scale = 1.0
         self.last_error = ""
         # link supervision
         # The timeout runs from when the next payload was due (one payload interval after the
@@ -425,7 +428,7 @@ class _Port:
             payload,
             # Less what this side self-credited (pdr's cKAPPA, eq. 1 via 4; 0.0 otherwise, which
             # leaves the sum bit for bit).
-            self.energy_sent - self.encoder.withheld,
+            self.energy_sent * self.report_scale - self.encoder.withheld,
         )
         cap = self.rate_cap
         if cap is not None:
