@@ -174,3 +174,27 @@ def test_send_phase_keeps_a_sparse_codec_insensitive_to_one_tick_of_playout() ->
     base = run_case(SimConfig(codec="eds:50", scenario="protocol", duration=4.0, playout="off")).summary
     one = run_case(SimConfig(codec="eds:50", scenario="protocol", duration=4.0, playout="1")).summary
     assert one["I"] < 1.3 * base["I"]
+
+
+def test_auto_covers_jitter_but_not_a_stalled_senders_bursts() -> None:
+    """Issue 37: a sender that stalls lets its payloads go at once, each a tick less late than the one
+    before; such a burst counts as one late payload, so stalls a few times a second add nothing,
+    while lateness in more than 1% of the payloads (jitter) is covered."""
+    stalls = PlayoutBuffer("auto", DT)
+    seq = 0
+    for k in range(4000):
+        if k % 250 == 10:  # a 6 ms stall four times a second: 6 payloads arrive together
+            for tick in range(k - 6, k + 1):
+                stalls.add(pkt(seq, tick), k)
+                seq += 1
+        elif k % 250 not in range(4, 10):
+            stalls.add(pkt(seq, k), k)
+            seq += 1
+        stalls.due(k)
+    assert stalls.extra == 0
+    jitter = PlayoutBuffer("auto", DT)
+    for k in range(4000):
+        late = 2 if k % 30 == 0 else 0  # 3% of the payloads two ticks late, one at a time
+        jitter.add(pkt(k, k - late), k)
+        jitter.due(k)
+    assert jitter.extra == 2

@@ -188,3 +188,31 @@ def test_copies_of_an_authentic_hello_are_dropped_before_they_are_parsed() -> No
     for _ in range(1000):
         assert to.receive(hello, 0.0, 0, from_peer=False) is None
     assert to.security.replayed == 1000 and to.security.rejected == 0
+
+
+def test_a_late_payloads_leftover_is_not_the_payload_due() -> None:
+    """Issue 37: a payload taken late (or what is left of it) is not tick k's payload, so a
+    loop that runs a tick early only when its payload is here waits for it (grace) instead of
+    running the tick before it and slipping a tick for good."""
+    op, to = _pair("none")
+    held: list[bytes] = []
+    for k in range(8):
+        t = k * 1e-3
+        out = op.tick(k, t)
+        if k == 5:
+            held = out  # tick 5's packet comes after the teleoperator ran tick 5
+        else:
+            for data in held + out:
+                to.receive(data, t, k)
+            held = []
+        if k == 6:
+            assert to.payload_ready(6)  # its own payload came
+        if k == 5:
+            assert not to.payload_ready(5)
+        to.tick(k, t + 0.5e-3)
+        if k == 5:
+            for data in held:
+                to.receive(data, t + 0.9e-3, 6)  # late: released at tick 6 at once (then its leftover)
+            held = []
+            assert to.playout.pending(6)
+            assert not to.payload_ready(6)  # tick 6's payload is packet 6, not late packet 5

@@ -34,32 +34,32 @@ GOLDEN: dict[str, tuple[SimConfig, float, str]] = {
     "none-step": (
         SimConfig(codec="none"),
         0.0004995202139319017,
-        "6c74c6d2f91f11d394985cb772f78edd1204f25a16dd75e817d14d3998cda863",
+        "89cb29adb5a555c92f2ff1f4582c41d3e6af2edb5d9996c11c5c880963a1a261",
     ),
     "none-6dof": (
         SimConfig(codec="none", dof=6, **P),  # type: ignore[arg-type]
         4.2454925259061775e-05,
-        "5e4052755b07d3e253903a2cf7027179a6f1363aeb5cb6e25b21524e7e793d5c",
+        "41776d9034f1d487043787a6e500e6389f3d6d98d80dfd7d103d15792d9bebd0",
     ),
     "eds-delay": (
         SimConfig(codec="eds:50", delay_ms=10, **P),  # type: ignore[arg-type]
-        0.1599995729980531,
-        "8b07cd9c3abd649af3825e713ed2f345bc0739058d7cdbe74b0d998a2d52e7b4",
+        0.15706184801610695,
+        "26f9583a8769502558a1a64b89beae98bd8ea1233dc2883f31ed5459d4b1e220",
     ),
     "pdp-netem": (
         SimConfig(codec="pdp:1", netem_forward=NET, netem_backward=NET, seed=5, **P),  # type: ignore[arg-type]
-        0.10887515060501461,
-        "366b13d515cf610b224a79a49a978ce8e18566eb73dab65c92a0017390418e10",
+        0.09969040365207045,
+        "d542cb0f2b0a779836b0d8f47d9485de60f6f98c1f62a7daede3bc762b270569",
     ),
     "cq8-netem": (
         SimConfig(codec="cq:8", netem_forward=NET, netem_backward=NET, seed=7, **P),  # type: ignore[arg-type]
         0.07460541092628195,
-        "cf13e85b7897d662589e0b2b9291416f9b68ba4a92b96f913665415d01be0f3b",
+        "8e1421675867dd52ef86a5ab6f6187aac28129e9218917e026e4b90b954204f9",
     ),
     "tdpa-pdp": (
         SimConfig(codec="pdp:1", delay_ms=20, passivity="tdpa", **P),  # type: ignore[arg-type]
         0.02544233898123922,
-        "d4e714c295805dcb08f500fce2fd3f1eb22ad43ca7a4395963f28ebb3011dff6",
+        "a4a8400b87e48b7acc176a71df471b9a2ad59aabd4714fdbb8a2ae1a1c0a02c9",
     ),
     # The whole Section VI task (free space, foam, wall), a varied plan at 3 DoF: the human's push
     # profile and the environment's contact branches, which the 2 s cases never reach.  Recorded
@@ -67,12 +67,12 @@ GOLDEN: dict[str, tuple[SimConfig, float, str]] = {
     "pdp-protocol-15s-varied": (
         SimConfig(codec="pdp:1", dof=3, scenario="protocol", duration=15.0, variation=1.0, seed=3),
         0.001160279259017192,
-        "654bfa8b02b6f66eb2d297a340a561d5f175a786b4ecf7d4bad88677a84c06bd",
+        "6f6e9486f006977dce27cab8e13bc0311bb98089fa7bc724ca7ef982f9c3244a",
     ),
     "tdpa-none-netem": (
         SimConfig(codec="none", netem_forward=NET, netem_backward=NET, seed=2, passivity="tdpa", **P),  # type: ignore[arg-type]
         0.025494941278658558,
-        "274105b83405fa5ff0df7f44687751000303a2e511d97213a2552c93381329e2",
+        "19e5905e6b47fc7bc5ef189e19594d60fc8b758d50f3e8e62ec92a2827215fc8",
     ),
 }
 
@@ -82,19 +82,19 @@ GOLDEN: dict[str, tuple[SimConfig, float, str]] = {
 ON_HASWELL: dict[str, tuple[float, str]] = {
     "cq8-netem": (
         0.07460541092631576,
-        "9d3d90d8d4d99de67accbdf61ba9262ed885c0879f322b45fc38fb8cc72e0fb6",
+        "8c5588fcc0a768bee5cab73fbd1c3e1e9c4ccc8c9da87c207570f183b7c219f2",
     ),
     "none-6dof": (
         4.2454925259061775e-05,
-        "b8376d544d9b4667542b0a87c63e0bfef81fc2108151cda3aa7bf7b21b7e2d47",
+        "199c35faf5960bf196f998fefd507c4351aba6d4585715750ca87f9746e52f90",
     ),
     "pdp-netem": (
-        0.10889774952409378,
-        "4f90d611df8e2529960ca402947400f047412206899c4ae3729b8184231b2e1e",
+        0.10008711561720261,
+        "462a666532d5ae59e5167460f3db56fc58b709794b0ed73d817df24c13ef932b",
     ),
     "pdp-protocol-15s-varied": (
         0.001169762527841878,
-        "65d52fe09752964e781a641b8ef5854e18c4f61e41d535854b54e7daae5e7de1",
+        "d960058d9efa14a75393608cd7787d4035cb1c70f2f2acec121139f0924d4fc4",
     ),
 }
 

@@ -44,9 +44,11 @@ def test_delay_with_jitter_is_observed_with_tick_rounding() -> None:
     for d in ("forward", "backward"):
         link = s["link"][d]
         dm = link["delay_ms"]
-        # uniform on [45, 55) ms, taken at the next 1 ms tick: mean 50.5 ms, at most 55 ms
-        assert 50.0 <= dm["mean"] <= 51.0 and 49.0 <= dm["p50"] <= 52.0
-        assert dm["mean"] <= dm["p99"] <= 55.0 + 1e-6
+        # uniform on [45, 55) ms, taken at the next 1 ms tick: mean 50.5 ms, at most 55 ms; backward
+        # from the teleoperator's tick, its phase (under a period) after the packet's t_us
+        late = s["latency"]["phase"] if d == "backward" else 0.0
+        assert 50.0 <= dm["mean"] - late <= 51.0 and 49.0 <= dm["p50"] - late <= 52.0
+        assert dm["mean"] <= dm["p99"] <= 55.0 + late + 1e-6
         assert link["loss"] == 0.0 and link["duplicates"] == 0  # in-flight at the end still counted
         assert link["reordered"] > 0  # netem jitter without rate reorders
         assert link["spec"] == "delay 50ms 5ms"
@@ -80,8 +82,9 @@ def test_reorder_is_observed() -> None:
     for d, rx in (("forward", "teleoperator"), ("backward", "operator")):
         link = s["link"][d]
         assert link["reordered"] > 0 and s["counters"][rx]["stale"] > 0  # overtaken packets not played
-        assert 7.0 <= link["delay_ms"]["mean"] <= 8.0  # 75% at 10 ms, 25% at once
-        assert link["delay_ms"]["p50"] == pytest.approx(10.0)
+        late = s["latency"]["phase"] if d == "backward" else 0.0  # the teleoperator's tick's phase
+        assert 7.0 <= link["delay_ms"]["mean"] - late <= 8.0  # 75% at 10 ms, 25% at once
+        assert link["delay_ms"]["p50"] == pytest.approx(10.0 + late)
 
 
 def test_reordered_packets_are_played_in_order_by_the_playout_buffer() -> None:
@@ -150,7 +153,8 @@ def test_same_seed_same_results_different_seed_different_results() -> None:
 def test_spec_replaces_delay_only_for_its_direction() -> None:
     s = run_case(SimConfig(delay_ms=30, netem_forward="delay 5ms", duration=0.5)).summary
     assert s["link"]["forward"]["delay_ms"]["p50"] == pytest.approx(5.0, abs=0.01)
-    assert s["link"]["backward"]["delay_ms"]["p50"] == pytest.approx(30.0, abs=0.01)
+    # backward from the teleoperator's tick, its phase after the packet's t_us
+    assert s["link"]["backward"]["delay_ms"]["p50"] == pytest.approx(30.0 + s["latency"]["phase"], abs=0.01)
     assert s["link"]["backward"]["spec"] == ""
 
 

@@ -281,9 +281,11 @@ def test_cli_sim_tdpa_prints_and_writes_its_figures(
     doc = json.loads((tmp_path / "results.json").read_text())
     assert doc["passivity"] == "tdpa"
     case = doc["cases"][0]
+    # Backward from the teleoperator's tick, which runs its phase after the operator's: the payload
+    # it sends reaches the operator just after the operator's tick k + 20, so plays at k + 21.
     assert case["passivity_architecture"] == "tdpa" and case["delay_compensation_ms"] == {
         "forward": 20.0,
-        "backward": 20.0,
+        "backward": 21.0,
     }
     for d in ("forward", "backward"):
         w = case["tdpa"][d]

@@ -6,8 +6,10 @@ written from the loop.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
+from teleop.session.link.phase import PHASE_MARGIN_S
 from teleop.session.port import Port
 
 from .mcaplog import McapLog
@@ -56,17 +58,43 @@ class LogWatch:
             log.status("link", t, {"t": t, **link, "watchdog": watchdog})
 
 
-def status_line(role: str, port: Port, k: int, overruns: int, insecure: bool) -> str:
-    """``--live``'s line, once a second: traffic, link, watchdog."""
+def status_line(
+    role: str, port: Port, k: int, overruns: int, insecure: bool, rtt_ns: int | None = None
+) -> str:
+    """``--live``'s line, once a second: traffic, link, watchdog, latency.
+
+    Latency: the incoming direction's sent -> played so far (the sender's tick to the tick that
+    released the payload here; the teleoperator's phase is added on its side, where it is known),
+    the incoming link's transit, and on the operator the handshake's round trip and its floor
+    (``rtt_ns``).  One side sees one direction: the round trip is the report's."""
     node = port.node
     pv = node.passivity
     return (
         f"  [{role} {(k + 1) * port.dt:5.1f} s] sent {port.tx.packets} "
         f"recv {port.rx.packets}  {'LINK LOST' if node.link_lost else 'link ok'}  watchdog: "
         f"violations {pv.violations}, controller {pv.controller_active_ticks} ticks, "
-        f"margin {node.guard.margin:.3e} J, overruns {overruns}"
+        f"margin {node.guard.margin:.3e} J, overruns {overruns}{_latency(port, rtt_ns)}"
         f"{'  INSECURE (no key)' if insecure else ''}"
     )
+
+
+def _latency(port: Port, rtt_ns: int | None) -> str:
+    d = port.playout.delay_ms()
+    if d["p50"] is None:
+        return ""
+    assert d["p99"] is not None and d["max"] is not None
+    shift = port.clock.phase * port.dt * 1e3  # the teleoperator plays at its phase (0 at the operator)
+    text = f"  latency in {d['p50'] + shift:.1f}/{d['p99'] + shift:.1f}/{d['max'] + shift:.1f} ms p50/p99/max"
+    transit = port.clock.summary()["transit_ms"]["p50"]
+    if transit is not None:
+        text += f", link in {max(transit, 0.0):.2f} ms"
+    if rtt_ns is not None:
+        # The handshake's: its floor is the session's on a plain link; an in-process --netem shim
+        # delays data only (the report's round trip and floor are measured in session, both ways).
+        ms = port.dt * 1e3
+        floor = max(1, math.ceil((rtt_ns / 1e6 + PHASE_MARGIN_S * 1e3) / ms - 1e-6)) * ms
+        text += f", handshake round trip {rtt_ns / 1e6:.2f} ms (floor {floor:g} ms)"
+    return text
 
 
 def live_messages(port: Port, k: int, t: float) -> dict[str, dict[str, Any]]:

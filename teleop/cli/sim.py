@@ -99,6 +99,25 @@ def format_distortion(cases: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def format_latency(cases: list[dict[str, Any]]) -> str:
+    """Per case: sent -> played each way and the round trip (p50/p99 ms), against the link's floor
+    (``teleop.session.link.phase.latency``: the same figures as a real run's report)."""
+    head = f"{'codec':<10} {'forward ms':>12} {'backward ms':>12} {'round trip ms':>14} {'floor ms':>9}"
+    lines = [head, "-" * len(head)]
+
+    def pair(q: dict[str, float | None]) -> str:
+        return "-" if q["p50"] is None or q["p99"] is None else f"{q['p50']:.1f}/{q['p99']:.1f}"
+
+    for c in cases:
+        lt = c["latency"]
+        floor = "-" if lt["floor_ms"] is None else f"{lt['floor_ms']:g}"
+        lines.append(
+            f"{c['codec']:<10} {pair(lt['forward']):>12} {pair(lt['backward']):>12} "
+            f"{pair(lt['round_trip']):>14} {floor:>9}"
+        )
+    return "\n".join(lines)
+
+
 def format_tdpa(cases: list[dict[str, Any]]) -> str:
     """Per case and direction: TDPA's observer (energy in at the sender, out at the receiver) and
     its controller (active ticks, dissipated energy)."""
@@ -176,6 +195,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     if impaired or base.on_loss != "conceal" or not base.controller:
         print(format_watchdog(doc["cases"]))
     print(format_distortion(doc["cases"]))
+    print(format_latency(doc["cases"]))
     if base.tdpa:
         print(format_tdpa(doc["cases"]))
     if out is not None:

@@ -29,6 +29,7 @@ from teleop.files import MAX_TRACE_BYTES, read_regular
 from teleop.offline import plots
 from teleop.offline.logfile import LogError, find_pair, iter_ticks, log_session, read_session
 from teleop.offline.sim import SimConfig, run_case
+from teleop.session.link.phase import latency
 from teleop.session.port import wire_block
 from teleop.session.protocol import ProtocolError, SessionParams
 
@@ -585,6 +586,15 @@ def build(
         "link": {"forward": to.get("link_received"), "backward": op.get("link_received")},
         # Each direction's playout buffer, at its receiver: the delay it played at, late payloads.
         "playout": {"forward": to.get("playout"), "backward": op.get("playout")},
+        # Sent -> played per direction and the round trip, against the floor of the measured link.
+        "latency": latency(
+            {"forward": to.get("playout"), "backward": op.get("playout")},
+            {"forward": to.get("clock"), "backward": op.get("clock")},
+            dt,
+        ),
+        # Where each receiver saw its peer's packets land on its tick grid (teleop.session.link.phase): the
+        # transits, the teleoperator's phase, and any move of tick 0 (a skewed handshake offset).
+        "clock": {"forward": to.get("clock"), "backward": op.get("clock")},
         # The data-rate cap of each direction, at its sender, and whether it held on the wire.
         "rate_cap": {"forward": op.get("rate_cap"), "backward": to.get("rate_cap")},
         # Eq. (4): energy into the communication two-port, forward plus backward margin, per tick.
@@ -752,23 +762,27 @@ def summary_text(rep: dict[str, Any], command: str = "teleop run") -> str:
         )
     for d, pv in (rep["passivity"] or {}).items():
         lk = rep["link"][d]
-        delay = lk["delay_ms"]["mean"]
+        delay = lk["delay_ms"]["p50"]  # the median: a skew put right in session leaves early samples
         lines.append(
             f"  watchdog {d:<9} violations {pv['violations']}  "
             f"controller active {pv['controller_active_ticks']} ticks  "
             f"dissipated {pv['energy_dissipated']:.3e} J  min margin {pv['min_margin']:.3e} J  "
             f"link lost {pv['link_lost_events']}x  |  link: loss {100 * lk['loss']:.2f}%  "
-            f"delay {'-' if delay is None else f'{delay:.2f}'} ms  reordered {lk['reordered']}  "
+            f"delay p50 {_delay(delay)}  reordered {lk['reordered']}  "
             f"duplicates {lk['duplicates']}"
         )
     for d, pl in rep.get("playout", {}).items():
         if pl and pl["mode"] != "off" and pl["delay_ms"]["p50"] is not None:
-            dl = pl["delay_ms"]
+            dl, ex = pl["delay_ms"], pl.get("extra_ms") or {}
+            cost = ""
+            if pl["mode"] == "auto" and ex.get("p50") is not None:
+                cost = f"; allowance for lateness {ex['p50']:.0f} ms (p50), {ex['p99']:.0f} ms (p99)"
             lines.append(
-                f"  playout  {d:<9} {pl['mode']}: played at send + {dl['p50']:.0f} ms (p50), "
-                f"{dl['p99']:.0f} ms (p99), max {dl['max']:.0f} ms; late {pl['late']}, "
+                f"  playout  {d:<9} {pl['mode']}: released at send tick + {dl['p50']:.0f} ms (p50), "
+                f"{dl['p99']:.0f} ms (p99), max {dl['max']:.0f} ms{cost}; late {pl['late']}, "
                 f"reordered and put back in order {pl['reordered_fixed']}"
             )
+    lines += _latency_lines(rep)
     for d, cap in rep.get("rate_cap", {}).items():
         if cap:
             lines.append(
@@ -804,6 +818,47 @@ def summary_text(rep: dict[str, Any], command: str = "teleop run") -> str:
         lines.append(f"  teleop sim not re-run: {rep['sim_skipped']}")
     lines += [f"  note: {n}" for n in rep.get("notes", [])]
     return "\n".join(lines)
+
+
+def _latency_lines(rep: dict[str, Any]) -> list[str]:
+    """Sent -> played per direction, the round trip and its floor; a clock that moved (skew)."""
+    lt = rep.get("latency") or {}
+    out = []
+
+    def ms(q: dict[str, float | None]) -> str:
+        return (
+            "-" if q.get("p50") is None else f"p50 {q['p50']:.1f}  p99 {q['p99']:.1f}  max {q['max']:.1f} ms"
+        )
+
+    if lt.get("forward") and lt["forward"].get("p50") is not None:
+        out.append(f"  latency  forward   sent -> played {ms(lt['forward'])}   backward {ms(lt['backward'])}")
+        floor = lt.get("floor_ms")
+        link = lt.get("link_round_trip_ms")
+        out.append(
+            f"  latency  round trip {ms(lt['round_trip'])}"
+            + (
+                f"  (floor of this link {floor:g} ms: its round trip {link:.2f} ms and processing;"
+                f" teleoperator phase {lt['phase']:.2f} of a tick)"
+                if floor is not None and link is not None
+                else ""
+            )
+        )
+    for d, who in (("forward", "teleoperator"), ("backward", "operator")):
+        c = (rep.get("clock") or {}).get(d) or {}
+        if c.get("skew_shift_ms"):
+            out.append(
+                f"  clock    the {who} moved its tick 0 {c['skew_shift_ms']:g} ms earlier in session: its"
+                " peer's packets arrived before they were sent (the handshake's offset was skewed,"
+                " an asymmetric delay while it ran)"
+            )
+    return out
+
+
+def _delay(ms: float | None) -> str:
+    """A one-way delay (ms); one below zero is no delay but a clock error, and said so."""
+    if ms is None:
+        return "- ms"
+    return f"{ms:.2f} ms" if ms >= 0 else "below 0 (the clocks' offset is wrong)"
 
 
 def _e(x: float | None) -> str:

@@ -229,7 +229,7 @@ def run_case(cfg: SimConfig) -> CaseResult:
         for data in op.tick(n, now):
             to.receive(data, now, n)
         op.sent(n, now)
-        op.clock.advance(n)  # both clocks are the sim's: nothing to shift, as a real run's should not
+        op.clock.advance(n)  # (both clocks are the sim's: no skew to take)
         # The teleoperator ticks when the operator's packet is due, as a real one does.
         t_back = (n + to.clock.phase) * dt
         backward = to.tick(n, t_back)

@@ -240,7 +240,7 @@ class PeerRestarted:
 @dataclass(frozen=True)
 class ClockShifted:
     """The peer's packets seemed to arrive before they were sent: this side's tick 0 moved
-    ``ticks`` earlier (its loop skips them), after tick ``k`` (``teleop.session.link.phase``)."""
+    ``ticks`` earlier (its loop skips them), instead of running tick ``k`` (``teleop.session.link.phase``)."""
 
     k: int
     ticks: int
@@ -593,14 +593,28 @@ class Endpoint:
             self._end(EndReason.COMPLETED, now_ns)
             return
         self.state = State.RUNNING
-        port, t = self.port, self.session_time(now_ns)
+        port = self.port
+        if shift := port.clock.take_skew():
+            # The peer's packets arrived before they were sent: our tick 0 is later than the peer's.
+            # Tick k is not run: it lies ``shift`` ticks in the past now, and the loop goes on from
+            # the present (teleop.session.link.phase), before our model has run on the wrong clock.
+            self.start_ns -= shift * round(self.params.dt * 1e9)
+            self.t0_ns -= shift * round(self.params.dt * 1e9)
+            port.playout.forget_transits()
+            self._events.append(ClockShifted(k, shift))
+            return
+        # The tick runs on its deadline's time, as in ``teleop sim``: an outgoing shim timed from the
+        # clock released a packet on its due tick or the next as the loop's few microseconds of
+        # lateness (or an early tick's spin) fell (measured: half of a 10 ms link's packets a tick
+        # late, and auto playout a tick up for good).
+        deadline = self.t0_ns + k * round(self.params.dt * 1e9)
         if self.role == "operator":
             self._operator_timers(now_ns)
-        for data in port.tick(k, t):
+        for data in port.tick(k, self.session_time(deadline)):
             self._out.append((data, self.peer))
         # Stamped once the sample exists and before it leaves: the peer cannot play it earlier,
         # so the true margin (teleop.offline.report) never counts a sample as played before it was sent.
-        port.sent(k, t)
+        port.sent(k, self.session_time(max(now_ns, deadline)))
         self.k, self._rx_k = k, k + 1
         self._retime(k)
         lost = port.node.link_lost
@@ -619,18 +633,12 @@ class Endpoint:
             self._end(EndReason.PEER_FAULT, now_ns)
 
     def _retime(self, k: int) -> None:
-        """The schedule follows where the peer's packets land (``teleop.session.link.phase``): the
-        teleoperator's phase, so that it ticks when the operator's packet is due; and, on either side,
-        tick 0 moved earlier by whole ticks if the peer's packets seem to arrive before they were sent
-        (the handshake's offset was skewed).  The runner reads :attr:`t0_ns` before each tick."""
+        """The teleoperator's phase follows where the operator's packets land (``teleop.session.link.phase``),
+        so that it ticks when the operator's packet is due (a skewed tick 0 is put right before a
+        tick, in :meth:`tick`).  The runner reads :attr:`t0_ns` before each tick."""
         port, params = self.port, self.params
         assert port is not None and params is not None
-        period = round(params.dt * 1e9)
-        shift = port.clock.advance(k)
-        if shift:
-            self.start_ns -= shift * period
-            port.playout.forget_transits()
-            self._events.append(ClockShifted(k, shift))
+        port.clock.advance(k)
         self.t0_ns = self.start_ns + round(port.clock.phase * params.dt * 1e9)
 
     def grace_needed(self, k: int) -> bool:

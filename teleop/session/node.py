@@ -196,6 +196,7 @@ class _Port:
         self.rx_direction = 1 - self.tx_direction
         self.seq = 0
         self.last_rx_seq = -1
+        self.last_rx_tick = 0  # the send tick of the last payload accepted (its decoder queue's source)
         self.peer_restarts = 0  # energy epochs: the peer process was replaced this many times
         self.counters = PortCounters()
         self.energy_sent = 0.0  # J carried into the channel by the transmitted wave
@@ -344,7 +345,7 @@ class _Port:
         if self.last_rx_seq >= 0:  # a late joiner's first packet leaves no gap behind it
             c.gaps += pkt.seq - self.last_rx_seq - 1
         self.last_rx_seq = pkt.seq
-        self._rx_tick = pkt.tick
+        self._rx_tick = self.last_rx_tick = pkt.tick
         self.guard.sent(pkt.energy, self._now)
         c.accepted += 1
         return True

@@ -16,11 +16,12 @@ plus an *extra* allowance:
 * ``MS``: a fixed extra of ``MS`` milliseconds, rounded up to ticks.
 * ``auto``: the extra follows the observed lateness ``a - a_min``: the smallest allowance that
   all but ``LATE_SHARE`` (1%) of the payloads of the last ``AUTO_WINDOW`` ticks met, and at least all
-  but one of them (jitter that delays more than one payload in a hundred is covered; a host stall,
-  a burst of a few payloads once, is not: following it would add its delay to every payload for
-  seconds), never below ``auto_floor`` ticks.  So: ``d`` ticks of lateness in more than 1% of the
+  but one of them, where the burst a stalled sender lets go at once (each payload a tick less late
+  than the one before) counts as one payload: jitter that delays more than one payload in a hundred
+  is covered; a host stall is not (following it would add its delay to every payload for seconds),
+  never below ``auto_floor`` ticks.  So: ``d`` ticks of lateness in more than 1% of the
   payloads add ``d`` ticks of delay to all of them; rarer lateness adds nothing, and those payloads
-  are played late (counted).  It rises at once and falls by one tick per ``DECREASE_EVERY`` ticks.
+  are played late (counted).  It rises at once and falls when the events leave the window.
 
 On a constant-delay channel ``a`` never varies, so ``auto`` with no floor adds nothing and
 ``teleop sim`` gives the same bits as without a buffer.  A payload that arrives after its release
@@ -52,7 +53,6 @@ MAX_HELD = 4096  # packets the buffer holds at most; beyond it the oldest is rel
 AUTO_WINDOW = 2000  # ticks: the auto target looks at the transits of the payloads of the last 2 s
 LOW_QUANTILE = 0.05  # of the transits lie below a_min: early payloads, held a little longer
 LATE_SHARE = 0.01  # auto: the share of the window's payloads its allowance may leave late
-DECREASE_EVERY = 200  # ticks between one-tick decreases of the auto target
 FUTURE_LIMIT = 10_000  # ticks: a payload stamped further ahead than this is released at once
 HIST_TICKS = 4096  # bins of the delay histograms (transits beyond are counted in the last)
 TRANSIT_LO = -64  # ticks: the lowest transit told apart (below: a clock offset's error, clipped)
@@ -114,7 +114,9 @@ class PlayoutBuffer:
         self._window_b: deque[int] = deque()
         self._a_min: int | None = None
         self._next_check = 0
-        self._last_decrease = 0
+        self._stale_before = 0  # payloads sent before this tick predate a step: not observed
+        self._late_events: deque[tuple[int, int]] = deque()  # (tick, transit) of late payloads
+        self._prev_late = 0
         self._max_seen_tick = -1
         self.stats = PlayoutStats()
         # Histograms (flat memory, whatever the session's length): ticks from each payload's send
@@ -132,6 +134,11 @@ class PlayoutBuffer:
     @property
     def held(self) -> int:
         return len(self._heap)
+
+    @property
+    def newest_tick(self) -> int:
+        """The highest send tick taken (-1 before any): what the newest payload is due for."""
+        return self._max_seen_tick
 
     def a_min(self) -> int | None:
         return self._a_min
@@ -161,6 +168,8 @@ class PlayoutBuffer:
         a_min = self._a_min
         if a_min is None:
             a_min = self._a_min = a
+        if self._auto:
+            self._note_late(k, a, a - a_min)
         # The quantiles are looked at only when they may have moved: a payload below the lowest
         # transit or later than the allowance, or every CHECK_EVERY ticks.
         if not (a < a_min or a - a_min > self.extra or k >= self._next_check):
@@ -169,30 +178,41 @@ class PlayoutBuffer:
         self._a_min = self._low_quantile(a)
         if not self._auto:
             return
-        need = self._allowance()
-        if need > self.extra:
-            self.extra = need
-            self._last_decrease = k
-        elif need < self.extra and k - self._last_decrease >= DECREASE_EVERY:
-            self.extra -= 1
-            self._last_decrease = k
+        # The window is 2 s of events: the allowance falls when they leave it, not before.
+        self.extra = self._allowance()
+
+    def _note_late(self, k: int, a: int, late: int) -> None:
+        """Lateness events (auto mode): a late payload, or a burst of them that a stalled sender let
+        go at once (each a tick less late than the one before: they left together), counts once,
+        at its largest lateness; events older than the window are forgotten.  Kept as transits: a
+        lateness is counted from the lowest transit when the allowance is worked out (a link whose
+        transit stepped up a tick is late by nothing once ``a_min`` has followed it)."""
+        prev, self._prev_late = self._prev_late, late
+        if late <= 0 or late == prev - 1:
+            return
+        ev = self._late_events
+        ev.append((k, a))
+        while ev[0][0] <= k - AUTO_WINDOW:
+            ev.popleft()
 
     def _allowance(self) -> int:
-        """The lateness all but LATE_SHARE of the window's payloads (and at least all but one) met.
+        """The lateness that all but LATE_SHARE of the window's payloads (and at least all but one)
+        met, a stalled sender's burst counting as one payload.
 
         Jitter delays payloads all the time, so it is covered; a host stall delays a burst of
         payloads once, and following it would add its delay to every payload for seconds (it did:
-        one 25 ms stall of a sender held `none`'s playout at 25 ms for a whole run)."""
+        one 25 ms stall of a sender held `none`'s playout at 25 ms for a whole run; and a host whose
+        loops stall a few times a second held it a tick or two above its floor)."""
+        ev = self._late_events
+        while ev and ev[0][0] <= self._window_k[-1] - AUTO_WINDOW:
+            ev.popleft()
+        allowed = max(1, int(LATE_SHARE * len(self._window_k)))
         a_min = self._a_min
         assert a_min is not None
-        n = len(self._window_k)
-        allowed = max(1, int(LATE_SHARE * n))
-        if n <= allowed:
+        lates = sorted((a - a_min for _, a in ev if a > a_min), reverse=True)
+        if len(lates) <= allowed:
             return self.auto_floor
-        below = np.cumsum(np.frombuffer(self._hist, dtype=np.int64))
-        # the smallest transit with at most ``allowed`` payloads above it
-        a_hi = int(np.searchsorted(below, n - allowed, side="left")) + TRANSIT_LO
-        return max(min(a_hi - a_min, self.max_extra), self.auto_floor)
+        return max(min(lates[allowed], self.max_extra), self.auto_floor)
 
     def _low_quantile(self, a: int) -> int:
         """The transit LOW_QUANTILE of the recent payloads undercut: the lowest, but for the few a
@@ -212,6 +232,11 @@ class PlayoutBuffer:
         tick = pkt.tick
         if tick > k + FUTURE_LIMIT:
             st.future += 1
+            return [pkt]
+        if tick < self._stale_before:
+            # Sent before the link or a clock stepped (forget_transits): it says nothing about the
+            # link now; released at once (the node drops it if a newer one went first).
+            st.late += 1
             return [pkt]
         a_min = self._a_min
         if a_min is not None and k - tick < a_min - STEP_TICKS:
@@ -275,6 +300,9 @@ class PlayoutBuffer:
         self._a_min = None
         self._next_check = 0
         self.extra = self.fixed if not self._auto else self.auto_floor
+        self._late_events.clear()
+        self._prev_late = 0
+        self._stale_before = self._max_seen_tick + 1
 
     def clear(self) -> None:
         """The sender was replaced: forget what it sent (its ticks and transit start anew)."""
@@ -284,22 +312,20 @@ class PlayoutBuffer:
         self._window_b.clear()
         self._a_min = None
         self._next_check = 0
+        self._late_events.clear()
+        self._prev_late = 0
         self._max_seen_tick = -1
+        self._stale_before = 0
+
+    def delay_ms(self) -> dict[str, float | None]:
+        """Send tick to release tick of the payloads so far (ms): p50, p99, max (None: none yet)."""
+        return _percentiles(self.delay_hist, self.dt * 1e3)
 
     def summary(self) -> dict[str, Any]:
         ms = self.dt * 1e3
 
         def pct(hist: list[int]) -> dict[str, float | None]:
-            h = np.asarray(hist, dtype=np.int64)
-            n = int(h.sum())
-            if n == 0:
-                return {"p50": None, "p99": None, "max": None}
-            c = np.cumsum(h)
-            return {
-                "p50": float(np.searchsorted(c, 0.5 * n)) * ms,
-                "p99": float(np.searchsorted(c, 0.99 * n)) * ms,
-                "max": float(np.flatnonzero(h)[-1]) * ms,
-            }
+            return _percentiles(hist, ms)
 
         return {
             "mode": self.mode,
@@ -312,3 +338,16 @@ class PlayoutBuffer:
             "extra_ms": pct(self.extra_hist),
             **self.stats.__dict__,
         }
+
+
+def _percentiles(hist: list[int], ms: float) -> dict[str, float | None]:
+    h = np.asarray(hist, dtype=np.int64)
+    n = int(h.sum())
+    if n == 0:
+        return {"p50": None, "p99": None, "max": None}
+    c = np.cumsum(h)
+    return {
+        "p50": float(np.searchsorted(c, 0.5 * n)) * ms,
+        "p99": float(np.searchsorted(c, 0.99 * n)) * ms,
+        "max": float(np.flatnonzero(h)[-1]) * ms,
+    }

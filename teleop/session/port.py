@@ -759,8 +759,19 @@ class Port:
         self.rec.lateness(k, lateness_ns)
 
     def payload_ready(self, k: int) -> bool:
-        """Whether tick ``k`` has something to play: queued in the decoder or due from the buffer."""
-        return self.node.decoder.queued > 0 or self.playout.pending(k)
+        """Whether tick ``k``'s payload is here: due from the playout buffer or queued in the decoder,
+        from a payload whose ticks ``tick + d .. tick + d + P - 1`` reach ``k``.  A payload taken late
+        (all its ticks before ``k``: held for release at once, or what is left of it) is not: taken
+        as ready, it let the loop run tick ``k`` before the payload due at ``k`` came, which then
+        came late too, and so on: a slip of one tick for good (measured: most of a real session at
+        one tick more).  Grace waits for it instead (PROTOCOL.md 5.2)."""
+        node, playout = self.node, self.playout
+        if not playout.pending(k) and node.decoder.queued == 0:
+            return False
+        d = playout.target()
+        if d is None:
+            return True
+        return k < max(node.last_rx_tick, playout.newest_tick) + d + node.rx_codec.k
 
     def next_due(self) -> float | None:
         """Session time at which the shim next has a datagram due (None: nothing held)."""

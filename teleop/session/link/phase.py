@@ -13,15 +13,18 @@ So, with no wire field beyond ``t_us`` (PROTOCOL.md 5.1):
   it can, which is what brings the round trip to ``ceil(2 d + processing)``.  The whole-tick part
   of the delay stays with the playout buffer: tick ``k`` keeps meaning the same instant at both
   ends (eq. 7 compares them tick by tick).
-* **Skew** (both sides; issue 35): a transit below ``-SKEW_TICKS`` cannot be a delay: this side's
-  tick 0 landed later than its peer's (an on-path delayer during the handshake made the offset
-  wrong by half of what it added).  The side then moves its tick 0 earlier by whole ticks, just
-  enough that no transit is negative (its loop skips those ticks, counted), which leaves at most
-  a tick of misplacement on a quiet link; what a side cannot see (a skew hidden under a long link's
-  delay) is reported, as the shift each side made and the transits it measured.
+* **Skew** (both sides; issue 35): a transit below ``-SKEW_TICKS`` cannot be a delay (a delay only
+  lengthens a transit, and the packet is authentic): this side's tick 0 landed later than its
+  peer's (an on-path delayer during the handshake made the offset wrong by half of what it added).
+  At its next tick the side moves its tick 0 earlier by whole ticks, just enough that no transit
+  seen is negative (its loop skips those ticks, counted); the peer's packets that came before its
+  own tick 0 often tell it, so on a quiet link it runs aligned, within a tick of its peer, from its
+  first tick or so.  What a side cannot see (a skew hidden under a long link's delay) is reported:
+  the shift each side made and the transits it measured.
 
-Sans-I/O and deterministic: ``observe`` takes session times, ``advance`` the tick just run; the
-real-time endpoint and ``teleop sim`` call the same methods, so they keep the same schedule.
+Sans-I/O and deterministic: ``observe`` takes session times, ``take_skew`` is asked before a tick
+and ``advance`` after it; the real-time endpoint and ``teleop sim`` call the same methods, so they
+keep the same schedule (a skew cannot arise in ``teleop sim``: both ends share its clock).
 """
 
 from __future__ import annotations
@@ -39,7 +42,6 @@ PHASE_MAX = 0.9
 #: (10-100 us) before the deadline; this much is kept (s).
 PHASE_MARGIN_S = 150e-6
 HIGH_QUANTILE = 0.99  # of the transits the phase covers
-LOW_QUANTILE = 0.05  # the skew check looks at this one (a lone early packet moves nothing)
 WINDOW_TICKS = 2000  # the transits of the packets of the last 2 s ...
 CAPACITY = 2048  # ... at most this many of them
 CHECK_EVERY = 100  # ticks between looks at the quantiles
@@ -49,6 +51,7 @@ MIN_SAMPLES = 8  # packets before the first look
 MAX_STEP = 0.5
 DEADBAND = 0.02  # periods: a target this close to the phase moves nothing
 SKEW_TICKS = 0.5  # a transit below minus this many ticks is a misplaced tick 0, not a delay
+WRAP_MARGIN = 0.2  # periods the transit's p99 must pass a whole tick by before the phase wraps
 
 
 class ClockTracker:
@@ -56,10 +59,15 @@ class ClockTracker:
 
     def __init__(self, dt: float, phase: float = 0.0, moves_phase: bool = False) -> None:
         self.dt = dt
-        self.phase = phase  # periods after the nominal tick this side runs (the operator: 0)
-        self.target = phase
         self.moves_phase = moves_phase
         self.margin = PHASE_MARGIN_S / dt
+        if moves_phase:
+            # Start early (just the margin), at most the handshake's ``phase``, and move later as the
+            # transits say: a move later never holds back a backward packet an outgoing shim
+            # released on the old ticks, where a move earlier left each packet in flight a tick late.
+            phase = min(phase, max(PHASE_MIN, min(self.margin, PHASE_MAX)))
+        self.phase = phase  # periods after the nominal tick this side runs (the operator: 0)
+        self.target = phase
         self._x = np.zeros(CAPACITY)  # transits, ticks (a ring)
         self._k = np.zeros(CAPACITY, dtype=np.int64)  # the tick each was taken in
         self._n = 0
@@ -68,6 +76,8 @@ class ClockTracker:
         self.shifts = 0
         self.phase_moves = 0  # looks that changed the target
         self.first_transit: float | None = None  # ticks, of the first packet (before any shift)
+        self._lowest = math.inf  # the lowest transit since the last look at the skew
+        self._whole: int | None = None  # the whole ticks of the transit the phase is counted from
 
     def observe(self, k: int, transit_s: float) -> None:
         """A data packet of the peer taken during tick ``k``, ``transit_s`` after its ``t_us``."""
@@ -78,36 +88,53 @@ class ClockTracker:
         self._x[i] = x
         self._k[i] = k
         self._n += 1
+        if x < self._lowest:
+            self._lowest = x
 
     def _window(self, k: int) -> np.ndarray:
         n = min(self._n, CAPACITY)
         x, ks = self._x[:n], self._k[:n]
         return x[ks > k - WINDOW_TICKS]
 
-    def advance(self, k: int) -> int:
-        """After tick ``k``: the ticks to move tick 0 earlier by now (0 mostly), and :attr:`phase`
-        set for the next tick."""
-        shift = 0
+    def take_skew(self) -> int:
+        """Before a tick: the whole ticks to move tick 0 earlier by now (0 mostly), if a packet of the
+        peer arrived before it was sent.  One authentic packet is proof enough: a delay, the only
+        thing an on-path delayer can add, makes a transit longer, never negative."""
+        if self._lowest >= -SKEW_TICKS:
+            return 0
+        shift = math.ceil(-self._lowest)
+        self._x += shift  # the same arrivals, on the moved clock
+        self._lowest = math.inf
+        if self._whole is not None:
+            self._whole += shift
+        self.shifted_ticks += shift
+        self.shifts += 1
+        self._next_check = 0
+        return shift
+
+    def advance(self, k: int) -> None:
+        """After tick ``k``: :attr:`phase` set for the next tick."""
         if k >= self._next_check and self._n >= MIN_SAMPLES:
             self._next_check = k + CHECK_EVERY
             x = self._window(k)
             if x.size >= MIN_SAMPLES:
-                lo, hi = np.quantile(x, [LOW_QUANTILE, HIGH_QUANTILE])
-                if lo < -SKEW_TICKS:
-                    shift = math.ceil(-lo)
-                    self._x += shift  # the same arrivals, on the moved clock
-                    hi += shift
-                    self.shifted_ticks += shift
-                    self.shifts += 1
+                hi = float(np.quantile(x, HIGH_QUANTILE))
                 if self.moves_phase:
-                    target = min(max((hi + self.margin) % 1.0, PHASE_MIN), PHASE_MAX)
+                    u = hi + self.margin
+                    # The whole ticks of the transit are the playout buffer's; they change only
+                    # past a margin (a p99 that dithers across a tick would flip the phase between
+                    # its ends, every packet's tick with it).
+                    if self._whole is None or not (
+                        self._whole - WRAP_MARGIN <= u < self._whole + 1 + WRAP_MARGIN
+                    ):
+                        self._whole = math.floor(u)
+                    target = min(max(u - self._whole, PHASE_MIN), PHASE_MAX)
                     if abs(target - self.target) > DEADBAND:
                         self.target = float(target)
                         self.phase_moves += 1
         if self.phase != self.target:
             step = min(max(self.target - self.phase, -MAX_STEP), MAX_STEP)
             self.phase = self.target if abs(self.target - self.phase) <= MAX_STEP else self.phase + step
-        return shift
 
     def summary(self) -> dict[str, Any]:
         """The transits (ms) of the last window, the phase and what the tracker moved."""
