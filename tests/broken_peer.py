@@ -152,8 +152,15 @@ def _deadband_no_budget() -> None:  # 3.6: pd/pdp hold and send without the ener
 
 def _phase_0() -> None:  # 5.1: a teleoperator that runs its ticks with the operator's (phase 0)
     from teleop.session import endpoint
+    from teleop.session.link import phase
 
     from_to = endpoint.Endpoint._from_to_handshake
+    init = phase.ClockTracker.__init__
+
+    def pinned(self: Any, dt: float, phase: float = 0.0, moves_phase: bool = False) -> None:
+        init(self, dt, phase, False)  # its phase never moves off 0 (a correct one keeps in [0.25, 0.9])
+
+    phase.ClockTracker.__init__ = pinned  # type: ignore[method-assign]
 
     def zero(self: Any, hs: Any, now_ns: int) -> None:
         hs.params = dataclasses.replace(hs.params, phase=0.0)

@@ -6,7 +6,10 @@ whole summary, on OpenBLAS's SkylakeX kernels; ``ON_HASWELL`` holds the cases wh
 its Haswell kernels (``tests/blas.py``: the same code, recorded on an AMD EPYC host that sets them,
 after checking that it gives every SkylakeX figure with SkylakeX's kernels).  A faster encoder that
 changes one wire byte, or an in-place update that reorders one floating-point sum, fails here.
-Recorded again once (issue 37) when the teleoperator began to tick when the operator's packet is
+Recorded again (issue 35's checker) when the teleoperator's phase got its floor of a quarter of a
+period (it started at 0.15, which a checker over loopback cannot tell from 0): only the cases over
+a jittery link moved their ``I``; every hash moved with the summary's phase figures.
+Recorded once before (issue 37) when the teleoperator began to tick when the operator's packet is
 due and ``auto`` playout stopped following bursts of lateness: the zero-delay cases' ``I`` stayed
 bit-identical (only the backward link delay, now measured from the teleoperator's tick, and the new
 ``latency`` block moved their hashes); the delayed cases moved by one tick of round trip.
@@ -34,32 +37,32 @@ GOLDEN: dict[str, tuple[SimConfig, float, str]] = {
     "none-step": (
         SimConfig(codec="none"),
         0.0004995202139319017,
-        "89cb29adb5a555c92f2ff1f4582c41d3e6af2edb5d9996c11c5c880963a1a261",
+        "9a79b9a6cfc3136cc8fd21b5a29f2a6284d4f45b549e36e9e7579bced5e05a56",
     ),
     "none-6dof": (
         SimConfig(codec="none", dof=6, **P),  # type: ignore[arg-type]
         4.2454925259061775e-05,
-        "41776d9034f1d487043787a6e500e6389f3d6d98d80dfd7d103d15792d9bebd0",
+        "1f8c303a289a6dca43b41555209c92f909992bd0dfadeb36b9f11b6efb8ff881",
     ),
     "eds-delay": (
         SimConfig(codec="eds:50", delay_ms=10, **P),  # type: ignore[arg-type]
         0.15706184801610695,
-        "26f9583a8769502558a1a64b89beae98bd8ea1233dc2883f31ed5459d4b1e220",
+        "345aa4cb1ed4c8f7617cdc2c30f0c87033ab2b1db8493006b66bd6c768ad847b",
     ),
     "pdp-netem": (
         SimConfig(codec="pdp:1", netem_forward=NET, netem_backward=NET, seed=5, **P),  # type: ignore[arg-type]
-        0.09969040365207045,
-        "d542cb0f2b0a779836b0d8f47d9485de60f6f98c1f62a7daede3bc762b270569",
+        0.10154646319779334,
+        "dc42d74af0dbaec2982566933a78d33f1f20bc2db8497126650c2712d3a05669",
     ),
     "cq8-netem": (
         SimConfig(codec="cq:8", netem_forward=NET, netem_backward=NET, seed=7, **P),  # type: ignore[arg-type]
-        0.07460541092628195,
-        "8e1421675867dd52ef86a5ab6f6187aac28129e9218917e026e4b90b954204f9",
+        0.07505083178774172,
+        "e35e9cd0c09e4bad04ed9c857d89047b690825674878b233a3a6d696b42f822e",
     ),
     "tdpa-pdp": (
         SimConfig(codec="pdp:1", delay_ms=20, passivity="tdpa", **P),  # type: ignore[arg-type]
         0.02544233898123922,
-        "a4a8400b87e48b7acc176a71df471b9a2ad59aabd4714fdbb8a2ae1a1c0a02c9",
+        "4c1ec7da058d6e3b8e5861a92fba21489354612fe4e11a4e36a1f7b4e565b6d8",
     ),
     # The whole Section VI task (free space, foam, wall), a varied plan at 3 DoF: the human's push
     # profile and the environment's contact branches, which the 2 s cases never reach.  Recorded
@@ -67,12 +70,12 @@ GOLDEN: dict[str, tuple[SimConfig, float, str]] = {
     "pdp-protocol-15s-varied": (
         SimConfig(codec="pdp:1", dof=3, scenario="protocol", duration=15.0, variation=1.0, seed=3),
         0.001160279259017192,
-        "6f6e9486f006977dce27cab8e13bc0311bb98089fa7bc724ca7ef982f9c3244a",
+        "8c7982b73833002ea650dcacb1c75255d5759bea543244362feb1c15f9cd5b2d",
     ),
     "tdpa-none-netem": (
         SimConfig(codec="none", netem_forward=NET, netem_backward=NET, seed=2, passivity="tdpa", **P),  # type: ignore[arg-type]
         0.025494941278658558,
-        "19e5905e6b47fc7bc5ef189e19594d60fc8b758d50f3e8e62ec92a2827215fc8",
+        "e4ee8b1e294b9dba393648f70c38f811e7666f9590c223fed8da48a79c35b661",
     ),
 }
 
@@ -81,20 +84,20 @@ GOLDEN: dict[str, tuple[SimConfig, float, str]] = {
 # AMD EPYC host with OPENBLAS_CORETYPE=Haswell; with SkylakeX's kernels it gave every figure above).
 ON_HASWELL: dict[str, tuple[float, str]] = {
     "cq8-netem": (
-        0.07460541092631576,
-        "8c5588fcc0a768bee5cab73fbd1c3e1e9c4ccc8c9da87c207570f183b7c219f2",
+        0.07505083178771556,
+        "04b26bac8f3d6a4e67ba6dde8b88c0a181a0443ae16e106d9657ae066a55fa63",
     ),
     "none-6dof": (
         4.2454925259061775e-05,
-        "199c35faf5960bf196f998fefd507c4351aba6d4585715750ca87f9746e52f90",
+        "76f9b2964b603fb3c93b8c0cbfd951357839dbfee56b118ead8e491a7626fabb",
     ),
     "pdp-netem": (
-        0.10008711561720261,
-        "462a666532d5ae59e5167460f3db56fc58b709794b0ed73d817df24c13ef932b",
+        0.10154317563464416,
+        "46a76dab3960bf7a7308c43ae2cded1a89d03558b4af67dc9c11d36d4e5a27bf",
     ),
     "pdp-protocol-15s-varied": (
         0.001169762527841878,
-        "d960058d9efa14a75393608cd7787d4035cb1c70f2f2acec121139f0924d4fc4",
+        "36a375256e0c590b81401386e90c02abbf2e9c078ba53eead8f401c31e6dc71c",
     ),
 }
 
