@@ -373,6 +373,7 @@ class Endpoint:
         self._limits = Envelope()
         self._cookie_secret = rng(32)
         self._limiter = HandshakeLimiter()
+        self._hs_sealer: auth.Sealer | None = None  # teleoperator: K_hs, one counter per process
         # The longest datagram of each key kind (index: auth.HANDSHAKE, auth.SESSION); the session
         # bound is narrowed to the agreed DoF once a session starts.
         self._max_len = [wire.MAX_HANDSHAKE_DATAGRAM_BYTES, wire.MAX_DATAGRAM_BYTES]
@@ -423,7 +424,10 @@ class Endpoint:
         return ep
 
     def _new_to_handshake(self, now_ns: int) -> protocol.TeleoperatorHandshake:
-        return protocol.TeleoperatorHandshake(
+        """A teleoperator's handshake (at start-up, for a takeover, after a ghost).  They all seal
+        with one handshake sealer: its counter runs on across them and the sessions (PROTOCOL.md
+        2.3: a counter is never reused under K_hs; a fresh sealer each time started again at 1)."""
+        hs = protocol.TeleoperatorHandshake(
             self._expect,
             now_ns=now_ns,
             timeout_s=self.connect_timeout_s,
@@ -434,6 +438,10 @@ class Endpoint:
             defer_t3=True,
             admit=self._limiter.allow,
         )
+        if self._hs_sealer is None:
+            self._hs_sealer = hs.hs_sealer
+        hs.hs_sealer = self._hs_sealer
+        return hs
 
     # --- the surface ------------------------------------------------------------------------
     def next_event(self) -> Event | None:
