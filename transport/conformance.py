@@ -351,7 +351,7 @@ class _DataCheck:
     def __init__(self, key: bytes, direction: int, session: int, codec_id: int) -> None:
         self.key, self.direction, self.session, self.codec_id = key, direction, session, codec_id
         self.packets = self.bad_envelope = self.bad_body = self.seq_gaps = self.seq_not_rising = 0
-        self.counter_reused = self.energy_bad = 0
+        self.counter_reused = self.energy_bad = self.bad_control = 0
         self.last_counter = 0
         self.first_seq: int | None = None
         self.last_seq = -1
@@ -376,6 +376,9 @@ class _DataCheck:
         self.last_counter = max(self.last_counter, counter)
         if body[:1] != b"\x9a":
             msg = _parse(body)
+            if msg is None or isinstance(msg, protocol.HANDSHAKE_KINDS):
+                self.bad_control += 1  # (3.1: data is a fixarray; 4.1, 2.2: a control message parses)
+                self.first_error = self.first_error or f"a session-key body that is neither: {body[:8].hex()}"
             if isinstance(msg, protocol.Bye):
                 self.byes.append((counter, msg))
             elif isinstance(msg, protocol.Started):
@@ -418,6 +421,8 @@ def _data_checks(r: Result, d: _DataCheck, codec: str, ticks: int, bye: bool = T
         d.packets > 0 and d.bad_body == 0,
         f"{d.packets} packets, {d.bad_body} bad; {d.first_error}",
     )
+    rule = "every session-key body is a data packet (a fixarray) or a start, started or bye that parses"
+    r.check("3.1, 4.1, 2.2", "MUST", rule, d.bad_control == 0, f"{d.bad_control} neither")
     r.check(
         "2.3",
         "MUST",
@@ -793,6 +798,7 @@ def check_teleoperator(
         _probe_envelope(r, a, peer, k_r)
         cookie = _probe_cookie(r, a, b, peer, sealer, k_hs)
         _probe_malformed(r, a, peer, sealer, k_hs, cookie)
+        _probe_hello_table(r, a, peer, sealer, k_hs)
         if codec.split(":")[0] not in DEADBAND_CODECS:
             c = _Zenoh("operator", *zenoh, k_r) if zenoh is not None else _Socket()
         _session_as_operator(r, a, b, peer, k_r, sealer, k_hs, codec, duration, c)
@@ -875,6 +881,25 @@ def _probe_cookie(
         f"got {type(w).__name__ if w else 'nothing'}",
     )
     return msg.cookie
+
+
+def _probe_hello_table(r: Result, a: _Carrier, peer: Addr, sealer: auth.Sealer, k_hs: bytes) -> None:
+    """PROTOCOL.md 4.2's table of bad hellos: an authentic body that is not recognisably a hello
+    (a msgpack array) gets nothing; a hello whose nonce is not 16 bytes gets a reject (no cookie
+    can be made for it)."""
+    a.recv_all()
+    a.send(sealer.seal(msgpack.packb([1, 2, 3])), peer)
+    got = a.wait_for(lambda d: _from_to(k_hs, d) is not None, QUIET_S)
+    rule = "answer an authentic handshake body that is not a hello map"
+    what = f"got {type(_from_to(k_hs, got[0])).__name__}" if got else ""
+    r.check("4.2", "MUST NOT", rule, got is None, what)
+    t1 = time.monotonic_ns()
+    a.send(_hello_bytes(sealer, params_for(12, "none", 1.0), t1, bytes(8)), peer)  # an 8-byte nonce
+    got = a.wait_for(lambda d: _from_to(k_hs, d) is not None, PROBE_TIMEOUT_S)
+    m = _from_to(k_hs, got[0]) if got else None
+    ok = isinstance(m, protocol.Reject) and m.t_ns == t1
+    rule = "a hello whose nonce is not 16 bytes gets a reject echoing its t_ns"
+    r.check("4.2", "MUST", rule, ok, f"got {type(m).__name__ if m else 'nothing'}")
 
 
 def _probe_malformed(
@@ -1156,6 +1181,7 @@ def check_operator(
         )
         if not isinstance(hello, protocol.Hello):
             return r
+        _hello_fields(r, opened[1])
         expect: dict[str, Any] = {}
         ep = Endpoint.teleoperator(
             expect, _factory("teleoperator"), now_ns=time.monotonic_ns(), psk=k_r, connect_timeout_s=timeout_s
@@ -1234,6 +1260,11 @@ def check_operator(
             f"{(ep.start_ns - now) / 1e6:+.1f} ms",
         )
         starts.append((ep.start_ns, now))
+        lead = ep.start_ns - ep.committed_ns  # what is left of its lead: >= 150 ms, 3 rtt + 150 ms
+        rule = "the start's lead is at least 3 rtt + 150 ms: its tick 0 >= 150 ms after it arrives"
+        r.check("4.3 step 5", "MUST", rule, lead >= MIN_LEAD_LEFT_NS, f"{lead / 1e6:+.1f} ms")
+        rule = "the start states the round trip of its exchange (rtt_ns)"
+        r.check("4.3 step 5", "SHOULD", rule, ep.start_rtt_ns is not None, f"rtt_ns {ep.start_rtt_ns}")
         drv.run(lambda: ep.finished, p.span_s + 10.0)
         _data_checks(r, data[0], p.codec, p.ticks)
         # The operator's tick 0 is start_ns on this clock (4.3 step 5: start_ns = S_O + offset).
@@ -1247,6 +1278,28 @@ def check_operator(
     finally:
         sock.close()
     return r
+
+
+#: A start's lead is at least 3 rtt + 150 ms (4.3 step 5); what is left of it when the start
+#: arrives is at least 150 ms whatever the round trip (jitter up to half the delay), less this
+#: much for this suite's polling on a loaded host.
+MIN_LEAD_LEFT_NS = 145_000_000
+#: Optional hello fields and the value they may not be sent with (4.1: SHOULD be left out; 9:
+#: ``passivity`` "wave" MUST be).
+HELLO_DEFAULTS = {"rejoin": False, "playout": "off", "variation": 0, "rate_cap": 0}
+
+
+def _hello_fields(r: Result, body: bytes) -> None:
+    """4.1 and 9 on the operator's first hello, from its raw map."""
+    try:
+        m = msgpack.unpackb(body, raw=False)
+    except Exception:  # (it parsed as a hello: this cannot fail)
+        return
+    rule = "its hello leaves passivity out for a wave session (a wave session is byte for byte as before)"
+    r.check("9", "MUST", rule, m.get("passivity") != "wave", f"passivity {m.get('passivity', 'absent')!r}")
+    sent = [k for k, v in HELLO_DEFAULTS.items() if k in m and m[k] == v and type(m[k]) is type(v)]
+    rule = "its hello leaves out optional fields at their default values"
+    r.check("4.1", "SHOULD", rule, not sent, f"sent {sent}" if sent else "")
 
 
 def write_json(result: Result, path: Path) -> None:

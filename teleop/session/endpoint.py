@@ -384,6 +384,8 @@ class Endpoint:
         self.retries_sent = 0
         self.replaced = False
         self.ghost_ns: int | None = None  # teleoperator: when a session never heard from ends
+        self.start_rtt_ns: int | None = None  # teleoperator: the round trip its start stated
+        self.committed_ns = 0  # teleoperator: when it committed to the session's start
         # grace
         self.grace = {"limit_us": grace_us, "waits": 0, "missed": 0, "waited_us_total": 0.0}
         self._grace_streak = self._grace_resume = 0
@@ -672,6 +674,7 @@ class Endpoint:
         late = hs.rejoin or now_ns > t0 - START_GUARD_NS
         k0 = max(0, -(-(now_ns - t0) // period) + JOIN_AHEAD_TICKS) if late else 0
         self._handshake_info = {"joined_late": late}
+        self.start_rtt_ns, self.committed_ns = hs.start_rtt_ns, now_ns
         self.ghost_ns = max(hs.start_ns, now_ns) + ghost_round_trip(hs.start_rtt_ns, hs.start_ns - now_ns)
         self.ghost_ns += GHOST_MARGIN_NS
         self._begin(p, hs.peer, hs.start_ns, t0, k0, late, keys, self.ghost_ns, lost_at=True)
