@@ -225,6 +225,21 @@ def _array16() -> None:  # 3.1: data bodies encoded as msgpack array 16 (dc 00 0
     port.wire.encode = array16  # type: ignore[attr-defined]
 
 
+def _answers_replays() -> None:  # 2.4, 4.3 step 6: a robot whose window takes a counter twice
+    from teleop.session import auth
+
+    accept = auth.Opener.accept
+
+    def again(self: Any, counter: int, now: float) -> None:
+        try:
+            accept(self, counter, now)
+        except auth.AuthError as e:
+            if e.reason != "replay":
+                raise
+
+    auth.Opener.accept = again  # type: ignore[method-assign]
+
+
 BREAKS = {
     "no-cookie": _no_cookie,
     "answers-own-offers": _answers_own_offers,
@@ -246,6 +261,7 @@ BREAKS = {
     "short-lead": _short_lead,
     "wave-field": _wave_field,
     "array16": _array16,
+    "answers-replays": _answers_replays,
 }
 
 if __name__ == "__main__":

@@ -253,6 +253,7 @@ class _Driver:
         self.next_k: int | None = None
         self.events: list[Any] = []
         self.reports: list[tuple[int, float]] = []  # (send time ns, energy) of our data packets
+        self.sent: list[bytes] = []  # what we sent before the first tick (the start, to replay)
 
     def run(self, until: Callable[[], bool], timeout_s: float) -> None:
         ep, sock = self.ep, self.sock
@@ -277,6 +278,8 @@ class _Driver:
             for data, dst in ep.datagrams_to_send(time.monotonic_ns()):
                 sock.send(data, dst)
                 self._sent(data)
+                if self.next_k is None:
+                    self.sent.append(data)
             if time.monotonic_ns() - now < 300_000:
                 time.sleep(0.0003)
         while (ev := ep.next_event()) is not None:
@@ -965,7 +968,24 @@ def _session_as_operator(
         return
     _, bwd = auth.session_keys(k_r, session, ep.port.keys.nonce, _nonce(ep.peer_nonce))
     data = _DataCheck(bwd, wire.BACKWARD, session, make_codec(codec, 2, 2.0).codec_id)
-    # A resent start (under the reference's own sealer: its counter goes on) gets another started.
+    # A byte-identical copy of the start it took is a replay: refused by the window, unanswered
+    # (2.4, 4.3 step 6).  Then a resent start, sealed anew (its counter goes on), gets a started.
+    started_start = [d for d in drv.sent if isinstance(_start_of(d), protocol.Start)]
+    if started_start:
+        a.send(started_start[0], peer)
+        # Answered, if at all, by its tick 0 (it may be setting its session up until then).
+        drv.run(lambda: ep.finished or ep.k >= REPLAY_WAIT_TICKS, 12.0)
+    # Each start we sealed gets one started (MUST); one more is the replay's answer.
+    t_resend = time.monotonic_ns()
+    answers = sum(
+        1
+        for d, src, t in a.log
+        if t < t_resend
+        and (o := _open(bwd, auth.SESSION, wire.BACKWARD, d))
+        and isinstance(_parse(o[1]), protocol.Started)
+    )
+    replay_answers = max(0, answers - len(started_start))
+    resend_from = data.started
     a.send(ep.port.seal(protocol.Start(session, ep.start_ns + ep.offset_ns)), peer)
     # A rejoin offer of the running session, from the operator's address: MUST NOT be answered (4.4).
     offer = protocol.Hello(p, time.monotonic_ns(), rejoin=True, nonce=ep.port.keys.nonce)
@@ -992,12 +1012,17 @@ def _session_as_operator(
     drv.tap = tap2
     drv.run(until, duration + 10.0)
     events = drv.events
+    rule = "answer a replayed start (a byte-identical copy of the one it took)"
+    ok = replay_answers == 0 if started_start else None
+    r.check(
+        "2.4, 4.3 step 6", "MUST NOT", rule, ok, f"{answers} started for {len(started_start)} start(s) sealed"
+    )
     r.check(
         "4.3 step 6",
         "MUST",
         "a resent start is answered with another started",
-        data.started >= 1,
-        f"{data.started} started",
+        data.started - resend_from >= 1,
+        f"{data.started - resend_from} started",
     )
     r.check(
         "4.4 step 2",
@@ -1028,6 +1053,17 @@ def _session_as_operator(
         log += then.log if a.distinct_addresses else []
     sender = peer if a.distinct_addresses else None
     audit_envelopes(r, log, sender, wire.BACKWARD, k_hs, *keys[-1], p.dof, tuple(keys[:-1]))
+
+
+#: A replayed start is given until our tick this many ticks in to be (wrongly) answered, before the
+#: genuine resend goes: a robot answers a start at once from its tick 0 on (4.3 step 6).
+REPLAY_WAIT_TICKS = 20
+
+
+def _start_of(data: bytes) -> protocol.Message | None:
+    """The control message in one of our own datagrams (envelopes are readable without a key)."""
+    body = data[auth.HEADER_BYTES : -auth.TAG_BYTES]
+    return _parse(body) if protocol.is_control(body) else None
 
 
 def _summary_checks(r: Result, summary: Any, tag: str = "") -> None:

@@ -94,9 +94,10 @@ SILENT_MIN_NS = 1_000_000_000
 #: Teleoperator: a session whose operator sent no data packet by tick 0 (or the commit, if later)
 #: plus the start's round trip ``R`` plus this is a ghost: its link is lost then, and the robot ends
 #: the session and waits for an operator again (PROTOCOL.md 4.3 step 8).  The first packet of a live
-#: session arrives by about ``R`` (its one-way delay and the offset's error, jitter up to half the
-#: delay); the rest is margin for an operator whose first tick is late (a loop starved or still
-#: setting up under load: issue 35), kept within the stated bound ``2 s + R``.
+#: session arrives ``R / 2`` after tick 0 without jitter (its one-way delay and the offset's error
+#: add up to half the round trip), within ``2 R`` with jitter up to half the delay; the rest is
+#: margin for an operator whose first tick is late (its loop starved or still setting up on a loaded
+#: host: issue 35), kept within the stated bound ``2 s + R``.
 GHOST_MARGIN_NS = 1_900_000_000
 #: The part of a start's lead that is not round trips (PROTOCOL.md 4.3 step 5: 3 rtt + 150 ms): a
 #: start without ``rtt_ns`` bounds its round trip by (what is left of its lead - this) / 2.
