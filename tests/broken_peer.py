@@ -193,6 +193,60 @@ def _start_skew() -> None:  # 4.3 step 5: an operator whose start_ns is 200 ms o
     protocol.encode = skewed
 
 
+def _short_lead() -> None:  # 4.3 step 5: an operator whose start lead is 100 ms (< 3 rtt + 150 ms)
+    from teleop.session import protocol
+
+    protocol.start_lead = lambda *a, **kw: 100_000_000
+
+
+def _wave_field() -> None:  # 9: an operator that sends passivity "wave" (it MUST leave it out)
+    import msgpack
+
+    from teleop.session import protocol
+
+    encode = protocol.encode
+
+    def with_wave(msg: Any) -> bytes:
+        body = encode(msg)
+        if not isinstance(msg, protocol.Hello):
+            return body
+        m = msgpack.unpackb(body, raw=False)
+        m.setdefault("passivity", "wave")
+        return bytes(msgpack.packb(m, use_bin_type=True))
+
+    protocol.encode = with_wave
+
+
+def _array16() -> None:  # 3.1: data bodies encoded as msgpack array 16 (dc 00 0a), not fixarray
+    import zlib
+
+    from teleop.session import port, wire
+
+    encode = wire.encode
+
+    def array16(p: Any) -> bytes:
+        body = encode(p)
+        arr = b"\xdc\x00\x0a" + body[1:-4]
+        return arr + zlib.crc32(arr).to_bytes(4, "little")
+
+    port.wire.encode = array16  # type: ignore[attr-defined]
+
+
+def _answers_replays() -> None:  # 2.4, 4.3 step 6: a robot whose window takes a counter twice
+    from teleop.session import auth
+
+    accept = auth.Opener.accept
+
+    def again(self: Any, counter: int, now: float) -> None:
+        try:
+            accept(self, counter, now)
+        except auth.AuthError as e:
+            if e.reason != "replay":
+                raise
+
+    auth.Opener.accept = again  # type: ignore[method-assign]
+
+
 BREAKS = {
     "no-cookie": _no_cookie,
     "answers-own-offers": _answers_own_offers,
@@ -211,6 +265,10 @@ BREAKS = {
     "phase-0": _phase_0,
     "late-5": _late_5,
     "start-skew": _start_skew,
+    "short-lead": _short_lead,
+    "wave-field": _wave_field,
+    "array16": _array16,
+    "answers-replays": _answers_replays,
 }
 
 if __name__ == "__main__":

@@ -169,6 +169,26 @@ def test_a_robot_freed_from_a_ghost_serves_the_next_operator(rtt_ms: float) -> N
     assert ended(op2)["completed"] and ended(to)["completed"]
 
 
+def test_a_robot_never_reuses_a_handshake_counter_across_its_sessions() -> None:
+    """PROTOCOL.md 2.3: a counter is never reused under a key.  The robot's handshakes (at start-up,
+    after a ghost, a takeover) seal with one sealer: its K_hs counter runs on (a fresh handshake
+    once started again at 1, which ``teleop conformance`` caught once it drove a takeover)."""
+    net, _, to, _ = _ghost(0.2, "unconfirmed")
+    counters: list[int] = []
+
+    def tap(now: int, src: Any, dst: Any, data: bytes) -> list[Any]:
+        hdr = auth.peek(data)
+        if src == TO and hdr is not None and hdr[0] == auth.HANDSHAKE:
+            counters.append(hdr[2])
+        return [(src, dst, data)]
+
+    net.tap = tap
+    op2 = net.operator(params(session=8, duration=1.0), addr=("10.0.0.4", 5000))
+    net.seconds(15.0, stop=running(op2, to))
+    assert to.ep.state == State.RUNNING and counters
+    assert min(counters) > 1 and len(set(counters)) == len(counters), counters
+
+
 def test_a_start_without_its_round_trip_allows_what_its_lead_leaves_room_for() -> None:
     """Another operator may leave ``rtt_ns`` out: the lead left when its start came stands in
     (3 rtt + 150 ms of lead leave 2.5 rtt + 150 ms, read as 1.25 rtt: more than the round trip)."""

@@ -11,12 +11,14 @@ ever sent to.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import hmac
 import json
 import math
 import secrets
 import socket
+import struct
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -30,7 +32,7 @@ from teleop.control.codecs import Codec, CodecSpec, make_codec
 from teleop.control.codecs.base import RAW_BITS, CodecError, RawFormat, unpack16
 from teleop.control.codecs.deadband import SLOPE_SCALE
 from teleop.session import auth, protocol, wire
-from teleop.session.endpoint import Endpoint, SessionEnded, SessionStarted, State, session_port
+from teleop.session.endpoint import Endpoint, Failed, SessionEnded, SessionStarted, State, session_port
 from teleop.session.link import Addr
 from teleop.session.link.phase import PHASE_MIN
 from teleop.session.port import Port, PortKeys
@@ -252,6 +254,7 @@ class _Driver:
         self.next_k: int | None = None
         self.events: list[Any] = []
         self.reports: list[tuple[int, float]] = []  # (send time ns, energy) of our data packets
+        self.sent: list[bytes] = []  # what we sent before the first tick (the start, to replay)
 
     def run(self, until: Callable[[], bool], timeout_s: float) -> None:
         ep, sock = self.ep, self.sock
@@ -276,22 +279,26 @@ class _Driver:
             for data, dst in ep.datagrams_to_send(time.monotonic_ns()):
                 sock.send(data, dst)
                 self._sent(data)
+                if self.next_k is None:
+                    self.sent.append(data)
             if time.monotonic_ns() - now < 300_000:
                 time.sleep(0.0003)
         while (ev := ep.next_event()) is not None:
             self.events.append(ev)
 
     def _sent(self, data: bytes) -> None:
-        """Keeps the energy report of each data packet of ours as it leaves (envelopes are readable
-        without a key: 10 bytes in front, 16 behind)."""
-        body = data[auth.HEADER_BYTES : -auth.TAG_BYTES]
-        if body[:1] == b"\x9a" and self.ep.params is not None:
-            try:
-                pkt = wire.decode(body)
-            except wire.WireError:
-                return
-            if pkt.session == self.ep.params.session:
-                self.reports.append((time.monotonic_ns(), pkt.energy))
+        """Keeps the energy report of each data packet of ours as it leaves, read from its place
+        (our bodies end in a float64 ``cb`` and the CRC; envelopes are readable without a key):
+        cheap, since this loop's pace stamps what it receives."""
+        if len(data) > 40 and data[auth.HEADER_BYTES] == 0x9A and data[-auth.TAG_BYTES - 13] == 0xCB:
+            end = -auth.TAG_BYTES - 4
+            self.reports.append((time.monotonic_ns(), struct.unpack(">d", data[end - 8 : end])[0]))
+
+
+#: What a robot's port may send back before it received anything: its environment's own energy
+#: at the start (7e-8 J seen at its tick 7 over Zenoh, our first packets late); a doubled report
+#: is tens of millijoules above.
+PASSIVE_SLACK_J = 1e-5
 
 
 def passive_port_check(
@@ -310,7 +317,7 @@ def passive_port_check(
         while i < len(ours) and ours[i][0] < t:
             sent = max(sent, ours[i][1])
             i += 1
-        if pkt.energy > sent * (1 + 1e-9) + 1e-12:
+        if pkt.energy > sent * (1 + 1e-9) + PASSIVE_SLACK_J:
             bad += 1
             detail = detail or f"tick {pkt.tick}: reported {pkt.energy:.6g} J, it had been sent {sent:.6g} J"
         if sent > 0:
@@ -342,7 +349,7 @@ class _DataCheck:
     def __init__(self, key: bytes, direction: int, session: int, codec_id: int) -> None:
         self.key, self.direction, self.session, self.codec_id = key, direction, session, codec_id
         self.packets = self.bad_envelope = self.bad_body = self.seq_gaps = self.seq_not_rising = 0
-        self.counter_reused = self.energy_bad = 0
+        self.counter_reused = self.energy_bad = self.bad_control = 0
         self.last_counter = 0
         self.first_seq: int | None = None
         self.last_seq = -1
@@ -367,6 +374,9 @@ class _DataCheck:
         self.last_counter = max(self.last_counter, counter)
         if body[:1] != b"\x9a":
             msg = _parse(body)
+            if msg is None or isinstance(msg, protocol.HANDSHAKE_KINDS):
+                self.bad_control += 1  # (3.1: data is a fixarray; 4.1, 2.2: a control message parses)
+                self.first_error = self.first_error or f"a session-key body that is neither: {body[:8].hex()}"
             if isinstance(msg, protocol.Bye):
                 self.byes.append((counter, msg))
             elif isinstance(msg, protocol.Started):
@@ -400,7 +410,8 @@ class _DataCheck:
         self.last_energy = pkt.energy
 
 
-def _data_checks(r: Result, d: _DataCheck, codec: str, ticks: int) -> None:
+def _data_checks(r: Result, d: _DataCheck, codec: str, ticks: int, bye: bool = True) -> None:
+    """``bye``: the session ends here with the peer's bye (else we left it running: no bye rules)."""
     r.check(
         "3.1",
         "MUST",
@@ -408,6 +419,8 @@ def _data_checks(r: Result, d: _DataCheck, codec: str, ticks: int) -> None:
         d.packets > 0 and d.bad_body == 0,
         f"{d.packets} packets, {d.bad_body} bad; {d.first_error}",
     )
+    rule = "every session-key body is a data packet (a fixarray) or a start, started or bye that parses"
+    r.check("3.1, 4.1, 2.2", "MUST", rule, d.bad_control == 0, f"{d.bad_control} neither")
     r.check(
         "2.3",
         "MUST",
@@ -438,6 +451,8 @@ def _data_checks(r: Result, d: _DataCheck, codec: str, ticks: int) -> None:
             f"{d.packets} of {ticks}",
         )
     byes = d.byes
+    if not bye:
+        return
     r.check(
         "4.6",
         "MUST",
@@ -483,16 +498,19 @@ def audit_envelopes(
     k_session: bytes | None,
     k_session_other: bytes | None,
     dof: int,
+    earlier: tuple[tuple[bytes, bytes], ...] = (),
 ) -> None:
     """PROTOCOL.md 2.1, 2.3, 2.4 and 4.5 over every datagram the peer sent (from ``peer``; every
     one on Zenoh): a tag that verifies under the key of its kind, a valid header with the reserved
     bits zero, the sender's direction, counters that never repeat nor jump, no datagram longer
-    than the largest message of its key kind.  Identical copies (two Zenoh subscribers) count once."""
+    than the largest message of its key kind.  Identical copies (two Zenoh subscribers) count once.
+    ``earlier``: (this direction's, the other's) session keys of sessions before this one."""
     seen: set[bytes] = set()
     bad_tag = bad_header = reserved = wrong_kind = wrong_dir = oversize = reused = jumps = n = 0
     first: dict[str, str] = {}
-    highest: dict[int, tuple[int, int]] = {}  # key kind -> (highest counter, its receive time)
-    used: dict[int, set[int]] = {auth.HANDSHAKE: set(), auth.SESSION: set()}
+    highest: dict[bytes, tuple[int, int]] = {}  # key -> (highest counter, its receive time)
+    used: dict[bytes, set[int]] = {}
+    sessions = [*earlier, *(((k_session, k_session_other),) if k_session is not None else ())]
     limit = {
         auth.HANDSHAKE: wire.MAX_HANDSHAKE_DATAGRAM_BYTES,
         auth.SESSION: wire.max_session_datagram_bytes(dof),
@@ -508,13 +526,19 @@ def audit_envelopes(
             continue
         magic, flags, counter = data[0:1], data[1], int.from_bytes(data[2:10], "big")
         kind: int | None = None
+        mac_key = k_hs
         if _mac_ok(k_hs, data):
             kind = auth.HANDSHAKE
-        elif k_session is not None and _mac_ok(k_session, data):
-            kind = auth.SESSION
-        elif k_session_other is not None and _mac_ok(k_session_other, data):
-            wrong_dir += 1  # sealed under the other direction's session key
-            first.setdefault("direction", "sealed under the other direction's session key")
+        for mine, other in sessions:
+            if kind is not None:
+                break
+            if _mac_ok(mine, data):
+                kind, mac_key = auth.SESSION, mine
+            elif other is not None and _mac_ok(other, data):
+                kind = -1
+                wrong_dir += 1  # sealed under the other direction's session key
+                first.setdefault("direction", "sealed under the other direction's session key")
+        if kind == -1:
             continue
         if kind is None:
             bad_tag += 1
@@ -535,17 +559,17 @@ def audit_envelopes(
         if len(data) > limit[kind]:
             oversize += 1
             first.setdefault("oversize", f"{len(data)} > {limit[kind]} bytes")
-        if counter in used[kind]:
+        if counter in used.setdefault(mac_key, set()):
             reused += 1
             first.setdefault("reused", f"counter {counter}")
-        used[kind].add(counter)
-        if kind == auth.SESSION and kind in highest:
-            top, at = highest[kind]
+        used[mac_key].add(counter)
+        if kind == auth.SESSION and mac_key in highest:
+            top, at = highest[mac_key]
             if counter > top + 1024 + 4000 * max(0, t - at) / 1e9:
                 jumps += 1
                 first.setdefault("jump", f"counter {counter} after {top}, {(t - at) / 1e6:.1f} ms later")
-        if kind not in highest or counter > highest[kind][0]:
-            highest[kind] = (counter, t)
+        if mac_key not in highest or counter > highest[mac_key][0]:
+            highest[mac_key] = (counter, t)
     if n == 0:
         return
     for section, level, rule, count, what, key in (
@@ -625,7 +649,23 @@ def stream_checks(
     else:
         r.check(timing, "MUST", "runs tick k on time", None, f"only {len(late)} packets")
     pkts = [p for _, p in stream if len(p.payload) == codec.payload_bytes]
-    _energy_checks(r, codec, pkts, dt, passivity, ratio)
+    _energy_checks(r, codec, pkts, dt, passivity, ratio, _stalled(stream, t0_ns, dt))
+
+
+#: A packet that arrives this much later than the median (after its tick's time) follows a stall of
+#: its sender, whose loop may have skipped ticks (it skips beyond 20 late): a deadband's account then
+#: lacks them while the model plays its held value through them, so the cumulative rule stops there.
+STALL_NS = 15_000_000
+
+
+def _stalled(stream: list[tuple[int, wire.Packet]], t0_ns: int, dt: float) -> set[int]:
+    """The seqs of packets that came after a stall of the sender (:data:`STALL_NS`)."""
+    period = round(dt * 1e9)
+    late = [(t - (t0_ns + p.tick * period), p.seq) for t, p in stream]
+    if not late:
+        return set()
+    median = sorted(x for x, _ in late)[len(late) // 2]
+    return {seq for x, seq in late if x - median > STALL_NS}
 
 
 #: Over-reporting with a codec that does not carry every tick's value (eDS, iDS, DCT, deadbands):
@@ -641,12 +681,19 @@ RULE_PASSIVE = "energy not over-reported: a passive port sends back no more than
 
 
 def _energy_checks(
-    r: Result, codec: Codec, pkts: list[wire.Packet], dt: float, passivity: Passivity, ratio: bool = False
+    r: Result,
+    codec: Codec,
+    pkts: list[wire.Packet],
+    dt: float,
+    passivity: Passivity,
+    ratio: bool = False,
+    stalled: set[int] | None = None,
 ) -> None:
     """3.4, 3.6, eq. (5), (10), (11): the energy the payloads play never exceeds what the reports say
     was sent, and (every-tick codecs) each tick's report grows by what its value allows; ``ratio``:
     over the session, the reports grow by at most :data:`OVER_REPORT_RATIO` times what the payloads
-    play (over-reporting with any codec)."""
+    play (over-reporting with any codec); ``stalled``: seqs that came after a stall of the sender
+    (:func:`_stalled`), where the cumulative account of a deadband stops."""
     rule_q = "each tick's value carries no more energy than its report grew by (|Q(x)| <= |x|, eq. 11)"
     rule_o = RULE_OVER_REPORT
     rule_c = "the payloads never play more energy than the reports say was sent (eq. 5, 10)"
@@ -714,6 +761,9 @@ def _energy_checks(
         if event:
             value = runs[0][0]
             nxt = pkts[i + 1] if i + 1 < len(pkts) and pkts[i + 1].seq == p.seq + 1 else None
+            stop = nxt is not None and bool(stalled) and nxt.seq in (stalled or ())
+            if stop:  # its sender stalled before the next: the ticks between are not all its own
+                nxt = None
             ticks = (nxt.tick - p.tick) if nxt is not None else 1
             for j in range(max(ticks, 1)):
                 x = value + slope * j
@@ -723,6 +773,9 @@ def _energy_checks(
                     bad += 1
                     got = f"tick {p.tick + j}: plays {committed:.6g} J > reported {p.energy:.6g} J"
                     detail = detail or got
+            if stop:
+                detail = detail or f"(up to tick {p.tick}: its sender stalled after it)"
+                break
         else:
             committed += half * sum(count * float(value.dot(value)) for value, count in runs)
             checked += 1
@@ -770,14 +823,21 @@ def check_teleoperator(
         assert peer is not None
         a, b = _Socket(), _Socket()
         r = Result("teleoperator", f"{peer[0]}:{peer[1]}")
+    c: _Carrier | None = None
     try:
         _probe_envelope(r, a, peer, k_r)
         cookie = _probe_cookie(r, a, b, peer, sealer, k_hs)
         _probe_malformed(r, a, peer, sealer, k_hs, cookie)
-        _session_as_operator(r, a, b, peer, k_r, sealer, k_hs, codec, duration)
+        _probe_hello_table(r, a, peer, sealer, k_hs)
+        then: _Carrier | None = None
+        if codec.split(":")[0] not in DEADBAND_CODECS:
+            # (over Zenoh every carrier has the one address: the first serves, no third session)
+            then = a if zenoh is not None else (c := _Socket())
+        _session_as_operator(r, a, b, peer, k_r, sealer, k_hs, codec, duration, then)
     finally:
-        a.close()
-        b.close()
+        for carrier in (a, b, c):
+            if carrier is not None:
+                carrier.close()
     return r
 
 
@@ -855,6 +915,25 @@ def _probe_cookie(
     return msg.cookie
 
 
+def _probe_hello_table(r: Result, a: _Carrier, peer: Addr, sealer: auth.Sealer, k_hs: bytes) -> None:
+    """PROTOCOL.md 4.2's table of bad hellos: an authentic body that is not recognisably a hello
+    (a msgpack array) gets nothing; a hello whose nonce is not 16 bytes gets a reject (no cookie
+    can be made for it)."""
+    a.recv_all()
+    a.send(sealer.seal(msgpack.packb([1, 2, 3])), peer)
+    got = a.wait_for(lambda d: _from_to(k_hs, d) is not None, QUIET_S)
+    rule = "answer an authentic handshake body that is not a hello map"
+    what = f"got {type(_from_to(k_hs, got[0])).__name__}" if got else ""
+    r.check("4.2", "MUST NOT", rule, got is None, what)
+    t1 = time.monotonic_ns()
+    a.send(_hello_bytes(sealer, params_for(12, "none", 1.0), t1, bytes(8)), peer)  # an 8-byte nonce
+    got = a.wait_for(lambda d: _from_to(k_hs, d) is not None, PROBE_TIMEOUT_S)
+    m = _from_to(k_hs, got[0]) if got else None
+    ok = isinstance(m, protocol.Reject) and m.t_ns == t1
+    rule = "a hello whose nonce is not 16 bytes gets a reject echoing its t_ns"
+    r.check("4.2", "MUST", rule, ok, f"got {type(m).__name__ if m else 'nothing'}")
+
+
 def _probe_malformed(
     r: Result, a: _Carrier, peer: Addr, sealer: auth.Sealer, k_hs: bytes, cookie: bytes | None
 ) -> None:
@@ -889,9 +968,13 @@ def _session_as_operator(
     k_hs: bytes,
     codec: str,
     duration: float,
+    then: _Carrier | None = None,
 ) -> None:
+    """The session most rules are checked on.  ``then``: a carrier for the deadband session that
+    takes the robot over after it (:func:`_deadband_session`): this one proposes a longer session,
+    and we fall silent after ``duration`` of it; its bye rules are then checked on that session."""
     session = secrets.randbelow(2**32 - 2) + 1
-    p = params_for(session, codec, duration)
+    p = params_for(session, codec, duration + (TAKEOVER_EXTRA_S if then is not None else 0.0))
     ep = Endpoint.operator(p, peer, _factory("operator", UNDER_REPORT), now_ns=time.monotonic_ns(), psk=k_r)
     data: _DataCheck | None = None
 
@@ -914,8 +997,26 @@ def _session_as_operator(
         return
     _, bwd = auth.session_keys(k_r, session, ep.port.keys.nonce, _nonce(ep.peer_nonce))
     data = _DataCheck(bwd, wire.BACKWARD, session, make_codec(CodecSpec.parse(codec), 2, 2.0).codec_id)
-    # A resent start (under the reference's own sealer: its counter goes on) gets another started.
-    a.send(ep.port.seal(protocol.Start(session, ep.start_ns + ep.offset_ns)), peer)
+    # A byte-identical copy of the start it took is a replay: refused by the window, unanswered
+    # (2.4, 4.3 step 6).  Then a resent start, sealed anew (its counter goes on), gets a started.
+    started_start = [d for d in drv.sent if isinstance(_start_of(d), protocol.Start)]
+    if started_start:
+        a.send(started_start[0], peer)
+        # Answered, if at all, by its tick 0 (it may be setting its session up until then).
+        drv.run(lambda: ep.finished or ep.k >= REPLAY_WAIT_TICKS, 12.0)
+    # Each start we sealed gets one started (MUST); one more is the replay's answer.
+    t_resend = time.monotonic_ns()
+    answers = sum(
+        1
+        for d, src, t in a.log
+        if t < t_resend
+        and (o := _open(bwd, auth.SESSION, wire.BACKWARD, d))
+        and isinstance(_parse(o[1]), protocol.Started)
+    )
+    replay_answers = max(0, answers - len(started_start))
+    resend_from = data.started
+    for _ in range(2):  # (two, each sealed anew: Zenoh may drop one on a loaded host)
+        a.send(ep.port.seal(protocol.Start(session, ep.start_ns + ep.offset_ns)), peer)
     # A rejoin offer of the running session, from the operator's address: MUST NOT be answered (4.4).
     offer = protocol.Hello(p, time.monotonic_ns(), rejoin=True, nonce=ep.port.keys.nonce)
     a.send(ep.port.keys.hs_tx.seal(protocol.encode(offer)), peer)
@@ -930,22 +1031,28 @@ def _session_as_operator(
     t_busy = time.monotonic() + 0.3
     busy_done = [False]
     busy: list[protocol.Message] = []
+    ticks = round(duration / p.dt)
 
     def until() -> bool:
         if not busy_done[0] and time.monotonic() >= t_busy:
             busy_done[0] = True
             busy.extend(_probe_busy(b, peer, sealer, k_hs))
-        return ep.finished
+        return ep.finished or (then is not None and ep.k >= ticks)
 
     drv.tap = tap2
     drv.run(until, duration + 10.0)
     events = drv.events
+    rule = "answer a replayed start (a byte-identical copy of the one it took)"
+    ok = replay_answers == 0 if started_start else None
+    r.check(
+        "2.4, 4.3 step 6", "MUST NOT", rule, ok, f"{answers} started for {len(started_start)} start(s) sealed"
+    )
     r.check(
         "4.3 step 6",
         "MUST",
         "a resent start is answered with another started",
-        data.started >= 1,
-        f"{data.started} started",
+        data.started - resend_from >= 1,
+        f"{data.started - resend_from} started",
     )
     r.check(
         "4.4 step 2",
@@ -962,33 +1069,104 @@ def _session_as_operator(
         ok,
         f"got {[m.kind for m in busy]}",
     )
-    _data_checks(r, data, codec, p.ticks)
+    _data_checks(r, data, codec, ticks, bye=then is None)
     # The earliest a teleoperator's tick 0 may run on this clock: it places its phase where the
     # operator's packets land, within [PHASE_MIN, PHASE_MAX] of a period (5.1).
     t0 = ep.start_ns + round(PHASE_MIN * p.dt * 1e9)
     stream_checks(r, data, codec, p.dof, p.full_scale, p.dt, t0, p.passivity)
     passive_port_check(r, data, drv.reports, codec, p.passivity)
+    ended = [e.summary for e in events if isinstance(e, SessionEnded)]
+    _summary_checks(r, ended[0] if ended else (ep.summary() if then is not None else None))
     fwd, bwd = auth.session_keys(k_r, session, ep.port.keys.nonce, _nonce(ep.peer_nonce))
     log = a.log + (b.log if a.distinct_addresses else [])
-    audit_envelopes(r, log, peer if a.distinct_addresses else None, wire.BACKWARD, k_hs, bwd, fwd, p.dof)
-    ended = [e for e in events if isinstance(e, SessionEnded)]
-    if ended:
-        pv = ended[0].summary.port["passivity"]
-        sec = ended[0].summary.port["security"]
-        r.check(
-            "3.6",
-            "MUST",
-            "the energy reported never exceeds what the wire can carry (no clamp)",
-            sec["energy_reports_clamped"] == 0,
-            f"{sec['energy_reports_clamped']} clamped",
-        )
-        r.check(
-            "5",
-            "MUST",
-            "what the operator played never exceeded the teleoperator's reports",
-            pv["min_margin"] >= -1e-9,
-            f"min margin {pv['min_margin']:.3g} J",
-        )
+    keys: list[tuple[bytes, bytes]] = [(bwd, fwd)]
+    if then is not None:  # we fall silent: its link goes lost, and the deadband session takes over
+        keys += _deadband_session(r, then, peer, k_r)
+        log += then.log if a.distinct_addresses else []
+    sender = peer if a.distinct_addresses else None
+    audit_envelopes(r, log, sender, wire.BACKWARD, k_hs, *keys[-1], p.dof, tuple(keys[:-1]))
+
+
+#: A replayed start is given until our tick this many ticks in to be (wrongly) answered, before the
+#: genuine resend goes: a robot answers a start at once from its tick 0 on (4.3 step 6).
+REPLAY_WAIT_TICKS = 20
+
+
+def _start_of(data: bytes) -> protocol.Message | None:
+    """The control message in one of our own datagrams (envelopes are readable without a key)."""
+    body = data[auth.HEADER_BYTES : -auth.TAG_BYTES]
+    return _parse(body) if protocol.is_control(body) else None
+
+
+def _summary_checks(r: Result, summary: Any, tag: str = "") -> None:
+    """What our port saw of its reports: none clamped (3.6), nothing played beyond them (5)."""
+    if summary is None:
+        return
+    pv, sec = summary.port["passivity"], summary.port["security"]
+    clamped = sec["energy_reports_clamped"]
+    rule = f"the energy reported never exceeds what the wire can carry (no clamp){tag}"
+    r.check("3.6", "MUST", rule, clamped == 0, f"{clamped} clamped")
+    rule = f"what the operator played never exceeded the teleoperator's reports{tag}"
+    r.check("5", "MUST", rule, pv["min_margin"] >= -1e-9, f"min margin {pv['min_margin']:.3g} J")
+
+
+#: The codecs whose energy-budget rules (3.5, eq. 10) only a deadband session shows; checking a
+#: teleoperator with another codec, the suite then drives one of these (:func:`_deadband_session`).
+DEADBAND_CODECS = ("pd", "pdp")
+DEADBAND_CODEC = "pd:5"
+DEADBAND_S = 1.5
+TAKEOVER_EXTRA_S = 5.0  # the main session proposes this much more than it runs, to be taken over
+TAKEOVER_WAIT_S = 5.0  # how long the deadband session's hello may be answered 'busy' meanwhile
+
+
+def _deadband_session(r: Result, c: _Carrier, peer: Addr, k_r: bytes) -> list[tuple[bytes, bytes]]:
+    """A session with :data:`DEADBAND_CODEC` after the main one, whatever codec that used, so that a
+    deadband that ignores its energy budget (3.5, 3.6: eq. 10 and the cumulative rule) is caught
+    whatever the user picked.  We fell silent in the main session: once the robot's link is lost
+    it may be taken over (4.5), and until then its answer is 'busy' (the hello is tried again).
+    This session runs to its end: its energy rules, and the bye rules (4.6) the main one could not
+    show, are checked on it.  Returns its (backward, forward) session keys, if it ran."""
+    tag = f" ({DEADBAND_CODEC} session, taking over)"
+    session = secrets.randbelow(2**32 - 2) + 1
+    p = params_for(session, DEADBAND_CODEC, DEADBAND_S)
+    make = _factory("operator", UNDER_REPORT)
+    data: list[_DataCheck] = []
+    end = time.monotonic() + TAKEOVER_WAIT_S
+    while True:
+        ep = Endpoint.operator(p, peer, make, now_ns=time.monotonic_ns(), psk=k_r)
+        drv = _Driver(c, ep, lambda d, t: data[0](d, t) if data else None)
+        drv.run(functools.partial(_agreed, ep), 15.0)
+        if ep.state != State.FAILED or time.monotonic() >= end:
+            break
+        time.sleep(0.1)  # busy: its link is not lost yet
+    if not ep.running or ep.port is None:
+        failed = next((e for e in drv.events if isinstance(e, Failed)), None)
+        why = failed.detail if failed is not None else ep.state.value
+        rule = "the payloads never play more energy than the reports say was sent (eq. 5, 10)"
+        r.check("3.6", "MUST", rule + tag, None, f"no session: {why}")
+        return []
+    fwd, bwd = auth.session_keys(k_r, session, ep.port.keys.nonce, _nonce(ep.peer_nonce))
+    data.append(_DataCheck(bwd, wire.BACKWARD, session, make_codec(DEADBAND_CODEC, 2, 2.0).codec_id))
+    drv.run(lambda: ep.finished, DEADBAND_S + 10.0)
+    d = data[0]
+    codec = make_codec(DEADBAND_CODEC, p.dof, p.full_scale)
+    stream = sorted(d.stream, key=lambda e: e[1].seq)
+    pkts = [pk for _, pk in stream if len(pk.payload) == codec.payload_bytes]
+    sub = Result(r.role, r.peer)
+    _data_checks(sub, d, DEADBAND_CODEC, p.ticks)
+    t0 = ep.start_ns + round(p.phase * p.dt * 1e9)
+    _energy_checks(sub, codec, pkts, p.dt, p.passivity, stalled=_stalled(stream, t0, p.dt))
+    passive_port_check(sub, d, drv.reports, DEADBAND_CODEC, p.passivity)
+    ended = [e.summary for e in drv.events if isinstance(e, SessionEnded)]
+    _summary_checks(sub, ended[0] if ended else None)
+    for check in sub.checks:
+        check.rule += tag
+        r.checks.append(check)
+    return [(bwd, fwd)]
+
+
+def _agreed(ep: Endpoint) -> bool:
+    return ep.state != State.HANDSHAKE
 
 
 def _probe_busy(b: _Carrier, peer: Addr, sealer: auth.Sealer, k_hs: bytes) -> list[protocol.Message]:
@@ -1072,6 +1250,7 @@ def check_operator(
         )
         if not isinstance(hello, protocol.Hello):
             return r
+        _hello_fields(r, opened[1])
         expect: dict[str, Any] = {}
         ep = Endpoint.teleoperator(
             expect, _factory("teleoperator"), now_ns=time.monotonic_ns(), psk=k_r, connect_timeout_s=timeout_s
@@ -1149,6 +1328,11 @@ def check_operator(
             f"{(ep.start_ns - now) / 1e6:+.1f} ms",
         )
         starts.append((ep.start_ns, now))
+        lead = ep.start_ns - ep.committed_ns  # what is left of its lead: >= 150 ms, 3 rtt + 150 ms
+        rule = "the start's lead is at least 3 rtt + 150 ms: its tick 0 >= 150 ms after it arrives"
+        r.check("4.3 step 5", "MUST", rule, lead >= MIN_LEAD_LEFT_NS, f"{lead / 1e6:+.1f} ms")
+        rule = "the start states the round trip of its exchange (rtt_ns)"
+        r.check("4.3 step 5", "SHOULD", rule, ep.start_rtt_ns is not None, f"rtt_ns {ep.start_rtt_ns}")
         drv.run(lambda: ep.finished, p.span_s + 10.0)
         _data_checks(r, data[0], p.codec, p.ticks)
         # The operator's tick 0 is start_ns on this clock (4.3 step 5: start_ns = S_O + offset).
@@ -1162,6 +1346,28 @@ def check_operator(
     finally:
         sock.close()
     return r
+
+
+#: A start's lead is at least 3 rtt + 150 ms (4.3 step 5); what is left of it when the start
+#: arrives is at least 150 ms whatever the round trip (jitter up to half the delay), less this
+#: much for this suite's polling on a loaded host.
+MIN_LEAD_LEFT_NS = 145_000_000
+#: Optional hello fields and the value they may not be sent with (4.1: SHOULD be left out; 8:
+#: ``passivity`` "wave" MUST be).
+HELLO_DEFAULTS = {"rejoin": False, "playout": "off", "variation": 0, "rate_cap": 0}
+
+
+def _hello_fields(r: Result, body: bytes) -> None:
+    """4.1 and 8 on the operator's first hello, from its raw map."""
+    try:
+        m = msgpack.unpackb(body, raw=False)
+    except Exception:  # (it parsed as a hello: this cannot fail)
+        return
+    rule = "its hello leaves passivity out for a wave session (a wave session is byte for byte as before)"
+    r.check("8", "MUST", rule, m.get("passivity") != "wave", f"passivity {m.get('passivity', 'absent')!r}")
+    sent = [k for k, v in HELLO_DEFAULTS.items() if k in m and m[k] == v and type(m[k]) is type(v)]
+    rule = "its hello leaves out optional fields at their default values"
+    r.check("4.1", "SHOULD", rule, not sent, f"sent {sent}" if sent else "")
 
 
 def write_json(result: Result, path: Path) -> None:

@@ -95,9 +95,10 @@ SILENT_MIN_NS = 1_000_000_000
 #: Teleoperator: a session whose operator sent no data packet by tick 0 (or the commit, if later)
 #: plus the start's round trip ``R`` plus this is a ghost: its link is lost then, and the robot ends
 #: the session and waits for an operator again (PROTOCOL.md 4.3 step 8).  The first packet of a live
-#: session arrives by about ``R`` (its one-way delay and the offset's error, jitter up to half the
-#: delay); the rest is margin for an operator whose first tick is late (a loop starved or still
-#: setting up under load: issue 35), kept within the stated bound ``2 s + R``.
+#: session arrives ``R / 2`` after tick 0 without jitter (its one-way delay and the offset's error
+#: add up to half the round trip), within ``2 R`` with jitter up to half the delay; the rest is
+#: margin for an operator whose first tick is late (its loop starved or still setting up on a loaded
+#: host: issue 35), kept within the stated bound ``2 s + R``.
 GHOST_MARGIN_NS = 1_900_000_000
 #: The part of a start's lead that is not round trips (PROTOCOL.md 4.3 step 5: 3 rtt + 150 ms): a
 #: start without ``rtt_ns`` bounds its round trip by (what is left of its lead - this) / 2.
@@ -384,6 +385,7 @@ class Endpoint:
         self._limits = Envelope()
         self._cookie_secret = rng(32)
         self._limiter = HandshakeLimiter()
+        self._hs_sealer: auth.Sealer | None = None  # teleoperator: K_hs, one counter per process
         # The longest datagram of each key kind (index: auth.HANDSHAKE, auth.SESSION); the session
         # bound is narrowed to the agreed DoF once a session starts.
         self._max_len = [wire.MAX_HANDSHAKE_DATAGRAM_BYTES, wire.MAX_DATAGRAM_BYTES]
@@ -394,6 +396,8 @@ class Endpoint:
         self.retries_sent = 0
         self.replaced = False
         self.ghost_ns: int | None = None  # teleoperator: when a session never heard from ends
+        self.start_rtt_ns: int | None = None  # teleoperator: the round trip its start stated
+        self.committed_ns = 0  # teleoperator: when it committed to the session's start
         # grace
         self.grace = {"limit_us": grace_us, "waits": 0, "missed": 0, "waited_us_total": 0.0}
         self._grace_streak = self._grace_resume = 0
@@ -434,7 +438,10 @@ class Endpoint:
         return ep
 
     def _new_to_handshake(self, now_ns: int) -> protocol.TeleoperatorHandshake:
-        return protocol.TeleoperatorHandshake(
+        """A teleoperator's handshake (at start-up, for a takeover, after a ghost).  They all seal
+        with one handshake sealer: its counter runs on across them and the sessions (PROTOCOL.md
+        2.3: a counter is never reused under K_hs; a fresh sealer each time started again at 1)."""
+        hs = protocol.TeleoperatorHandshake(
             self._expect,
             now_ns=now_ns,
             timeout_s=self.connect_timeout_s,
@@ -445,6 +452,10 @@ class Endpoint:
             defer_t3=True,
             admit=self._limiter.allow,
         )
+        if self._hs_sealer is None:
+            self._hs_sealer = hs.hs_sealer
+        hs.hs_sealer = self._hs_sealer
+        return hs
 
     # --- the surface ------------------------------------------------------------------------
     def next_event(self) -> Event | None:
@@ -699,6 +710,7 @@ class Endpoint:
         late = hs.rejoin or now_ns > t0 - START_GUARD_NS
         k0 = max(0, -(-(now_ns - t0) // period) + JOIN_AHEAD_TICKS) if late else 0
         self._handshake_info = {"joined_late": late}
+        self.start_rtt_ns, self.committed_ns = hs.start_rtt_ns, now_ns
         self.ghost_ns = max(hs.start_ns, now_ns) + ghost_round_trip(hs.start_rtt_ns, hs.start_ns - now_ns)
         self.ghost_ns += GHOST_MARGIN_NS
         self._begin(p, hs.peer, hs.start_ns, t0, k0, late, keys, self.ghost_ns, lost_at=True)
