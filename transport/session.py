@@ -390,6 +390,8 @@ class _Runner:
             # not "due"), and auto playout would add that tick to every payload for good (measured:
             # most of a session one tick above its floor at each end).
             self.feed_pending()
+            if not ep.running or ep.params is not session:  # what it fed started a takeover's session:
+                return None  # tick k is the old session's number, not the new one's
             now = self.clock()
         if ep.grace_needed(k):
             return None
