@@ -172,12 +172,17 @@ def _phase_0() -> None:  # 5.1: a teleoperator that runs its ticks with the oper
 def _late_5() -> None:  # 5.1: ticks run 5 periods late
     from teleop.session import endpoint
 
-    begin = endpoint.Endpoint._begin
+    begin, retime = endpoint.Endpoint._begin, endpoint.Endpoint._retime
 
     def late(self: Any, params: Any, peer: Any, start_ns: int, t0_ns: int, *a: Any, **kw: Any) -> None:
         begin(self, params, peer, start_ns, t0_ns + 5 * round(params.dt * 1e9), *a, **kw)
 
+    def late_again(self: Any, k: int) -> None:  # (the schedule is set again before each tick)
+        retime(self, k)
+        self.t0_ns += 5 * round(self.params.dt * 1e9)
+
     endpoint.Endpoint._begin = late  # type: ignore[method-assign]
+    endpoint.Endpoint._retime = late_again  # type: ignore[method-assign]
 
 
 def _start_skew() -> None:  # 4.3 step 5: an operator whose start_ns is 200 ms off S_O + offset
