@@ -10,22 +10,19 @@ from __future__ import annotations
 
 import json
 import subprocess
-import time
 from pathlib import Path
 
 import pytest
 
 from tests.test_processes import _free_port, _spawn
 from tests.test_restart_real import DelayRelay, _operator
+from tests.waiting import wait_for
 
 DELAYS_MS = (130, 300, 800)
 
 
 def _wait_for(path: Path, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not path.exists():
-        assert time.monotonic() < deadline, f"{path} did not appear within {timeout_s} s"
-        time.sleep(0.05)
+    wait_for(path.exists, timeout_s, f"{path} to appear")
 
 
 def _robot(key: str, port: int, log: Path) -> subprocess.Popen[str]:

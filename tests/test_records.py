@@ -25,6 +25,7 @@ import pytest
 
 from teleop import files
 from teleop.cli import main
+from tests.waiting import wait_for
 from transport import logdir
 
 NOBODY = ["setpriv", "--reuid=nobody", "--regid=nogroup", "--clear-groups"]
@@ -115,10 +116,7 @@ TELEOP = [sys.executable, "-m", "teleop.cli"]
 
 
 def _wait_for(ready: Callable[[], bool], what: str, timeout: float = 60.0) -> None:
-    give_up = time.monotonic() + timeout
-    while not ready():
-        assert time.monotonic() < give_up, f"gave up waiting for {what}"
-        time.sleep(0.05)
+    wait_for(ready, timeout, what)
 
 
 def _children(pid: int) -> list[int]:
