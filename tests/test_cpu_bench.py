@@ -4,6 +4,7 @@ and the run kept (it crashed with a TypeError minutes into a run, its evidence d
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -18,22 +19,27 @@ from bench import cpu
 def test_a_report_without_a_process_stops_the_bench_and_keeps_the_run(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    class Empty:  # the empty loop alongside
+    class Fake:  # the empty loop alongside, and the session whose report lacks the operator
+        pid = os.getpid()  # (the session's CPU sampler finds no process below it)
+        returncode = 0
+
         def __init__(self, cmd: list[str], **kw: Any) -> None:
-            Path(cmd[cmd.index("--empty") + 1]).write_text(json.dumps({"period_error_us": {}}))
+            if "--empty" in cmd:
+                Path(cmd[cmd.index("--empty") + 1]).write_text(json.dumps({"period_error_us": {}}))
+                return
+            out = Path(cmd[cmd.index("--out") + 1])
+            out.mkdir(parents=True)
+            procs: dict[str, Any] = {"operator": None, "teleoperator": {"loop": {}}}
+            rep = {"processes": procs, "summary_missing": ["operator"]}
+            (out / "report.json").write_text(json.dumps(rep))
 
         def wait(self, timeout: float | None = None) -> int:
             return 0
 
-    def run(cmd: list[str], **kw: Any) -> subprocess.CompletedProcess[str]:
-        out = Path(cmd[cmd.index("--out") + 1])
-        out.mkdir(parents=True)
-        procs: dict[str, Any] = {"operator": None, "teleoperator": {"loop": {}}}
-        (out / "report.json").write_text(json.dumps({"processes": procs, "summary_missing": ["operator"]}))
-        return subprocess.CompletedProcess(cmd, 0, "  operator     SUMMARY MISSING", "")
+        def communicate(self, timeout: float | None = None) -> tuple[str, str]:
+            return "  operator     SUMMARY MISSING", ""
 
-    monkeypatch.setattr("bench.cpu.subprocess.Popen", Empty)
-    monkeypatch.setattr("bench.cpu.subprocess.run", run)
+    monkeypatch.setattr("bench.cpu.subprocess.Popen", Fake)
     monkeypatch.setattr("bench.cpu.tempfile.mkdtemp", lambda prefix: str(tmp_path / f"{prefix}kept"))
     with pytest.raises(SystemExit) as e:
         cpu.run_case("none", 2, 1.0, tmp_path)
