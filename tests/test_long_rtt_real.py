@@ -34,7 +34,9 @@ def _robot(key: str, port: int, log: Path) -> subprocess.Popen[str]:
 
 
 @pytest.mark.integration
-@pytest.mark.parametrize("delay_ms", DELAYS_MS)
+# The longest only, as for the rejoin below: a start at 0.26, 0.3, 0.6, 1.6 and 2 s round trip runs in
+# virtual time (tests/test_endpoint_robust.py); the real runner is shown once, where it is longest.
+@pytest.mark.parametrize("delay_ms", DELAYS_MS[-1:])
 def test_a_session_starts_and_completes_behind_a_long_delay(tmp_path: Path, key: str, delay_ms: int) -> None:
     port = _free_port()
     relay = DelayRelay(("127.0.0.1", port), delay_ms / 1e3)
