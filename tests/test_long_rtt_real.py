@@ -1,6 +1,6 @@
 """Issue 35 over real UDP: two processes through a relay on 127.0.0.1 that delays every datagram
-130, 300 or 800 ms each way (a round trip the fixed 300 ms start lead could not serve).  A session
-starts and completes there, and a teleoperator restarted there rejoins.
+800 ms each way (a round trip the fixed 300 ms start lead could not serve; shorter ones run in
+virtual time).  A session starts and completes there, and a teleoperator restarted there rejoins.
 
 The relay is ``tests.test_restart_real.DelayRelay`` (a thread of the test with a bounded life).
 Nothing sleeps for a fixed time: the tests wait for the files and exits they need.
