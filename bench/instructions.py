@@ -30,12 +30,17 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
 from bench import commit, write_result
-from bench.cpu import CASES  # the CPU bench's cases: the two tables read side by side
+from bench.cpu import _case
+from bench.tick import SIDE_CODECS, SIDE_DOFS
+
+#: Per codec at 2, 6 and 64 DoF (issue 37), the hot port tick's grid (bench.tick's sides).
+CASES: tuple[tuple[str, int], ...] = tuple((c, d) for d in SIDE_DOFS for c in SIDE_CODECS)
 
 #: The default span: ticks 2000-7000 of the protocol task cross from free space into the foam (5 s).
 FROM_TICKS, TO_TICKS = 2000, 7000
@@ -76,9 +81,11 @@ def per_tick(codec: str, dof: int, lo: int, hi: int, root: Path | None) -> dict[
     return {"instructions": {str(lo): a, str(hi): b}, "per_tick": (b - a) / (hi - lo)}
 
 
-def run(lo: int, hi: int, reference: Path | None) -> dict[str, Any]:
+def run(
+    lo: int, hi: int, reference: Path | None, cases_run: Sequence[tuple[str, int]] = CASES
+) -> dict[str, Any]:
     cases = []
-    for codec, dof in CASES:
+    for codec, dof in cases_run:
         print(f"{codec} {dof} DoF ...", flush=True)
         case: dict[str, Any] = {"codec": codec, "dof": dof, "tree": per_tick(codec, dof, lo, hi, None)}
         if reference is not None:
@@ -104,6 +111,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--to", dest="hi", type=_ticks, default=TO_TICKS, help="tick the count ends at")
     ap.add_argument("--reference", type=Path, help="a checkout of another commit, counted too")
     ap.add_argument("--out", default="bench/results/instructions.json")
+    ap.add_argument(
+        "--cases",
+        nargs="+",
+        type=_case,
+        metavar="CODEC:DOF",
+        help="count these cases only (default: " + " ".join(f"{c}:{d}" for c, d in CASES) + ")",
+    )
     a = ap.parse_args(argv)
     if a.hi - a.lo < 100:
         ap.error(f"--to must be at least 100 ticks after --from, got {a.lo}..{a.hi}")
@@ -116,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("needs valgrind on PATH (Debian: apt-get install valgrind)")
     t0 = time.monotonic()
     try:
-        res = run(a.lo, a.hi, a.reference)
+        res = run(a.lo, a.hi, a.reference, a.cases or CASES)
     except BenchError as e:
         print(f"bench.instructions: {e}", file=sys.stderr)
         return 1

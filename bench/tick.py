@@ -1,4 +1,5 @@
-"""Micro-benchmark: microseconds per 1 kHz tick of the control core, at 2 and 6 DoF.
+"""Micro-benchmark: microseconds per 1 kHz tick of the control core, at 2 and 6 DoF; and the hot
+port tick per side, per codec at 2, 6 and 64 DoF (issue 37).
 
 Measures, per codec: the wave transform alone, encode+decode alone, a full operator tick plus
 teleoperator tick including wire encoding and parsing, and the same through the two sans-I/O ports
@@ -6,7 +7,11 @@ teleoperator tick including wire encoding and parsing, and the same through the 
 what one loop iteration of each process costs apart from I/O, added together).  Medians over
 repeats; writes JSON (default ``bench/results/tick.json``).
 
-    python -m bench.tick [--out FILE] [--ticks N] [--repeats R]
+The hot port tick per side (``sides`` in the JSON) is each side's port as its process runs it
+(receive what arrived, tick, sent; the ``protocol`` task), back to back: the caches stay warm, so it
+is the floor of what a tick costs in the loop, where a tick after the sleep is colder.
+
+    python -m bench.tick [--out FILE] [--ticks N] [--repeats R] [--sides-only]
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ import argparse
 import platform
 import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +37,8 @@ from teleop.session.settings import Passivity
 
 CODECS = ("none", "ids:50", "eds:50", "cq:8")
 TDPA_CODECS = ("none", "eds:50", "pdp:1")  # the port's hot path under TDPA (issue 23)
+SIDE_CODECS = ("none", "eds:50", "pdp:1")  # the hot port tick per side (issue 37)
+SIDE_DOFS = (2, 6, 64)
 DT = 1e-3
 
 
@@ -181,21 +188,48 @@ def bench_port_sides(
     return ops, tos
 
 
-def main() -> None:
+def bench_sides(
+    ticks: int, repeats: int, codecs: Sequence[str] = SIDE_CODECS, dofs: Sequence[int] = SIDE_DOFS
+) -> list[dict[str, Any]]:
+    """The hot port tick per side: per codec and DoF, each side's median over ``repeats`` (us)."""
+    out = []
+    for dof in dofs:
+        for spec in codecs:
+            op, to = bench_port_sides(spec, dof, ticks, repeats, scenario="protocol")
+            out.append(
+                {
+                    "codec": spec,
+                    "dof": dof,
+                    "operator_us": statistics.median(op),
+                    "teleoperator_us": statistics.median(to),
+                    "operator_runs_us": op,
+                    "teleoperator_runs_us": to,
+                }
+            )
+            print(
+                f"dof {dof:>2}  {spec:<7} hot port tick: operator {statistics.median(op):7.2f} us  "
+                f"teleoperator {statistics.median(to):7.2f} us"
+            )
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="bench/results/tick.json")
     ap.add_argument("--ticks", type=int, default=5000)
     ap.add_argument("--repeats", type=int, default=7)
-    a = ap.parse_args()
+    ap.add_argument("--sides-only", action="store_true", help="only the hot port tick per side")
+    a = ap.parse_args(argv)
     res: dict[str, Any] = {
         "what": "microseconds per tick, median over repeats",
         "ticks": a.ticks,
         "repeats": a.repeats,
         "python": platform.python_version(),
         "machine": platform.machine(),
+        "sides": bench_sides(a.ticks, a.repeats),
         "results": [],
     }
-    for dof in (2, 6):
+    for dof in () if a.sides_only else (2, 6):
         med = statistics.median(bench_transform(dof, a.ticks, a.repeats))
         res["results"].append({"dof": dof, "part": "wave transform + inverse", "codec": None, "us": med})
         print(f"dof {dof}  wave transform+inverse          {med:7.2f} us")

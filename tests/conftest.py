@@ -3,6 +3,8 @@ machine, not on a defect: speed is measured in bench/, never asserted in tests),
 fixture (a pre-shared key file), and the guard that keeps the fast suite fast: a test that starts
 an OS process (subprocess, asyncio's subprocesses, multiprocessing, a fork) and is not marked
 ``integration`` fails, naming what it started, so ``pytest -m "not integration"`` never starts one.
+A run's summary ends with the two suites' counts and times (a run of both, as the README's command
+is, shows what the fast suite alone costs).
 """
 
 from __future__ import annotations
@@ -86,3 +88,37 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) ->
             "but is not marked integration (pytest.mark.integration): the fast suite, "
             '`pytest -m "not integration"`, starts none'
         )
+
+
+# --- the two suites in the summary -------------------------------------------------------------
+
+_SUITES: dict[str, list[float]] = {"fast": [], "integration": []}  # per test: seconds, all phases
+_IN_SUITE: dict[str, str] = {}
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        _IN_SUITE[item.nodeid] = "integration" if item.get_closest_marker("integration") else "fast"
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    suite = _IN_SUITE.get(report.nodeid)
+    if suite is None:
+        return
+    if report.when == "setup":
+        _SUITES[suite].append(0.0)
+    if _SUITES[suite]:
+        _SUITES[suite][-1] += report.duration
+
+
+def pytest_terminal_summary(terminalreporter: Any) -> None:
+    parts = [
+        f"{name} {len(times)} tests in {sum(times):.1f} s"
+        for name, times in (
+            ("fast suite (-m 'not integration'):", _SUITES["fast"]),
+            ("integration:", _SUITES["integration"]),
+        )
+        if times
+    ]
+    if parts:
+        terminalreporter.write_line("suites (setup + call + teardown of each test): " + "; ".join(parts))

@@ -11,13 +11,13 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from teleop.session import auth, protocol, wire
+from tests.waiting import tcp_clients, tcp_listening, udp_bound, wait_for
 from transport import conformance
 
 pytestmark = pytest.mark.integration
@@ -28,6 +28,10 @@ def _free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def _port_of(endpoint: str) -> int:
+    return int(endpoint.rsplit(":", 1)[1])
 
 
 def _peer(brk: str | None, *args: str) -> subprocess.Popen[str]:
@@ -41,7 +45,7 @@ def _check_teleoperator(
     port = _free_port()
     to = _peer(brk, "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--quiet")
     try:
-        time.sleep(1.0)
+        wait_for(lambda: udp_bound(port), 60, "the teleoperator's socket")
         out = tmp_path / "conf.json"
         r = subprocess.run(
             [*TELEOP, "conformance", "teleoperator", "--peer", f"127.0.0.1:{port}", "--key-file", key,
@@ -64,7 +68,7 @@ def _check_operator(
          "--timeout", "20", "--json", str(out)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
-    time.sleep(1.0)
+    wait_for(lambda: udp_bound(port), 60, "the checker's socket")
     op = _peer(brk, "operator", "--key-file", key, "--peer", f"127.0.0.1:{port}", "--listen", "127.0.0.1:0",
                "--codec", codec, "--duration", "1.5", "--connect-timeout", "4", "--quiet")  # fmt: skip
     try:
@@ -211,7 +215,7 @@ def router() -> Iterator[str]:
     proc = subprocess.Popen(
         [*TELEOP, "router", "--listen", endpoint], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
     )
-    time.sleep(1.0)
+    wait_for(lambda: tcp_listening(_port_of(endpoint)), 60, "the router's listener")
     try:
         yield endpoint
     finally:
@@ -223,7 +227,7 @@ def test_both_of_the_projects_endpoints_conform_over_zenoh(tmp_path: Path, key: 
     zenoh = ["--transport", "zenoh", "--zenoh-mode", "client", "--zenoh-router", router]
     to = _peer(None, "teleoperator", "--key-file", key, "--quiet", "--connect-timeout", "40", *zenoh)
     try:
-        time.sleep(1.5)
+        wait_for(lambda: tcp_clients(_port_of(router)) >= 1, 60, "the teleoperator in the router")
         cmd = [
             *TELEOP,
             "conformance",
@@ -247,7 +251,7 @@ def test_both_of_the_projects_endpoints_conform_over_zenoh(tmp_path: Path, key: 
          "--json", str(tmp_path / "o.json")],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
-    time.sleep(1.5)
+    wait_for(lambda: tcp_clients(_port_of(router)) >= 1, 60, "the checker in the router")
     op = _peer(
         None, "operator", "--key-file", key, *zenoh, "--codec", "eds:50", "--duration", "1.5", "--quiet"
     )
@@ -274,7 +278,7 @@ def test_the_conformance_operator_joins_a_peer_mode_teleoperator_with_the_robot_
         *common, "--zenoh-listen", endpoint,
     )  # fmt: skip
     try:
-        time.sleep(1.5)
+        wait_for(lambda: tcp_listening(_port_of(endpoint)), 60, "the teleoperator's Zenoh listener")
         r = subprocess.run(
             [*TELEOP, "conformance", "teleoperator", "--key-file", key, *common, "--zenoh-connect", endpoint,
              "--json", str(tmp_path / "t.json")],

@@ -4,6 +4,7 @@ and the run kept (it crashed with a TypeError minutes into a run, its evidence d
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -18,22 +19,27 @@ from bench import cpu
 def test_a_report_without_a_process_stops_the_bench_and_keeps_the_run(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    class Empty:  # the empty loop alongside
+    class Fake:  # the empty loop alongside, and the session whose report lacks the operator
+        pid = os.getpid()  # (the session's CPU sampler finds no process below it)
+        returncode = 0
+
         def __init__(self, cmd: list[str], **kw: Any) -> None:
-            Path(cmd[cmd.index("--empty") + 1]).write_text(json.dumps({"period_error_us": {}}))
+            if "--empty" in cmd:
+                Path(cmd[cmd.index("--empty") + 1]).write_text(json.dumps({"period_error_us": {}}))
+                return
+            out = Path(cmd[cmd.index("--out") + 1])
+            out.mkdir(parents=True)
+            procs: dict[str, Any] = {"operator": None, "teleoperator": {"loop": {}}}
+            rep = {"processes": procs, "summary_missing": ["operator"]}
+            (out / "report.json").write_text(json.dumps(rep))
 
         def wait(self, timeout: float | None = None) -> int:
             return 0
 
-    def run(cmd: list[str], **kw: Any) -> subprocess.CompletedProcess[str]:
-        out = Path(cmd[cmd.index("--out") + 1])
-        out.mkdir(parents=True)
-        procs: dict[str, Any] = {"operator": None, "teleoperator": {"loop": {}}}
-        (out / "report.json").write_text(json.dumps({"processes": procs, "summary_missing": ["operator"]}))
-        return subprocess.CompletedProcess(cmd, 0, "  operator     SUMMARY MISSING", "")
+        def communicate(self, timeout: float | None = None) -> tuple[str, str]:
+            return "  operator     SUMMARY MISSING", ""
 
-    monkeypatch.setattr("bench.cpu.subprocess.Popen", Empty)
-    monkeypatch.setattr("bench.cpu.subprocess.run", run)
+    monkeypatch.setattr("bench.cpu.subprocess.Popen", Fake)
     monkeypatch.setattr("bench.cpu.tempfile.mkdtemp", lambda prefix: str(tmp_path / f"{prefix}kept"))
     with pytest.raises(SystemExit) as e:
         cpu.run_case("none", 2, 1.0, tmp_path)
@@ -85,3 +91,58 @@ def test_bad_arguments_are_refused_in_one_line_before_anything_runs(
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert said in err and "Traceback" not in err
+
+
+@pytest.mark.integration  # a child python and its own child
+def test_the_session_cpu_counts_every_process_below_from_the_start(tmp_path: Path) -> None:
+    """SessionCpu sums the CPU of the processes below a pid (a grandchild too), from when the
+    session starts, over the time from then to their exit."""
+    import sys
+
+    started = tmp_path / "started"
+    burn = "import time; e = time.process_time() + 0.3\nwhile time.process_time() < e: pass"
+    parent = (
+        "import subprocess, sys, time, pathlib; e = time.process_time() + 0.2\n"
+        "while time.process_time() < e: pass\n"  # before the start: not counted
+        f"pathlib.Path({str(started)!r}).touch()\n"
+        f"c = subprocess.Popen([sys.executable, '-c', {burn!r}])\n"
+        "e = time.process_time() + 0.3\nwhile time.process_time() < e: pass\nc.wait()"
+    )
+    # The sampler watches the processes below ``top``, which only runs the parent's python.
+    top = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import subprocess, sys; subprocess.run([sys.executable, '-c', sys.argv[1]])",
+            parent,
+        ]
+    )
+    sampler = cpu.SessionCpu(top.pid, started.exists, period=0.01)
+    assert top.wait(timeout=60) == 0
+    got = sampler.stop()
+    assert got["processes"] == 2  # the parent and its child, not ``top`` above them
+    assert 0.5 <= got["cpu_s"] <= 0.8, got  # 0.3 + 0.3 s after the start (the first 0.2 s is not)
+    assert 0.0 < got["cpu_fraction_of_one_core"] <= 2.0
+
+
+def test_the_hot_port_tick_is_timed_per_side_codec_and_dof() -> None:
+    from bench import tick
+
+    sides = tick.bench_sides(20, 1, codecs=("none", "eds:50"), dofs=(2, 64))
+    assert [(s["codec"], s["dof"]) for s in sides] == [
+        ("none", 2),
+        ("eds:50", 2),
+        ("none", 64),
+        ("eds:50", 64),
+    ]
+    assert all(s["operator_us"] > 0 and s["teleoperator_us"] > 0 for s in sides)
+    assert tick.SIDE_DOFS == (2, 6, 64) and {"none", "eds:50"} <= set(tick.SIDE_CODECS)
+
+
+def test_instructions_are_counted_per_codec_at_2_6_and_64_dof() -> None:
+    from bench import instructions, tick
+
+    assert set(instructions.CASES) == {(c, d) for c in tick.SIDE_CODECS for d in (2, 6, 64)}
+    assert cpu._case("pdp:1:64") == ("pdp:1", 64)
+    with pytest.raises(Exception, match="CODEC:DOF"):
+        cpu._case("none:65")

@@ -15,7 +15,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,7 @@ import pytest
 
 from teleop import files
 from teleop.offline.logfile import LogError, iter_ticks, read_session, read_summary
+from tests.waiting import ticks_logged, udp_bound, wait_for
 from transport import logdir
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
@@ -183,9 +183,7 @@ def test_a_killed_writer_is_reported_and_its_chunks_stay_readable(
     op, to = _pair((log, None))
     log.status("session", 0.0, {"role": "operator", "params": {"session": 7}})
     _run(op, to, range(3500))
-    give_up = time.monotonic() + 30
-    while f.mcap.stat().st_size < 200_000 and time.monotonic() < give_up:  # three chunks written
-        time.sleep(0.05)
+    wait_for(lambda: f.mcap.stat().st_size >= 200_000, 30, "three chunks written")
     os.kill(log._proc.pid, signal.SIGKILL)
     log._proc.wait()
     _run(op, to, range(3500, 5000))  # the loop goes on
@@ -510,28 +508,26 @@ def test_a_process_killed_mid_session_leaves_a_log_the_report_reads(tmp_path: Pa
     common = ["--insecure", "--no-rt", "--quiet", "--log", str(logs)]
     to = subprocess.Popen([*TELEOP, "teleoperator", "--listen", f"127.0.0.1:{port}", *common])
     try:
-        time.sleep(1.0)
+        wait_for(lambda: udp_bound(port), 60, "the teleoperator's socket")
         op = subprocess.Popen(
             [*TELEOP, "operator", "--peer", f"127.0.0.1:{port}", "--duration", "4", *common]
         )
-        give_up = time.monotonic() + 30
-        while not (logs / "operator.mcap").exists() and time.monotonic() < give_up:
-            time.sleep(0.1)
-        time.sleep(2.5)
+        # Killed mid-session, with more than the 1000 ticks the report must compare.
+        wait_for(lambda: ticks_logged(logs / "operator.mcap") >= 1500, 60, "1500 ticks", poll=0.2)
         op.kill()
         op.wait()
         assert to.wait(timeout=30) == 0
     finally:
         if to.poll() is None:
             to.kill()
-    give_up = time.monotonic() + 10  # the writer, in its own group, finishes the file
-    while time.monotonic() < give_up:
+
+    def finished() -> bool:  # the writer, in its own group, finishes the file
         try:
-            if read_session(logs / "operator.mcap"):
-                break
+            return bool(read_session(logs / "operator.mcap"))
         except LogError:  # still being finished
-            pass
-        time.sleep(0.2)
+            return False
+
+    wait_for(finished, 10, "the killed operator's log, finished by its writer")
     assert read_summary(logs / "operator.mcap") == {} and not (logs / "operator.json").exists()
     r = _report(logs, "--no-sim")
     assert r.returncode == 0, r.stderr

@@ -1,6 +1,6 @@
 """Issue 35 over real UDP: two processes through a relay on 127.0.0.1 that delays every datagram
-130, 300 or 800 ms each way (a round trip the fixed 300 ms start lead could not serve).  A session
-starts and completes there, and a teleoperator restarted there rejoins.
+800 ms each way (a round trip the fixed 300 ms start lead could not serve; shorter ones run in
+virtual time).  A session starts and completes there, and a teleoperator restarted there rejoins.
 
 The relay is ``tests.test_restart_real.DelayRelay`` (a thread of the test with a bounded life).
 Nothing sleeps for a fixed time: the tests wait for the files and exits they need.
@@ -10,22 +10,19 @@ from __future__ import annotations
 
 import json
 import subprocess
-import time
 from pathlib import Path
 
 import pytest
 
 from tests.test_processes import _free_port, _spawn
 from tests.test_restart_real import DelayRelay, _operator
+from tests.waiting import wait_for
 
 DELAYS_MS = (130, 300, 800)
 
 
 def _wait_for(path: Path, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not path.exists():
-        assert time.monotonic() < deadline, f"{path} did not appear within {timeout_s} s"
-        time.sleep(0.05)
+    wait_for(path.exists, timeout_s, f"{path} to appear")
 
 
 def _robot(key: str, port: int, log: Path) -> subprocess.Popen[str]:
@@ -37,7 +34,9 @@ def _robot(key: str, port: int, log: Path) -> subprocess.Popen[str]:
 
 
 @pytest.mark.integration
-@pytest.mark.parametrize("delay_ms", DELAYS_MS)
+# The longest only, as for the rejoin below: a start at 0.26, 0.3, 0.6, 1.6 and 2 s round trip runs in
+# virtual time (tests/test_endpoint_robust.py); the real runner is shown once, where it is longest.
+@pytest.mark.parametrize("delay_ms", DELAYS_MS[-1:])
 def test_a_session_starts_and_completes_behind_a_long_delay(tmp_path: Path, key: str, delay_ms: int) -> None:
     port = _free_port()
     relay = DelayRelay(("127.0.0.1", port), delay_ms / 1e3)

@@ -21,6 +21,8 @@ from typing import Any
 
 import pytest
 
+from tests.waiting import ticks_logged, udp_bound, wait_for
+
 pytestmark = pytest.mark.integration
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
@@ -190,12 +192,10 @@ def test_report_contract_and_logs(tmp_path: Path) -> None:
 
 
 def _wait_for_logs(logs: Path, timeout_s: float = 60.0) -> None:
-    """Until both processes' session logs exist, and 1.5 s more: both loops then tick.  A fixed sleep
+    """Until both processes' session logs hold 1000 ticks: both loops then tick.  A fixed sleep
     interrupted the start on a loaded host (the processes take seconds to import there)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline and len(list(logs.glob("*.mcap"))) < 2:
-        time.sleep(0.1)
-    time.sleep(1.5)
+    paths = [logs / f"{role}.mcap" for role in ("operator", "teleoperator")]
+    wait_for(lambda: all(ticks_logged(p) >= 1000 for p in paths), timeout_s, "1000 ticks a side", poll=0.2)
 
 
 def _ignore_sigint() -> None:
@@ -280,7 +280,7 @@ def test_teleoperator_rejects_a_different_codec_and_keeps_waiting(tmp_path: Path
     auth.write_key_file(other_key, auth.generate_key())
     port = _free_port()
     to = _spawn("teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--codec", "cq:8")
-    time.sleep(0.5)
+    wait_for(lambda: udp_bound(port), 60, "the teleoperator's socket")
 
     def operator(key_file: str, codec: str) -> subprocess.CompletedProcess[str]:
         cmd = ["operator", "--key-file", key_file, "--peer", f"127.0.0.1:{port}", "--listen", "127.0.0.1:0"]
@@ -371,7 +371,7 @@ def test_teleoperator_restarted_mid_session_and_the_operator_recovers(tmp_path: 
     to1 = _spawn(
         "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--log", str(logs), "--quiet"
     )
-    time.sleep(0.4)
+    wait_for(lambda: udp_bound(port), 60, "the teleoperator's socket")
     op = _spawn(
         "operator",
         "--key-file",
@@ -388,10 +388,11 @@ def test_teleoperator_restarted_mid_session_and_the_operator_recovers(tmp_path: 
         str(logs),
         "--quiet",
     )
-    time.sleep(2.0)
+    # Killed once the session has run 1.5 s of its 5 (the new one joins the rest of it).
+    wait_for(lambda: ticks_logged(logs / "operator.mcap") >= 1500, 60, "1500 ticks", poll=0.2)
     to1.kill()  # a crash: no bye, no logs
     to1.wait()
-    time.sleep(0.5)
+    # The outage is the new process's start (its imports alone outlast the 50 ms link timeout).
     to2 = _spawn(
         "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--log", str(logs), "--quiet"
     )
@@ -429,7 +430,7 @@ def test_operator_restarted_mid_session_and_the_teleoperator_serves_the_new_one(
     to = _spawn(
         "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--log", str(logs), "--quiet"
     )
-    time.sleep(0.4)
+    wait_for(lambda: udp_bound(port), 60, "the teleoperator's socket")
     op1 = _spawn(
         "operator",
         "--key-file",
@@ -446,10 +447,10 @@ def test_operator_restarted_mid_session_and_the_teleoperator_serves_the_new_one(
         str(logs / "op1"),
         "--quiet",
     )
-    time.sleep(2.0)
+    wait_for(lambda: ticks_logged(logs / "op1" / "operator.mcap") >= 2000, 60, "2000 ticks", poll=0.2)
     op1.kill()
     op1.wait()
-    time.sleep(0.5)
+    # The outage is the new process's start (its imports alone outlast the 50 ms link timeout).
     op2 = _spawn(
         "operator",
         "--key-file",
@@ -491,21 +492,30 @@ def test_a_recorded_hello_during_an_outage_does_not_replace_the_session(tmp_path
     recorded = protocol.OperatorHandshake(old, now_ns=1, timeout_s=1, psk=psk, nonce=bytes(16)).poll(1)[0]
     port, logs = _free_port(), tmp_path / "logs"
     to = _spawn("teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--log", str(logs))
-    time.sleep(0.4)
+    wait_for(lambda: udp_bound(port), 60, "the teleoperator's socket")
     op = _spawn(
         "operator", "--key-file", key, "--peer", f"127.0.0.1:{port}", "--listen", "127.0.0.1:0",
         "--codec", "none", "--duration", "5", "--log", str(logs / "op"), "--quiet",
     )  # fmt: skip
-    time.sleep(2.5)
-    os.kill(op.pid, signal.SIGSTOP)  # a 0.4 s outage: the teleoperator's link is lost
+    wait_for(lambda: ticks_logged(logs / "op" / "operator.mcap") >= 2000, 60, "2000 ticks", poll=0.2)
+    os.kill(op.pid, signal.SIGSTOP)  # an outage: the teleoperator's link is lost
+    # A fixed wait, one of the suite's few: the outage's length is the scenario (4x the 50 ms link
+    # timeout), not an event to wait for.
     time.sleep(0.2)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as stranger:
         stranger.bind(("127.0.0.1", 0))
-        stranger.settimeout(0.1)
-        for _ in range(3):
+        stranger.settimeout(0.05)
+
+        def answered() -> bytes | None:
             stranger.sendto(recorded, ("127.0.0.1", port))
-            time.sleep(0.05)
-        welcomed = stranger.recv(2048)  # the takeover answers it (a retry: a cookie, no state) ...
+            try:
+                return stranger.recv(2048)
+            except TimeoutError:
+                return None
+
+        welcomed = wait_for(answered, 5, "an answer to the recorded hello", poll=0)
+        assert welcomed is not None  # (wait_for returns only what is true)
+        # ... the takeover answers it (a retry: a cookie, no state) ...
     os.kill(op.pid, signal.SIGCONT)
     assert op.wait(timeout=30) == 0
     _, to_err = to.communicate(timeout=30)

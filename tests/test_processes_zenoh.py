@@ -19,6 +19,7 @@ import pytest
 
 from tests.test_processes import _alive
 from tests.test_zenoh import readme_subscriber
+from tests.waiting import tcp_clients, tcp_listening, wait_for
 
 pytestmark = pytest.mark.integration
 TELEOP = [sys.executable, "-m", "teleop.cli"]
@@ -73,8 +74,9 @@ def test_plain_subscriber_decodes_live_packets(tmp_path: Path) -> None:
     """A subscriber written from the docs alone (zenoh + msgpack + zlib) decodes a live session."""
     endpoint = f"tcp/127.0.0.1:{_free_tcp_port()}"
     router = subprocess.Popen([*TELEOP, "router", "--listen", endpoint])
+    port = int(endpoint.rsplit(":", 1)[1])
     try:
-        time.sleep(0.5)
+        wait_for(lambda: tcp_listening(port), 60, "the router's listener")
         got: dict[str, Any] = {}
 
         def listen() -> None:
@@ -82,7 +84,7 @@ def test_plain_subscriber_decodes_live_packets(tmp_path: Path) -> None:
 
         th = threading.Thread(target=listen)
         th.start()
-        time.sleep(0.5)
+        wait_for(lambda: tcp_clients(port) >= 1, 60, "the subscriber in the router")
         r, rep = _run(
             tmp_path,
             "--zenoh-mode",
@@ -159,13 +161,7 @@ def test_a_stranger_on_the_zenoh_key_cannot_drive_the_robot(tmp_path: Path) -> N
             )
         )
         captured: list[tuple[str, bytes]] = []
-        # The router may still be starting on a loaded host: a refused connection is retried.
-        for _ in range(100):
-            try:
-                z = zenoh.open(cfg)
-                break
-            except zenoh.ZError:
-                time.sleep(0.1)
+        z = zenoh.open(cfg)  # (the router listens: the test waited for it)
         with z:
             z.declare_subscriber(
                 "teleop/**", lambda s: captured.append((str(s.key_expr), s.payload.to_bytes()))
@@ -184,10 +180,10 @@ def test_a_stranger_on_the_zenoh_key_cannot_drive_the_robot(tmp_path: Path) -> N
                     ):
                         z.put(key, data)
                         sent[what] += 1
-                time.sleep(0.002)
+                stop.wait(0.002)  # until the session ends, an attack every 2 ms
 
     try:
-        time.sleep(0.5)
+        wait_for(lambda: tcp_listening(int(endpoint.rsplit(":", 1)[1])), 60, "the router's listener")
         th = threading.Thread(target=attack)
         th.start()
         r, rep = _run(

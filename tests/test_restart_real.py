@@ -22,6 +22,7 @@ from typing import Any
 import pytest
 
 from tests.test_processes import TELEOP, _free_port, _spawn
+from tests.waiting import ticks_logged, udp_bound, wait_for
 
 
 class DelayRelay:
@@ -86,9 +87,10 @@ def test_a_teleoperator_restarted_behind_a_2ms_link_rejoins_within_2s(tmp_path: 
     relay = DelayRelay(("127.0.0.1", port), 0.002)
     try:
         to1 = _spawn("teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--quiet")
-        time.sleep(1.0)
+        wait_for(lambda: udp_bound(port), 60, "the teleoperator's socket")
         op = _operator(key, relay.addr, tmp_path / "op", "9")
-        time.sleep(3.5)
+        # Killed 3.5 s into the session (the new one must join after tick 3000).
+        wait_for(lambda: ticks_logged(tmp_path / "op" / "operator.mcap") >= 3500, 60, "3500 ticks", poll=0.2)
         to1.kill()
         to1.wait()
         to2_logs = str(tmp_path / "to2")
@@ -122,7 +124,7 @@ def test_a_relay_to_another_robot_with_the_same_key_never_starts_a_session(tmp_p
     )  # fmt: skip
     relay = DelayRelay(("127.0.0.1", port), 0.0005)
     try:
-        time.sleep(1.0)
+        wait_for(lambda: udp_bound(port), 60, "robot-b's socket")
         op = _operator(
             key, relay.addr, tmp_path / "op", "3", "--robot-name", "robot-a", "--connect-timeout", "2"
         )
