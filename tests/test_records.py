@@ -214,8 +214,8 @@ def test_kill_9_of_the_robot_beside_cpu_hogs_loses_at_most_the_stated_bound(tmp_
                     "operator",
                     "--peer",
                     f"127.0.0.1:{port}",
-                    "--duration",  # long enough to outlive the kill (5 s in), short enough to end by itself
-                    "20",
+                    "--duration",
+                    "60",
                     "--link-timeout",
                     "1000",
                     *common,
