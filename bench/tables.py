@@ -1056,6 +1056,68 @@ def frontier0(source: str = "frontier0.json", command: str = "python -m bench.fr
     )
 
 
+def tick_sides() -> Table:
+    """bench.tick's hot port tick per side (issue 37): each side's port, back to back, per codec and DoF."""
+    b = Builder("tick.json")
+    rows: list[tuple[Cell, ...]] = []
+    for i, s in enumerate(b.doc["sides"]):
+        rows.append(
+            (
+                f"`{s['codec']}`",
+                str(s["dof"]),
+                b.one(f"sides[{i}].operator_us", ".1f"),
+                b.one(f"sides[{i}].teleoperator_us", ".1f"),
+            )
+        )
+    return Table(
+        "tick-sides",
+        "tick.json",
+        "python -m bench.tick",
+        ("codec", "DoF", "operator, us", "teleoperator, us"),
+        tuple(rows),
+        note=(
+            f" Median of {b.doc['repeats']} repeats of {b.doc['ticks']} ticks of the protocol task;"
+            " the target (issue 37) is at most 20 us per side for `none` at 2 DoF."
+        ),
+    )
+
+
+def cpu_session() -> Table:
+    """bench.cpu's whole session (issue 37): both loops and their log writers against the floor pair."""
+    b = Builder("cpu.json")
+    ref = b.doc.get("reference")
+    rows: list[tuple[Cell, ...]] = []
+    for i, c in enumerate(b.doc["cases"]):
+        s = f"cases[{i}].session"
+        cells: list[Cell] = [
+            f"`{c['codec']}`",
+            str(c["dof"]),
+            b.one(f"{s}.cpu_fraction_of_one_core", ".1f", scale=100, template="{} %"),
+            b.one(f"{s}.x_floor_pair", ".2f"),
+        ]
+        if ref is not None:
+            cells += [
+                b.one(f"{s}.reference.cpu_fraction_of_one_core", ".1f", scale=100, template="{} %"),
+                b.one(f"{s}.reference.x_floor_pair", ".2f"),
+            ]
+        rows.append(tuple(cells))
+    header: tuple[str, ...] = ("codec", "DoF", "session CPU (one core)", "x floor pair")
+    if ref is not None:
+        header += (f"reference `{str(ref['commit'])[:7]}`", "its x floor pair")
+    return Table(
+        "cpu-session",
+        "cpu.json",
+        "python -m bench.cpu" + (" --reference DIR" if ref else ""),
+        header,
+        tuple(rows),
+        note=(
+            f" {b.doc['duration_s']:g} s sessions; both loops and their log writers from `/proc`; the"
+            " floor pair is both floor processes of the same invocation; the target (issue 37) is at"
+            " most 1.5x for `eds:50`."
+        ),
+    )
+
+
 TABLES: dict[str, Callable[[], Table]] = {
     "sweep": sweep,
     "fronts": fronts,
@@ -1072,7 +1134,9 @@ TABLES: dict[str, Callable[[], Table]] = {
     "fuzz-loop": fuzz_loop,
     "mujoco-step": mujoco_step,
     "tick": tick,
+    "tick-sides": tick_sides,
     "cpu": cpu,
+    "cpu-session": cpu_session,
     "phases": phases,
     "cpu-ab": cpu_ab,
     "stalls": stalls,
