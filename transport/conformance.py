@@ -658,14 +658,22 @@ def stream_checks(
 STALL_NS = 15_000_000
 
 
+#: A session's first ticks (both loops setting it up, and this checker's own reads stalling with
+#: them) are no stall of the sender's: counted as one there, a deadband's account was checked up to
+#: its first packet only, and a deadband ignoring its budget passed (1 CI run in 3).
+STALL_SETTLE_TICKS = 200
+
+
 def _stalled(stream: list[tuple[int, wire.Packet]], t0_ns: int, dt: float) -> set[int]:
-    """The seqs of packets that came after a stall of the sender (:data:`STALL_NS`)."""
+    """The seqs of packets that came after a stall of the sender (:data:`STALL_NS`), past the
+    session's first :data:`STALL_SETTLE_TICKS`."""
     period = round(dt * 1e9)
-    late = [(t - (t0_ns + p.tick * period), p.seq) for t, p in stream]
+    late = [(t - (t0_ns + p.tick * period), p.seq, p.tick) for t, p in stream]
     if not late:
         return set()
-    median = sorted(x for x, _ in late)[len(late) // 2]
-    return {seq for x, seq in late if x - median > STALL_NS}
+    median = sorted(x for x, _, _ in late)[len(late) // 2]
+    first = min(k for _, _, k in late)
+    return {seq for x, seq, k in late if x - median > STALL_NS and k >= first + STALL_SETTLE_TICKS}
 
 
 #: Over-reporting with a codec that does not carry every tick's value (eDS, iDS, DCT, deadbands):
