@@ -106,3 +106,14 @@ def test_a_handshake_only_delayer_costs_at_most_a_tick_of_misplacement(
     # way the robot is behind and skips the first 100 ms of commands, which it never plays: the
     # position drift that leaves costs none 2.2x (eds:50 0.99x).
     assert i_skewed <= (2 if who == "operator" else 2.5) * i_quiet
+
+
+def test_the_robot_never_starts_below_its_phase_floor_whatever_the_operator_proposes() -> None:
+    """5.1: an operator's ``phase`` of 0 (or any below the floor) only caps where the robot starts;
+    the robot's own floor wins, and a proposal above the margin still caps it."""
+    from teleop.session.link.phase import PHASE_MIN, ClockTracker
+
+    assert ClockTracker(1e-3, 0.0, moves_phase=True).phase == PHASE_MIN
+    assert ClockTracker(1e-3, 0.1, moves_phase=True).phase == PHASE_MIN
+    assert ClockTracker(1e-3, 0.5, moves_phase=True).phase == max(PHASE_MIN, 0.15)
+    assert ClockTracker(1e-3, 0.0, moves_phase=False).phase == 0.0  # the operator's own schedule

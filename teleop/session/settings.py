@@ -385,7 +385,7 @@ SETTINGS: tuple[Setting, ...] = (
         "duration", "duration", "the scenario's", True, "pinned by --duration", "--duration", ("--duration",)
     ),
     Setting("dt", "dt", "0.001 s", False, "the robot's own period: anything else is refused", None),
-    Setting("phase", "phase", "0.5", True, "the operator's, in [0, 1) periods", "--phase"),
+    Setting("phase", "phase", "0.5", True, "caps the robot's first phase; held in [0.25, 0.9]", "--phase"),
     Setting(
         "netem_forward",
         "netem_forward",

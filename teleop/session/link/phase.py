@@ -67,7 +67,8 @@ class ClockTracker:
             # Start early (just the margin), at most the handshake's ``phase``, and move later as the
             # transits say: a move later never holds back a backward packet an outgoing shim
             # released on the old ticks, where a move earlier left each packet in flight a tick late.
-            phase = min(phase, max(PHASE_MIN, min(self.margin, PHASE_MAX)))
+            # Never below PHASE_MIN, whatever the operator proposed (5.1: the robot's own rule).
+            phase = max(PHASE_MIN, min(phase, self.margin, PHASE_MAX))
         self.phase = phase  # periods after the nominal tick this side runs (the operator: 0)
         self.target = phase
         self._x = np.zeros(CAPACITY)  # transits, ticks (a ring)
