@@ -21,7 +21,7 @@ from typing import Any
 
 import pytest
 
-from tests.waiting import ticks_logged, udp_bound, wait_for
+from tests.waiting import exited_ok, ticks_logged, udp_bound, wait_for
 
 pytestmark = pytest.mark.integration
 
@@ -396,7 +396,8 @@ def test_teleoperator_restarted_mid_session_and_the_operator_recovers(tmp_path: 
     to2 = _spawn(
         "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--log", str(logs), "--quiet"
     )
-    assert op.wait(timeout=30) == 0 and to2.wait(timeout=30) == 0
+    exited_ok(op)
+    exited_ok(to2)
     o = json.loads((logs / "operator.json").read_text())
     # The restarted teleoperator's log is a new file: the killed one's record stays (no summary).
     session = o["params"]["session"]
@@ -467,7 +468,8 @@ def test_operator_restarted_mid_session_and_the_teleoperator_serves_the_new_one(
         str(logs),
         "--quiet",
     )
-    assert op2.wait(timeout=30) == 0 and to.wait(timeout=30) == 0
+    exited_ok(op2)
+    exited_ok(to)
     # The replaced session's logs keep their names; the new session's are files of its own.
     first = json.loads((logs / "teleoperator.json").read_text())
     assert first["replaced_by_new_session"] and not first["completed"]
@@ -517,7 +519,7 @@ def test_a_recorded_hello_during_an_outage_does_not_replace_the_session(tmp_path
         assert welcomed is not None  # (wait_for returns only what is true)
         # ... the takeover answers it (a retry: a cookie, no state) ...
     os.kill(op.pid, signal.SIGCONT)
-    assert op.wait(timeout=30) == 0
+    exited_ok(op)
     _, to_err = to.communicate(timeout=30)
     assert to.returncode == 0, to_err
     assert auth.peek(welcomed) is not None

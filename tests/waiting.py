@@ -9,6 +9,7 @@ normal path, so it costs nothing when the condition comes true early.
 from __future__ import annotations
 
 import asyncio
+import subprocess
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -31,6 +32,15 @@ def wait_for(predicate: Callable[[], T], timeout: float = 10.0, what: str = "", 
         if time.monotonic() > deadline:
             raise AssertionError(f"waited {timeout:g} s for {what or predicate!r} in vain")
         time.sleep(poll)  # the poll interval, not a fixed wait: see the module's docstring
+
+
+def exited_ok(proc: subprocess.Popen[str], timeout: float = 30.0) -> None:
+    """Wait for ``proc`` to exit and fail the test with its stderr unless it exited 0: a bare
+    ``returncode == 0`` assertion hides why a process failed, and a flaky failure is then a guess."""
+    code = proc.wait(timeout=timeout)
+    if code != 0:
+        err = proc.stderr.read() if proc.stderr is not None else ""
+        raise AssertionError(f"{proc.args!r} exited {code}; its stderr:\n{err[-4000:]}")
 
 
 async def await_for(
