@@ -31,6 +31,7 @@ from teleop.control.codecs import make_codec
 from teleop.control.wave import WaveImpedance
 from teleop.devices.models import LtiEnvironment, StepHuman
 from teleop.session import wire
+from teleop.session.endpoint import REAL_PLAYOUT_FLOOR_TICKS
 from teleop.session.node import OperatorNode, PortOptions, TeleoperatorNode
 from teleop.session.port import Port, make_node
 from teleop.session.settings import Passivity
@@ -102,7 +103,7 @@ def bench_nodes(spec: str, dof: int, ticks: int, repeats: int) -> list[float]:
 def _port_pair(
     spec: str, dof: int, ticks: int, scenario: str = "step", passivity: Passivity = Passivity.WAVE
 ) -> tuple[Port, Port]:
-    """The two ports as the real runner makes them: playout ``auto`` with its one-tick floor."""
+    """The two ports as the real runner makes them: playout ``auto`` at the runner's floor."""
     opts = PortOptions(playout="auto", passivity=passivity)
     op, to = (
         Port(
@@ -118,7 +119,7 @@ def _port_pair(
                 options=opts,
             ),
             ticks=ticks,
-            playout_floor=1,
+            playout_floor=REAL_PLAYOUT_FLOOR_TICKS,
         )
         for role in ("operator", "teleoperator")
     )
@@ -129,7 +130,7 @@ def bench_ports(
     spec: str, dof: int, ticks: int, repeats: int, passivity: Passivity = Passivity.WAVE
 ) -> list[float]:
     """Both ports per tick: node, wire encode and parse, counters, link observer, playout buffer
-    (``auto`` with the real runner's one-tick floor), recorder; ``passivity`` ``tdpa``: power
+    (``auto`` with the real runner's floor), recorder; ``passivity`` ``tdpa``: power
     variables, the energy reports and both dampers instead of the wave transform."""
     out = []
     for _ in range(repeats):
