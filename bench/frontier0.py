@@ -49,11 +49,11 @@ REFERENCES = ("none", "ids:2", "pdp:1", "pdp:2")
 TDPA = ("none", "pdp:1", "pdr:0.8", "pdr:0.8:100:1:128:86")
 #: Two-port accounting (--pool): self-credit at kappa 1 %, bands as pdr:0.8, reserve scales 30 %;
 #: and a lower band for a lower I.
-POOL = ("pdr:0.8:100:0.8:30:30:c1", "pdr:0.8:100:0.8:30:30:c0.5", "pdr:0.6:100:0.6:30:30:c1")
+TWO_PORT = ("pdr:0.8:100:0.8:30:30:c1", "pdr:0.8:100:0.8:30:30:c0.5", "pdr:0.6:100:0.6:30:30:c1")
 
 
 def _two_port(codec: str) -> bool:
-    """Whether ``codec`` keeps the channel passive as a two-port (pdr's POOL or cKAPPA) rather than
+    """Whether ``codec`` keeps the channel passive as a two-port (pdr's cKAPPA) rather than
     per direction."""
     return codec.startswith("pdr") and len(codec.split(":")) >= 7
 
@@ -124,7 +124,7 @@ def _matrix(codec: str, duration: float) -> list[dict[str, Any]]:
 
 
 def run(duration: float, pool: bool = False) -> dict[str, Any]:
-    cases = [_case(c, duration) for c in (*REFERENCES, *PDR, *(POOL if pool else ()))]
+    cases = [_case(c, duration) for c in (*REFERENCES, *PDR, *(TWO_PORT if pool else ()))]
     cases += [_case(c, duration, Passivity.TDPA) for c in TDPA]
     ids2 = next(c for c in cases if c["codec"] == "ids:2")
     pdr = [c for c in cases if c["codec"].startswith("pdr") and c["passivity"] == Passivity.WAVE]

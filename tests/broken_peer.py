@@ -252,7 +252,14 @@ def _answers_replays() -> None:  # 2.4, 4.3 step 6: a robot whose window takes a
     auth.Opener.accept = again  # type: ignore[method-assign]
 
 
+def _keeps_ghost() -> None:  # 4.3 step 8: a TO that holds a session its operator never joined
+    from teleop.session import node
+
+    node._Port.expect_first_by = lambda self, t: None  # type: ignore[method-assign]
+
+
 BREAKS = {
+    "keeps-ghost": _keeps_ghost,
     "no-cookie": _no_cookie,
     "answers-own-offers": _answers_own_offers,
     "no-bye": _no_bye,

@@ -814,9 +814,11 @@ def check_teleoperator(
     codec: str = "none",
     duration: float = 1.5,
     zenoh: tuple[str, Any] | None = None,
+    ghost: bool = True,
 ) -> Result:
     """Check the teleoperator at ``peer`` over UDP, or over Zenoh with ``zenoh`` = (key prefix,
-    ``zenoh.Config``); it must accept ``codec``, scenario protocol, 2 DoF."""
+    ``zenoh.Config``); it must accept ``codec``, scenario protocol, 2 DoF.  ``ghost``: run the
+    probe of section 4.3 step 8 (a session left silent from its start; about 2 s)."""
     k_r = auth.robot_key(psk, robot)
     k_hs = auth.handshake_key(k_r)
     sealer = auth.Sealer(k_hs, auth.HANDSHAKE, wire.FORWARD)
@@ -837,11 +839,16 @@ def check_teleoperator(
         cookie = _probe_cookie(r, a, b, peer, sealer, k_hs)
         _probe_malformed(r, a, peer, sealer, k_hs, cookie)
         _probe_hello_table(r, a, peer, sealer, k_hs)
+        earlier: list[tuple[bytes, bytes]] = []
+        if ghost:
+            earlier = _probe_ghost(r, a, b, peer, k_r, sealer)
+        else:
+            r.check("4.3 step 8", "MUST", RULE_GHOST, None, "skipped (--no-ghost-probe)")
         then: _Carrier | None = None
         if codec.split(":")[0] not in DEADBAND_CODECS:
             # (over Zenoh every carrier has the one address: the first serves, no third session)
             then = a if zenoh is not None else (c := _Socket())
-        _session_as_operator(r, a, b, peer, k_r, sealer, k_hs, codec, duration, then)
+        _session_as_operator(r, a, b, peer, k_r, sealer, k_hs, codec, duration, then, earlier)
     finally:
         for carrier in (a, b, c):
             if carrier is not None:
@@ -977,10 +984,12 @@ def _session_as_operator(
     codec: str,
     duration: float,
     then: _Carrier | None = None,
+    earlier: list[tuple[bytes, bytes]] | None = None,
 ) -> None:
     """The session most rules are checked on.  ``then``: a carrier for the deadband session that
     takes the robot over after it (:func:`_deadband_session`): this one proposes a longer session,
-    and we fall silent after ``duration`` of it; its bye rules are then checked on that session."""
+    and we fall silent after ``duration`` of it; its bye rules are then checked on that session.
+    ``earlier``: the keys of the sessions before it on ``a`` (the ghost probe's)."""
     session = secrets.randbelow(2**32 - 2) + 1
     p = params_for(session, codec, duration + (TAKEOVER_EXTRA_S if then is not None else 0.0))
     ep = Endpoint.operator(p, peer, _factory("operator", UNDER_REPORT), now_ns=time.monotonic_ns(), psk=k_r)
@@ -1087,7 +1096,7 @@ def _session_as_operator(
     _summary_checks(r, ended[0] if ended else (ep.summary() if then is not None else None))
     fwd, bwd = auth.session_keys(k_r, session, ep.port.keys.nonce, _nonce(ep.peer_nonce))
     log = a.log + (b.log if a.distinct_addresses else [])
-    keys: list[tuple[bytes, bytes]] = [(bwd, fwd)]
+    keys: list[tuple[bytes, bytes]] = [*(earlier or []), (bwd, fwd)]
     if then is not None:  # we fall silent: its link goes lost, and the deadband session takes over
         keys += _deadband_session(r, then, peer, k_r)
         log += then.log if a.distinct_addresses else []
@@ -1170,6 +1179,41 @@ def _deadband_session(r: Result, c: _Carrier, peer: Addr, k_r: bytes) -> list[tu
     for check in sub.checks:
         check.rule += tag
         r.checks.append(check)
+    return [(bwd, fwd)]
+
+
+#: The ghost probe asks for a new operator's welcome this long after the bound of section 4.3 step 8
+#: (``2 s + R`` after the robot's tick 0): what a loaded host may add to the robot's own tick.
+GHOST_SLACK_S = 0.1
+GHOST_BOUND_S = 2.0
+RULE_GHOST = "a robot whose operator never sent a data packet is free for another within 2 s + R of tick 0"
+
+
+def _probe_ghost(
+    r: Result, a: _Carrier, b: _Carrier, peer: Addr, k_r: bytes, sealer: auth.Sealer
+) -> list[tuple[bytes, bytes]]:
+    """A session the robot commits to (start, started) whose operator then never sends a packet:
+    the robot MUST end it and serve another operator within ``2 s + R`` of its tick 0 (4.3 step 8).
+    Issue 35 found a robot that held such a session for good, answering "busy" 25 s later.
+    Returns the session's keys (backward, forward) for the envelope audit."""
+    k_hs = auth.handshake_key(k_r)
+    p = params_for(secrets.randbelow(2**32 - 2) + 1, "none", 30.0)  # long: the end is not its duration
+    ep = Endpoint.operator(p, peer, _factory("operator"), now_ns=time.monotonic_ns(), psk=k_r)
+    drv = _Driver(a, ep, lambda d, t: None)
+    drv.run(lambda: ep.state != State.HANDSHAKE, 15.0)  # started came: the robot committed
+    if not ep.running:
+        r.check("4.3 step 8", "MUST", RULE_GHOST, None, f"not run: the handshake ended {ep.state.value}")
+        return []
+    rtt = max((e.rtt_ns for e in drv.events if isinstance(e, SessionStarted)), default=0) / 1e9
+    tick0 = ep.start_ns / 1e9  # on this clock: the tick 0 the robot's start placed
+    time.sleep(max(0.0, tick0 + GHOST_BOUND_S + rtt + GHOST_SLACK_S - time.monotonic()))  # silent
+    at = time.monotonic() - tick0
+    got = _probe_busy(b, peer, sealer, k_hs)
+    ok = any(isinstance(m, protocol.Welcome) for m in got)
+    detail = f"R {rtt * 1e3:.2f} ms; a hello {at:.2f} s after tick 0 got {[m.kind for m in got]}"
+    r.check("4.3 step 8", "MUST", RULE_GHOST, ok, detail)
+    assert ep.port is not None
+    fwd, bwd = auth.session_keys(k_r, p.session, ep.port.keys.nonce, _nonce(ep.peer_nonce))
     return [(bwd, fwd)]
 
 
