@@ -14,13 +14,29 @@ from typing import Any
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
+from teleop.control.codecs import make_codec
 from teleop.offline.sim import SimConfig, run_case
 
 # One of each class: direct, interpolative, extrapolative, then issue 10's deadbands and DCT.
 CODECS = ["none", "ids:5", "eds:5", "cq:8", "pd:1", "pdp:1", "dct:20:2"]
 #: Codecs whose reconstruction holds between payloads by design: passive only behind the guard.
 HOLDING = ("pd:1", "pdp:1")
+#: The receivers' reconstructions when nothing is queued: the worst, and the default.
+ON_LOSS = ("hold", "conceal")
+
+
+def on_loss_cases(codecs: list[str]) -> list[tuple[str, str]]:
+    """Each codec with each ``on_loss``, less "conceal" for the deadbands (and pdr, in
+    tests/test_codec_pdr.py): their decoders never read ``on_loss``
+    (test_a_deadbands_reconstruction_ignores_on_loss), so a "conceal" run would repeat the "hold"
+    run tick for tick (measured: the same summary in each of their 12 cases)."""
+    return [(c, o) for c in codecs for o in ON_LOSS if o == "hold" or c not in HOLDING]
+
+
 IMPAIRMENTS: list[tuple[str, dict[str, Any]]] = [
     ("delay 0", {"delay_ms": 0.0}),
     ("delay 10", {"delay_ms": 10.0}),
@@ -58,9 +74,8 @@ def run(codec: str, imp: dict[str, Any], **kw: Any) -> dict[str, Any]:
     return s
 
 
-@pytest.mark.parametrize("on_loss", ["hold", "conceal"])  # the worst, and the default
 @pytest.mark.parametrize("name,imp", IMPAIRMENTS, ids=[n for n, _ in IMPAIRMENTS])
-@pytest.mark.parametrize("codec", CODECS)
+@pytest.mark.parametrize(("codec", "on_loss"), on_loss_cases(CODECS))
 def test_controller_keeps_every_case_passive(
     codec: str, name: str, imp: dict[str, Any], on_loss: str
 ) -> None:
@@ -73,6 +88,28 @@ def test_controller_keeps_every_case_passive(
         assert pv["min_margin"] >= -1e-9  # the watchdog's in-band view, after the controller
         assert pv["controller_active_ticks"] == pv["violations"]  # it acted on every violation it saw
     assert np.isfinite(s["max_abs"]) and s["max_abs"] < 50.0  # bounded (the protocol peaks near 5 N)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    spec=st.sampled_from([*HOLDING, "pd:5", "pdp:5", "pdr:0.8", "pdr:0.8:100:1:128:86"]),
+    x=arrays(np.float64, (80, 2), elements=st.floats(-2.0, 2.0)),
+    keep=st.lists(st.booleans(), min_size=80, max_size=80),
+)
+def test_a_deadbands_reconstruction_ignores_on_loss(spec: str, x: np.ndarray, keep: list[bool]) -> None:
+    """Why the matrices run the deadbands (and pdr) with "hold" only: whatever payloads are lost,
+    their decoders play the same samples, bit for bit, whichever ``on_loss`` they were given."""
+    c = make_codec(spec, dof=2, full_scale=2.0)
+    enc = c.encoder()
+    decoders = [c.decoder(on_loss=o) for o in ("hold", "conceal", "zero")]
+    for i in range(len(x)):
+        payload = enc.encode(x[i])
+        if payload is not None and keep[i]:
+            for d in decoders:
+                d.push(payload)
+        played = [d.next() for d in decoders]
+        assert all(np.array_equal(played[0], p) for p in played[1:]), (i, played)
+    assert all(d.underruns == decoders[0].underruns for d in decoders)
 
 
 @pytest.mark.parametrize("spec", ["loss 10%", "loss gemodel 5% 20%", "delay 10ms 5ms"])
