@@ -13,6 +13,7 @@ import multiprocessing.process
 import os
 import platform
 import subprocess
+import time
 from collections.abc import Callable, Generator
 from pathlib import Path
 from typing import Any
@@ -93,7 +94,8 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) ->
 # --- the two suites in the summary -------------------------------------------------------------
 
 _SUITES: dict[str, list[float]] = {"fast": [], "integration": []}  # per test: seconds, all phases
-_IN_SUITE: dict[str, str] = {}
+_IN_SUITE: dict[str, str] = {}  # by node id, where this process collected (not under xdist)
+_WALL: list[float] = []  # when the run began (time.monotonic)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
@@ -101,10 +103,14 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         _IN_SUITE[item.nodeid] = "integration" if item.get_closest_marker("integration") else "fast"
 
 
+def pytest_sessionstart(session: pytest.Session) -> None:
+    _WALL.append(time.monotonic())
+
+
 def pytest_runtest_logreport(report: pytest.TestReport) -> None:
-    suite = _IN_SUITE.get(report.nodeid)
-    if suite is None:
-        return
+    # Under pytest-xdist (`-n 2`) the workers collect and this hook runs in the controller: there
+    # the report's keywords (its markers among them) tell.
+    suite = _IN_SUITE.get(report.nodeid) or ("integration" if "integration" in report.keywords else "fast")
     if report.when == "setup":
         _SUITES[suite].append(0.0)
     if _SUITES[suite]:
@@ -121,4 +127,6 @@ def pytest_terminal_summary(terminalreporter: Any) -> None:
         if times
     ]
     if parts:
-        terminalreporter.write_line("suites (setup + call + teardown of each test): " + "; ".join(parts))
+        wall = f"; the run's wall time {time.monotonic() - _WALL[0]:.1f} s" if _WALL else ""
+        line = "suites (setup + call + teardown of each test): " + "; ".join(parts) + wall
+        terminalreporter.write_line(line)
