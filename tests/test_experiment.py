@@ -8,6 +8,7 @@ import math
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -157,8 +158,14 @@ def test_phase_rates() -> None:
     assert r["all"]["packets_per_s"] == pytest.approx(260.0)
 
 
-def test_sim_summary_has_the_phases_and_wire_rates() -> None:
-    s = run_case(SimConfig(codec="ids:2", scenario="protocol", duration=6.0)).summary
+@pytest.fixture(scope="module")
+def six_seconds_of_ids() -> dict[str, Any]:
+    """A 6 s protocol run of ids:2 (it never reaches the wall), read by two tests: run once."""
+    return run_case(SimConfig(codec="ids:2", scenario="protocol", duration=6.0)).summary
+
+
+def test_sim_summary_has_the_phases_and_wire_rates(six_seconds_of_ids: dict[str, Any]) -> None:
+    s = six_seconds_of_ids
     assert [n for n in s["phases"]] == ["free", "foam", "wall", "all"]
     assert s["phases"]["all"]["I"] == pytest.approx(s["I"], rel=1e-12)
     assert s["phases"]["wall"]["ticks"] == 0  # a 6 s run never reaches the wall
@@ -170,11 +177,11 @@ def test_sim_summary_has_the_phases_and_wire_rates() -> None:
     assert list(step["phases"]) == ["all"]  # the step scenario has no phases
 
 
-def test_a_phase_not_reached_is_shown_as_such_not_as_zero() -> None:
+def test_a_phase_not_reached_is_shown_as_such_not_as_zero(six_seconds_of_ids: dict[str, Any]) -> None:
     """A run shorter than the scenario never reaches the wall: its I there is no figure, not 0."""
     from teleop.cli.sim import format_phases
 
-    s = run_case(SimConfig(codec="ids:2", scenario="protocol", duration=6.0)).summary
+    s = six_seconds_of_ids
     table = format_phases([{"codec": "ids:2", **s}]).splitlines()
     row = table[2].split()
     assert table[0].split()[1:] == ["I", "free", "I", "foam", "I", "wall", "I", "all"]
