@@ -573,9 +573,11 @@ class TeleoperatorNode(_Port):
         fs = f0 + z * vs
         push = (np.abs(fs) > fmax) & (fs * v > 0.0)
         if push.any():
+            # A subnormal z makes ``back`` infinite, and inf * 0 NaN: neither passes the test below
+            # (a NaN compares false), so both become 0, without a warning from the robot's tick.
             with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
                 back = np.where(z > 0.0, (np.sign(fs) * fmax - f0) / np.where(z > 0.0, z, 1.0), 0.0)
-            back = np.where((back * vs > 0.0) & (np.abs(back) < np.abs(vs)), back, 0.0)
+                back = np.where((back * vs > 0.0) & (np.abs(back) < np.abs(vs)), back, 0.0)
             vs = np.where(push, back, vs)
             fs = f0 + z * vs
         changed = vs != v
