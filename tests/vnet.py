@@ -61,6 +61,11 @@ class Host:
     events: list[Event] = field(default_factory=list)
     next_k: int | None = None  # the next tick to run (None: no session running)
     sent: int = 0
+    #: The endpoint's ticks are its timers (``ticks=TickPolicy``): the network does not tick it.
+    #: ``spin_ns``: it is also called that long before each timer, as a precise runner's spin is.
+    timed: bool = False
+    spin_ns: int = 0
+    early_for: int | None = None  # the timer it was last called early for
 
     def clock(self, t: int) -> int:
         return t + self.offset_ns
@@ -110,16 +115,16 @@ class VirtualNet:
         offset_ns: int = 0,
         **kw: Any,
     ) -> Host:
-        ep = Endpoint.operator(
+        ep = kw.get("cls", Endpoint).operator(
             p,
             peer,
             port_factory("operator"),
             now_ns=self.now + offset_ns,
             psk=auth.robot_key(PSK, name),
             rng=self.rand(),
-            **kw,
+            **{k: v for k, v in kw.items() if k not in ("cls", "spin_ns")},
         )
-        return self._add(addr, ep, offset_ns)
+        return self._add(addr, ep, offset_ns, kw)
 
     def teleoperator(
         self,
@@ -132,19 +137,21 @@ class VirtualNet:
         device: str | None = None,
         **kw: Any,
     ) -> Host:
-        ep = Endpoint.teleoperator(
+        ep = kw.get("cls", Endpoint).teleoperator(
             expect or {},
             port_factory("teleoperator", device),
             now_ns=self.now + offset_ns,
             psk=auth.robot_key(PSK, name),
             local_limits=limits,
             rng=self.rand(),
-            **kw,
+            **{k: v for k, v in kw.items() if k not in ("cls", "spin_ns")},
         )
-        return self._add(addr, ep, offset_ns)
+        return self._add(addr, ep, offset_ns, kw)
 
-    def _add(self, addr: Addr, ep: Endpoint, offset_ns: int) -> Host:
-        h = self.hosts[addr] = Host(addr, ep, offset_ns)
+    def _add(self, addr: Addr, ep: Endpoint, offset_ns: int, kw: dict[str, Any] | None = None) -> Host:
+        """``kw``: the endpoint's options (``ticks``: its ticks are timers) and ``spin_ns`` (Host)."""
+        timed, spin = (kw or {}).get("ticks") is not None, (kw or {}).get("spin_ns", 0)
+        h = self.hosts[addr] = Host(addr, ep, offset_ns, timed=timed, spin_ns=spin)
         self._flush(h)
         return h
 
@@ -186,7 +193,7 @@ class VirtualNet:
             self._send(h.addr, dst, data)
         while (ev := h.ep.next_event()) is not None:
             h.events.append(ev)
-            if isinstance(ev, SessionStarted):
+            if isinstance(ev, SessionStarted) and not h.timed:
                 h.next_k = ev.k0
         if not h.ep.running:
             h.next_k = None
@@ -201,6 +208,8 @@ class VirtualNet:
         if h.next_k is not None and (p := ep.params) is not None:
             t = ep.t0_ns + h.next_k * round(p.dt * 1e9) - h.offset_ns
         if (timer := ep.get_timer()) is not None:
+            if h.spin_ns and h.early_for != timer:  # called a spin before it (Host.spin_ns)
+                timer -= h.spin_ns
             timer = max(timer - h.offset_ns, self.now)
             if t is None or timer < t:
                 t = timer
@@ -247,6 +256,10 @@ class VirtualNet:
                 local = now + h.offset_ns  # the host's clock
                 timer = ep.get_timer()
                 if timer is not None and local >= timer:
+                    ep.handle_timer(local)
+                    self._flush(h)
+                elif timer is not None and h.spin_ns and h.early_for != timer and local >= timer - h.spin_ns:
+                    h.early_for = timer  # in the spin: it may work early
                     ep.handle_timer(local)
                     self._flush(h)
                 if h.next_k is not None and (p := ep.params) is not None:

@@ -5,13 +5,19 @@ An :class:`Endpoint` has aioquic's ``QuicConnection`` surface, the same for both
     ep.receive_datagram(data, addr, now_ns)      # every datagram, with its receive time
     for data, addr in ep.datagrams_to_send(now_ns): sock.sendto(data, addr)
     ep.get_timer()  /  ep.handle_timer(now_ns)   # when to come back even if nothing arrives
-    ep.tick(k, now_ns)                           # the 1 kHz tick, once the session runs
     ep.next_event()                              # SessionStarted, PeerRestarted, Replaced, ...
 
+With a :class:`TickPolicy` (the real-time runner) the 1 kHz ticks are timers too: ``get_timer``
+says each tick's deadline (or its grace limit) and ``handle_timer`` runs the tick that is due,
+early in the spin before its deadline if called then (``teleop.session.schedule``: early drain,
+early tick, grace, skips, the loop's figures).  Without one the caller runs each tick with
+``ep.tick(k, now_ns)`` at ``t0_ns + k dt`` (the virtual-time tests' network).
+
 It never reads a clock, opens a socket or a file, or sleeps: ``now_ns`` is the caller's monotonic
-clock, so the same object runs live in ``transport.session`` and in virtual time in the tests
+clock, so the same object runs live in ``transport.runner`` and in virtual time in the tests
 (two endpoints joined by the seeded link model, with faults and an adversary).  Every protocol
-decision and constant of the session lives here; the runner only waits, drains, feeds and sends.
+decision and constant of the session lives here, and when each tick runs; the runner only waits,
+reads, feeds and sends.
 
 **The session's life.** ``HANDSHAKE`` (``teleop.session.protocol``'s state machines: the operator's hellos,
 the teleoperator's cookie, welcome and start) -> ``STARTING`` (agreed; tick ``k0`` is due at
@@ -50,6 +56,14 @@ from teleop.session import auth, protocol, wire
 from teleop.session.link import Addr
 from teleop.session.port import Port, PortKeys
 from teleop.session.protocol import Failure, SessionParams
+from teleop.session.schedule import (
+    ADMIT_EVERY_NS,
+    DEVICE_SILENT_NS,
+    EARLY_COST_START_NS,
+    EARLY_MARGIN_NS,
+    LoopFigures,
+    TickPolicy,
+)
 from teleop.session.settings import Envelope
 from teleop.session.summary import EndpointSummary, RejoinFigures
 
@@ -62,6 +76,7 @@ __all__ = [
     "REJOIN_OFFER_INTERVAL_NS",
     "REJOIN_SAMPLES",
     "Admission",
+    "AdmissionChanged",
     "ClockShifted",
     "EndReason",
     "Endpoint",
@@ -72,6 +87,7 @@ __all__ = [
     "HelloRejected",
     "LinkLost",
     "LinkRestored",
+    "Monitor",
     "PeerBye",
     "PeerRestarted",
     "PortFactory",
@@ -80,6 +96,8 @@ __all__ = [
     "SessionStarted",
     "State",
     "Strangers",
+    "TickPolicy",
+    "TicksEnded",
 ]
 
 REJOIN_OFFER_INTERVAL_NS = 250_000_000  # operator, link lost: an offer this often
@@ -228,6 +246,24 @@ class SessionStarted:
     joined_late: bool
     offset_ns: int = 0  # operator: teleoperator's clock - ours, and the exchange's round trip
     rtt_ns: int = 0
+    device: Any = None  # the device that paces this session's ticks (a real arm), if any
+
+
+@dataclass(frozen=True)
+class TicksEnded:
+    """The session's ticks are over (it lingers now, or was replaced): ``loop`` is their timing
+    (an endpoint whose ticks are timers only: :class:`TickPolicy`)."""
+
+    k: int
+    loop: LoopFigures
+
+
+@dataclass(frozen=True)
+class AdmissionChanged:
+    """What the endpoint can take changed (:meth:`Endpoint.admission`): for the transport's filter
+    and its length limit (an endpoint whose ticks are timers only)."""
+
+    admission: Admission
 
 
 @dataclass(frozen=True)
@@ -296,10 +332,15 @@ Event: TypeAlias = (
     | HelloRejected
     | SessionEnded
     | Failed
+    | TicksEnded
+    | AdmissionChanged
 )
 #: Makes a session's port: (params, first tick, keys, tick 0 on this clock) -> Port.  The shell's
 #: factory adds its log sink and device; tests give one with an in-memory record.
 PortFactory: TypeAlias = Callable[[SessionParams, int, PortKeys, int], Port]
+#: Called after each tick's datagrams left: (port, tick, session time, the loop's figures).  The
+#: shell's live view and status line; the port is the one its factory made.
+Monitor: TypeAlias = Callable[[Port, int, float, LoopFigures], None]
 
 
 def ghost_round_trip(stated_ns: int | None, lead_left_ns: int) -> int:
@@ -330,7 +371,11 @@ class Endpoint:
         linger_s: float = 0.2,
         grace_us: float = 400.0,
         rng: Callable[[int], bytes] = secrets.token_bytes,
+        ticks: TickPolicy | None = None,
+        monitor: Monitor | None = None,
     ) -> None:
+        """``ticks``: the ticks are timers (:meth:`get_timer`, :meth:`handle_timer`), run as it says;
+        None: the caller runs each with :meth:`tick` (the virtual-time tests' network)."""
         if role not in ("operator", "teleoperator"):
             raise ValueError(f"role must be operator or teleoperator, got {role!r}")
         self.role = role
@@ -404,6 +449,26 @@ class Endpoint:
         # linger
         self._linger_end = 0
         self._bye_sent = False
+        # ticks as timers (TickPolicy)
+        self._policy = ticks
+        self._monitor = monitor
+        self._now = 0  # the latest time handle_timer was given: "at once"
+        self._next_k = 0  # the tick due next
+        self._loop: LoopFigures | None = None
+        self._pending: deque[tuple[bytes, Addr, int]] = deque()  # received, fed at the next handle_timer
+        self._cost = EARLY_COST_START_NS  # a datagram's cost to feed, running mean (the early drain)
+        self._fed_at: int | None = None
+        self._early_at: tuple[int, int] | None = None  # the tick run early and its deadline, not yet met
+        self._hold_until = 0  # an early tick's datagrams (and what follows them) leave at its deadline
+        self._grace_until: int | None = None
+        self._grace_t0 = 0
+        # (k, deadline, its session's port and figures): a tick's datagrams about to leave, and left
+        self._out_tick: tuple[int, int, Port, LoopFigures] | None = None
+        self._departed: tuple[int, int, Port, LoopFigures] | None = None  # (settle it)
+        self._device: Any = None  # paces the ticks (a real arm)
+        self._device_last = 0
+        self._admit_next = 0
+        self._admitted: Admission | None = None
 
     # --- construction -----------------------------------------------------------------------
     @classmethod
@@ -502,7 +567,14 @@ class Endpoint:
 
     def receive_datagram(self, data: bytes, addr: Addr, now_ns: int) -> None:
         """A datagram from ``addr`` received at ``now_ns``.  Never raises: whatever it is, it is
-        taken, or counted and dropped."""
+        taken, or counted and dropped.  While timed ticks run (:class:`TickPolicy`) it is only queued,
+        for :meth:`handle_timer` (the early drain decides when each is worth its cost)."""
+        if self._policy is not None and self._device is None and self.running:
+            self._pending.append((data, addr, now_ns))
+            return
+        self._receive(data, addr, now_ns)
+
+    def _receive(self, data: bytes, addr: Addr, now_ns: int) -> None:
         hdr = auth.peek(data)
         if hdr is not None and len(data) > self._max_len[hdr[0]]:
             self.oversize += 1  # longer than any message of its key kind: refused by length alone
@@ -526,7 +598,14 @@ class Endpoint:
             self._session_datagram(data, hdr, addr, now_ns)
 
     def datagrams_to_send(self, now_ns: int) -> list[tuple[bytes, Addr]]:
-        """What to send now (a welcome is stamped with ``now_ns`` as it leaves: NTP's t3)."""
+        """What to send now (a welcome is stamped with ``now_ns`` as it leaves: NTP's t3).  An early
+        tick's datagrams, and what came after them, wait for its deadline."""
+        if self._policy is not None and now_ns >= self._admit_next:
+            self._admit(now_ns)
+        if now_ns < self._hold_until:
+            return []
+        if self._out_tick is not None:
+            self._departed, self._out_tick = self._out_tick, None
         if self.state == State.HANDSHAKE and self._op_hs is not None:
             assert self.peer is not None
             self._out += [(d, self.peer) for d in self._op_hs.poll(now_ns)]
@@ -540,9 +619,40 @@ class Endpoint:
         out, self._out = self._out, []
         return out
 
+    def _admit(self, now_ns: int) -> None:
+        self._admit_next = now_ns + ADMIT_EVERY_NS
+        a = self.admission(now_ns)
+        if a != self._admitted:
+            self._admitted = a
+            self._events.append(AdmissionChanged(a))
+
+    @property
+    def awaiting_payload(self) -> bool:
+        """A tick is waiting for its payload (grace): a datagram that comes before :meth:`get_timer`
+        may let it run, so a caller should wait on its socket rather than sleep."""
+        return self._grace_until is not None
+
     def get_timer(self) -> int | None:
-        """When :meth:`handle_timer` must be called next (ns on the caller's clock), None: never.
-        Ticks are not timers: :meth:`tick` is called at each tick's deadline."""
+        """When :meth:`handle_timer` must be called next (ns on the caller's clock); None: finished.
+        With a :class:`TickPolicy` each tick's deadline is a timer (or its grace limit, or the
+        device's silence limit when a device paces the ticks)."""
+        policy = self._policy
+        if policy is not None:  # "at once" is the latest time it was given
+            if self._departed is not None:
+                return self._now  # a tick's datagrams left: settle them
+            if self.running and self._device is None:
+                if self._grace_until is not None:  # what came may be the payload
+                    ready = self._pending or self.payload_ready(self._next_k)
+                    return self._now if ready else self._grace_until
+                d = self._early_at[1] if self._early_at is not None else self._deadline(self._next_k)
+                # What came is fed at once, but in the spin only as the early drain allows.
+                return self._now if self._pending and self._now < d - policy.early_ns else d
+            if self.running:
+                return self._device_last + DEVICE_SILENT_NS
+            if self._hold_until > self._now:
+                return self._hold_until
+            if self._pending:
+                return self._now
         if self.state == State.HANDSHAKE:
             hs = self._op_hs or self._to_hs
             assert hs is not None
@@ -560,6 +670,22 @@ class Endpoint:
         return None
 
     def handle_timer(self, now_ns: int) -> None:
+        """The timer is due.  With a :class:`TickPolicy` it may also be called before a tick's
+        deadline, in the time a precise caller spins before it: the endpoint feeds what arrived and
+        may run the tick early (``teleop.session.schedule``); with a paced device, each call after
+        the device ticked runs the session's tick its clock says."""
+        if self._policy is not None:
+            self._now = now_ns
+            if self._departed is not None:
+                self._settle(now_ns)
+                return
+            if self.running:
+                self._timed_tick(self._policy, now_ns)
+                return
+            if self._early_at is not None and now_ns >= self._early_at[1]:
+                self._met_early(now_ns)
+            while self._pending:
+                self._receive(*self._pending.popleft())
         if self.state == State.HANDSHAKE and self._to_hs is not None:
             self._to_hs.poll(now_ns)
             if self._to_hs.error is not None:
@@ -598,6 +724,10 @@ class Endpoint:
         """Run tick ``k`` at ``now_ns``; its datagrams go out with :meth:`datagrams_to_send`.  A
         ``k`` at or past the session's end (a stall skipped over it) ends the session instead."""
         assert self.port is not None and self.params is not None and self.peer is not None
+        while self._pending:  # what came before the tick is its
+            self._receive(*self._pending.popleft())
+            if self.port is None or not self.running:
+                return
         if not self.running:
             return
         if k >= self.params.ticks:
@@ -642,6 +772,142 @@ class Endpoint:
             self._end(EndReason.PEER_BYE, now_ns)
         elif self.peer_bye is not None and self.peer_bye.why:
             self._end(EndReason.PEER_FAULT, now_ns)
+
+    # --- ticks as timers (TickPolicy, teleop.session.schedule) ----------------------------------
+    def _deadline(self, k: int) -> int:
+        assert self.params is not None
+        return self.t0_ns + k * round(self.params.dt * 1e9)
+
+    def _feed(self, limit: int | None = None) -> bool:
+        """Feed the queued datagrams (at most ``limit``); False if the session they fed to was
+        replaced or ended on the way (a takeover's start)."""
+        port, n = self.port, 0
+        while self._pending and (limit is None or n < limit):
+            self._receive(*self._pending.popleft())
+            n += 1
+            if self.port is not port or not self.running:
+                return False
+        return True
+
+    def _timed_tick(self, policy: TickPolicy, now: int) -> None:
+        if self._device is not None:
+            self._paced_tick(now)
+            return
+        k = self._next_k
+        # An early tick's deadline stays its own (its tick may have moved t0: the phase, a skew).
+        deadline = self._early_at[1] if self._early_at is not None else self._deadline(k)
+        if now < deadline:
+            if now >= deadline - policy.early_ns:
+                self._early(policy, k, deadline, now)
+            else:
+                self._fed_at = None
+                self._feed()
+            return
+        self._fed_at = None  # (the spin is over: the next call's time says nothing of a feed's cost)
+        if self._early_at is not None:  # run early: its deadline is met now, its datagrams leave
+            self._met_early(now)
+            self._next_k = k + 1
+            self._feed()
+            return
+        if not self._feed():
+            return
+        loop = self._loop
+        assert loop is not None and self.params is not None
+        if self._grace_until is None:
+            period = round(self.params.dt * 1e9)
+            late = now - deadline
+            if late > policy.max_catchup * period:  # a stall: skip, counted, rather than catch up
+                jump = late // period
+                loop.skipped += jump
+                k += jump
+                late -= jump * period
+                deadline += jump * period
+                self._next_k = k
+            loop.started(late, now)
+            if self.grace_needed(k):
+                self.grace["waits"] += 1
+                self._grace_until, self._grace_t0 = deadline + self.grace_limit_ns, now
+                return
+        else:
+            if not self.payload_ready(k) and now < self._grace_until:
+                return
+            self._grace_until = None
+            self.grace_result(k, now - self._grace_t0)
+        self._next_k = k + 1
+        port = self.port
+        assert port is not None
+        self.tick(k, now)
+        self._out_tick = (k, deadline, port, loop)
+
+    def _met_early(self, now: int) -> None:
+        """The deadline of the tick run early is met (also once that tick ended the session)."""
+        assert self._early_at is not None and self._loop is not None
+        deadline, self._early_at = self._early_at[1], None
+        self._loop.started(now - deadline, now)
+
+    def _early(self, policy: TickPolicy, k: int, deadline: int, now: int) -> None:
+        """Before the deadline, in the spin's time: the early drain, then maybe the early tick."""
+        if self._fed_at is not None:  # the datagram fed at the last call (in this spin) cost this
+            self._cost += (min(now - self._fed_at, policy.early_ns) - self._cost) // 8
+            self._fed_at = None
+        if self._early_at is not None:
+            return
+        if not policy.early_tick:
+            if self._pending and now + self._cost <= deadline - EARLY_MARGIN_NS:
+                self._fed_at = now
+                self._feed(1)
+            return
+        # What arrived before this tick is its (left for after the tick, every payload would count
+        # a tick late whenever the playout buffer held something releasable, and auto playout would
+        # add that tick for good: measured, most of a session one tick above its floor).
+        if not self._feed() or self.grace_needed(k) or k + 1 >= (self.params.ticks if self.params else 0):
+            return  # a takeover's new session, a payload to wait for, or the last tick: at the deadline
+        port, loop = self.port, self._loop
+        assert port is not None and loop is not None
+        self._hold_until = deadline
+        self._early_at = (k, deadline)
+        self.tick(k, now)
+        self._out_tick = (k, deadline, port, loop)
+
+    def _paced_tick(self, now: int) -> None:
+        """A device that paces the session ticked at ``now``: the session tick the clock says (the
+        tick due nearest ``now``, or the next if that one ran: never twice; ticks it skipped are
+        missed deadlines, counted; over a tick ahead of the clock, it holds, counted).  Silent for
+        :data:`DEVICE_SILENT_NS`, it ends the session with a fault."""
+        assert self.params is not None and self._loop is not None
+        if now >= self._device_last + DEVICE_SILENT_NS:
+            self.fault(now, f"the device did not tick for {(now - self._device_last) / 1e9:.1f} s")
+            return
+        self._device_last = now
+        period, k, loop = round(self.params.dt * 1e9), self._next_k, self._loop
+        due = (now - self.t0_ns + period // 2) // period
+        if k > due + 1:
+            loop.ahead += 1
+            hold = getattr(self._device, "hold", None)
+            if callable(hold):
+                hold()
+            return
+        if due > k:
+            loop.missed += due - k
+            k = due
+        deadline = self._deadline(k)
+        loop.started(now - deadline, now)
+        self._next_k = k + 1
+        port = self.port
+        assert port is not None
+        self.tick(k, now)
+        self._out_tick = (k, deadline, port, loop)
+
+    def _settle(self, now: int) -> None:
+        """A tick's datagrams left: what could wait for them (the record's seal, the live view)."""
+        assert self._departed is not None
+        k, deadline, port, loop = self._departed  # (its own session's, if another began since)
+        self._departed = None
+        loop.departed(now, deadline)
+        port.settle()
+        port.loop_timing(k, loop.last_lateness_ns)
+        if self._monitor is not None:
+            self._monitor(port, k, self.session_time(now), loop)
 
     def _retime(self, k: int) -> None:
         """The teleoperator's phase follows where the operator's packets land (``teleop.session.link.phase``),
@@ -752,7 +1018,19 @@ class Endpoint:
         self.port.node.expect_first_by(due_s - self.port.node.link_timeout if lost_at else due_s)
         self.state = State.STARTING
         self._link_lost = False
-        self._events.append(SessionStarted(params, peer, start_ns, t0_ns, k0, late, offset_ns, rtt_ns))
+        device = None
+        if self._policy is not None:
+            period = round(params.dt * 1e9)
+            dev = getattr(self.port.node, "device", None)
+            if getattr(dev, "paced", False) is True and callable(getattr(dev, "wait", None)):
+                device = dev
+            self._device, self._device_last = device, t0_ns + (k0 - 1) * period
+            self._loop = LoopFigures(period, device_paced=device is not None)
+            self._next_k, self._early_at, self._grace_until, self._hold_until = k0, None, None, 0
+            self._admit_next = 0
+        self._events.append(
+            SessionStarted(params, peer, start_ns, t0_ns, k0, late, offset_ns, rtt_ns, device)
+        )
 
     def _fail(self, reason: Failure, detail: str) -> None:
         self.state = State.FAILED
@@ -983,6 +1261,10 @@ class Endpoint:
     def _end(self, reason: EndReason, now_ns: int) -> None:
         """The ticks are over: linger (unless replaced: its operator is gone), then close."""
         self._ended = reason
+        if self._policy is not None and self._loop is not None:
+            self._events.append(TicksEnded(self.k, self._loop))
+            self._device, self._grace_until, self._admit_next = None, None, 0  # (an early tick's
+            # deadline is still met: handle_timer then)
         if reason == EndReason.REPLACED:
             self._close()
             return
