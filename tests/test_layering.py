@@ -71,7 +71,7 @@ def _layer(module: str) -> str:
 
 def test_the_walk_sees_imports() -> None:
     """The walker itself: it finds known imports, absolute and relative (so the checks can fail)."""
-    found = _targets(ROOT / "transport" / "session.py")
+    found = _targets(ROOT / "transport" / "runner.py")
     assert "transport.realtime" in found
     assert "teleop.session.endpoint" in found
     assert _layer("teleop.session.link.netem") == "teleop.session"

@@ -306,8 +306,8 @@ def _code_map() -> dict[str, object]:
     from teleop.control import passivity
     from teleop.control.codecs import base, frequency
     from teleop.devices import scenarios
-    from teleop.session import endpoint
-    from transport import options, realtime
+    from teleop.session import endpoint, schedule
+    from transport import options
 
     hs = protocol.OperatorHandshake
     return {
@@ -393,7 +393,7 @@ def _code_map() -> dict[str, object]:
         },
         "REFERENCE_LINK_TIMEOUT_S": _default(SessionParams, "link_timeout"),
         "REFERENCE_FADE_TIME_S": _default(PortOptions, "fade_time"),
-        "REFERENCE_MAX_CATCHUP": _default(realtime.Ticker, "max_catchup"),
+        "REFERENCE_MAX_CATCHUP": _default(schedule.TickPolicy, "max_catchup"),
         "REFERENCE_REJOIN_OFFER_INTERVAL_NS": endpoint.REJOIN_OFFER_INTERVAL_NS,
         "REFERENCE_REJOIN_SAMPLES": endpoint.REJOIN_SAMPLES,
         "REFERENCE_REJOIN_COLLECT_NS": endpoint.REJOIN_COLLECT_NS,

@@ -108,7 +108,7 @@ __all__ = [
 NICE = 10  # the writer process's niceness (on top of SCHED_IDLE, or instead where refused)
 LIVE_BATCH = 5  # live-view ticks per queued item
 QUEUE_ITEMS = 256  # items (chunks, live batches 10 a second, events) in flight
-#: Ticks a port's chunk holds in a real-time session (``transport.session``): sealed and handed to
+#: Ticks a port's chunk holds in a real-time session (``transport.runner``): sealed and handed to
 #: the writer four times a second, so a kill -9 of the process loses at most this much unsealed.
 LOG_CHUNK_TICKS = 250
 #: Ticks of sealed chunks the process itself may hold ahead of the writer's pipe (0.75 s at 1 kHz):

@@ -28,7 +28,7 @@ class EndpointOptions:
     use_uvloop: bool = True
     spin_us: int = 100
     # "wake": run each tick as the loop wakes before its deadline, send at the deadline (the spin's
-    # time does the tick's work); "deadline": run it from the deadline (transport.session.tick_early)
+    # time does the tick's work); "deadline": run it from the deadline (teleop.session.schedule)
     tick_at: str = "wake"
     linger: float = 0.2
     grace_us: float = 400.0

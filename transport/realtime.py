@@ -28,12 +28,14 @@ robot millisecond) may pace the loop instead of the timer: the runner blocks in 
 ``t0 + k * period``; a tick of the clock the device skipped is a *missed deadline* (counted, never
 run), and no tick runs twice.
 
-**When the datagrams leave.**  The runner may run a tick before its deadline, in the time the
-spin would burn, and send its datagrams at the deadline (``transport.session``, ``--tick-at
-wake``), or run it from the deadline (``--tick-at deadline``).  The figures above are of the
-deadline instant either way; :meth:`Ticker.departed` adds the instant each tick's datagrams left
-(``send_lateness_us``, ``send_period_error_us``), which is what the peer sees of the loop's timing
-in both modes.
+**When the datagrams leave.**  The endpoint may run a tick before its deadline, in the time the
+spin would burn, and send its datagrams at the deadline (``teleop.session.schedule``, ``--tick-at
+wake``), or run it from the deadline (``--tick-at deadline``).  The real-time runner
+(``transport.runner``) sleeps with :class:`PreciseSleep` and takes its figures from the endpoint
+(``teleop.session.schedule.LoopFigures``, the same accounting as here: :meth:`LoopStats.of`).
+The figures above are of the deadline instant either way; :meth:`Ticker.departed` adds the
+instant each tick's datagrams left (``send_lateness_us``, ``send_period_error_us``), which is what
+the peer sees of the loop's timing in both modes.
 
 Real-time priority (SCHED_FIFO) and 1 ns timer slack are requested where permitted; where not,
 ``setup_realtime`` returns warnings and the run goes on.  Under SCHED_FIFO a thread that never
@@ -54,6 +56,7 @@ import numpy as np
 import numpy.typing as npt
 
 from teleop.session.link.quantiles import Quantiles
+from teleop.session.schedule import LoopFigures
 
 PR_SET_TIMERSLACK = 29
 
@@ -151,6 +154,29 @@ class LoopStats:
             ),
         }
 
+    @classmethod
+    def of(cls, loop: LoopFigures, cpu_s: float, wall_s: float, spin_ns: int) -> LoopStats:
+        """A session's figures: its endpoint's ticks (``teleop.session.schedule``) and this host's."""
+        none = np.zeros(0, dtype=np.int64)
+        return cls(
+            period_ns=loop.period_ns,
+            ticks=loop.ticks,
+            overruns=loop.overruns,
+            skipped=loop.skipped,
+            lateness_ns=none,
+            period_error_ns=none,
+            cpu_s=cpu_s,
+            wall_s=wall_s,
+            lateness_q=loop.lateness_q,
+            period_error_q=loop.period_error_q,
+            spin_ns=spin_ns,
+            send_lateness_q=loop.send_lateness_q,
+            send_period_error_q=loop.send_period_error_q,
+            missed_deadlines=loop.missed,
+            device_ahead=loop.ahead,
+            device_paced=loop.device_paced,
+        )
+
 
 def _percentiles(q: Quantiles | None, samples_ns: npt.NDArray[np.int64]) -> dict[str, float]:
     if q is None or samples_ns.size:
@@ -200,6 +226,26 @@ class SpinLearner:
         latency = (top + 1) * 1000  # the bin's upper edge
         self.spin_ns = min(self.hi, max(self.lo, latency + self.margin))
         self.bins = [c / 2 for c in self.bins]
+
+
+class PreciseSleep:
+    """Sleep until a spin before a time (``clock_nanosleep``), learning this host's wake-up latency
+    (:class:`SpinLearner`); the caller spins the rest, doing in it what may run early."""
+
+    def __init__(
+        self, spin_ns: int = 150_000, min_spin_ns: int = 10_000, clock: Callable[[], int] = time.monotonic_ns
+    ) -> None:
+        self.spin = spin_ns
+        self.learner = SpinLearner(min(min_spin_ns, spin_ns), spin_ns) if min_spin_ns < spin_ns else None
+        self.clock = clock
+
+    def sleep(self, t_ns: int) -> None:
+        remaining = t_ns - self.clock()
+        if remaining > self.spin:
+            wake = t_ns - self.spin
+            time.sleep((remaining - self.spin) / 1e9)
+            if self.learner is not None:
+                self.spin = self.learner.add(self.clock() - wake)
 
 
 class Ticker:

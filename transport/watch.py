@@ -7,14 +7,16 @@ written from the loop.
 from __future__ import annotations
 
 import math
+import sys
 from typing import Any
 
 from teleop.session.link.phase import PHASE_MARGIN_S
 from teleop.session.port import Port
+from teleop.session.schedule import LoopFigures
 
 from .mcaplog import McapLog
 
-__all__ = ["LogWatch", "live_messages", "status_line"]
+__all__ = ["LogWatch", "Monitor", "live_messages", "status_line"]
 
 
 class LogWatch:
@@ -113,3 +115,32 @@ def live_messages(port: Port, k: int, t: float) -> dict[str, dict[str, Any]]:
             "peer_epoch": node.peer_restarts,
         },
     }
+
+
+class Monitor:
+    """The endpoint's monitor in a real process (``Endpoint(monitor=...)``), after each tick's
+    datagrams left: the log's events and live view (:class:`LogWatch`) and ``--live``'s status line
+    once a second of the session clock (``k`` may jump: a stall, a device that missed deadlines)."""
+
+    def __init__(self, role: str, live: bool, insecure: bool) -> None:
+        self.role, self.live, self.insecure = role, live, insecure
+        self.log: McapLog | None = None  # the running session's (None: no log, no live view)
+        self.rtt_ns: int | None = None  # operator: the handshake's round trip (the status line's floor)
+        self.device: Any = None  # a device that paces the session adds its own figures
+        self.watch = LogWatch()
+        self._next_status = 999
+
+    def start(self, log: McapLog | None, k0: int, rtt_ns: int | None, device: Any) -> None:
+        self.log, self.rtt_ns, self.device = log, rtt_ns, device
+        self._next_status = k0 - k0 % 1000 + 999
+
+    def __call__(self, port: Port, k: int, t: float, loop: LoopFigures) -> None:
+        if self.log is not None:
+            self.watch.tick(self.log, port, k, t, loop.overruns, loop.skipped)
+        if self.live and k >= self._next_status:
+            self._next_status = ((k - 999) // 1000 + 1) * 1000 + 999
+            line = status_line(self.role, port, k, loop.overruns, self.insecure, self.rtt_ns)
+            if loop.device_paced:
+                status = getattr(self.device, "status", None)
+                line += f", missed deadlines {loop.missed}" + (f", {status()}" if callable(status) else "")
+            print(line, file=sys.stderr, flush=True)

@@ -4,9 +4,10 @@ A :class:`Port` owns the node, the outgoing impairment shim, the wire counters o
 as this side sees them, the link observer of the incoming direction, the per-tick recorder and the
 summary.  Its surface is ``receive(datagram, t, k)``, ``tick(k, t) -> datagrams``, ``next_due()``,
 ``flush(t, k)`` and ``summary()``; it never reads a clock or a socket.  ``teleop sim`` joins two
-ports with virtual links (``teleop.offline.sim``); the real-time runner (``transport.session``) puts one
-between the ``Ticker`` and the transport.  So the counters, the link figures and the summary of a
-simulated and a real run come from the same code, and their ``wire`` blocks compare key by key.
+ports with virtual links (``teleop.offline.sim``); the real-time runner (``transport.runner``)
+puts one, inside its endpoint, between the clock and the transport.  So the counters, the link
+figures and the summary of a simulated and a real run come from the same code, and their ``wire``
+blocks compare key by key.
 
 Time: ``k`` is the tick index (the node runs at ``k dt``, the session clock of eq. 7); ``t`` is when
 this happens on the common session clock in seconds (``k dt`` in the simulation, the measured
