@@ -188,6 +188,8 @@ class Runner:
             self.feed()
             while (now := clock()) < t:
                 self.ep.handle_timer(now)
+            self.ep.handle_timer(now)  # due: the instant the spin ended is the deadline's figure
+            self.send()
             return
         elif self.ticking:
             t -= FIRST_TICK_LEAD_NS

@@ -460,6 +460,7 @@ class Endpoint:
         self._fed_at: int | None = None
         self._early_at: tuple[int, int] | None = None  # the tick run early and its deadline, not yet met
         self._hold_until = 0  # an early tick's datagrams (and what follows them) leave at its deadline
+        self._quiet_until = 0  # handle_timer has nothing to do before this (the spin's early work done)
         self._grace_until: int | None = None
         self._grace_t0 = 0
         # (k, deadline, its session's port and figures): a tick's datagrams about to leave, and left
@@ -571,6 +572,7 @@ class Endpoint:
         for :meth:`handle_timer` (the early drain decides when each is worth its cost)."""
         if self._policy is not None and self._device is None and self.running:
             self._pending.append((data, addr, now_ns))
+            self._quiet_until = 0
             return
         self._receive(data, addr, now_ns)
 
@@ -674,6 +676,8 @@ class Endpoint:
         deadline, in the time a precise caller spins before it: the endpoint feeds what arrived and
         may run the tick early (``teleop.session.schedule``); with a paced device, each call after
         the device ticked runs the session's tick its clock says."""
+        if now_ns < self._quiet_until:
+            return  # in a spin, with nothing to do before the deadline (called on every turn of it)
         if self._policy is not None:
             self._now = now_ns
             if self._departed is not None:
@@ -856,12 +860,17 @@ class Endpoint:
             if self._pending and now + self._cost <= deadline - EARLY_MARGIN_NS:
                 self._fed_at = now
                 self._feed(1)
+            else:
+                self._quiet_until = deadline  # nothing more before it: the caller's spin stays tight
             return
         # What arrived before this tick is its (left for after the tick, every payload would count
         # a tick late whenever the playout buffer held something releasable, and auto playout would
         # add that tick for good: measured, most of a session one tick above its floor).
-        if not self._feed() or self.grace_needed(k) or k + 1 >= (self.params.ticks if self.params else 0):
-            return  # a takeover's new session, a payload to wait for, or the last tick: at the deadline
+        if not self._feed():
+            return  # a takeover's new session
+        self._quiet_until = deadline
+        if self.grace_needed(k) or k + 1 >= (self.params.ticks if self.params else 0):
+            return  # a payload to wait for, or the last tick: at the deadline
         port, loop = self.port, self._loop
         assert port is not None and loop is not None
         self._hold_until = deadline
@@ -1027,6 +1036,7 @@ class Endpoint:
             self._device, self._device_last = device, t0_ns + (k0 - 1) * period
             self._loop = LoopFigures(period, device_paced=device is not None)
             self._next_k, self._early_at, self._grace_until, self._hold_until = k0, None, None, 0
+            self._quiet_until = 0
             self._admit_next = 0
         self._events.append(
             SessionStarted(params, peer, start_ns, t0_ns, k0, late, offset_ns, rtt_ns, device)
