@@ -34,16 +34,20 @@ class Spy(Endpoint):
 
     ticked: list[tuple[int, int]]  # (k, the clock it was given)
     early: list[int]  # ticks run before their deadline
+    ran: list[int]  # ticks that ran (their model and record), of those asked for
 
     def __init__(self, *args: Any, **kw: Any) -> None:
         super().__init__(*args, **kw)
-        self.ticked, self.early = [], []
+        self.ticked, self.early, self.ran = [], [], []
 
-    def tick(self, k: int, now_ns: int) -> None:
+    def tick(self, k: int, now_ns: int) -> bool:
         self.ticked.append((k, now_ns))
         if self.params is not None and now_ns < self.t0_ns + k * round(self.params.dt * 1e9):
             self.early.append(k)
-        super().tick(k, now_ns)
+        ran = super().tick(k, now_ns)
+        if ran:
+            self.ran.append(k)
+        return ran
 
 
 def pair(
@@ -314,5 +318,25 @@ def test_an_early_tick_that_ends_the_session_still_counts_its_deadline() -> None
     net.seconds(3.0)
     for h in (op, to):
         assert summary(h)["completed"], h.addr
-        assert loop_of(h).ticks == len(h.ep.ticked), h.addr  # type: ignore[attr-defined]
+        assert loop_of(h).ticks == len(h.ep.ran), h.addr  # type: ignore[attr-defined]
     assert summary(to)["end"] == "peer_bye" and to.ep.early  # type: ignore[attr-defined]
+
+
+def test_a_robot_stopped_while_it_waits_for_a_payload_counts_only_the_ticks_it_ran() -> None:
+    """Its operator falls silent, the robot's tick waits in grace, and a signal stops it there: that
+    tick never runs, so the loop's figures do not count it (CI saw 1801 counted against 1800 logged)."""
+    net = VirtualNet(0.5)
+    _op, to = pair(net, duration=0.0)
+    net.seconds(6.0, stop=lambda: to.ep.state == State.RUNNING)
+    net.seconds(0.5)
+    net.stall(OP, net.now + 10_000 * MS)  # silent: nothing more from the operator
+    steps = 0
+    while not to.ep.awaiting_payload and steps < 20_000:
+        steps += 1
+        net.run(net.now + 50_000)
+    assert to.ep.awaiting_payload
+    to.ep.stop(to.clock(net.now))
+    net.seconds(2.0)
+    assert summary(to)["end"] == "stopped"
+    ran = to.ep.ran  # type: ignore[attr-defined]
+    assert loop_of(to).ticks == len(ran)

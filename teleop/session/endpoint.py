@@ -724,19 +724,20 @@ class Endpoint:
         """Seconds on the common session clock (tick 0 of the session is 0)."""
         return (now_ns - self.start_ns) / 1e9
 
-    def tick(self, k: int, now_ns: int) -> None:
+    def tick(self, k: int, now_ns: int) -> bool:
         """Run tick ``k`` at ``now_ns``; its datagrams go out with :meth:`datagrams_to_send`.  A
-        ``k`` at or past the session's end (a stall skipped over it) ends the session instead."""
+        ``k`` at or past the session's end (a stall skipped over it) ends the session instead.
+        Returns whether the tick ran (its model and record): the loop's figures count only those."""
         assert self.port is not None and self.params is not None and self.peer is not None
         while self._pending:  # what came before the tick is its
             self._receive(*self._pending.popleft())
             if self.port is None or not self.running:
-                return
+                return False
         if not self.running:
-            return
+            return False
         if k >= self.params.ticks:
             self._end(EndReason.COMPLETED, now_ns)
-            return
+            return False
         self.state = State.RUNNING
         port = self.port
         if shift := port.clock.take_skew():
@@ -747,7 +748,7 @@ class Endpoint:
             self.t0_ns -= shift * round(self.params.dt * 1e9)
             port.playout.forget_transits()
             self._events.append(ClockShifted(k, shift))
-            return
+            return False
         # The tick runs on its deadline's time, as in ``teleop sim``: an outgoing shim timed from the
         # clock released a packet on its due tick or the next as the loop's few microseconds of
         # lateness (or an early tick's spin) fell (measured: half of a 10 ms link's packets a tick
@@ -776,6 +777,7 @@ class Endpoint:
             self._end(EndReason.PEER_BYE, now_ns)
         elif self.peer_bye is not None and self.peer_bye.why:
             self._end(EndReason.PEER_FAULT, now_ns)
+        return True
 
     # --- ticks as timers (TickPolicy, teleop.session.schedule) ----------------------------------
     def _deadline(self, k: int) -> int:
@@ -840,7 +842,9 @@ class Endpoint:
         self._next_k = k + 1
         port = self.port
         assert port is not None
-        self.tick(k, now)
+        if not self.tick(k, now):  # not run (stopped during its grace, a skew): not a loop tick
+            loop.not_run()
+            return
         self._out_tick = (k, deadline, port, loop)
 
     def _met_early(self, now: int) -> None:
@@ -875,7 +879,9 @@ class Endpoint:
         assert port is not None and loop is not None
         self._hold_until = deadline
         self._early_at = (k, deadline)
-        self.tick(k, now)
+        if not self.tick(k, now):  # not run (a skew moved tick 0): its deadline is no loop tick
+            self._early_at, self._hold_until = None, 0
+            return
         self._out_tick = (k, deadline, port, loop)
 
     def _paced_tick(self, now: int) -> None:
@@ -904,7 +910,9 @@ class Endpoint:
         self._next_k = k + 1
         port = self.port
         assert port is not None
-        self.tick(k, now)
+        if not self.tick(k, now):
+            loop.not_run()
+            return
         self._out_tick = (k, deadline, port, loop)
 
     def _settle(self, now: int) -> None:
@@ -1272,6 +1280,8 @@ class Endpoint:
         """The ticks are over: linger (unless replaced: its operator is gone), then close."""
         self._ended = reason
         if self._policy is not None and self._loop is not None:
+            if self._grace_until is not None:  # its deadline was counted; waiting, it never runs
+                self._loop.not_run()
             self._events.append(TicksEnded(self.k, self._loop))
             self._device, self._grace_until, self._admit_next = None, None, 0  # (an early tick's
             # deadline is still met: handle_timer then)

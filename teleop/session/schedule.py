@@ -87,6 +87,12 @@ class LoopFigures:
         self._last_start = now_ns
         self.ticks += 1
 
+    def not_run(self) -> None:
+        """The tick whose deadline :meth:`started` counted did not run (the session was stopped
+        while it waited for its payload, a skew moved tick 0): ``ticks`` counts ticks run, as the
+        log does (its lateness sample stays: the loop did wake for it)."""
+        self.ticks -= 1
+
     def departed(self, now_ns: int, deadline_ns: int) -> None:
         """The datagrams of the tick due at ``deadline_ns`` left at ``now_ns``."""
         self.send_lateness_q.add(now_ns - deadline_ns)
