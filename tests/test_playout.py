@@ -198,3 +198,28 @@ def test_auto_covers_jitter_but_not_a_stalled_senders_bursts() -> None:
         jitter.add(pkt(k, k - late), k)
         jitter.due(k)
     assert jitter.extra == 2
+
+
+@settings(max_examples=120, deadline=None)
+@given(
+    transits=st.lists(st.integers(0, 40), min_size=1, max_size=600),
+    gaps=st.lists(st.integers(0, 12), min_size=1, max_size=600),
+)
+def test_auto_allowance_is_the_sorted_rule_for_any_arrivals(transits: list[int], gaps: list[int]) -> None:
+    """The allowance is counted from the late events' transits (a dict of counts, not a sort of
+    the events): after every payload it equals the rule's plain statement, the (allowed + 1)-th
+    largest lateness of the window's events above ``a_min``, clamped to the floor and the cap."""
+    b = PlayoutBuffer("auto", DT)
+    k = 50  # every send tick >= 0 (a tick before 0 predates the session: released, not observed)
+    for i, a in enumerate(transits):
+        k += gaps[i % len(gaps)]
+        b.add(pkt(i, k - a), k)
+        b.due(k)
+        a_min = b.a_min()
+        assert a_min is not None
+        window = [e for e in b._late_events if e[0] > k - 2000]
+        lates = sorted((t - a_min for _, t in window if t > a_min), reverse=True)
+        allowed = max(1, int(0.01 * len(b._window_k)))
+        want = b.auto_floor if len(lates) <= allowed else max(min(lates[allowed], b.max_extra), b.auto_floor)
+        assert b._allowance() == want
+        assert sum(b._late_count.values()) == len(b._late_events)

@@ -87,3 +87,32 @@ def test_freeze_heap_frees_an_earlier_sessions_port_then_freezes_the_rest() -> N
     collects first.  In a child process: freezing is process-wide."""
     r = subprocess.run([sys.executable, "-c", _FREEZE_SCRIPT], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr
+
+
+_NO_IMPORT_SCRIPT = """
+import sys
+from transport.realtime import freeze_heap
+from tests.vnet import VirtualNet, params
+
+net = VirtualNet(0.1)
+to = net.teleoperator()
+op = net.operator(params(codec="none", duration=2.0, netem_forward="delay 1ms 1ms"))
+net.seconds(30.0, stop=lambda: bool(op.started) and bool(to.started))
+assert op.started and to.started
+freeze_heap()  # what the runner does when a session starts, before its first tick
+before = set(sys.modules)
+net.seconds(30.0, stop=lambda: op.ep.finished and to.ep.finished)
+assert op.ep.finished and to.ep.finished
+print(sorted(set(sys.modules) - before))
+"""
+
+
+@pytest.mark.integration  # a child python: what a fresh process imports is process-wide
+def test_a_sessions_ticks_import_nothing() -> None:
+    """An import during the ticks stalls one: numpy imports ``numpy.ma`` on the first ``np.unique``,
+    which the phase estimator's ``np.quantile`` calls 100 ticks in (11-19 ms, measured on both
+    sides).  The runner's :func:`freeze_heap` imports such modules first; a whole session (jittered,
+    so the playout and the phase estimator work) then imports nothing."""
+    r = subprocess.run([sys.executable, "-c", _NO_IMPORT_SCRIPT], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "[]", r.stdout

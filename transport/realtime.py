@@ -47,6 +47,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import gc
+import importlib
 import os
 import time
 from collections.abc import Callable
@@ -83,8 +84,16 @@ def setup_realtime(priority: int | None = 10, timer_slack_ns: int = 1) -> list[s
     return warnings
 
 
+#: Modules numpy imports only on first use, which a tick would pay for: ``np.quantile`` (the phase
+#: estimator, ``teleop.session.link.phase``, every 100 ticks) calls ``np.unique``, whose first call
+#: imports ``numpy.ma``: 11-19 ms of one early tick on both sides (measured), a stall that made the
+#: auto playout add 8-13 ms to every payload for the next 2 s.
+LAZY_MODULES = ("numpy.ma",)
+
+
 def freeze_heap() -> None:
-    """Collect, then move every object into the cyclic GC's permanent generation (``gc.freeze``).
+    """Import :data:`LAZY_MODULES`, collect, then move every object into the cyclic GC's permanent
+    generation (``gc.freeze``).
 
     Why: a full collection during the ticks would walk the ~30 000 objects of the imports and the
     session's setup (measured 10 ms in-process, a skipped tick); frozen, it walks only what the
@@ -92,6 +101,8 @@ def freeze_heap() -> None:
     session's port is one (its counters call back into its recorder): each takeover would leak one.
     Costs a full collection of what is not frozen yet: ~17 ms the first time (the imports), ~0.1 ms
     at a session's start after that, so the runner calls it once before the handshake too."""
+    for name in LAZY_MODULES:
+        importlib.import_module(name)
     gc.collect()
     gc.freeze()
 

@@ -116,6 +116,10 @@ class PlayoutBuffer:
         self._next_check = 0
         self._stale_before = 0  # payloads sent before this tick predate a step: not observed
         self._late_events: deque[tuple[int, int]] = deque()  # (tick, transit) of late payloads
+        # How many of them had each transit: the allowance walks the few distinct transits, never
+        # every event (a sort of the events on every late payload took ~1 ms once a link's
+        # transit sat a tick above a_min for most payloads, which made more of them late).
+        self._late_count: dict[int, int] = {}
         self._prev_late = 0
         self._max_seen_tick = -1
         self.stats = PlayoutStats()
@@ -190,10 +194,19 @@ class PlayoutBuffer:
         prev, self._prev_late = self._prev_late, late
         if late <= 0 or late == prev - 1:
             return
-        ev = self._late_events
+        ev, cnt = self._late_events, self._late_count
         ev.append((k, a))
+        cnt[a] = cnt.get(a, 0) + 1
         while ev[0][0] <= k - AUTO_WINDOW:
-            ev.popleft()
+            self._forget_late(ev.popleft()[1])
+
+    def _forget_late(self, a: int) -> None:
+        cnt = self._late_count
+        n = cnt[a] - 1
+        if n:
+            cnt[a] = n
+        else:
+            del cnt[a]
 
     def _allowance(self) -> int:
         """The lateness that all but LATE_SHARE of the window's payloads (and at least all but one)
@@ -205,14 +218,18 @@ class PlayoutBuffer:
         loops stall a few times a second held it a tick or two above its floor)."""
         ev = self._late_events
         while ev and ev[0][0] <= self._window_k[-1] - AUTO_WINDOW:
-            ev.popleft()
+            self._forget_late(ev.popleft()[1])
         allowed = max(1, int(LATE_SHARE * len(self._window_k)))
         a_min = self._a_min
         assert a_min is not None
-        lates = sorted((a - a_min for _, a in ev if a > a_min), reverse=True)
-        if len(lates) <= allowed:
-            return self.auto_floor
-        return max(min(lates[allowed], self.max_extra), self.auto_floor)
+        # The (allowed + 1)-th largest lateness: counted down from the latest transit.
+        cnt = self._late_count
+        seen = 0
+        for a in sorted((a for a in cnt if a > a_min), reverse=True):
+            seen += cnt[a]
+            if seen > allowed:
+                return max(min(a - a_min, self.max_extra), self.auto_floor)
+        return self.auto_floor
 
     def _low_quantile(self, a: int) -> int:
         """The transit LOW_QUANTILE of the recent payloads undercut: the lowest, but for the few a
@@ -301,6 +318,7 @@ class PlayoutBuffer:
         self._next_check = 0
         self.extra = self.fixed if not self._auto else self.auto_floor
         self._late_events.clear()
+        self._late_count.clear()
         self._prev_late = 0
         self._stale_before = self._max_seen_tick + 1
 
@@ -313,6 +331,7 @@ class PlayoutBuffer:
         self._a_min = None
         self._next_check = 0
         self._late_events.clear()
+        self._late_count.clear()
         self._prev_late = 0
         self._max_seen_tick = -1
         self._stale_before = 0
