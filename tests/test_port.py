@@ -124,9 +124,10 @@ def test_recorder_marks_the_ticks_that_ran() -> None:
 @settings(max_examples=20, deadline=None)
 @given(st.lists(st.integers(1, 1600), min_size=1, max_size=6), st.booleans())
 def test_a_deferred_seal_gives_the_same_record_and_figures(steps: list[int], settle: bool) -> None:
-    """The runner's ``defer`` (a closed chunk sealed by settle() after the send, the next one made
-    there) changes when the work is done, not what: the same chunks, arrays and summaries as a seal
-    in the tick, whether settle() runs after every tick or never, over gaps that skip chunks."""
+    """The runner's ``defer`` (a closed chunk sealed by settle() after the send, a step a call, the
+    next one made there) changes when the work is done, not what: the same chunks, arrays and
+    summaries as a seal in the tick, whether settle() runs after every tick or never, over gaps
+    that skip chunks."""
     ks = [sum(steps[: i + 1]) for i in range(len(steps))]
     runs = []
     for defer in (False, True):
@@ -152,6 +153,24 @@ def test_a_deferred_seal_gives_the_same_record_and_figures(steps: list[int], set
         assert a0.keys() == a1.keys()
         for name in a0:
             np.testing.assert_array_equal(a0[name], a1[name], err_msg=name)
+
+
+def test_a_deferred_seal_is_spread_over_three_settles() -> None:
+    """Each settle() runs one step of a closed chunk's seal (bytes and baseline, the compression
+    window, the sink), so no single gap between two ticks holds all of it (issue 37: the whole seal
+    and the sink's pickle in one gap started the next tick up to 1.5 ms late)."""
+    op, _ = _pair(ticks=3000)
+    op.rec.defer = True
+    assert isinstance(op.sink, MemorySink)
+    for k in range(op.rec.chunk_ticks + 1):
+        op.tick(k, k * 1e-3)  # tick chunk_ticks closes the first chunk
+    assert op.sink.chunks == [] and op.tx.baseline_packets == 0
+    op.settle()
+    assert op.sink.chunks == [] and op.tx.baseline_packets == op.rec.chunk_ticks  # step 1: baseline
+    op.settle()
+    assert op.sink.chunks == [] and op.tx._seen_ticks == op.rec.chunk_ticks  # step 2: the window
+    op.settle()
+    assert [c.k0 for c in op.sink.chunks] == [0]  # step 3: the sink
 
 
 def test_forged_tampered_and_replayed_datagrams_change_nothing() -> None:

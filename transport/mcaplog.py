@@ -17,7 +17,8 @@ the end, then finishes the file.  A kill -9 of the process therefore loses at mo
 unsealed chunk and what the process held), however far behind the writer was; the writer keeps up
 on a loaded host by leaving ``SCHED_IDLE`` while its pipe fills (:meth:`McapLog._keep_up`).
 
-**Who pays.** A sender thread pickles each item into the stdin of a writer *process* (``python -m
+**Who pays.** The loop pickles each chunk, in a gap between two ticks; a sender thread writes it,
+and pickles the small items, into the stdin of a writer *process* (``python -m
 transport.mcaplog``), which turns chunks into messages, compresses and writes them, and serves the
 live view.  A process, not a thread: measured with a writer thread in the same process
 (bench/soak.py, first version), the loop's p99 period error was about 2x that without the log, since
@@ -67,6 +68,7 @@ by default), sent from the loop through the same queue five at a time (100 ms), 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import math
 import os
@@ -75,6 +77,7 @@ import queue
 import signal
 import subprocess
 import sys
+import termios
 import threading
 import time
 from pathlib import Path
@@ -291,6 +294,11 @@ class _Writer:
         return foxglove.Channel(f"/{self.role}/{name}", schema=SCHEMAS[name], context=ctx)
 
     @property
+    def wants_live(self) -> bool:
+        """A live view is served: the loop builds its per-tick messages (else it need not)."""
+        return self._wants_live
+
+    @property
     def live_port(self) -> int | None:
         return None if self.server is None else int(self.server.port)
 
@@ -391,8 +399,6 @@ def spawn_writer() -> subprocess.Popen[bytes]:
 
 def _enlarge_pipe(fd: int) -> int:
     """The pipe's size raised to :data:`PIPE_BYTES` (or as far as the kernel allows); its size."""
-    import fcntl
-
     sizes = [PIPE_BYTES]
     with contextlib.suppress(OSError, ValueError):
         sizes.append(int(Path("/proc/sys/fs/pipe-max-size").read_text()))
@@ -407,10 +413,11 @@ class McapLog:
 
     ``write(chunk)`` is the port's sink; ``live``/``event``/``status`` are called by the runner;
     ``close(summary)`` drains the queue, logs the summary, finishes the file and waits for the
-    writer.  From the loop each call is a ``put_nowait`` on a bounded queue; a sender thread
-    pickles the items into the writer's stdin (a blocking write releases the GIL), and the writer
-    process (``python -m transport.mcaplog``) does all the encoding, compression and writing under
-    its own interpreter lock, so none of it can hold the loop's."""
+    writer.  From the loop each call is a ``put_nowait`` on a bounded queue (a chunk pickled first,
+    see :meth:`write`); a sender thread pickles the other items and writes all of them into the
+    writer's stdin (a blocking write releases the GIL), and the writer process (``python -m
+    transport.mcaplog``) does all the encoding, compression and writing under its own interpreter
+    lock, so none of it can hold the loop's."""
 
     def __init__(
         self,
@@ -458,6 +465,11 @@ class McapLog:
         self._queued_ticks = self._sent_ticks = 0
 
     @property
+    def wants_live(self) -> bool:
+        """A live view is served: the loop builds its per-tick messages (else it need not)."""
+        return self._wants_live
+
+    @property
     def live_port(self) -> int | None:
         """The live view's port (waits for the writer to say, the first time)."""
         if self._wants_live and self._live_port is None and self._proc.stdout is not None:
@@ -473,8 +485,12 @@ class McapLog:
         ``max_ahead_ticks`` ticks the pipe has not taken (then it is dropped and counted)."""
         ahead = self._queued_ticks - self._sent_ticks
         if self.max_ahead_ticks is None or ahead == 0 or ahead + chunk.n <= self.max_ahead_ticks:
+            # Pickled here, not by the sender thread: pickle.dumps is one C call that holds the
+            # interpreter lock throughout (~50 us hot, up to 0.4 ms cold, measured), which the loop
+            # would wait for if the thread ran it when the next tick is due; here it is a step of
+            # the seal, in a gap between two ticks (``teleop.session.port.Recorder.settle``).
             try:
-                self._q.put_nowait(("chunk", chunk))
+                self._q.put_nowait(("chunk", (_frame(("chunk", chunk)), chunk.n)))
             except queue.Full:
                 pass
             else:
@@ -515,15 +531,15 @@ class McapLog:
         assert out is not None
         while True:
             item = self._q.get()
-            data = pickle.dumps(item, protocol=pickle.HIGHEST_PROTOCOL)
+            framed = item[1][0] if item[0] == "chunk" else _frame(item)
             try:
-                out.write(len(data).to_bytes(4, "little") + data)
+                out.write(framed)
                 out.flush()
             except OSError:  # the writer died: say so once; the loop goes on without a log
                 self._writer_died()
                 return
             if item[0] == "chunk":
-                self._sent_ticks += item[1].n
+                self._sent_ticks += item[1][1]
                 self._keep_up()
             if item[0] == "stop":
                 return
@@ -540,9 +556,6 @@ class McapLog:
         does; without it the writer stays idle and a writer too far behind costs dropped chunks."""
         if self._pipe_size <= 0 or self._proc.stdin is None:
             return
-        import fcntl
-        import termios
-
         buf = bytearray(4)
         try:
             fcntl.ioctl(self._proc.stdin.fileno(), termios.FIONREAD, buf)
@@ -627,8 +640,6 @@ class McapLog:
 
 
 def _pipe_size(proc: subprocess.Popen[bytes]) -> int:
-    import fcntl
-
     try:
         return int(fcntl.fcntl(proc.stdin.fileno(), fcntl.F_GETPIPE_SZ)) if proc.stdin else 0
     except (OSError, ValueError):
@@ -676,6 +687,12 @@ def promote_writer(proc: subprocess.Popen[bytes]) -> bool:
         except (OSError, AttributeError):  # refused (no privilege), a thread that just ended
             done = False
     return done
+
+
+def _frame(item: tuple[str, Any]) -> bytes:
+    """An item as the writer reads it (:func:`_read`): its pickle's length (4 bytes), the pickle."""
+    data = pickle.dumps(item, protocol=pickle.HIGHEST_PROTOCOL)
+    return len(data).to_bytes(4, "little") + data
 
 
 def _read(stdin: Any) -> tuple[str, Any] | None:

@@ -45,7 +45,7 @@ class LogWatch:
                 if watched[4] != old[4]:
                     log.event(t, "stall", f"tick {k}: {watched[4] - old[4]} ticks skipped before it")
             self._watched = watched
-        if k % log.live_every == 0:
+        if k % log.live_every == 0 and log.wants_live:
             log.live(k, t, live_messages(port, k, t))
         if k % 1000 == 999:
             pv = node.passivity

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import heapq
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from typing import Any, Protocol
 
@@ -396,12 +396,15 @@ class Recorder:
         self._end = 0  # the open chunk's end (exclusive)
         self._cols: _Columns  # the open chunk's columns, made with it in _at
         # ``defer`` (the real-time runner's): a chunk a tick closes is sealed by settle(), called
-        # once the tick's datagrams left, and the next chunk is made there too, not in the tick: a
-        # seal costs ~0.5-1 ms (the baseline's closed form, the compression window, the sink), which
-        # in the tick delayed one send a second by that much.  Off (teleop sim), a chunk is sealed
-        # in the tick that closes it; the chunks and figures are the same either way.
+        # once the tick's datagrams left, a step per call (the bytes and the baseline's closed form,
+        # the compression window, the sink), and the next chunk is made there too, not in the
+        # tick: a seal costs ~0.4-0.5 ms cold and the sink's pickle up to as much again, which in
+        # the tick delayed one send a second by that much, and in one gap between ticks started
+        # the next tick late enough (0.4-1.5 ms, measured) for the peer to miss its payload.  Off
+        # (teleop sim), a chunk is sealed in the tick that closes it; the chunks and figures are
+        # the same either way.
         self.defer = False
-        self._pending: tuple[Chunk, _Columns, int] | None = None  # closed, to seal: its columns, next_k
+        self._pending: Iterator[None] | None = None  # a closed chunk's seal, a step per settle()
         self._next: tuple[Chunk, _Columns] | None = None  # made ahead by settle()
         tx.on_tick = self._tx_bytes
         rx.on_tick = self._rx_bytes
@@ -423,11 +426,9 @@ class Recorder:
         """Close the open chunk (sealed now, or by :meth:`settle` if ``defer``) and open tick ``k``'s."""
         c, k0 = self.chunk, k - k % self.chunk_ticks
         if c is not None:
-            if self._pending is not None:  # settle() was not called since the last close
-                self._seal(*self._pending)
-                self._pending = None
+            self._finish_pending()  # settle() was not called enough since the last close
             if self.defer:
-                self._pending = (c, self._cols, k)
+                self._pending = self._seal_steps(c, self._cols, k)
             else:
                 self._seal(c, self._cols, k)
         made, self._next = self._next, None
@@ -441,11 +442,13 @@ class Recorder:
         return c
 
     def settle(self) -> None:
-        """Work that can wait until the tick's datagrams left (``defer``): seal the chunk the tick
-        closed, and make the next one ahead of the tick that opens it."""
+        """Work that can wait until the tick's datagrams left (``defer``): the next step of the seal
+        of the chunk a tick closed, else make the next chunk ahead of the tick that opens it."""
         if self._pending is not None:
-            self._seal(*self._pending)
-            self._pending = None
+            if next(self._pending, StopIteration) is StopIteration:
+                self._pending = None
+            else:
+                return
         c = self.chunk
         if self.defer and self._next is None and c is not None:
             nxt = Chunk(c.k0 + c.size, self.chunk_ticks, self.dof)
@@ -494,9 +497,20 @@ class Recorder:
         c, r = self._at(k)
         c.lateness_ns[r] = late_ns
 
+    def _finish_pending(self) -> None:
+        if self._pending is not None:
+            for _ in self._pending:
+                pass
+            self._pending = None
+
     def _seal(self, c: Chunk, cols: _Columns, next_k: int | None) -> None:
+        for _ in self._seal_steps(c, cols, next_k):
+            pass
+
+    def _seal_steps(self, c: Chunk, cols: _Columns, next_k: int | None) -> Iterator[None]:
         """Baseline of the chunk's ticks (and of ticks skipped before ``next_k``), the sliding
-        compression window, then the chunk (its byte columns from ``cols``) to the sink."""
+        compression window, then the chunk (its byte columns from ``cols``) to the sink: three
+        steps, a ``yield`` between two (:meth:`settle` runs one at a time)."""
         cols.store_bytes(c)
         if self.first >= 0:
             # The session goes on (next_k): every tick to the chunk's end counts; else to the last run.
@@ -512,6 +526,7 @@ class Recorder:
             for a in range(c.k0 + c.size, gap_end, 1 << 20):  # whole chunks a stall skipped: totals only
                 ks = np.arange(a, min(a + (1 << 20), gap_end))
                 self.tx.baseline_bulk(self._baseline(ks), self.raw_payload_len)
+        yield
         # The sliding window starts at this side's first tick: rows before it (a late joiner, or a
         # loop whose first ticks a stall skipped) carry neither baseline nor traffic.
         b, n = c.bytes, c.n
@@ -522,13 +537,12 @@ class Recorder:
             b["tx_baseline_payload"][r0:n],
             b["tx_payload"][r0:n],
         )
+        yield
         self.sink.write(c)
 
     def seal(self) -> None:
         """The session is over: the current chunk to the sink (once)."""
-        if self._pending is not None:
-            self._seal(*self._pending)
-            self._pending = None
+        self._finish_pending()
         if self.chunk is not None:
             self._seal(self.chunk, self._cols, None)
             self.chunk = None
