@@ -294,11 +294,6 @@ class _Writer:
         return foxglove.Channel(f"/{self.role}/{name}", schema=SCHEMAS[name], context=ctx)
 
     @property
-    def wants_live(self) -> bool:
-        """A live view is served: the loop builds its per-tick messages (else it need not)."""
-        return self._wants_live
-
-    @property
     def live_port(self) -> int | None:
         return None if self.server is None else int(self.server.port)
 
