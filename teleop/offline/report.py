@@ -28,7 +28,7 @@ from teleop.devices import scenarios
 from teleop.files import MAX_TRACE_BYTES, read_regular
 from teleop.offline import plots
 from teleop.offline.logfile import LogError, find_pair, iter_ticks, log_session, read_session
-from teleop.offline.sim import SimConfig, run_case
+from teleop.offline.sim import NOT_SENT, NOT_TAKEN, SimConfig, deliveries, run_case
 from teleop.session.link.phase import latency
 from teleop.session.port import wire_block
 from teleop.session.protocol import ProtocolError, SessionParams
@@ -294,6 +294,11 @@ class _Fold:
         self.bytes = {d: dict.fromkeys(names, 0.0) for d in ("forward", "backward")}
         self.sim_ticks = round(SIM_CAP_S / dt)
         self.i_sim_window = 0.0
+        # Each side's tx_seq and rx_seq over the sim's ticks: the run's deliveries, which a second
+        # sim replays (teleop.offline.sim.deliveries); 32 bytes a tick, for SIM_CAP_S at most.
+        self.seqs: dict[str, list[npt.NDArray[np.int64]]] = {
+            n: [] for n in ("op_tx", "op_rx", "to_tx", "to_rx")
+        }
         self.fwd, self.bwd = _Margin(), _Margin()
         self.two_port: dict[tuple[int, int], float] = {}
         self.two_port_clock: dict[tuple[int, int], float] = {}
@@ -337,6 +342,11 @@ class _Fold:
                 self.packets[d][name] += int(np.count_nonzero(w[lo:hi]))
                 self.bytes[d][name] += float(w[lo:hi].sum())
         self.i_sim_window += float(per_tick[: max(0, self.sim_ticks - k0)].sum())
+        m = max(0, self.sim_ticks - k0)
+        if m:
+            for side, blk in (("op", op), ("to", to)):
+                self.seqs[f"{side}_tx"].append(np.asarray(blk["tx_seq"][:m], dtype=np.int64))
+                self.seqs[f"{side}_rx"].append(np.asarray(blk["rx_seq"][:m], dtype=np.int64))
         m_fwd, m_bwd = self.fwd.per_tick(to), self.bwd.per_tick(op)
         _keep_min_by_epochs(self.two_port, m_fwd + m_bwd, op, to)
         # Eq. (4) on the session clock: each side's energy sent by tick k (reported or not) against
@@ -659,7 +669,67 @@ def build(
         )
         # The simulation's wire blocks, counted by the same port code: equal counts without impairment.
         rep["sim_wire"] = sim.summary["wire"]
+        _replay(rep, fold, p, sim_ticks, sim_devices)
     return rep
+
+
+def _replay(
+    rep: dict[str, Any], fold: _Fold, p: SessionParams, sim_ticks: int, sim_devices: dict[str, str | None]
+) -> None:
+    """``transparency.replay``: the sim once more with the run's own deliveries (each payload
+    taken at the tick the run's receiver took it: ``teleop.offline.sim.deliveries``), so the
+    difference a host's stalls made (a payload a tick late: with ``none``, a force spike of about
+    ``b v``) is told from a difference in the code, which the replay would still show.
+
+    Exact (to the order of the sums) where no tick was skipped, on a link of constant delay, or
+    under jitter with a codec whose sends do not follow the playout target (all but iDS/eDS).  Not
+    replayed when a link lost packets (the logs do not tell a lost payload from one taken with the
+    next, which a codec that queues its updates plays differently) or a peer restarted (its
+    sequence numbers start again)."""
+    links = [rep["link"][d] or {} for d in ("forward", "backward")]
+    if any((lk.get("loss") or 0) > 0 for lk in links):
+        rep["transparency"]["replay"] = {"skipped": "a link lost packets"}
+        return
+    if any((e or 0) for e in (fold.fwd.last_epoch, fold.bwd.last_epoch)):
+        rep["transparency"]["replay"] = {"skipped": "a peer restarted"}
+        return
+    sq = {n: np.concatenate(a) if a else np.zeros(0, np.int64) for n, a in fold.seqs.items()}
+    fwd, bwd = deliveries(sq["op_tx"], sq["to_rx"]), deliveries(sq["to_tx"], sq["op_rx"])
+    ticks = np.arange(len(fwd))
+    late, usual = {}, {}  # payloads taken later than the direction's median lag (send to take)
+    for d, at in (("forward", fwd), ("backward", bwd)):
+        lag = (at - ticks)[at >= 0]
+        usual[d] = int(np.median(lag)) if lag.size else 0
+        late[d] = int(np.count_nonzero(lag > usual[d]))
+    never = {d: int(np.count_nonzero(a == NOT_TAKEN)) for d, a in (("forward", fwd), ("backward", bwd))}
+    sim = run_case(
+        SimConfig.of_session(
+            p,
+            duration=sim_ticks * p.dt,
+            netem_forward="",  # what the links did is in the deliveries
+            netem_backward="",
+            # The deliveries are the run's plays, its buffer's delay in them; a buffer with no
+            # allowance releases each at once and keeps the run's target, which the teleoperator's
+            # iDS/eDS send phase follows (exact on a link of constant delay; under jitter the
+            # target the run moved is approximated).
+            playout="0",
+            hsi=sim_devices["hsi"],
+            robot=sim_devices["robot"],
+            deliveries=(fwd, bwd),
+        )
+    )
+    i_real, i_rep = fold.i_sim_window * p.dt, float(sim.summary["I"])
+    rep["transparency"]["replay"] = {
+        "I": i_rep,
+        "relative_difference": abs(i_real - i_rep) / i_rep if i_rep else None,
+        "lag_ticks": usual,  # send tick to the tick that took it, the median
+        "taken_late": late,  # taken later than that
+        "never_taken": never,
+        "not_sent": {
+            "forward": int(np.count_nonzero(fwd == NOT_SENT)),
+            "backward": int(np.count_nonzero(bwd == NOT_SENT)),
+        },
+    }
 
 
 def write_plots(log_dir: Path, out: Path, rep: dict[str, Any], suffix: str = "") -> list[Path]:
@@ -748,6 +818,18 @@ def summary_text(rep: dict[str, Any], command: str = "teleop run") -> str:
                 f"settings: {tr['I_sim']:.4e}; difference {diff:.1f}%)"
             )
     lines.append(f"  transparency I = {tr['I']:.4e}{extra}")
+    rp = tr.get("replay") or {}
+    if "I" in rp:
+        tl, nv, lg = rp["taken_late"], rp["never_taken"], rp["lag_ticks"]
+        rd = rp["relative_difference"]
+        diff = "" if rd is None else f"; difference {100 * rd:.1f}%"
+        lines.append(
+            f"  with this run's deliveries (taken after the median lag of {lg['forward']}/{lg['backward']} "
+            f"ticks: {tl['forward']}/{tl['backward']}, never {nv['forward']}/{nv['backward']}, forward/"
+            f"backward): teleop sim I = {rp['I']:.4e}{diff}"
+        )
+    elif "skipped" in rp:
+        lines.append(f"  with this run's deliveries: not replayed ({rp['skipped']})")
     if len(rep.get("phases", {})) > 1:
         ran = [f"{n} {b['I']:.4e}" for n, b in rep["phases"].items() if n != "all" and b["ticks"]]
         missed = [n for n, b in rep["phases"].items() if n != "all" and not b["ticks"]]

@@ -53,7 +53,7 @@ Array = npt.NDArray[np.float64]
 
 #: The paper's Section V set.
 SECTION_V_CODECS = ("none", "ids:2", "ids:50", "eds:2", "eds:50", "cq:8")
-__all__ = ["ConstantDelayLink", "SimConfig", "run_case", "run_set"]
+__all__ = ["ConstantDelayLink", "SimConfig", "deliveries", "run_case", "run_set"]
 ENERGY_TOLERANCE = 1e-9  # J: float rounding in cumulative sums, far below any real violation
 
 
@@ -77,6 +77,14 @@ class SimConfig(Channel):
     hsi: str | None = None  # --hsi spec (teleop.devices); None: the scenario's human
     robot: str | None = None  # --robot spec; None: the scenario's environment
     envelope: Envelope | None = None  # the robot's (teleop.session.settings); None: :meth:`robot_envelope`
+    # A real run's deliveries to replay (:func:`deliveries`): per direction (forward, backward), for
+    # each sender tick, the receiver tick that took its payload (NOT_TAKEN: never; NOT_SENT: the real
+    # sender sent nothing then, so a payload the sim sends is delivered as it would be).  None: the
+    # sim's own schedule.  Its caller drops the netem specs (the deliveries hold what the link did)
+    # and plays with no allowance (``playout="0"``: the run's buffer delay is in them too).
+    deliveries: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = field(
+        default=None, compare=False, repr=False
+    )
 
     @classmethod
     def of_session(cls, p: SessionParams, **sim: Any) -> SimConfig:
@@ -156,6 +164,9 @@ class Trace:
     payload_bytes: dict[str, Array] = field(default_factory=dict)
     packet_bytes: dict[str, Array] = field(default_factory=dict)
     wire_bytes: dict[str, Array] = field(default_factory=dict)  # on the wire as it left the shim
+    # The sequence numbers each side sent and had accepted by each tick, as a real log has them
+    # (``operator``/``teleoperator`` -> (tx_seq, rx_seq)): what :func:`deliveries` reads.
+    seqs: dict[str, tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]] = field(default_factory=dict)
 
 
 @dataclass
@@ -220,6 +231,9 @@ def run_case(cfg: SimConfig) -> CaseResult:
     cfg = cfg.resolved()
     op, to, codec = _ports(cfg)
     dt, n_ticks = cfg.dt, _ticks(op)
+    if cfg.deliveries is not None:
+        _replay(op, to, dt, n_ticks, cfg.deliveries)
+        return CaseResult(_summary(cfg, op, to, codec), _trace(op, to, dt))
     backward: list[bytes] = []
     t_back = 0.0
     for n in range(n_ticks):
@@ -242,6 +256,61 @@ def run_case(cfg: SimConfig) -> CaseResult:
     return CaseResult(_summary(cfg, op, to, codec), _trace(op, to, dt))
 
 
+NOT_TAKEN, NOT_SENT = -1, -2  # SimConfig.deliveries' marks
+
+
+def deliveries(tx_seq: npt.ArrayLike, rx_seq: npt.ArrayLike) -> npt.NDArray[np.int64]:
+    """For each tick of a sender's log, the tick of the receiver's log that took its payload: the
+    first whose newest accepted sequence number (``rx_seq``) reached the one sent (``tx_seq``;
+    -1 at a tick that sent nothing: NOT_SENT).  A payload never reached is NOT_TAKEN; one that a
+    newer overtook is taken with it (and dropped as stale by the node, as it was).  Both logs
+    count ticks from the session's tick 0."""
+    tx = np.asarray(tx_seq, dtype=np.int64)
+    rx = np.maximum.accumulate(np.asarray(rx_seq, dtype=np.int64))
+    out = np.full(tx.shape, NOT_SENT, dtype=np.int64)
+    sent = tx >= 0
+    at = np.searchsorted(rx, tx[sent], side="left")
+    out[sent] = np.where(at < len(rx), at, NOT_TAKEN)
+    return out
+
+
+def _replay(
+    op: Port, to: Port, dt: float, n_ticks: int, dl: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]
+) -> None:
+    """:func:`run_case`'s loop with a real run's deliveries (``SimConfig.deliveries``): each
+    payload reaches its receiver at the tick the run's receiver took it, so what the host's
+    stalls did to the run (a payload a tick late, a force spike) happens in the sim too."""
+    fwd, bwd = dl
+    due_op: dict[int, list[bytes]] = {}  # operator tick -> backward datagrams taken then
+    due_to: dict[int, list[bytes]] = {}
+    t_back = 0.0
+    for n in range(n_ticks):
+        now = n * dt
+        for data in due_op.pop(n, ()):
+            op.receive(data, now, n)
+        at = int(fwd[n]) if n < len(fwd) else NOT_SENT
+        for data in op.tick(n, now):
+            if at in (NOT_SENT, n):
+                to.receive(data, now, n)
+            elif at > n:
+                due_to.setdefault(at, []).append(data)
+        for data in due_to.pop(n, ()):
+            to.receive(data, now, n)
+        op.sent(n, now)
+        op.clock.advance(n)
+        t_back = (n + to.clock.phase) * dt
+        at = int(bwd[n]) if n < len(bwd) else NOT_SENT
+        for data in to.tick(n, t_back):
+            if at == NOT_SENT:
+                at = n + 1
+            if at > n:
+                due_op.setdefault(at, []).append(data)
+        to.sent(n, t_back)
+        to.clock.advance(n)
+    for data in due_op.pop(n_ticks, ()):  # sent at the last tick: observed, not played
+        op.receive(data, n_ticks * dt, n_ticks - 1, play=False)
+
+
 def _trace(op: Port, to: Port, dt: float) -> Trace:
     """Whole-session arrays from the two ports' in-memory records."""
     op.finish()
@@ -260,6 +329,7 @@ def _trace(op: Port, to: Port, dt: float) -> Trace:
     tr.payload_bytes = {"forward": ao["produced_payload"], "backward": at["produced_payload"]}
     tr.packet_bytes = {"forward": ao["produced_packet"], "backward": at["produced_packet"]}
     tr.wire_bytes = {"forward": ao["tx_wire"], "backward": at["tx_wire"]}
+    tr.seqs = {"operator": (ao["tx_seq"], ao["rx_seq"]), "teleoperator": (at["tx_seq"], at["rx_seq"])}
     return tr
 
 
