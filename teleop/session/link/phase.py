@@ -34,6 +34,8 @@ from typing import Any
 
 import numpy as np
 
+from teleop.session.link.quantiles import linear_quantile
+
 #: The teleoperator's phase stays within these fractions of a period (it starts at the handshake's
 #: ``phase``, 0.5 by default, or earlier): a tick never coincides with the operator's, and a quarter
 #: of a period is what a peer's checker can tell from a phase of 0 over loopback (``teleop
@@ -121,7 +123,7 @@ class ClockTracker:
             self._next_check = k + CHECK_EVERY
             x = self._window(k)
             if x.size >= MIN_SAMPLES:
-                hi = float(np.quantile(x, HIGH_QUANTILE))
+                hi = linear_quantile(x, HIGH_QUANTILE)
                 if self.moves_phase:
                     u = hi + self.margin
                     # The whole ticks of the transit are the playout buffer's; they change only
