@@ -4,7 +4,9 @@ For each case, ``teleop run`` (two real processes on loopback, default settings 
 report's ``teleop sim`` of the same settings (same scenario, codec, impairment, seeds, passivity
 options): the ratio ``I_run / I_sim`` of eq. (7), the median over ``--runs`` runs, with the payloads
 that missed their tick (each one a concealed tick) and the link-lost events.  Issue 13's target:
-median ratio at most 1.5 for every codec over UDP with no impairment, at most 2 over Zenoh.
+median ratio at most 1.5 for every codec over UDP with no impairment, at most 2 over Zenoh.  Beside
+it, ``I_run / I_replay`` (issue 37): the report's sim once more with the run's own deliveries (each
+payload at the tick the real receiver took it), 1 where the code paths agree, whatever the host did.
 
     python -m bench.rt_transparency [--runs 3] [--duration 5] [--transport udp zenoh]
         [--codec SPEC ...] [--netem SPEC ...] [--out bench/results/rt_transparency.json]
@@ -48,6 +50,8 @@ def one_run(
         "I_run": tr["I"],
         "I_sim": tr["I_sim"],
         "ratio": tr["I"] / tr["I_sim"] if tr["I_sim"] else None,
+        "I_replay": (tr.get("replay") or {}).get("I"),
+        "replay_ratio": tr["I_over_sim_s"] / tr["replay"]["I"] if (tr.get("replay") or {}).get("I") else None,
         "missed": sum(p["grace"]["missed"] for p in rep["processes"].values()),
         "link_lost": sum(rep["passivity"][d]["link_lost_events"] for d in ("forward", "backward")),
         "min_margin": min(rep["energy"][d]["min_margin"] for d in ("forward", "backward")),
@@ -77,12 +81,14 @@ def main() -> None:
                         for i in range(a.runs)
                     ]
                     ratios = [r["ratio"] for r in runs if r.get("ratio") is not None]
+                    replays = [r["replay_ratio"] for r in runs if r.get("replay_ratio") is not None]
                     case = {
                         "transport": transport,
                         "netem": netem,
                         "codec": codec,
                         "playout": playout,
                         "median_ratio": statistics.median(ratios) if ratios else None,
+                        "median_replay_ratio": statistics.median(replays) if replays else None,
                         "I_sim": next((r["I_sim"] for r in runs if "I_sim" in r), None),
                         "runs": runs,
                     }
@@ -91,7 +97,7 @@ def main() -> None:
                     missed = [r.get("missed") for r in runs]
                     print(
                         f"{transport:<6} {netem or 'none':<16} {playout:<5} {codec:<8} "
-                        f"I_run/I_sim median {med:>7}  "
+                        f"I_run/I_sim median {med:>7}  I_run/I_replay {replays}  "
                         f"I_sim {case['I_sim'] if case['I_sim'] is None else format(case['I_sim'], '.3e')}  "
                         f"missed {missed} stale {[r.get('stale') for r in runs]}",
                         flush=True,
