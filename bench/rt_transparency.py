@@ -45,6 +45,8 @@ def one_run(
     if r.returncode != 0:
         return {"error": (r.stderr or r.stdout).strip().splitlines()[-1:]}
     rep = json.loads((out / "report.json").read_text())
+    if rep["codec"] != codec or rep["transport"] != transport:
+        return {"error": [f"{out} holds another run's report"]}
     tr = rep["transparency"]
     return {
         "I_run": tr["I"],
@@ -77,7 +79,11 @@ def main() -> None:
             for netem, playout, codec in itertools.product(a.netem, a.playout, a.codec):
                 if True:
                     runs = [
-                        one_run(codec, transport, netem, a.duration, Path(tmp) / f"r{i}", playout)
+                        # A folder per run: a report is never overwritten, so a reused --out
+                        # would hold the first case's report.json and this run's under another name.
+                        one_run(
+                            codec, transport, netem, a.duration, Path(tmp) / f"c{len(cases)}-r{i}", playout
+                        )
                         for i in range(a.runs)
                     ]
                     ratios = [r["ratio"] for r in runs if r.get("ratio") is not None]
