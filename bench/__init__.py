@@ -14,11 +14,13 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def commit(root: Path = ROOT) -> str:
     """The commit checked out at ``root`` (or why it is not known), and whether tracked files
-    differ from it: a figure measured on uncommitted changes says so."""
+    differ from it: a figure measured on uncommitted changes says so.  ``bench/results`` is left
+    out: benches run one after another write there, and their output is not the code measured."""
     r = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True)
     if r.returncode != 0:
         return f"unknown ({r.stderr.strip()})"
     status = ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"]
+    status += ["--", ".", ":!bench/results"]
     st = subprocess.run(status, capture_output=True, text=True)
     return r.stdout.strip() + (" with uncommitted changes" if st.stdout.strip() else "")
 
