@@ -106,12 +106,12 @@ def _own_deliveries(r: Any) -> tuple[Any, Any]:
     ],
 )
 def test_a_replay_of_a_runs_own_deliveries_is_that_run(codec: str, netem: str) -> None:
-    """Issue 37: ``SimConfig.deliveries`` (each payload at the tick a run's receiver took it, read
-    from the sequence numbers its log keeps) reproduces the run bit for bit, without its netem and
-    with a playout of no allowance: the report's replay of a real run is then the real run when the
-    code is the same.  (Under jitter, iDS/eDS only approximately: their send phase follows the
-    playout target the run moved; with loss, only a codec whose newest payload wins: the logs do
-    not tell a lost payload from one taken with the next.)"""
+    """Issue 37: ``SimConfig.deliveries`` (each payload at the tick a run's receiver took it, read from the
+    sequence numbers its log keeps) reproduces the run bit for bit, without its netem and with a playout
+    of no allowance: the report's replay of a real run is then the real run when the code is the same.
+    (Under jitter, iDS/eDS and pdp only approximately: their send phase follows the playout target the
+    run moved, pdp's credit the lag it measured; with loss, only a codec whose newest payload wins: the
+    logs do not tell a lost payload from one taken with the next.)"""
     cfg = SimConfig(codec=codec, scenario="protocol", duration=3.0, netem_forward=netem, netem_backward=netem)
     r = run_case(cfg)
     own = _own_deliveries(r)
