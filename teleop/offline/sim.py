@@ -227,29 +227,40 @@ def run_case(cfg: SimConfig) -> CaseResult:
     Within tick ``n``: the backward datagrams the teleoperator's last tick released reach the
     operator, the operator ticks and its forward datagrams due by now reach the teleoperator, which
     ticks at its phase; its own datagrams wait for the operator's next tick (the module docstring).
+    With ``cfg.deliveries`` (a real run's, replayed) each payload is taken at the tick the run's
+    receiver took it instead, so what the host's stalls did to the run happens here too.
     """
     cfg = cfg.resolved()
     op, to, codec = _ports(cfg)
     dt, n_ticks = cfg.dt, _ticks(op)
-    if cfg.deliveries is not None:
-        _replay(op, to, dt, n_ticks, cfg.deliveries)
-        return CaseResult(_summary(cfg, op, to, codec), _trace(op, to, dt))
-    backward: list[bytes] = []
-    t_back = 0.0
+    fwd, bwd = cfg.deliveries if cfg.deliveries is not None else (None, None)
+    # Datagrams held for a later tick (a replay's late deliveries; the next operator tick's
+    # backward ones), with the session time they arrived at.
+    due_op: dict[int, list[tuple[bytes, float]]] = {}
+    due_to: dict[int, list[bytes]] = {}
     for n in range(n_ticks):
         now = n * dt
-        for data in backward:
-            op.receive(data, t_back, n)
+        for data, t in due_op.pop(n, ()):
+            op.receive(data, t, n)
+        at = _taken_at(fwd, n, n)
         for data in op.tick(n, now):
+            if at == n:
+                to.receive(data, now, n)
+            elif at > n:
+                due_to.setdefault(at, []).append(data)
+        for data in due_to.pop(n, ()):
             to.receive(data, now, n)
         op.sent(n, now)
         op.clock.advance(n)  # (both clocks are the sim's: no skew to take)
         # The teleoperator ticks when the operator's packet is due, as a real one does.
         t_back = (n + to.clock.phase) * dt
-        backward = to.tick(n, t_back)
+        at = _taken_at(bwd, n, n + 1)
+        for data in to.tick(n, t_back):
+            if at > n:  # taken at the operator's next tick, sent at t_back; a replay's later one then
+                due_op.setdefault(at, []).append((data, t_back if at == n + 1 else at * dt))
         to.sent(n, t_back)
         to.clock.advance(n)
-    for data in backward:  # sent at the last tick: observed, not played
+    for data, _ in due_op.pop(n_ticks, ()):  # sent at the last tick: observed, not played
         op.receive(data, n_ticks * dt, n_ticks - 1, play=False)
     _drain(to, op, n_ticks, dt)
     _drain(op, to, n_ticks, dt)
@@ -257,6 +268,14 @@ def run_case(cfg: SimConfig) -> CaseResult:
 
 
 NOT_TAKEN, NOT_SENT = -1, -2  # SimConfig.deliveries' marks
+
+
+def _taken_at(dl: npt.NDArray[np.int64] | None, n: int, nominal: int) -> int:
+    """The tick a payload sent at tick ``n`` is taken at: ``dl[n]`` when a replay says (its
+    NOT_TAKEN: never), else ``nominal`` (the sim's own schedule, and a tick the run sent nothing at)."""
+    if dl is None or n >= len(dl) or dl[n] == NOT_SENT:
+        return nominal
+    return int(dl[n])
 
 
 def deliveries(tx_seq: npt.ArrayLike, rx_seq: npt.ArrayLike) -> npt.NDArray[np.int64]:
@@ -272,43 +291,6 @@ def deliveries(tx_seq: npt.ArrayLike, rx_seq: npt.ArrayLike) -> npt.NDArray[np.i
     at = np.searchsorted(rx, tx[sent], side="left")
     out[sent] = np.where(at < len(rx), at, NOT_TAKEN)
     return out
-
-
-def _replay(
-    op: Port, to: Port, dt: float, n_ticks: int, dl: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]
-) -> None:
-    """:func:`run_case`'s loop with a real run's deliveries (``SimConfig.deliveries``): each
-    payload reaches its receiver at the tick the run's receiver took it, so what the host's
-    stalls did to the run (a payload a tick late, a force spike) happens in the sim too."""
-    fwd, bwd = dl
-    due_op: dict[int, list[bytes]] = {}  # operator tick -> backward datagrams taken then
-    due_to: dict[int, list[bytes]] = {}
-    t_back = 0.0
-    for n in range(n_ticks):
-        now = n * dt
-        for data in due_op.pop(n, ()):
-            op.receive(data, now, n)
-        at = int(fwd[n]) if n < len(fwd) else NOT_SENT
-        for data in op.tick(n, now):
-            if at in (NOT_SENT, n):
-                to.receive(data, now, n)
-            elif at > n:
-                due_to.setdefault(at, []).append(data)
-        for data in due_to.pop(n, ()):
-            to.receive(data, now, n)
-        op.sent(n, now)
-        op.clock.advance(n)
-        t_back = (n + to.clock.phase) * dt
-        at = int(bwd[n]) if n < len(bwd) else NOT_SENT
-        for data in to.tick(n, t_back):
-            if at == NOT_SENT:
-                at = n + 1
-            if at > n:
-                due_op.setdefault(at, []).append(data)
-        to.sent(n, t_back)
-        to.clock.advance(n)
-    for data in due_op.pop(n_ticks, ()):  # sent at the last tick: observed, not played
-        op.receive(data, n_ticks * dt, n_ticks - 1, play=False)
 
 
 def _trace(op: Port, to: Port, dt: float) -> Trace:
