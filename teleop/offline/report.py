@@ -720,7 +720,7 @@ def _replay(
             deliveries=(fwd, bwd),
         )
     )
-    i_real, i_rep = fold.i_sim_window * p.dt, float(sim.summary["I"])
+    i_real, i_rep = rep["transparency"]["I_over_sim_s"], float(sim.summary["I"])
     rep["transparency"]["replay"] = {
         "I": i_rep,
         "relative_difference": abs(i_real - i_rep) / i_rep if i_rep else None,
