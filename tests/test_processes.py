@@ -21,6 +21,7 @@ from typing import Any
 
 import pytest
 
+from teleop.session.schedule import MAX_CATCHUP
 from tests.waiting import exited_ok, ticks_logged, udp_bound, wait_for
 
 pytestmark = pytest.mark.integration
@@ -127,7 +128,12 @@ def test_counts_and_compression(
     rp = tr["replay"]
     if all(p["loop"]["skipped"] == 0 for p in rep["processes"].values()):
         assert rp["relative_difference"] < 1e-9, rp
-    assert rp["never_taken"]["forward"] == 0 and rp["not_sent"]["forward"] <= (3000 - per_dir)
+    # Never taken: only the payloads the receiver's last tick came before (the rx sequence numbers
+    # only grow, so on a lossless loopback those are a tail).  Lag 0 forward: the operator's last
+    # payload late by a stall at the end is one (a fresh-clone CI run saw 1); a stall longer than
+    # MAX_CATCHUP ticks would have skipped ticks instead.
+    assert 0 <= rp["never_taken"]["forward"] <= MAX_CATCHUP + 1, rp
+    assert rp["not_sent"]["forward"] <= (3000 - per_dir)
     e = rep["energy"]
     assert e["forward"]["min_margin"] >= -1e-9 and e["backward"]["min_margin"] >= -1e-9
     assert rep["two_port_min_energy"] >= -1e-9

@@ -122,6 +122,23 @@ def test_a_replay_of_a_runs_own_deliveries_is_that_run(codec: str, netem: str) -
     np.testing.assert_array_equal(again.trace.f_hsi, r.trace.f_hsi)
 
 
+@pytest.mark.parametrize("codec", ["none", "cq:8"])
+def test_a_replay_takes_each_payload_at_the_tick_named(codec: str) -> None:
+    """The deliveries are the run's plays: the replay's buffers release each payload when taken,
+    never hold it to their own target.  A real receiver whose target fell from 2 ticks to 1 (jitter
+    that left the window) played the later payloads at 1; a replay buffer that held to the low
+    quantile of those plays kept them at 2 for 2 s (a fresh-clone CI run's cq:8 differed by 0.1%)."""
+    cfg = SimConfig(codec=codec, scenario="protocol", duration=1.0, playout="0")
+    r = run_case(cfg)
+    _, bwd = _own_deliveries(r)
+    ticks = np.arange(1000)
+    fwd = np.where(ticks < 700, ticks + 2, ticks + 1)  # payloads 698 and 699 are taken with 700
+    again = run_case(replace(cfg, deliveries=(fwd, bwd)))
+    taken, _ = _own_deliveries(again)
+    expect = np.where(fwd < 1000, fwd, -1)  # the last one: after the receiver's last tick (NOT_TAKEN)
+    np.testing.assert_array_equal(taken, expect)
+
+
 def test_a_payload_taken_a_tick_late_is_a_force_spike_in_the_replay() -> None:
     """The replay is not the sim's own schedule: one forward payload of ``none`` taken a tick late,
     in free motion, leaves the robot's wave a tick without it, and the operator feels ~b v."""

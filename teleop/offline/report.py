@@ -710,10 +710,10 @@ def _replay(
             duration=sim_ticks * p.dt,
             netem_forward="",  # what the links did is in the deliveries
             netem_backward="",
-            # The deliveries are the run's plays, its buffer's delay in them; a buffer with no
-            # allowance releases each at once and keeps the run's target, which the teleoperator's
-            # iDS/eDS send phase follows (exact on a link of constant delay; under jitter the
-            # target the run moved is approximated).
+            # The deliveries are the run's plays, its buffer's delay in them: the replay's buffers
+            # release each payload when taken and, with no allowance, keep a target from their
+            # transits, which the teleoperator's iDS/eDS send phase follows (the run's own target
+            # on a link of constant delay; under jitter, approximated).
             playout="0",
             hsi=sim_devices["hsi"],
             robot=sim_devices["robot"],

@@ -81,7 +81,8 @@ class SimConfig(Channel):
     # each sender tick, the receiver tick that took its payload (NOT_TAKEN: never; NOT_SENT: the real
     # sender sent nothing then, so a payload the sim sends is delivered as it would be).  None: the
     # sim's own schedule.  Its caller drops the netem specs (the deliveries hold what the link did)
-    # and plays with no allowance (``playout="0"``: the run's buffer delay is in them too).
+    # and plays with no allowance (``playout="0"``: the run's buffer delay is in them too); its
+    # buffers release each payload when it is taken (``PlayoutBuffer(hold=False)``).
     deliveries: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = field(
         default=None, compare=False, repr=False
     )
@@ -216,6 +217,7 @@ def _ports(cfg: SimConfig) -> tuple[Port, Port, Codec]:
                 peer_spec=peer_spec,
                 window_ticks=window,
                 playout_floor=cfg.playout_floor[0 if role == "teleoperator" else 1],
+                playout_hold=cfg.deliveries is None,  # a replay's deliveries are the run's plays
             )
         )
     return ports[0], ports[1], ports[0].node.tx_codec

@@ -87,8 +87,12 @@ class PlayoutStats:
 class PlayoutBuffer:
     """Holds payloads until ``pkt.tick + target``; see the module docstring."""
 
-    def __init__(self, mode: str, dt: float, auto_floor: int = 0) -> None:
+    def __init__(self, mode: str, dt: float, auto_floor: int = 0, hold: bool = True) -> None:
         self.mode = parse_playout(mode)
+        # hold=False: a replay of a real run's plays (teleop.offline.sim.deliveries): each payload is
+        # released when taken, as the run's buffer released it; the target is still kept, from the
+        # transits of those plays, for the teleoperator's send phase that follows it.
+        self.hold = hold
         self.dt = dt
         self.fixed = 0 if self.mode in ("off", "auto") else math.ceil(float(self.mode) * 1e-3 / dt - 1e-9)
         self.auto_floor = auto_floor
@@ -274,6 +278,9 @@ class PlayoutBuffer:
             before = a_min + self.extra
         if tick + before < k:
             st.late += 1
+        if not self.hold:
+            self._n += 1
+            return [self._pop_now(pkt, k)]
         heapq.heappush(self._heap, (tick, pkt.seq, self._n, pkt))
         self._n += 1
         if len(self._heap) > MAX_HELD:
@@ -282,7 +289,9 @@ class PlayoutBuffer:
         return []
 
     def _pop(self, k: int) -> wire.Packet:
-        pkt = heapq.heappop(self._heap)[3]
+        return self._pop_now(heapq.heappop(self._heap)[3], k)
+
+    def _pop_now(self, pkt: wire.Packet, k: int) -> wire.Packet:
         self.stats.released += 1
         delay = k - pkt.tick
         self.delay_hist[HIST_TICKS if delay > HIST_TICKS else delay if delay > 0 else 0] += 1

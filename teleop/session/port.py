@@ -570,6 +570,7 @@ class Port:
         first_tick: int = 0,
         keys: PortKeys | None = None,
         playout_floor: int = 0,
+        playout_hold: bool = True,
         sink: ChunkSink | None = None,
         window_ticks: int = 100,
         phase: float = 0.5,
@@ -591,7 +592,10 @@ class Port:
         self.raw_payload_len = packed_size(node.wave.dof, RAW_BITS)
         # ``auto`` keeps at least ``playout_floor`` ticks of allowance: the real-time runner asks for
         # one (its loops and transport jitter by a fraction of a tick; the simulation by none).
-        self.playout = PlayoutBuffer(node.options.playout, node.dt, auto_floor=playout_floor)
+        # ``playout_hold=False``: a replay, whose deliveries are the run's plays (PlayoutBuffer).
+        self.playout = PlayoutBuffer(
+            node.options.playout, node.dt, auto_floor=playout_floor, hold=playout_hold
+        )
         # Where the peer's packets land on our tick grid: the teleoperator's phase follows it (it
         # ticks when the operator's packet is due), and either side's tick 0 moves if it lies.
         teleoperator = node.tx_direction == wire.BACKWARD
