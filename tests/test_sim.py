@@ -104,6 +104,8 @@ def _own_deliveries(r: Any) -> tuple[Any, Any]:
         ("ids:2", "delay 3ms"),
         ("pdp:1", "delay 3ms 1ms"),
         ("cq:8", "delay 4ms 3ms"),
+        ("eds:50", "delay 4ms 3ms"),  # the send phase follows a target the jitter moves: recorded
+        ("ids:2", "delay 6ms 4ms"),
         ("none", "delay 5ms 2ms loss 2%"),
     ],
 )
@@ -111,13 +113,22 @@ def test_a_replay_of_a_runs_own_deliveries_is_that_run(codec: str, netem: str) -
     """Issue 37: ``SimConfig.deliveries`` (each payload at the tick a run's receiver took it, read from the
     sequence numbers its log keeps) reproduces the run bit for bit, without its netem and with a playout
     of no allowance: the report's replay of a real run is then the real run when the code is the same.
-    (Under jitter, iDS/eDS and pdp only approximately: their send phase follows the playout target the
-    run moved, pdp's credit the lag it measured; with loss, only a codec whose newest payload wins: the
-    logs do not tell a lost payload from one taken with the next.)"""
+    iDS/eDS too under jitter, given the run's send phases (its record's); pdp only approximately: its
+    credit follows the lag it measured. (With loss, only a codec whose newest payload wins: the logs
+    do not tell a lost payload from one taken with the next.)"""
     cfg = SimConfig(codec=codec, scenario="protocol", duration=3.0, netem_forward=netem, netem_backward=netem)
     r = run_case(cfg)
     own = _own_deliveries(r)
-    again = run_case(replace(cfg, netem_forward="", netem_backward="", playout="0", deliveries=own))
+    again = run_case(
+        replace(
+            cfg,
+            netem_forward="",
+            netem_backward="",
+            playout="0",
+            deliveries=own,
+            send_phases=r.trace.send_phase,
+        )
+    )
     assert again.summary["I"] == r.summary["I"]
     np.testing.assert_array_equal(again.trace.f_hsi, r.trace.f_hsi)
 
@@ -137,6 +148,22 @@ def test_a_replay_takes_each_payload_at_the_tick_named(codec: str) -> None:
     taken, _ = _own_deliveries(again)
     expect = np.where(fwd < 1000, fwd, -1)  # the last one: after the receiver's last tick (NOT_TAKEN)
     np.testing.assert_array_equal(taken, expect)
+
+
+def test_a_replay_sends_at_the_runs_recorded_phase() -> None:
+    """The teleoperator's iDS/eDS sample right after the operator's payload plays: their send phase is
+    the playout target, which a real run's jitter moves and its record keeps (``send_phase``).  A
+    replay given those phases sends when the run did, not at a target of its own."""
+    cfg = SimConfig(codec="eds:50", scenario="protocol", duration=1.0, playout="0")
+    r = run_case(cfg)
+    phases = np.where(np.arange(1000) < 500, 5, 20)  # the run's target moved by 15 ticks at 0.5 s
+    again = run_case(replace(cfg, deliveries=_own_deliveries(r), send_phases=phases))
+    np.testing.assert_array_equal(again.trace.send_phase, phases)
+    sends = np.flatnonzero(again.trace.seqs["teleoperator"][0] >= 0)
+    before, after = set(sends[sends < 500] % 50), set(sends[sends >= 550] % 50)
+    assert len(before) == 1 and after == {(before.pop() + 15) % 50}
+    own = run_case(replace(cfg, deliveries=_own_deliveries(r)))  # its own target: where the sim sent
+    np.testing.assert_array_equal(own.trace.seqs["teleoperator"][0], r.trace.seqs["teleoperator"][0])
 
 
 def test_a_payload_taken_a_tick_late_is_a_force_spike_in_the_replay() -> None:

@@ -41,7 +41,8 @@ topic                       rate       fields
 ``/ROLE/waves``             each tick  ``k``, ``t``, ``wave_out``, ``wave_in`` (per DoF, sqrt(W))
 ``/ROLE/energy``            each tick  ``k``, ``t``, ``sent``, ``played``, ``margin_observed`` (the
                                        watchdog's margin), ``played_epoch``, ``peer_epoch`` (J)
-``/ROLE/wire``              each tick  ``k``, ``t``, ``send_time``, ``tx_seq``, ``rx_seq``, bytes:
+``/ROLE/wire``              each tick  ``k``, ``t``, ``send_time``, ``tx_seq``, ``rx_seq``,
+                                       ``send_phase`` (the teleoperator's, ticks; -1: none), bytes:
                                        ``produced_payload``, ``produced_packet``, ``tx_wire``,
                                        ``tx_payload``, ``tx_baseline_wire``, ``tx_baseline_payload``,
                                        ``rx_wire``, ``rx_payload``
@@ -94,7 +95,7 @@ from teleop.offline.logfile import (
     read_log,
     read_summary,
 )
-from teleop.session.logformat import ENERGY_FIELDS, PER_TICK_TOPICS, TOPICS, WIRE_FIELDS
+from teleop.session.logformat import ENERGY_FIELDS, INT_FIELDS, PER_TICK_TOPICS, TOPICS, WIRE_FIELDS
 from teleop.session.port import Chunk
 
 __all__ = [
@@ -156,6 +157,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         send_time=_NUM,
         tx_seq=_INT,
         rx_seq=_INT,
+        send_phase=_INT,
         produced_payload=_NUM,
         produced_packet=_NUM,
         tx_wire=_NUM,
@@ -201,7 +203,7 @@ def _template(fields: dict[str, str]) -> str:
     """A ``%`` template of a flat per-tick message: ``k``, ``t``, then ``fields`` (ints as ints)."""
     parts = ['"k":%d', '"t":%r']
     for name, src in fields.items():
-        whole = src.endswith("seq") or src == "peer_epoch"
+        whole = src in INT_FIELDS
         parts.append(f'"{name}":%{"d" if whole else "r"}')
     return "{" + ",".join(parts) + "}"
 

@@ -23,7 +23,7 @@ import numpy.typing as npt
 
 from teleop.errors import RemoteError
 from teleop.limits import MAX_DOF
-from teleop.session.logformat import ENERGY_FIELDS, PER_TICK_TOPICS, TOPICS, WIRE_FIELDS
+from teleop.session.logformat import ENERGY_FIELDS, INT_FIELDS, PER_TICK_TOPICS, TOPICS, WIRE_FIELDS
 from teleop.session.port import fill_value
 
 __all__ = [
@@ -302,7 +302,7 @@ _FIELDS: dict[str, tuple[tuple[str, str, str], ...]] = {
     "signals": (("t", "play_time_s", "num"), ("v", "v", "vec"), ("f", "f", "vec")),
     "waves": (("wave_out", "wave_out", "vec"), ("wave_in", "wave_in", "vec")),
     "energy": tuple((n, s, "int" if s == "peer_epoch" else "num") for n, s in ENERGY_FIELDS.items()),
-    "wire": tuple((n, s, "int" if s.endswith("seq") else "num") for n, s in WIRE_FIELDS.items()),
+    "wire": tuple((n, s, "int" if s in INT_FIELDS else "num") for n, s in WIRE_FIELDS.items()),
     "loop": (("lateness_ns", "lateness_ns", "int"),),
 }
 

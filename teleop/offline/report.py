@@ -28,7 +28,7 @@ from teleop.devices import scenarios
 from teleop.files import MAX_TRACE_BYTES, read_regular
 from teleop.offline import plots
 from teleop.offline.logfile import LogError, find_pair, iter_ticks, log_session, read_session
-from teleop.offline.sim import NOT_SENT, NOT_TAKEN, SimConfig, deliveries, run_case
+from teleop.offline.sim import MAX_SEND_PHASE, NOT_SENT, NOT_TAKEN, SimConfig, deliveries, run_case
 from teleop.session.link.phase import latency
 from teleop.session.port import wire_block
 from teleop.session.protocol import ProtocolError, SessionParams
@@ -295,9 +295,10 @@ class _Fold:
         self.sim_ticks = round(SIM_CAP_S / dt)
         self.i_sim_window = 0.0
         # Each side's tx_seq and rx_seq over the sim's ticks: the run's deliveries, which a second
-        # sim replays (teleop.offline.sim.deliveries); 32 bytes a tick, for SIM_CAP_S at most.
+        # sim replays (teleop.offline.sim.deliveries), and the teleoperator's send phase; 40 bytes a
+        # tick, for SIM_CAP_S at most.
         self.seqs: dict[str, list[npt.NDArray[np.int64]]] = {
-            n: [] for n in ("op_tx", "op_rx", "to_tx", "to_rx")
+            n: [] for n in ("op_tx", "op_rx", "to_tx", "to_rx", "to_phase")
         }
         self.fwd, self.bwd = _Margin(), _Margin()
         self.two_port: dict[tuple[int, int], float] = {}
@@ -347,6 +348,10 @@ class _Fold:
             for side, blk in (("op", op), ("to", to)):
                 self.seqs[f"{side}_tx"].append(np.asarray(blk["tx_seq"][:m], dtype=np.int64))
                 self.seqs[f"{side}_rx"].append(np.asarray(blk["rx_seq"][:m], dtype=np.int64))
+            # The teleoperator's send phase (-1: not recorded, a log from before it was).
+            ph = np.asarray(to["send_phase"][:m], dtype=np.float64)
+            ph = np.where(np.isfinite(ph) & (ph >= 0) & (ph <= MAX_SEND_PHASE), ph, -1)
+            self.seqs["to_phase"].append(ph.astype(np.int64))
         m_fwd, m_bwd = self.fwd.per_tick(to), self.bwd.per_tick(op)
         _keep_min_by_epochs(self.two_port, m_fwd + m_bwd, op, to)
         # Eq. (4) on the session clock: each side's energy sent by tick k (reported or not) against
@@ -681,10 +686,11 @@ def _replay(
     difference a host's stalls made (a payload a tick late: with ``none``, a force spike of about
     ``b v``) is told from a difference in the code, which the replay would still show.
 
-    Exact (to the order of the sums) where no tick was skipped and the transit kept to its tick (a loopback
-    over UDP), and under jitter for a codec whose sends follow neither the playout target nor the
-    measured lag (all but iDS/eDS, whose send phase follows the target, and pdp, whose credit follows
-    the lag: ``bench.rt_transparency`` measured 0.57-1.85 for those over jittered links).  Not replayed
+    Exact (to the order of the sums) where no tick was skipped, over jitter too: the teleoperator's
+    iDS/eDS send at the phase the run's record keeps (``send_phase``, its playout target then).  pdp's
+    credit follows the lag it measured on the run's clock, which the replay measures on its ticks:
+    approximate where the two differ.  A log without ``send_phase`` (written before it was kept)
+    replays iDS/eDS at the replay's own target: approximate under jitter.  Not replayed
     when a link lost packets (the logs do not tell a lost payload from one taken with the next, which a
     codec that queues its updates plays differently) or a peer restarted (its sequence numbers start
     again)."""
@@ -718,6 +724,7 @@ def _replay(
             hsi=sim_devices["hsi"],
             robot=sim_devices["robot"],
             deliveries=(fwd, bwd),
+            send_phases=sq["to_phase"],
         )
     )
     i_real, i_rep = rep["transparency"]["I_over_sim_s"], float(sim.summary["I"])

@@ -86,6 +86,9 @@ class SimConfig(Channel):
     deliveries: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = field(
         default=None, compare=False, repr=False
     )
+    # With them, the run's teleoperator's send phase per tick (its record's ``send_phase``; -1 or
+    # beyond the array: the replay's own target): iDS/eDS then send at the run's ticks.
+    send_phases: npt.NDArray[np.int64] | None = field(default=None, compare=False, repr=False)
 
     @classmethod
     def of_session(cls, p: SessionParams, **sim: Any) -> SimConfig:
@@ -168,6 +171,9 @@ class Trace:
     # The sequence numbers each side sent and had accepted by each tick, as a real log has them
     # (``operator``/``teleoperator`` -> (tx_seq, rx_seq)): what :func:`deliveries` reads.
     seqs: dict[str, tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]] = field(default_factory=dict)
+    send_phase: npt.NDArray[np.int64] = field(
+        default_factory=lambda: np.zeros(0, np.int64)
+    )  # the teleoperator's
 
 
 @dataclass
@@ -220,6 +226,9 @@ def _ports(cfg: SimConfig) -> tuple[Port, Port, Codec]:
                 playout_hold=cfg.deliveries is None,  # a replay's deliveries are the run's plays
             )
         )
+    if cfg.deliveries is not None and cfg.send_phases is not None:
+        ph = np.asarray(cfg.send_phases, dtype=np.int64)
+        ports[1].replay_phases = np.where((ph >= 0) & (ph <= MAX_SEND_PHASE), ph, -1)
     return ports[0], ports[1], ports[0].node.tx_codec
 
 
@@ -270,6 +279,7 @@ def run_case(cfg: SimConfig) -> CaseResult:
 
 
 NOT_TAKEN, NOT_SENT = -1, -2  # SimConfig.deliveries' marks
+MAX_SEND_PHASE = 10_000  # ticks: a recorded send phase beyond it is not one (no target reaches it)
 
 
 def _taken_at(dl: npt.NDArray[np.int64] | None, n: int, nominal: int) -> int:
@@ -314,6 +324,7 @@ def _trace(op: Port, to: Port, dt: float) -> Trace:
     tr.packet_bytes = {"forward": ao["produced_packet"], "backward": at["produced_packet"]}
     tr.wire_bytes = {"forward": ao["tx_wire"], "backward": at["tx_wire"]}
     tr.seqs = {"operator": (ao["tx_seq"], ao["rx_seq"]), "teleoperator": (at["tx_seq"], at["rx_seq"])}
+    tr.send_phase = at["send_phase"]
     return tr
 
 

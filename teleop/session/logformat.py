@@ -11,11 +11,13 @@ TOPICS = (*PER_TICK_TOPICS, "link", "events", "session", "summary")
 
 #: /ROLE/wire fields and the chunk arrays they come from.
 WIRE_FIELDS = {
-    "send_time": "send_time_s", "tx_seq": "tx_seq", "rx_seq": "rx_seq",
+    "send_time": "send_time_s", "tx_seq": "tx_seq", "rx_seq": "rx_seq", "send_phase": "send_phase",
     "produced_payload": "produced_payload", "produced_packet": "produced_packet",
     "tx_wire": "tx_wire", "tx_payload": "tx_payload", "tx_baseline_wire": "tx_baseline_wire",
     "tx_baseline_payload": "tx_baseline_payload", "rx_wire": "rx_wire", "rx_payload": "rx_payload",
 }  # fmt: skip
+#: Record names whose values are whole numbers (written as JSON integers).
+INT_FIELDS = frozenset({"tx_seq", "rx_seq", "send_phase", "peer_epoch"})
 ENERGY_FIELDS = {
     "sent": "energy_sent", "played": "energy_played", "margin_observed": "energy_margin_observed",
     "played_epoch": "energy_played_epoch", "peer_epoch": "peer_epoch",

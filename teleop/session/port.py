@@ -258,6 +258,9 @@ class Chunk:
         # without trusting either clock: the seq sent at tick k, and the newest seq accepted by then.
         self.tx_seq = np.full(size, -1, dtype=np.int64)
         self.rx_seq = np.full(size, -1, dtype=np.int64)
+        # The teleoperator's send phase at tick k (ticks; -1: none, the operator): its playout target,
+        # which iDS/eDS sample after; recorded so a replay of the run sends when the run did.
+        self.send_phase = np.full(size, -1, dtype=np.int64)
         self.peer_epoch = np.zeros(size, dtype=np.int64)
         self.lateness_ns = np.zeros(size, dtype=np.int64)  # the real-time loop's, when it says
         self.bytes = {name: np.zeros(size) for name in BYTES}
@@ -283,6 +286,7 @@ class Chunk:
             "produced_packet": self.produced_packet[:n],
             "tx_seq": self.tx_seq[:n],
             "rx_seq": self.rx_seq[:n],
+            "send_phase": self.send_phase[:n],
             "peer_epoch": self.peer_epoch[:n],
             "lateness_ns": self.lateness_ns[:n],
             **{k: v[:n] for k, v in self.bytes.items()},
@@ -313,7 +317,7 @@ class MemorySink:
 def fill_value(name: str) -> float:
     """A record field's value at a tick not run: no sequence number (-1), no bytes, no epoch
     change and no lateness (0), otherwise no value (NaN)."""
-    if name in ("tx_seq", "rx_seq"):
+    if name in ("tx_seq", "rx_seq", "send_phase"):
         return -1
     if name in BYTES or name.startswith("produced") or name in ("peer_epoch", "lateness_ns"):
         return 0
@@ -466,9 +470,12 @@ class Recorder:
         cols.rx_wire[r] += wire
         cols.rx_payload[r] += payload
 
-    def record(self, k: int, t: float, node: Node, produced: tuple[int, int, int] | None = None) -> None:
+    def record(
+        self, k: int, t: float, node: Node, produced: tuple[int, int, int] | None = None, send_phase: int = -1
+    ) -> None:
         """Tick ``k`` ran at ``t``: the node's signals and energies; ``produced`` is ``(payload
-        bytes, packet bytes, seq)`` of the packet the node made in it, if any (one call a tick)."""
+        bytes, packet bytes, seq)`` of the packet the node made in it, if any (one call a tick);
+        ``send_phase``: the teleoperator's (-1: none)."""
         c, r = self._at(k)
         if produced is not None:
             c.produced_payload[r], c.produced_packet[r], c.tx_seq[r] = produced
@@ -483,6 +490,7 @@ class Recorder:
         cols.energy_played_epoch[r] = node.guard.played_in_epoch
         c.play_time[r] = t
         c.rx_seq[r] = node.last_rx_seq
+        c.send_phase[r] = send_phase
         c.peer_epoch[r] = node.peer_restarts
         if self.first < 0:
             self.first = k
@@ -596,6 +604,8 @@ class Port:
         self.playout = PlayoutBuffer(
             node.options.playout, node.dt, auto_floor=playout_floor, hold=playout_hold
         )
+        # A replay's send phase per tick (a real run's record, ``send_phase``; -1: the buffer's target).
+        self.replay_phases: npt.NDArray[np.int64] | None = None
         # Where the peer's packets land on our tick grid: the teleoperator's phase follows it (it
         # ticks when the operator's packet is due), and either side's tick 0 moves if it lies.
         teleoperator = node.tx_direction == wire.BACKWARD
@@ -744,8 +754,13 @@ class Port:
         node = self.node
         for p in self.playout.due(k):  # the payloads whose playout time has come
             node.receive_packet(p)
-        if node.tx_direction == wire.BACKWARD and (d := self.playout.target()) is not None:
-            node.encoder.phase = d  # send phase: sample right after the operator's payload plays
+        phase = -1
+        if node.tx_direction == wire.BACKWARD:
+            d = self.playout.target()
+            if (rp := self.replay_phases) is not None and 0 <= k < len(rp) and rp[k] >= 0:
+                d = int(rp[k])  # a replay: the phase the run's teleoperator sent at
+            if d is not None:
+                node.encoder.phase = phase = d  # send phase: sample right after the operator's payload plays
         pkt = node.tick(k * self.dt)
         out: list[bytes] = []
         produced = None
@@ -759,7 +774,7 @@ class Port:
                 self.shim.send(t, data)
         if self.shim is not None:
             out += self.flush(t, k)
-        self.rec.record(k, t, node, produced)
+        self.rec.record(k, t, node, produced, phase)
         self._last_k = k
         return out
 
