@@ -225,7 +225,6 @@ def test_a_log_folder_the_stack_makes_is_private_whatever_the_umask(
     assert os.stat(logs).st_mode & 0o777 == 0o755
 
 
-
 @pytest.mark.parametrize(
     "key", ["transport/auth/usrpwd/dictionary_file", "transport/link/tls/root_ca_certificate"]
 )

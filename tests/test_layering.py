@@ -82,9 +82,7 @@ def test_the_walk_sees_imports() -> None:
 def test_every_module_imports_only_its_layer_and_below(module: str) -> None:
     layer = _layer(module)
     assert layer, f"{module} is in no layer: add its package to LAYERS"
-    above = [
-        (t, _layer(t)) for t in sorted(_targets(MODULES[module])) if LAYERS[_layer(t)] > LAYERS[layer]
-    ]
+    above = [(t, _layer(t)) for t in sorted(_targets(MODULES[module])) if LAYERS[_layer(t)] > LAYERS[layer]]
     assert not above, f"{module} ({layer}) imports a layer above its own: {above}"
 
 

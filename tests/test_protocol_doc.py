@@ -102,7 +102,7 @@ def test_the_key_derivations_as_the_document_states_them() -> None:
     assert auth.key_id(PSK) == key_id
     zenoh_password = hashlib.blake2s(b"zenoh usrpwd", key=PSK, person=person, digest_size=32).hexdigest()
     assert auth.zenoh_password(PSK) == zenoh_password == INPUTS["keys"]["zenoh_password"]
-    assert auth.ZENOH_USER == "teleop" and '`teleop:PASSWORD`' in DOC
+    assert auth.ZENOH_USER == "teleop" and "`teleop:PASSWORD`" in DOC
 
 
 def _data_inputs() -> tuple[dict[str, Any], wire.Packet]:

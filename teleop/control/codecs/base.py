@@ -82,7 +82,10 @@ class RawFormat:
             m = self._max_code_f
             full = np.full
             c = self._shaped[shape] = (
-                full(shape, self._inv_step), full(shape, -m), full(shape, m), full(shape, self._step)
+                full(shape, self._inv_step),
+                full(shape, -m),
+                full(shape, m),
+                full(shape, self._step),
             )
         return c
 
@@ -113,7 +116,6 @@ class RawFormat:
         # as astype(float64) would) inside the multiply, one call instead of two.
         out: Array = q * self._constants(q.shape)[3]
         return out
-
 
 
 def pack(q: IntArray, bits: int) -> bytes:

@@ -212,7 +212,6 @@ class CodecSpec(str):
         return cls(canon, name, _read(canon, canon, False)[1])
 
 
-
 def _read(spec: str, text: str, local: bool) -> tuple[str, dict[str, float]]:
     name, _, rest = text.partition(":")
     name = name.lower()
