@@ -126,7 +126,9 @@ def test_counts_and_compression(
     # the real run: one code path, whatever the host's stalls did to the schedule (issue 37).  Exact
     # up to the order of the sums, unless a loop skipped ticks (those the real side never ran).
     rp = tr["replay"]
-    if all(p["loop"]["skipped"] == 0 for p in rep["processes"].values()):
+    if all(p["loop"]["skipped"] == 0 for p in rep["processes"].values()) and not any(
+        rp["taken_early"].values()  # (a receiver that stalled past its peer's next tick: a CI run)
+    ):
         assert rp["relative_difference"] < 1e-9, rp
     # Never taken: only the payloads the receiver's last tick came before (the rx sequence numbers
     # only grow, so on a lossless loopback those are a tail).  Lag 0 forward: the operator's last

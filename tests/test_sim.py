@@ -10,7 +10,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from teleop.offline.sim import SECTION_V_CODECS, SimConfig, deliveries, run_case, run_set
+from teleop.offline.sim import (
+    NOT_SENT,
+    NOT_TAKEN,
+    SECTION_V_CODECS,
+    SimConfig,
+    deliveries,
+    run_case,
+    run_set,
+    taken_early,
+)
 
 
 @pytest.fixture(scope="module")
@@ -164,6 +173,18 @@ def test_a_replay_sends_at_the_runs_recorded_phase() -> None:
     assert len(before) == 1 and after == {(before.pop() + 15) % 50}
     own = run_case(replace(cfg, deliveries=_own_deliveries(r)))  # its own target: where the sim sent
     np.testing.assert_array_equal(own.trace.seqs["teleoperator"][0], r.trace.seqs["teleoperator"][0])
+
+
+def test_payloads_taken_before_the_sims_order_allows_are_counted() -> None:
+    """The sim's own schedule takes nothing early (forward at its send tick, backward at the next);
+    a real teleoperator that stalled took the operator's tick-1 payload at its tick 0 (a CI run)."""
+    r = run_case(SimConfig(codec="none", scenario="protocol", duration=0.5))
+    assert taken_early(*_own_deliveries(r)) == (0, 0)
+    fwd, bwd = _own_deliveries(r)
+    fwd, bwd = fwd.copy(), bwd.copy()
+    fwd[1], bwd[3], bwd[4] = 0, 3, 2  # forward 1 at 0; backward 3 at 3 and 4 at 2 (not before n + 1)
+    assert taken_early(fwd, bwd) == (1, 2)
+    assert taken_early(np.array([NOT_SENT, NOT_TAKEN, 5]), np.array([NOT_TAKEN])) == (0, 0)
 
 
 def test_a_payload_taken_a_tick_late_is_a_force_spike_in_the_replay() -> None:

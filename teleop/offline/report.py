@@ -28,7 +28,15 @@ from teleop.devices import scenarios
 from teleop.files import MAX_TRACE_BYTES, read_regular
 from teleop.offline import plots
 from teleop.offline.logfile import LogError, find_pair, iter_ticks, log_session, read_session
-from teleop.offline.sim import MAX_SEND_PHASE, NOT_SENT, NOT_TAKEN, SimConfig, deliveries, run_case
+from teleop.offline.sim import (
+    MAX_SEND_PHASE,
+    NOT_SENT,
+    NOT_TAKEN,
+    SimConfig,
+    deliveries,
+    run_case,
+    taken_early,
+)
 from teleop.session.link.phase import latency
 from teleop.session.port import wire_block
 from teleop.session.protocol import ProtocolError, SessionParams
@@ -686,7 +694,8 @@ def _replay(
     difference a host's stalls made (a payload a tick late: with ``none``, a force spike of about
     ``b v``) is told from a difference in the code, which the replay would still show.
 
-    Exact (to the order of the sums) where no tick was skipped, over jitter too: the teleoperator's
+    Exact (to the order of the sums) where no tick was skipped and no payload was taken early (see
+    ``taken_early``), over jitter too: the teleoperator's
     iDS/eDS send at the phase the run's record keeps (``send_phase``, its playout target then).  pdp's
     credit follows the lag it measured on the run's clock, which the replay measures on its ticks:
     approximate where the two differ.  A log without ``send_phase`` (written before it was kept)
@@ -710,6 +719,7 @@ def _replay(
         usual[d] = int(np.median(lag)) if lag.size else 0
         late[d] = int(np.count_nonzero(lag > usual[d]))
     never = {d: int(np.count_nonzero(a == NOT_TAKEN)) for d, a in (("forward", fwd), ("backward", bwd))}
+    early = dict(zip(("forward", "backward"), taken_early(fwd, bwd), strict=True))
     sim = run_case(
         SimConfig.of_session(
             p,
@@ -733,6 +743,7 @@ def _replay(
         "relative_difference": abs(i_real - i_rep) / i_rep if i_rep else None,
         "lag_ticks": usual,  # send tick to the tick that took it, the median
         "taken_late": late,  # taken later than that
+        "taken_early": early,  # before the sim's order of ticks can take it: replayed later
         "never_taken": never,
         "not_sent": {
             "forward": int(np.count_nonzero(fwd == NOT_SENT)),
@@ -832,6 +843,9 @@ def summary_text(rep: dict[str, Any], command: str = "teleop run") -> str:
         tl, nv, lg = rp["taken_late"], rp["never_taken"], rp["lag_ticks"]
         rd = rp["relative_difference"]
         diff = "" if rd is None else f"; difference {100 * rd:.1f}%"
+        te = rp.get("taken_early") or {}
+        if te.get("forward") or te.get("backward"):  # the replay cannot take those as early
+            diff += f" (taken early, replayed later: {te.get('forward', 0)}/{te.get('backward', 0)})"
         lines.append(
             f"  with this run's deliveries (taken after the median lag of {lg['forward']}/{lg['backward']} "
             f"ticks: {tl['forward']}/{tl['backward']}, never {nv['forward']}/{nv['backward']}, forward/"

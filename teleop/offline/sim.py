@@ -53,7 +53,7 @@ Array = npt.NDArray[np.float64]
 
 #: The paper's Section V set.
 SECTION_V_CODECS = ("none", "ids:2", "ids:50", "eds:2", "eds:50", "cq:8")
-__all__ = ["ConstantDelayLink", "SimConfig", "deliveries", "run_case", "run_set"]
+__all__ = ["ConstantDelayLink", "SimConfig", "deliveries", "run_case", "run_set", "taken_early"]
 ENERGY_TOLERANCE = 1e-9  # J: float rounding in cumulative sums, far below any real violation
 
 
@@ -288,6 +288,19 @@ def _taken_at(dl: npt.NDArray[np.int64] | None, n: int, nominal: int) -> int:
     if dl is None or n >= len(dl) or dl[n] == NOT_SENT:
         return nominal
     return int(dl[n])
+
+
+def taken_early(fwd: npt.NDArray[np.int64], bwd: npt.NDArray[np.int64]) -> tuple[int, int]:
+    """Payloads (forward, backward) of :func:`deliveries` taken before the sim's order of ticks lets
+    them be: within tick n the sim runs the operator, then the teleoperator (which takes the operator's
+    tick-n payload at n at the earliest), whose payload the operator takes at n + 1 at the earliest.  A
+    real receiver that stalled past its peer's next tick took that one early (a teleoperator 1 ms late
+    at tick 0 took the operator's tick 1 there: a CI run); a replay takes each at the earliest tick it
+    can, so with any of them it is approximate."""
+    fwd, bwd = np.asarray(fwd, dtype=np.int64), np.asarray(bwd, dtype=np.int64)
+    f = np.count_nonzero((fwd >= 0) & (fwd < np.arange(len(fwd))))
+    b = np.count_nonzero((bwd >= 0) & (bwd < np.arange(len(bwd)) + 1))
+    return int(f), int(b)
 
 
 def deliveries(tx_seq: npt.ArrayLike, rx_seq: npt.ArrayLike) -> npt.NDArray[np.int64]:
