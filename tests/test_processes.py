@@ -381,6 +381,34 @@ def _spawn(*args: str) -> subprocess.Popen[str]:
     return subprocess.Popen([*TELEOP, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+#: A robot loop stalled this long by its host (its own summary's longest period) cannot be asked to
+#: confirm a start within the operator's window (300 ms lead less a 50 ms margin, protocol.start_lead).
+HOST_STALL_MS = 100.0
+
+
+def _started_unless_the_host_stalled(
+    op: subprocess.Popen[str], to: subprocess.Popen[str], logs: Path
+) -> None:
+    """``op`` exits 0; or it failed to get its start confirmed while the robot's own log shows its
+    host stalling its loop by more than :data:`HOST_STALL_MS`: then the test is skipped, saying so.
+    Two fresh-clone CI runs on a host slowed by a third (the fast suite 25% slower than the run before)
+    failed here with the robot skipping 108, 103 and 816 ticks at a time; the session had started on
+    its side.  Any other failure fails the test."""
+    code = op.wait(timeout=30)
+    if code == 0:
+        return
+    err = op.stderr.read() if op.stderr is not None else ""
+    to.send_signal(signal.SIGINT)  # its summaries are the evidence: let it write them
+    to.wait(timeout=30)
+    longest = 0.0
+    for f in logs.glob("teleoperator*.json"):
+        loop = json.loads(f.read_text()).get("loop") or {}
+        longest = max(longest, (loop.get("period_error_us") or {}).get("max") or 0.0)
+    if "did not confirm the start" in err and longest / 1e3 > HOST_STALL_MS:
+        pytest.skip(f"the host stalled the robot's loop {longest / 1e3:.0f} ms (the start's window: 250 ms)")
+    raise AssertionError(f"{op.args!r} exited {code}; its stderr:\n{err[-4000:]}")
+
+
 def test_teleoperator_restarted_mid_session_and_the_operator_recovers(tmp_path: Path, key: str) -> None:
     port, logs = _free_port(), tmp_path / "logs"
     to1 = _spawn(
@@ -483,7 +511,7 @@ def test_operator_restarted_mid_session_and_the_teleoperator_serves_the_new_one(
         str(logs),
         "--quiet",
     )
-    exited_ok(op2)
+    _started_unless_the_host_stalled(op2, to, logs)
     exited_ok(to)
     # The replaced session's logs keep their names; the new session's are files of its own.
     first = json.loads((logs / "teleoperator.json").read_text())
