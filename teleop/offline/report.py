@@ -29,7 +29,6 @@ from teleop.files import MAX_TRACE_BYTES, read_regular
 from teleop.offline import plots
 from teleop.offline.logfile import LogError, find_pair, iter_ticks, log_session, read_session
 from teleop.offline.sim import (
-    MAX_SEND_PHASE,
     NOT_SENT,
     NOT_TAKEN,
     SimConfig,
@@ -356,10 +355,10 @@ class _Fold:
             for side, blk in (("op", op), ("to", to)):
                 self.seqs[f"{side}_tx"].append(np.asarray(blk["tx_seq"][:m], dtype=np.int64))
                 self.seqs[f"{side}_rx"].append(np.asarray(blk["rx_seq"][:m], dtype=np.int64))
-            # The teleoperator's send phase (-1: not recorded, a log from before it was).
+            # The teleoperator's send phase (NaN: not recorded, a log from before it was; the reader
+            # bounds every value, the sim refuses one out of range: teleop.offline.sim._ports).
             ph = np.asarray(to["send_phase"][:m], dtype=np.float64)
-            ph = np.where(np.isfinite(ph) & (ph >= 0) & (ph <= MAX_SEND_PHASE), ph, -1)
-            self.seqs["to_phase"].append(ph.astype(np.int64))
+            self.seqs["to_phase"].append(np.where(np.isfinite(ph), ph, -1).astype(np.int64))
         m_fwd, m_bwd = self.fwd.per_tick(to), self.bwd.per_tick(op)
         _keep_min_by_epochs(self.two_port, m_fwd + m_bwd, op, to)
         # Eq. (4) on the session clock: each side's energy sent by tick k (reported or not) against

@@ -278,20 +278,17 @@ class PlayoutBuffer:
             before = a_min + self.extra
         if tick + before < k:
             st.late += 1
-        if not self.hold:
-            self._n += 1
-            return [self._pop_now(pkt, k)]
         heapq.heappush(self._heap, (tick, pkt.seq, self._n, pkt))
         self._n += 1
         if len(self._heap) > MAX_HELD:
             st.overflow += 1
             return [self._pop(k)]
+        if not self.hold:  # a replay: released when taken (nothing else was held)
+            return [self._pop(k)]
         return []
 
     def _pop(self, k: int) -> wire.Packet:
-        return self._pop_now(heapq.heappop(self._heap)[3], k)
-
-    def _pop_now(self, pkt: wire.Packet, k: int) -> wire.Packet:
+        pkt = heapq.heappop(self._heap)[3]
         self.stats.released += 1
         delay = k - pkt.tick
         self.delay_hist[HIST_TICKS if delay > HIST_TICKS else delay if delay > 0 else 0] += 1
