@@ -390,10 +390,11 @@ def _started_unless_the_host_stalled(
     op: subprocess.Popen[str], to: subprocess.Popen[str], logs: Path
 ) -> None:
     """``op`` exits 0; or it failed to get its start confirmed while the robot's own log shows its
-    host stalling its loop by more than :data:`HOST_STALL_MS`: then the test is skipped, saying so.
-    Two fresh-clone CI runs on a host slowed by a third (the fast suite 25% slower than the run before)
-    failed here with the robot skipping 108, 103 and 816 ticks at a time; the session had started on
-    its side.  Any other failure fails the test."""
+    loop stalled by more than :data:`HOST_STALL_MS`: then the test is skipped, saying so.  Three
+    fresh-clone runs of 2026-12-04 failed here with the robot skipping 108, 103 and 816 ticks at a
+    time; the session had started on its side.  Twice the first session's longest stall was 103 ms
+    (102.9 and 103.1): a stall of our own, not only the host's, is likely; its cause is not found
+    (an open question, not a settled one).  Any other failure fails the test."""
     code = op.wait(timeout=30)
     if code == 0:
         return
@@ -405,7 +406,7 @@ def _started_unless_the_host_stalled(
         loop = json.loads(f.read_text()).get("loop") or {}
         longest = max(longest, (loop.get("period_error_us") or {}).get("max") or 0.0)
     if "did not confirm the start" in err and longest / 1e3 > HOST_STALL_MS:
-        pytest.skip(f"the host stalled the robot's loop {longest / 1e3:.0f} ms (the start's window: 250 ms)")
+        pytest.skip(f"the robot's loop stalled {longest / 1e3:.0f} ms (the start's window: 250 ms)")
     raise AssertionError(f"{op.args!r} exited {code}; its stderr:\n{err[-4000:]}")
 
 
