@@ -82,6 +82,12 @@ def _check_operator(
     return conf.returncode, json.loads(out.read_text()), stdout
 
 
+#: Each session the checker runs in a broken or wire-fault teleoperator's case (its default is
+#: 1.5 s): each fault shows in the first ticks, and a case took 5.8 s at 1.5 s, 3.9 s at 0.5 s.
+#: (An operator's eds:50 session sends ~1 datagram in 20 ticks: its cases keep 1.5 s.)
+FAULT_SESSION_S = 0.5
+
+
 def _failed(result: dict[str, object]) -> list[str]:
     checks = result["checks"]
     assert isinstance(checks, list)
@@ -112,7 +118,7 @@ def test_the_projects_operator_conforms(tmp_path: Path, key: str) -> None:
     ],
 )
 def test_a_broken_teleoperator_is_caught(tmp_path: Path, key: str, brk: str, rule: str) -> None:
-    rc, result, out = _check_teleoperator(tmp_path, key, brk)
+    rc, result, out = _check_teleoperator(tmp_path, key, brk, "--duration", str(FAULT_SESSION_S))
     assert rc == 1, out
     assert any(rule in f for f in _failed(result)), out
 
@@ -161,7 +167,9 @@ def test_a_teleoperator_with_a_wire_fault_is_caught_by_its_rule(
     """Issue 35: faults an implementation written from PROTOCOL.md made and the suite once passed;
     each is caught by a MUST that names its section, and the exit status is 1."""
     # (the 2 s ghost probe is for a fault of its own: test_a_broken_teleoperator_is_caught)
-    rc, result, out = _check_teleoperator(tmp_path, key, brk, "--codec", codec, "--no-ghost-probe")
+    rc, result, out = _check_teleoperator(
+        tmp_path, key, brk, "--codec", codec, "--no-ghost-probe", "--duration", str(FAULT_SESSION_S)
+    )
     assert rc == 1, out
     assert _failed_in(result, section, rule), out
 

@@ -1098,7 +1098,7 @@ def _session_as_operator(
     log = a.log + (b.log if a.distinct_addresses else [])
     keys: list[tuple[bytes, bytes]] = [*(earlier or []), (bwd, fwd)]
     if then is not None:  # we fall silent: its link goes lost, and the deadband session takes over
-        keys += _deadband_session(r, then, peer, k_r)
+        keys += _deadband_session(r, then, peer, k_r, duration)
         log += then.log if a.distinct_addresses else []
     sender = peer if a.distinct_addresses else None
     audit_envelopes(r, log, sender, wire.BACKWARD, k_hs, *keys[-1], p.dof, tuple(keys[:-1]))
@@ -1131,21 +1131,23 @@ def _summary_checks(r: Result, summary: Any, tag: str = "") -> None:
 #: teleoperator with another codec, the suite then drives one of these (:func:`_deadband_session`).
 DEADBAND_CODECS = ("pd", "pdp")
 DEADBAND_CODEC = "pd:5"
-DEADBAND_S = 1.5
 TAKEOVER_EXTRA_S = 5.0  # the main session proposes this much more than it runs, to be taken over
 TAKEOVER_WAIT_S = 5.0  # how long the deadband session's hello may be answered 'busy' meanwhile
 
 
-def _deadband_session(r: Result, c: _Carrier, peer: Addr, k_r: bytes) -> list[tuple[bytes, bytes]]:
+def _deadband_session(
+    r: Result, c: _Carrier, peer: Addr, k_r: bytes, duration: float
+) -> list[tuple[bytes, bytes]]:
     """A session with :data:`DEADBAND_CODEC` after the main one, whatever codec that used, so that a
     deadband that ignores its energy budget (3.5, 3.6: eq. 10 and the cumulative rule) is caught
     whatever the user picked.  We fell silent in the main session: once the robot's link is lost
     it may be taken over (4.5), and until then its answer is 'busy' (the hello is tried again).
-    This session runs to its end: its energy rules, and the bye rules (4.6) the main one could not
-    show, are checked on it.  Returns its (backward, forward) session keys, if it ran."""
+    This session runs to its end, ``duration`` long as the main one: its energy rules, and the bye
+    rules (4.6) the main one could not show, are checked on it.  Returns its (backward, forward)
+    session keys, if it ran."""
     tag = f" ({DEADBAND_CODEC} session, taking over)"
     session = secrets.randbelow(2**32 - 2) + 1
-    p = params_for(session, DEADBAND_CODEC, DEADBAND_S)
+    p = params_for(session, DEADBAND_CODEC, duration)
     make = _factory("operator", UNDER_REPORT)
     data: list[_DataCheck] = []
     end = time.monotonic() + TAKEOVER_WAIT_S
@@ -1164,7 +1166,7 @@ def _deadband_session(r: Result, c: _Carrier, peer: Addr, k_r: bytes) -> list[tu
         return []
     fwd, bwd = auth.session_keys(k_r, session, ep.port.keys.nonce, _nonce(ep.peer_nonce))
     data.append(_DataCheck(bwd, wire.BACKWARD, session, make_codec(DEADBAND_CODEC, 2, 2.0).codec_id))
-    drv.run(lambda: ep.finished, DEADBAND_S + 10.0)
+    drv.run(lambda: ep.finished, duration + 10.0)
     d = data[0]
     codec = make_codec(DEADBAND_CODEC, p.dof, p.full_scale)
     stream = sorted(d.stream, key=lambda e: e[1].seq)

@@ -92,7 +92,8 @@ def add_parser(sub: Subcommands) -> None:
         "--duration",
         type=float_range("duration", 0.5, 60.0, "s"),
         default=1.5,
-        help="seconds of the session run with a teleoperator (default 1.5)",
+        help="seconds of each session run with a teleoperator: the main one, and the deadband one that "
+        "takes it over (default 1.5)",
     )
     c.add_argument(
         "--timeout",
