@@ -147,7 +147,7 @@ def test_report_contract_and_logs(tmp_path: Path) -> None:
     for role in ("operator", "teleoperator"):
         p = rep["processes"][role]
         assert isinstance(p["pid"], int)
-        for k in ("ticks", "overruns"):
+        for k in ("ticks", "overruns", "major_faults"):  # (page faults that read from disk)
             assert isinstance(p["loop"][k], int)
         assert set(p["loop"]["period_error_us"]) >= {"p50", "p99", "p999", "max"}
     for d in ("forward", "backward"):

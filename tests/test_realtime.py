@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import json
+import os
 import subprocess
 import sys
 from typing import Any
 
 import pytest
 
-from transport.realtime import SpinLearner, Ticker
+from teleop.session.schedule import LoopFigures
+from transport.realtime import LoopStats, SpinLearner, Ticker
 
 
 def test_the_spin_follows_the_hosts_wake_up_latency_within_bounds() -> None:
@@ -116,3 +119,46 @@ def test_a_sessions_ticks_import_nothing() -> None:
     r = subprocess.run([sys.executable, "-c", _NO_IMPORT_SCRIPT], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "[]", r.stdout
+
+
+_LOCK_SCRIPT = """
+import json, os, resource, sys
+from transport.realtime import lock_memory
+if sys.argv[1] == "refused":  # no CAP_IPC_LOCK (not root any more) and a 64 KiB ulimit -l
+    resource.setrlimit(resource.RLIMIT_MEMLOCK, (65536, 65536))
+    os.setgid(65534)
+    os.setuid(65534)
+warnings = lock_memory()
+locked = [ln for ln in open("/proc/self/status") if ln.startswith("VmLck:")][0].split()[1]
+print(json.dumps([int(locked), warnings]))
+"""
+
+
+def _locked(case: str) -> tuple[int, list[str]]:
+    r = subprocess.run(
+        [sys.executable, "-c", _LOCK_SCRIPT, case], capture_output=True, text=True, timeout=120
+    )
+    assert r.returncode == 0, r.stderr
+    kib, warnings = json.loads(r.stdout)
+    return int(kib), list(warnings)
+
+
+@pytest.mark.integration  # a child python: a memory lock is process-wide
+def test_lock_memory_locks_the_process_or_says_why_not() -> None:
+    """The runner locks its memory before the handshake, so that no tick waits for a page read back
+    from disk (the test VM's kernel pages out what went unused for a minute).  Permitted (root):
+    the libraries' pages are locked, no warning.  As another user under a 64 KiB ``ulimit -l``:
+    nothing locked, and a warning naming the limit."""
+    if os.geteuid() != 0:
+        pytest.skip("needs root: to lock ~260 MB, and to become another user for the refused case")
+    kib, warnings = _locked("permitted")
+    assert warnings == [] and kib > 50_000, (kib, warnings)  # (about 260 MB: numpy, uvloop, Zenoh)
+    kib, warnings = _locked("refused")
+    assert kib == 0 and len(warnings) == 1, (kib, warnings)
+    assert "memory not locked" in warnings[0] and "ulimit -l is 64 KiB" in warnings[0], warnings
+
+
+def test_the_loop_summary_counts_major_faults_when_counted() -> None:
+    stats = LoopStats.of(LoopFigures(1_000_000), 0.1, 1.0, 0, major_faults=3)
+    assert stats.summary()["major_faults"] == 3
+    assert "major_faults" not in LoopStats.of(LoopFigures(1_000_000), 0.1, 1.0, 0).summary()

@@ -37,8 +37,9 @@ The figures above are of the deadline instant either way; :meth:`Ticker.departed
 instant each tick's datagrams left (``send_lateness_us``, ``send_period_error_us``), which is what
 the peer sees of the loop's timing in both modes.
 
-Real-time priority (SCHED_FIFO) and 1 ns timer slack are requested where permitted; where not,
-``setup_realtime`` returns warnings and the run goes on.  Under SCHED_FIFO a thread that never
+Real-time priority (SCHED_FIFO) and 1 ns timer slack are requested where permitted, and the
+process's memory is locked (:func:`lock_memory`); where not, they return warnings and the run goes
+on.  Under SCHED_FIFO a thread that never
 sleeps is throttled by the kernel, which is another reason to sleep most of the period.
 """
 
@@ -49,6 +50,7 @@ import ctypes.util
 import gc
 import importlib
 import os
+import resource
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -82,6 +84,39 @@ def setup_realtime(priority: int | None = 10, timer_slack_ns: int = 1) -> list[s
         except (PermissionError, OSError, AttributeError) as e:
             warnings.append(f"SCHED_FIFO priority {priority} not permitted ({e}); running at normal priority")
     return warnings
+
+
+MCL_CURRENT, MCL_FUTURE = 1, 2  # <sys/mman.h> on Linux
+
+
+def lock_memory() -> list[str]:
+    """``mlockall(MCL_CURRENT | MCL_FUTURE)``: every page this process maps now or later stays in RAM.
+
+    Why: a page the kernel reclaims is read back from disk the next time the loop touches it (a
+    major fault), and no scheduling priority shortens that read.  On this project's test VM the
+    kernel's DAMON pages out what went unused for a minute; code a session runs for the first time
+    (a link lost, a takeover) may be such a page.  Locking is what real-time Linux guides and
+    cyclictest do.  Costs: the libraries' pages read in now (~115 ms, ~260 MB resident for a
+    process with numpy, Zenoh and uvloop, measured) and each new thread's stack touched at once
+    (~3 ms).  Needs CAP_IPC_LOCK or a large enough ``ulimit -l``; else a warning, nothing locked."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        if libc.mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
+            err = ctypes.get_errno()
+            limit = resource.getrlimit(resource.RLIMIT_MEMLOCK)[0]
+            allowed = "unlimited" if limit == resource.RLIM_INFINITY else f"{limit // 1024} KiB"
+            return [
+                f"memory not locked (mlockall: {os.strerror(err)}; ulimit -l is {allowed}): a page the "
+                "kernel reclaims costs a tick a read from disk"
+            ]
+    except (OSError, AttributeError) as e:
+        return [f"memory not locked ({e}): a page the kernel reclaims costs a tick a read from disk"]
+    return []
+
+
+def major_faults() -> int:
+    """Page faults of this process so far that read from disk (a tick that took one waited for it)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_majflt
 
 
 #: Modules numpy imports only on first use, which a tick would pay for: ``np.quantile`` (the phase
@@ -138,6 +173,7 @@ class LoopStats:
     missed_deadlines: int = 0  # device-paced: session ticks the device's clock skipped
     device_ahead: int = 0  # device-paced: device ticks over a tick ahead of the clock (held, no tick)
     device_paced: bool = False
+    major_faults: int | None = None  # page faults that read from disk while it ticked (None: not counted)
 
     def summary(self) -> dict[str, object]:
         unkept = np.zeros(0, dtype=np.int64)  # departures are kept as percentiles only
@@ -152,6 +188,7 @@ class LoopStats:
             "wall_s": self.wall_s,
             "cpu_fraction": self.cpu_s / self.wall_s if self.wall_s > 0 else 0.0,
             "spin_us": self.spin_ns / 1e3,
+            **({} if self.major_faults is None else {"major_faults": self.major_faults}),
             "send_lateness_us": _percentiles(self.send_lateness_q, unkept),
             "send_period_error_us": _percentiles(self.send_period_error_q, unkept),
             **(
@@ -166,7 +203,9 @@ class LoopStats:
         }
 
     @classmethod
-    def of(cls, loop: LoopFigures, cpu_s: float, wall_s: float, spin_ns: int) -> LoopStats:
+    def of(
+        cls, loop: LoopFigures, cpu_s: float, wall_s: float, spin_ns: int, major_faults: int | None = None
+    ) -> LoopStats:
         """A session's figures: its endpoint's ticks (``teleop.session.schedule``) and this host's."""
         none = np.zeros(0, dtype=np.int64)
         return cls(
@@ -186,6 +225,7 @@ class LoopStats:
             missed_deadlines=loop.missed,
             device_ahead=loop.ahead,
             device_paced=loop.device_paced,
+            major_faults=major_faults,
         )
 
 

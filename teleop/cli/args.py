@@ -481,7 +481,7 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
         metavar="S",
         help="give up if the peer does not answer within S seconds (default 10)",
     )
-    p.add_argument("--no-rt", action="store_true", help="do not ask for SCHED_FIFO priority")
+    p.add_argument("--no-rt", action="store_true", help="do not ask for SCHED_FIFO priority nor lock memory")
     p.add_argument("--asyncio", action="store_true", help="use the stdlib asyncio loop instead of uvloop")
     p.add_argument(
         "--tick-at",
