@@ -97,8 +97,8 @@ class Runner:
         self.device: Any = None  # it paces them
         self._period = 1_000_000
         self._first = 0  # its first tick's deadline (paced: the device's first tick)
-        # the CPU, the clock and the major page faults when the ticks began
-        self._ticks0: tuple[float, int, int] | None = None
+        self._ticks0: tuple[float, int] | None = None  # the CPU and the clock when the ticks began
+        self._faults0 = 0  # the major page faults when the session started
         self._stats: LoopStats | None = None
         self._starts: dict[int, int] = {}  # session id -> its tick 0 on this clock
         self._created = self.clock()
@@ -110,9 +110,7 @@ class Runner:
         # session's start then collects only what came since (~0.1 ms), which matters for a late
         # joiner, whose first tick is 20 ticks after its start.
         freeze_heap()
-        # Memory locked now, before the handshake (its ~115 ms of reading the libraries in is no
-        # tick's): with SCHED_FIFO, as --no-rt leaves both out.
-        self._lock_warnings = lock_memory() if opts.rt_priority is not None else []
+        self._lock_warnings = lock_memory() if opts.rt_priority is not None else []  # ~115 ms, no tick's
 
     def _port(self, params: SessionParams, k0: int, keys: PortKeys, start_ns: int) -> Port:
         """The port factory, called by the endpoint when a session starts: its sink is the log."""
@@ -187,7 +185,7 @@ class Runner:
                 self.feed()
                 return
             if self._ticks0 is None:
-                self._ticks0 = (time.process_time(), t, major_faults())
+                self._ticks0 = (time.process_time(), t)
             self.sleeper.sleep(t)
             self.feed()
             while (now := clock()) < t:
@@ -207,7 +205,7 @@ class Runner:
         with a bye saying why; nothing is ticked, so nothing is commanded, after it."""
         ep, device, clock = self.ep, self.device, self.clock
         timeout = max(0.01, 100 * self._period / 1e9)
-        self._ticks0, n = (time.process_time(), self._first + self._period, major_faults()), 0
+        self._ticks0, n = (time.process_time(), self._first + self._period), 0
         while self.device is device and not self.stop.requested:
             try:
                 came = device.wait(timeout)
@@ -247,14 +245,9 @@ class Runner:
                 self.started(ev)
             elif isinstance(ev, TicksEnded):
                 spin = 0 if ev.loop.device_paced else self.sleeper.spin
-                cpu0, wall0, faults0 = self._ticks0 or (time.process_time(), self.clock(), major_faults())
-                self._stats = LoopStats.of(
-                    ev.loop,
-                    time.process_time() - cpu0,
-                    (self.clock() - wall0) / 1e9,
-                    spin,
-                    major_faults() - faults0,
-                )
+                cpu0, wall0 = self._ticks0 or (time.process_time(), self.clock())
+                cpu, wall, faults = time.process_time() - cpu0, (self.clock() - wall0) / 1e9, major_faults()
+                self._stats = LoopStats.of(ev.loop, cpu, wall, spin, faults - self._faults0)
                 self.ticking, self._ticks0 = False, None
                 self.close_device()
             elif isinstance(ev, AdmissionChanged):  # the kernel's filter follows the endpoint
@@ -280,6 +273,7 @@ class Runner:
         self._waited[session] = (self.clock() - self._created) / 1e9
         self.watch.start(self.log, ev.k0, ev.rtt_ns or None, ev.device)
         self.warnings = setup_realtime(o.rt_priority) + self._lock_warnings + self.tr.warnings
+        self._faults0 = major_faults()
         freeze_heap()  # before the first tick: the GC walks only what the ticks make
         for w in self.warnings:
             print(f"teleop {o.role}: warning: {w}", file=sys.stderr)
