@@ -173,7 +173,7 @@ class LoopStats:
     missed_deadlines: int = 0  # device-paced: session ticks the device's clock skipped
     device_ahead: int = 0  # device-paced: device ticks over a tick ahead of the clock (held, no tick)
     device_paced: bool = False
-    major_faults: int | None = None  # page faults that read from disk while it ticked (None: not counted)
+    major_faults: int | None = None  # page faults that read from disk, the session's start to its end
 
     def summary(self) -> dict[str, object]:
         unkept = np.zeros(0, dtype=np.int64)  # departures are kept as percentiles only
