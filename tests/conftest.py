@@ -9,6 +9,7 @@ is, shows what the fast suite alone costs).
 
 from __future__ import annotations
 
+import compileall
 import multiprocessing.process
 import os
 import platform
@@ -105,6 +106,23 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 def pytest_sessionstart(session: pytest.Session) -> None:
     _WALL.append(time.monotonic())
+    _compile_the_project()
+
+
+#: The project's packages, which every process a test starts imports (an editable install: pip
+#: compiled none of them).
+_PACKAGES = ("teleop", "transport", "tests", "bench")
+
+
+def _compile_the_project() -> None:
+    """Each package's modules compiled into ``__pycache__`` once, before any test.  Why: with
+    ``PYTHONDONTWRITEBYTECODE`` set, as on this project's machines, no process caches what it
+    compiles, so each of the ~500 processes the integration tests start compiled the project anew:
+    ~0.1 s more of a process's start (0.21 against 0.32 s to import the CLI, the runner and the log
+    writer, measured).  Up-to-date files are skipped; under xdist each worker checks the same."""
+    root = Path(__file__).resolve().parents[1]
+    for name in _PACKAGES:
+        compileall.compile_dir(root / name, quiet=2, workers=1)
 
 
 def pytest_runtest_logreport(report: pytest.TestReport) -> None:
