@@ -39,8 +39,8 @@ the peer sees of the loop's timing in both modes.
 
 Real-time priority (SCHED_FIFO) and 1 ns timer slack are requested where permitted, and the
 process's memory is locked (:func:`lock_memory`); where not, they return warnings and the run goes
-on.  Under SCHED_FIFO a thread that never
-sleeps is throttled by the kernel, which is another reason to sleep most of the period.
+on.  Under SCHED_FIFO a thread that never sleeps is throttled by the kernel, which is another
+reason to sleep most of the period.
 """
 
 from __future__ import annotations
@@ -64,6 +64,11 @@ from teleop.session.schedule import LoopFigures
 PR_SET_TIMERSLACK = 29
 
 
+def _libc() -> ctypes.CDLL:
+    """The C library, with ``errno`` kept for :func:`ctypes.get_errno` (raises OSError if absent)."""
+    return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+
+
 def setup_realtime(priority: int | None = 10, timer_slack_ns: int = 1) -> list[str]:
     """Ask for SCHED_FIFO at ``priority`` (None: leave the policy) and a tight timer slack.
 
@@ -71,8 +76,7 @@ def setup_realtime(priority: int | None = 10, timer_slack_ns: int = 1) -> list[s
     """
     warnings: list[str] = []
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-        if libc.prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(timer_slack_ns), 0, 0, 0) != 0:
+        if _libc().prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(timer_slack_ns), 0, 0, 0) != 0:
             warnings.append(
                 f"timer slack not set (errno {ctypes.get_errno()}); sleeps may wake up to 50 us late"
             )
@@ -100,8 +104,7 @@ def lock_memory() -> list[str]:
     process with numpy, Zenoh and uvloop, measured) and each new thread's stack touched at once
     (~3 ms).  Needs CAP_IPC_LOCK or a large enough ``ulimit -l``; else a warning, nothing locked."""
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-        if libc.mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
+        if _libc().mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
             err = ctypes.get_errno()
             limit = resource.getrlimit(resource.RLIMIT_MEMLOCK)[0]
             allowed = "unlimited" if limit == resource.RLIM_INFINITY else f"{limit // 1024} KiB"
