@@ -30,7 +30,7 @@ from typing import Any
 
 from bench import write_result
 from teleop.session.auth import Opener, Sealer
-from transport.realtime import Ticker, setup_realtime
+from transport.realtime import HostMarks, Ticker, setup_realtime
 from transport.udp import new_event_loop
 
 KEY = bytes(range(32))
@@ -94,10 +94,13 @@ def run_empty(duration: float, spin_us: int, out: Path, fixed_spin: bool = False
     """The empty loop; ``fixed_spin``: always spin ``spin_us`` (the scheduler before issue 22)."""
     warnings = setup_realtime(10)
     loop, name = new_event_loop()
+    host0 = HostMarks.now()
     try:
         summary = loop.run_until_complete(_empty_loop(duration, spin_us, fixed_spin))
     finally:
         loop.close()
+    host = HostMarks.now() - host0  # what the host did meanwhile, as a session's loop figures say
+    summary.update(major_faults=host.major_faults, host_steal_ms=host.steal_ms)
     out.write_text(json.dumps({**summary, "event_loop": name, "warnings": warnings}))
 
 

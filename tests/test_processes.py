@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 
 from teleop.offline.logfile import read_log
+from teleop.offline.sim import deliveries
 from teleop.session.schedule import MAX_CATCHUP
 from tests.waiting import exited_ok, ticks_logged, udp_bound, wait_for
 
@@ -141,6 +142,16 @@ def test_counts_and_compression(
     # MAX_CATCHUP ticks would have skipped ticks instead.
     assert 0 <= rp["never_taken"]["forward"] <= MAX_CATCHUP + 1, rp
     assert rp["not_sent"]["forward"] <= (3000 - per_dir)
+    # Of the payloads taken late, those whose sender's loop began the sending tick half a period
+    # late or more, counted again here from the two logs.
+    logs = {r: read_log(tmp_path / "run" / "logs" / f"{r}.mcap")[1] for r in ("operator", "teleoperator")}
+    for d, tx, rx in (("forward", "operator", "teleoperator"), ("backward", "teleoperator", "operator")):
+        at = deliveries(logs[tx]["tx_seq"], logs[rx]["rx_seq"])
+        lagged = (at >= 0) & (at - np.arange(at.size) > rp["lag_ticks"][d])
+        began = np.zeros(at.size, dtype=np.int64)  # read_log keeps lateness_ns of the ticks that ran
+        began[np.isfinite(logs[tx]["play_time_s"][: at.size])] = logs[tx]["lateness_ns"]
+        assert rp["taken_late"][d] == int(np.count_nonzero(lagged)), (d, rp)
+        assert rp["sender_late"][d] == int(np.count_nonzero(lagged & (began >= 500_000))), (d, rp)
     e = rep["energy"]
     assert e["forward"]["min_margin"] >= -1e-9 and e["backward"]["min_margin"] >= -1e-9
     assert rep["two_port_min_energy"] >= -1e-9
@@ -154,6 +165,8 @@ def test_report_contract_and_logs(tmp_path: Path) -> None:
         assert isinstance(p["pid"], int)
         for k in ("ticks", "overruns", "major_faults"):  # (page faults that read from disk)
             assert isinstance(p["loop"][k], int)
+        if os.path.exists("/proc/stat"):  # the hypervisor's steal over the session, all CPUs
+            assert isinstance(p["loop"]["host_steal_ms"], float) and p["loop"]["host_steal_ms"] >= 0.0
         assert set(p["loop"]["period_error_us"]) >= {"p50", "p99", "p999", "max"}
     for d in ("forward", "backward"):
         assert set(rep["wire"][d]) >= {

@@ -6,12 +6,13 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 from teleop.session.schedule import LoopFigures
-from transport.realtime import LoopStats, SpinLearner, Ticker
+from transport.realtime import HostMarks, LoopStats, SpinLearner, Ticker, host_steal_ms
 
 
 def test_the_spin_follows_the_hosts_wake_up_latency_within_bounds() -> None:
@@ -158,7 +159,31 @@ def test_lock_memory_locks_the_process_or_says_why_not() -> None:
     assert "memory not locked" in warnings[0] and "ulimit -l is 64 KiB" in warnings[0], warnings
 
 
-def test_the_loop_summary_counts_major_faults_when_counted() -> None:
-    stats = LoopStats.of(LoopFigures(1_000_000), 0.1, 1.0, 0, major_faults=3)
-    assert stats.summary()["major_faults"] == 3
-    assert "major_faults" not in LoopStats.of(LoopFigures(1_000_000), 0.1, 1.0, 0).summary()
+def test_the_loop_summary_says_what_the_host_did_when_counted() -> None:
+    loop = LoopFigures(1_000_000)
+    summary = LoopStats.of(loop, 0.1, 1.0, 0, HostMarks(5, 130.0) - HostMarks(2, 100.0)).summary()
+    assert summary["major_faults"] == 3 and summary["host_steal_ms"] == 30.0
+    unknown = LoopStats.of(loop, 0.1, 1.0, 0, HostMarks(5, 1.0) - HostMarks(2, None)).summary()
+    assert unknown["major_faults"] == 3 and "host_steal_ms" not in unknown  # no steal column: not 0
+    assert not {"major_faults", "host_steal_ms"} & set(LoopStats.of(loop, 0.1, 1.0, 0).summary())
+
+
+def test_host_steal_is_read_from_the_kernels_cpu_line_and_a_bad_file_is_unknown(tmp_path: Path) -> None:
+    """/proc/stat's first line, ``steal`` its 8th number, in USER_HZ ticks; anything else: None."""
+    hz = os.sysconf("SC_CLK_TCK")
+    f = tmp_path / "stat"
+    f.write_text("cpu  10 0 5 900 1 0 2 37 0 0\ncpu0 5 0 2 450 0 0 1 20 0 0\n")
+    assert host_steal_ms(str(f)) == 37 * 1e3 / hz
+    bad_lines = (
+        "cpu 1 2 3 4\n",  # no steal column (an old kernel)
+        "cpu0 1 2 3 4 5 6 7 8\n",  # not the machine's line
+        "cpu 1 2 3 4 5 6 7 x\n",
+        "cpu 1 2 3 4 5 6 7 -8\n",
+        "",
+    )
+    for bad in bad_lines:
+        f.write_text(bad)
+        assert host_steal_ms(str(f)) is None, bad
+    assert host_steal_ms(str(tmp_path / "absent")) is None
+    here = host_steal_ms()  # this machine's, if it has the column: a count, never negative
+    assert here is None or here >= 0.0

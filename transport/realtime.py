@@ -122,6 +122,42 @@ def major_faults() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_majflt
 
 
+def host_steal_ms(path: str = "/proc/stat") -> float | None:
+    """CPU time the hypervisor gave to other guests so far, summed over this machine's CPUs (ms),
+    from ``/proc/stat``'s ``steal`` column; None where there is none (not Linux, not a VM's kernel,
+    unreadable).  A vCPU with work that the host does not run stalls every thread on it,
+    SCHED_FIFO or not, and that shows here; a timer the host delivers late to an idle vCPU (a loop
+    asleep until its tick) stalls it as much and does not (traced on this project's VM: most of
+    its millisecond stalls are that kind).  The file is the kernel's, read before and after the
+    ticks, never in one; its first line is still checked, as any file's (DESIGN.md)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.readline(4096).split()
+        # cpu user nice system idle iowait irq softirq steal ...
+        steal = int(head[8]) if head[:1] == [b"cpu"] else -1
+        hz = os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+    return steal * 1e3 / hz if steal >= 0 and hz > 0 else None
+
+
+@dataclass(frozen=True)
+class HostMarks:
+    """What the host did so far that no priority of ours prevents (:func:`major_faults`,
+    :func:`host_steal_ms`); two marks' difference is what it did to a session."""
+
+    major_faults: int
+    steal_ms: float | None
+
+    @classmethod
+    def now(cls) -> HostMarks:
+        return cls(major_faults(), host_steal_ms())
+
+    def __sub__(self, before: HostMarks) -> HostMarks:
+        steal = None if self.steal_ms is None or before.steal_ms is None else self.steal_ms - before.steal_ms
+        return HostMarks(self.major_faults - before.major_faults, steal)
+
+
 #: Modules numpy imports only on first use, which a tick would pay for: ``np.quantile`` (the phase
 #: estimator, ``teleop.session.link.phase``, every 100 ticks) calls ``np.unique``, whose first call
 #: imports ``numpy.ma``: 11-19 ms of one early tick on both sides (measured), a stall that made the
@@ -177,6 +213,7 @@ class LoopStats:
     device_ahead: int = 0  # device-paced: device ticks over a tick ahead of the clock (held, no tick)
     device_paced: bool = False
     major_faults: int | None = None  # page faults that read from disk, the session's start to its end
+    host_steal_ms: float | None = None  # the machine's CPU time stolen by its hypervisor, likewise
 
     def summary(self) -> dict[str, object]:
         unkept = np.zeros(0, dtype=np.int64)  # departures are kept as percentiles only
@@ -192,6 +229,7 @@ class LoopStats:
             "cpu_fraction": self.cpu_s / self.wall_s if self.wall_s > 0 else 0.0,
             "spin_us": self.spin_ns / 1e3,
             **({} if self.major_faults is None else {"major_faults": self.major_faults}),
+            **({} if self.host_steal_ms is None else {"host_steal_ms": self.host_steal_ms}),
             "send_lateness_us": _percentiles(self.send_lateness_q, unkept),
             "send_period_error_us": _percentiles(self.send_period_error_q, unkept),
             **(
@@ -207,9 +245,10 @@ class LoopStats:
 
     @classmethod
     def of(
-        cls, loop: LoopFigures, cpu_s: float, wall_s: float, spin_ns: int, major_faults: int | None = None
+        cls, loop: LoopFigures, cpu_s: float, wall_s: float, spin_ns: int, host: HostMarks | None = None
     ) -> LoopStats:
-        """A session's figures: its endpoint's ticks (``teleop.session.schedule``) and this host's."""
+        """A session's figures: its endpoint's ticks (``teleop.session.schedule``) and this host's
+        (``host``: what it did over the session, :class:`HostMarks`)."""
         none = np.zeros(0, dtype=np.int64)
         return cls(
             period_ns=loop.period_ns,
@@ -228,7 +267,8 @@ class LoopStats:
             missed_deadlines=loop.missed,
             device_ahead=loop.ahead,
             device_paced=loop.device_paced,
-            major_faults=major_faults,
+            major_faults=None if host is None else host.major_faults,
+            host_steal_ms=None if host is None else host.steal_ms,
         )
 
 

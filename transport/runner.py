@@ -44,7 +44,7 @@ from . import console
 from .base import Transport
 from .mcaplog import LOG_CHUNK_TICKS, McapLog
 from .options import EndpointOptions
-from .realtime import LoopStats, PreciseSleep, freeze_heap, lock_memory, major_faults, setup_realtime
+from .realtime import HostMarks, LoopStats, PreciseSleep, freeze_heap, lock_memory, setup_realtime
 from .records import Records
 from .watch import Monitor as Watch
 
@@ -98,7 +98,7 @@ class Runner:
         self._period = 1_000_000
         self._first = 0  # its first tick's deadline (paced: the device's first tick)
         self._ticks0: tuple[float, int] | None = None  # the CPU and the clock when the ticks began
-        self._faults0 = 0  # the major page faults when the session started
+        self._host0 = HostMarks(0, None)  # the host's page faults and steal when the session started
         self._stats: LoopStats | None = None
         self._starts: dict[int, int] = {}  # session id -> its tick 0 on this clock
         self._created = self.clock()
@@ -246,8 +246,8 @@ class Runner:
             elif isinstance(ev, TicksEnded):
                 spin = 0 if ev.loop.device_paced else self.sleeper.spin
                 cpu0, wall0 = self._ticks0 or (time.process_time(), self.clock())
-                cpu, wall, faults = time.process_time() - cpu0, (self.clock() - wall0) / 1e9, major_faults()
-                self._stats = LoopStats.of(ev.loop, cpu, wall, spin, faults - self._faults0)
+                cpu, wall, host = time.process_time() - cpu0, (self.clock() - wall0) / 1e9, HostMarks.now()
+                self._stats = LoopStats.of(ev.loop, cpu, wall, spin, host - self._host0)
                 self.ticking, self._ticks0 = False, None
                 self.close_device()
             elif isinstance(ev, AdmissionChanged):  # the kernel's filter follows the endpoint
@@ -273,7 +273,7 @@ class Runner:
         self._waited[session] = (self.clock() - self._created) / 1e9
         self.watch.start(self.log, ev.k0, ev.rtt_ns or None, ev.device)
         self.warnings = setup_realtime(o.rt_priority) + self._lock_warnings + self.tr.warnings
-        self._faults0 = major_faults()
+        self._host0 = HostMarks.now()
         freeze_heap()  # before the first tick: the GC walks only what the ticks make
         for w in self.warnings:
             print(f"teleop {o.role}: warning: {w}", file=sys.stderr)

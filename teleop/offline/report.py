@@ -305,7 +305,7 @@ class _Fold:
         # sim replays (teleop.offline.sim.deliveries), and the teleoperator's send phase; 40 bytes a
         # tick, for SIM_CAP_S at most.
         self.seqs: dict[str, list[npt.NDArray[np.int64]]] = {
-            n: [] for n in ("op_tx", "op_rx", "to_tx", "to_rx", "to_phase")
+            n: [] for n in ("op_tx", "op_rx", "to_tx", "to_rx", "to_phase", "op_late_us", "to_late_us")
         }
         self.fwd, self.bwd = _Margin(), _Margin()
         self.two_port: dict[tuple[int, int], float] = {}
@@ -355,6 +355,10 @@ class _Fold:
             for side, blk in (("op", op), ("to", to)):
                 self.seqs[f"{side}_tx"].append(np.asarray(blk["tx_seq"][:m], dtype=np.int64))
                 self.seqs[f"{side}_rx"].append(np.asarray(blk["rx_seq"][:m], dtype=np.int64))
+                # How late each tick's loop began (us; 0 for a tick not run, which sent nothing):
+                # whether a payload taken late was late from its sender (the replay's ``stalled``).
+                late = np.where(blk["ran"][:m], blk["lateness_ns"][:m], 0)
+                self.seqs[f"{side}_late_us"].append(np.asarray(late, dtype=np.int64) // 1000)
             # The teleoperator's send phase (NaN: not recorded, a log from before it was; the reader
             # bounds every value, the sim refuses one out of range: teleop.offline.sim._ports).
             ph = np.asarray(to["send_phase"][:m], dtype=np.float64)
@@ -713,10 +717,14 @@ def _replay(
     fwd, bwd = deliveries(sq["op_tx"], sq["to_rx"]), deliveries(sq["to_tx"], sq["op_rx"])
     ticks = np.arange(len(fwd))
     late, usual = {}, {}  # payloads taken later than the direction's median lag (send to take)
-    for d, at in (("forward", fwd), ("backward", bwd)):
+    stalled = {}  # ... of which the sender's loop began the sending tick half a period late or more
+    half_us = p.dt * 1e6 / 2
+    for d, at, sender_late in (("forward", fwd, sq["op_late_us"]), ("backward", bwd, sq["to_late_us"])):
         lag = (at - ticks)[at >= 0]
         usual[d] = int(np.median(lag)) if lag.size else 0
-        late[d] = int(np.count_nonzero(lag > usual[d]))
+        taken_late = (at >= 0) & (at - ticks > usual[d])
+        late[d] = int(np.count_nonzero(taken_late))
+        stalled[d] = int(np.count_nonzero(taken_late[: sender_late.size] & (sender_late >= half_us)))
     never = {d: int(np.count_nonzero(a == NOT_TAKEN)) for d, a in (("forward", fwd), ("backward", bwd))}
     early = dict(zip(("forward", "backward"), taken_early(fwd, bwd), strict=True))
     sim = run_case(
@@ -742,6 +750,7 @@ def _replay(
         "relative_difference": abs(i_real - i_rep) / i_rep if i_rep else None,
         "lag_ticks": usual,  # send tick to the tick that took it, the median
         "taken_late": late,  # taken later than that
+        "sender_late": stalled,  # ... sent from a tick its loop began half a period late or more
         "taken_early": early,  # before the sim's order of ticks can take it: replayed later
         "never_taken": never,
         "not_sent": {
@@ -813,6 +822,7 @@ def summary_text(rep: dict[str, Any], command: str = "teleop run") -> str:
             f"skipped {lp['skipped']:>3}  period error p50 {pe['p50']:6.1f}  p99 {pe['p99']:7.1f}  "
             f"p99.9 {pe['p999']:7.1f}  max {pe['max']:7.0f} us  CPU {100 * lp['cpu_fraction']:4.1f}%  "
             f"late packets waited for {pr['grace']['waits']}, missed {pr['grace']['missed']}"
+            + (f"  host steal {st:.0f} ms" if type(st := lp.get("host_steal_ms")) in (int, float) else "")
             + (
                 f"  paced by its device: missed deadlines {lp['missed_deadlines']}"
                 if lp.get("device_paced")
@@ -845,9 +855,11 @@ def summary_text(rep: dict[str, Any], command: str = "teleop run") -> str:
         te = rp.get("taken_early") or {}
         if te.get("forward") or te.get("backward"):  # the replay cannot take those as early
             diff += f" (taken early, replayed later: {te.get('forward', 0)}/{te.get('backward', 0)})"
+        sl = rp.get("sender_late")  # (a report of a version before it has none)
+        why = f" (sent from a tick half a period late: {sl['forward']}/{sl['backward']})" if sl else ""
         lines.append(
             f"  with this run's deliveries (taken after the median lag of {lg['forward']}/{lg['backward']} "
-            f"ticks: {tl['forward']}/{tl['backward']}, never {nv['forward']}/{nv['backward']}, forward/"
+            f"ticks: {tl['forward']}/{tl['backward']}{why}, never {nv['forward']}/{nv['backward']}, forward/"
             f"backward): teleop sim I = {rp['I']:.4e}{diff}"
         )
     elif "skipped" in rp:
