@@ -420,12 +420,14 @@ def _started_unless_the_host_stalled(
     err = op.stderr.read() if op.stderr is not None else ""
     to.send_signal(signal.SIGINT)  # its summaries are the evidence: let it write them
     to.wait(timeout=30)
-    longest, faults = 0.0, 0
+    longest, faults, steal = 0.0, 0, 0.0
     for f in logs.glob("teleoperator*.json"):
         loop = json.loads(f.read_text()).get("loop") or {}
         longest = max(longest, (loop.get("period_error_us") or {}).get("max") or 0.0)
         faults += loop.get("major_faults") or 0  # pages read from disk: the memory lock's evidence
+        steal += loop.get("host_steal_ms") or 0.0  # the hypervisor's, over each session
     seen = f"the robot's loop stalled {longest / 1e3:.0f} ms, {faults} major page faults"
+    seen += f", host steal {steal:.0f} ms"
     if "did not confirm the start" in err and longest / 1e3 > HOST_STALL_MS:
         pytest.skip(f"{seen} (the start's window: 250 ms)")
     raise AssertionError(f"{op.args!r} exited {code} ({seen}); its stderr:\n{err[-4000:]}")
