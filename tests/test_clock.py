@@ -124,3 +124,31 @@ def test_the_robot_never_starts_below_its_phase_floor_whatever_the_operator_prop
     assert ClockTracker(1e-3, 0.1, moves_phase=True).phase == PHASE_MIN
     assert ClockTracker(1e-3, 0.5, moves_phase=True).phase == max(PHASE_MIN, 0.15)
     assert ClockTracker(1e-3, 0.0, moves_phase=False).phase == 0.0  # the operator's own schedule
+
+
+def test_the_phase_moves_later_at_once_and_earlier_only_past_its_hysteresis() -> None:
+    """A later target moves the phase past the 0.02-period deadband (a forward payload would miss
+    its tick); an earlier one only past EARLIER_DEADBAND: a move earlier strands what an outgoing
+    shim holds on the old ticks a tick late, and a window's high quantile dithers by tens of
+    microseconds from one look to the next (a 10 ms shim link moved 74 times in 15 s without it)."""
+    from teleop.session.link.phase import EARLIER_DEADBAND, PHASE_MARGIN_S, ClockTracker
+
+    c = ClockTracker(1e-3, 0.5, moves_phase=True)
+    margin = PHASE_MARGIN_S / 1e-3
+    k = 0
+
+    def transits(ms: float) -> float:
+        nonlocal k
+        k += 10_000  # a window of these alone (the window is the last 2000 ticks)
+        for _ in range(200):
+            c.observe(k, ms * 1e-3)
+            c.advance(k)
+            k += 1
+        return c.phase
+
+    assert transits(10.30) == pytest.approx(0.30 + margin)  # later than the start: at once
+    assert transits(10.25) == pytest.approx(0.30 + margin)  # 0.05 earlier: held
+    assert transits(10.30 - EARLIER_DEADBAND + 0.01) == pytest.approx(0.30 + margin)  # still held
+    assert transits(10.33) == pytest.approx(0.33 + margin)  # 0.03 later: moves
+    assert transits(10.10) == pytest.approx(0.10 + margin)  # 0.23 earlier: moves
+    assert c.phase_moves == 3

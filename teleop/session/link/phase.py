@@ -54,6 +54,15 @@ MIN_SAMPLES = 8  # packets before the first look
 #: slew earlier would leave each tick's backward packet a little later for its link than the last).
 MAX_STEP = 0.5
 DEADBAND = 0.02  # periods: a target this close to the phase moves nothing
+#: Periods a target must be *earlier* than the phase by before the phase moves earlier (hysteresis).
+#: A move earlier leaves each backward packet an outgoing shim holds on the old ticks a whole tick
+#: late (released at the first tick after its due time, now a tick on), and the high quantile of a
+#: 2 s window moves by tens of microseconds from one look to the next as a sender's late ticks come
+#: and go: with the plain deadband, a 10 ms shim link moved the phase 74 times in 15 s, every other
+#: look up and down, and 369 of its 462 late backward payloads were such strandings (measured,
+#: issue 37).  A phase up to this much later than needed costs the backward payload as much of its
+#: tick, never a tick.
+EARLIER_DEADBAND = 0.1
 SKEW_TICKS = 0.5  # a transit below minus this many ticks is a misplaced tick 0, not a delay
 WRAP_MARGIN = 0.2  # periods the transit's p99 must pass a whole tick by before the phase wraps
 
@@ -134,7 +143,7 @@ class ClockTracker:
                     ):
                         self._whole = math.floor(u)
                     target = min(max(u - self._whole, PHASE_MIN), PHASE_MAX)
-                    if abs(target - self.target) > DEADBAND:
+                    if target - self.target > DEADBAND or self.target - target > EARLIER_DEADBAND:
                         self.target = float(target)
                         self.phase_moves += 1
         if self.phase != self.target:
