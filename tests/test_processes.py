@@ -82,6 +82,7 @@ def test_counts_and_compression(
     r, rep = _run(tmp_path, "--codec", codec, "--duration", "3", "--tick-at", tick_at)
     assert r.returncode == 0, r.stderr
     assert rep["transport"] == "udp" and rep["codec"] == codec and rep["duration_s"] == 3.0
+    logs = {r: read_log(tmp_path / "run" / "logs" / f"{r}.mcap")[1] for r in ("operator", "teleoperator")}
     for d, sender in (("forward", "operator"), ("backward", "teleoperator")):
         w = rep["wire"][d]
         skipped = rep["processes"][sender]["loop"]["skipped"]  # a host stall: those ticks send nothing
@@ -91,7 +92,7 @@ def test_counts_and_compression(
         moved = 0
         if d == "backward" and codec.split(":")[0] in ("ids", "eds"):
             k = int(codec.split(":")[1])
-            phase = read_log(tmp_path / "run" / "logs" / "teleoperator.mcap")[1]["send_phase"]
+            phase = logs["teleoperator"]["send_phase"]
             phase = phase[phase >= 0]
             moves = np.abs(np.diff(phase))
             moved = 2 + int(np.sum(moves[moves > 0] // k + 1))
@@ -144,7 +145,6 @@ def test_counts_and_compression(
     assert rp["not_sent"]["forward"] <= (3000 - per_dir)
     # Of the payloads taken late, those whose sender's loop began the sending tick half a period
     # late or more, counted again here from the two logs.
-    logs = {r: read_log(tmp_path / "run" / "logs" / f"{r}.mcap")[1] for r in ("operator", "teleoperator")}
     for d, tx, rx in (("forward", "operator", "teleoperator"), ("backward", "teleoperator", "operator")):
         at = deliveries(logs[tx]["tx_seq"], logs[rx]["rx_seq"])
         lagged = (at >= 0) & (at - np.arange(at.size) > rp["lag_ticks"][d])

@@ -187,3 +187,13 @@ def test_host_steal_is_read_from_the_kernels_cpu_line_and_a_bad_file_is_unknown(
     assert host_steal_ms(str(tmp_path / "absent")) is None
     here = host_steal_ms()  # this machine's, if it has the column: a count, never negative
     assert here is None or here >= 0.0
+
+
+def test_a_logs_host_steal_is_printed_only_when_it_is_a_plausible_duration() -> None:
+    """The report's process line reads ``host_steal_ms`` from a log, a file: a string, a bool, NaN,
+    inf, a negative or an absurd number is left out of the line, never printed or raised."""
+    from teleop.offline.report import _plausible_ms
+
+    assert _plausible_ms(0) and _plausible_ms(20.0) and _plausible_ms(2350.0)
+    for bad in ("x", True, None, [1], float("nan"), float("inf"), -5.0, 1e308):
+        assert not _plausible_ms(bad), bad

@@ -301,9 +301,9 @@ class _Fold:
         self.bytes = {d: dict.fromkeys(names, 0.0) for d in ("forward", "backward")}
         self.sim_ticks = round(SIM_CAP_S / dt)
         self.i_sim_window = 0.0
-        # Each side's tx_seq and rx_seq over the sim's ticks: the run's deliveries, which a second
-        # sim replays (teleop.offline.sim.deliveries), and the teleoperator's send phase; 40 bytes a
-        # tick, for SIM_CAP_S at most.
+        # Each side's tx_seq, rx_seq and lateness over the sim's ticks: the run's deliveries, which a
+        # second sim replays (teleop.offline.sim.deliveries), and the teleoperator's send phase; 56
+        # bytes a tick, for SIM_CAP_S at most.
         self.seqs: dict[str, list[npt.NDArray[np.int64]]] = {
             n: [] for n in ("op_tx", "op_rx", "to_tx", "to_rx", "to_phase", "op_late_us", "to_late_us")
         }
@@ -355,10 +355,10 @@ class _Fold:
             for side, blk in (("op", op), ("to", to)):
                 self.seqs[f"{side}_tx"].append(np.asarray(blk["tx_seq"][:m], dtype=np.int64))
                 self.seqs[f"{side}_rx"].append(np.asarray(blk["rx_seq"][:m], dtype=np.int64))
-                # How late each tick's loop began (us; 0 for a tick not run, which sent nothing):
-                # whether a payload taken late was late from its sender (the replay's ``stalled``).
-                late = np.where(blk["ran"][:m], blk["lateness_ns"][:m], 0)
-                self.seqs[f"{side}_late_us"].append(np.asarray(late, dtype=np.int64) // 1000)
+                # How late each tick's loop began (us; the reader's fill, 0, for a tick not run,
+                # which sent nothing): whether a payload taken late was its sender's (``sender_late``).
+                began_ns = np.asarray(blk["lateness_ns"][:m], dtype=np.int64)
+                self.seqs[f"{side}_late_us"].append(began_ns // 1000)
             # The teleoperator's send phase (NaN: not recorded, a log from before it was; the reader
             # bounds every value, the sim refuses one out of range: teleop.offline.sim._ports).
             ph = np.asarray(to["send_phase"][:m], dtype=np.float64)
@@ -724,7 +724,7 @@ def _replay(
         usual[d] = int(np.median(lag)) if lag.size else 0
         taken_late = (at >= 0) & (at - ticks > usual[d])
         late[d] = int(np.count_nonzero(taken_late))
-        stalled[d] = int(np.count_nonzero(taken_late[: sender_late.size] & (sender_late >= half_us)))
+        stalled[d] = int(np.count_nonzero(taken_late & (sender_late >= half_us)))  # (same ticks: one fold)
     never = {d: int(np.count_nonzero(a == NOT_TAKEN)) for d, a in (("forward", fwd), ("backward", bwd))}
     early = dict(zip(("forward", "backward"), taken_early(fwd, bwd), strict=True))
     sim = run_case(
@@ -822,7 +822,7 @@ def summary_text(rep: dict[str, Any], command: str = "teleop run") -> str:
             f"skipped {lp['skipped']:>3}  period error p50 {pe['p50']:6.1f}  p99 {pe['p99']:7.1f}  "
             f"p99.9 {pe['p999']:7.1f}  max {pe['max']:7.0f} us  CPU {100 * lp['cpu_fraction']:4.1f}%  "
             f"late packets waited for {pr['grace']['waits']}, missed {pr['grace']['missed']}"
-            + (f"  host steal {st:.0f} ms" if type(st := lp.get("host_steal_ms")) in (int, float) else "")
+            + (f"  host steal {st:.0f} ms" if _plausible_ms(st := lp.get("host_steal_ms")) else "")
             + (
                 f"  paced by its device: missed deadlines {lp['missed_deadlines']}"
                 if lp.get("device_paced")
@@ -934,6 +934,12 @@ def summary_text(rep: dict[str, Any], command: str = "teleop run") -> str:
         lines.append(f"  teleop sim not re-run: {rep['sim_skipped']}")
     lines += [f"  note: {n}" for n in rep.get("notes", [])]
     return "\n".join(lines)
+
+
+def _plausible_ms(x: Any) -> bool:
+    """A duration from a log's summary worth printing: a number, not NaN, not negative, under a
+    year (the log is a file, and files are not trusted: anything else is left out of the line)."""
+    return type(x) in (int, float) and 0 <= x < 3.2e10
 
 
 def _latency_lines(rep: dict[str, Any]) -> list[str]:
