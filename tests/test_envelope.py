@@ -189,13 +189,17 @@ def test_saturation_is_passive_and_within_the_envelope(
     ga, f0a, za = np.array(g), np.array(f0), np.array(z)
     v = (w.sqrt2b * ga - f0a) / (w.b + za)  # the port's solve at full coupling (teleop.session.node)
     f = f0a + za * v
-    assert isinstance(node, TeleoperatorNode)
-    vs, fs, fw = node._saturate(v, f0a, za, f)
+    assert isinstance(node, TeleoperatorNode) and node.confinement is not None
+    cut = node._confined(node.confinement, v, f0a, za)
+    vs, fs, fw = cut if cut is not None else (v, f, f)
     h = w.to_wave_out(ga, fw)
     # per DoF: what the channel gives the port covers what the robot gives its environment
     assert np.all(0.5 * (ga**2 - h**2) >= vs * fs - 1e-9 * (1 + np.abs(vs * fs)))
     assert np.all(np.abs(vs) <= vmax * (1 + 1e-12))
-    assert np.all((np.abs(vs) <= np.abs(v)) & (vs * v >= 0.0))  # slowed, never reversed
+    within = np.abs(f0a) <= fmax
+    # within the limit: slowed, never reversed; past it: relieved (the force moves back toward it)
+    assert np.all(~within | ((np.abs(vs) <= np.abs(v)) & (vs * v >= 0.0)))
+    assert np.all(within | (np.abs(fs) <= np.abs(f0a) + 1e-9) | (fs * f0a < 0.0))
     pushing = fs * vs > 0.0
     assert np.all(~pushing | (np.abs(fs) <= fmax * (1 + 1e-9)))
 

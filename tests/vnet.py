@@ -113,12 +113,13 @@ class VirtualNet:
         peer: Addr = TO,
         name: str = "robot",
         offset_ns: int = 0,
+        device: str | None = None,
         **kw: Any,
     ) -> Host:
         ep = kw.get("cls", Endpoint).operator(
             p,
             peer,
-            port_factory("operator"),
+            port_factory("operator", device),
             now_ns=self.now + offset_ns,
             psk=auth.robot_key(PSK, name),
             rng=self.rand(),

@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from teleop.control.codecs import Array, Codec, CodecError
+from teleop.control.confine import Confinement, confined
 from teleop.control.passivity import (
     EnergyGuard,
     PassivityReport,
@@ -232,6 +233,7 @@ class _Port:
         # The robot's envelope (:meth:`confine`): none until a robot confines its node.
         self.confined = False
         self.max_velocity = self.max_force = math.inf
+        self.confinement: Confinement | None = None  # the final command stage, once confined
 
     def _make_guard(
         self, dt: float, opts: PortOptions, wave: WaveImpedance, tx: Codec, rx: Codec
@@ -250,6 +252,7 @@ class _Port:
         the operator proposed (DESIGN.md: the robot is sovereign).  Called as the session starts."""
         self.confined = True
         self.max_velocity, self.max_force = env.max_velocity, env.max_force
+        self.confinement = Confinement(self._dof, self.dt, env.max_velocity, env.max_force)
         self.guard.bound(self._envelope_power(env))
 
     def _device(self, out: tuple[Array, Array], limit: float) -> tuple[Array, Array]:
@@ -543,48 +546,40 @@ class TeleoperatorNode(_Port):
         c = self._supervise(now)
         g_r = self._play()
         f0, z = self._device(self.environment.affine(now), PLAUSIBLE_FORCE_N)
+        conf = self.confinement
+        if conf is not None:
+            z = conf.effective(f0, z)  # a contact the device senses a tick late, solved as one
         v = _scaled(w.sqrt2b * g_r - f0, c) / self._den(z, c)  # the robot is commanded c v
         f = f_wave = f0 + z * v
-        if self.confined and self._beyond(v, f):
-            v, f, f_wave = self._saturate(v, f0, z, f)
+        if conf is not None and (cut := self._confined(conf, v, f0, z)) is not None:
+            v, f, f_wave = cut
         self.environment.advance(now, v, f)
         self.v, self.f = v, f
         return self._send(now, _scaled(w.to_wave_out(g_r, f_wave), c))
 
-    def _beyond(self, v: Array, f: Array) -> bool:
-        """Whether any DoF of the command or its force is past the envelope (plain floats: cheaper
-        than numpy on a few DoF, and this runs every tick of a robot)."""
-        vl, fl = v.tolist(), f.tolist()
-        vmax, fmax = self.max_velocity, self.max_force
-        return bool(max(vl) > vmax or min(vl) < -vmax or max(fl) > fmax or min(fl) < -fmax)
+    def _command(self, conf: Confinement, v: Array, f0: Array, z: Array) -> Array | None:
+        """The envelope's cut of ``v`` (None: none), counted."""
+        vs = conf.command(v, f0, z)
+        if vs is not None:
+            self.counters.saturated += 1
+        return vs
 
-    def _saturate(self, v: Array, f0: Array, z: Array, f: Array) -> tuple[Array, Array, Array]:
-        """The command ``v`` saturated to the envelope per DoF: at most ``max_velocity``, and no
-        faster into a contact than keeps its force within ``max_force`` (slowed, never reversed).
+    def _confined(
+        self, conf: Confinement, v: Array, f0: Array, z: Array
+    ) -> tuple[Array, Array, Array] | None:
+        """The envelope's cut of the solve's ``v`` (``teleop.control.confine``): ``(v', F, F_wave)``,
+        ``F_wave`` being the force the outgoing wave is made from, or None when nothing was cut.
 
-        Returns ``(v, F, F_wave)``, ``F_wave`` being the force the outgoing wave is made from.  It
-        is passive: where the robot's force has the sign of the command it was slowed from, the
-        channel sees the port it solved for and the saturation absorbs ``(v_w - v) F >= 0``
-        (``v_w``, the port's velocity, lies beyond ``v`` in the same direction); where the force
-        opposes it, the wave returns as it came (``F_wave = 0``: nothing taken from the channel,
-        nothing given to it), and what the environment pushes into the robot is not passed on."""
-        vmax, fmax = self.max_velocity, self.max_force
-        vs = np.clip(v, -vmax, vmax)
+        Passive: where the confined force has the sign of the cut ``v - v'``, the channel sees the
+        port it solved for and the cut absorbs ``(v_port - v') F >= 0`` (``v_port - v'`` has the
+        sign of ``v - v'``); elsewhere the wave returns as it came (``F_wave = 0``: nothing taken
+        from the channel, nothing given), and what the contact pushes into the robot is its
+        actuator's to absorb."""
+        vs = self._command(conf, v, f0, z)
+        if vs is None:
+            return None
         fs = f0 + z * vs
-        push = (np.abs(fs) > fmax) & (fs * v > 0.0)
-        if push.any():
-            # A subnormal z makes ``back`` infinite, and inf * 0 NaN: neither passes the test below
-            # (a NaN compares false), so both become 0, without a warning from the robot's tick.
-            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-                back = np.where(z > 0.0, (np.sign(fs) * fmax - f0) / np.where(z > 0.0, z, 1.0), 0.0)
-                back = np.where((back * vs > 0.0) & (np.abs(back) < np.abs(vs)), back, 0.0)
-            vs = np.where(push, back, vs)
-            fs = f0 + z * vs
-        changed = vs != v
-        if not changed.any():
-            return v, f, f
-        self.counters.saturated += 1
-        return vs, fs, np.where(changed & (fs * v < 0.0), 0.0, fs)
+        return vs, fs, np.where(fs * (v - vs) >= 0.0, fs, 0.0)
 
 
 class _TdpaPort(_Port):
@@ -678,7 +673,10 @@ class TdpaTeleoperatorNode(_TdpaPort, TeleoperatorNode):
         c = self._supervise(now)
         v_r = self.decoder.next()
         self.wave_in = v_r
-        f0, z = self._device(self.environment.affine(now), PLAUSIBLE_FORCE_N)
+        f_dev, z_dev = self._device(self.environment.affine(now), PLAUSIBLE_FORCE_N)
+        conf = self.confinement
+        if conf is not None:
+            z_dev = conf.effective(f_dev, z_dev)  # a contact the device senses a tick late, solved as one
         # The robot behind its position controller, massless: F = K e' + B (v_d - v) = f0 + Z v with
         # e' = e + (v_d - v) dt, so F = K e + G (v_d - v), G = K dt + B; seen from the network it is
         # again an impedance F = f0' + Z' v_d (f0' = (G f0 + Z K e) / (G + Z), Z' = G Z / (G + Z)).
@@ -686,7 +684,7 @@ class TdpaTeleoperatorNode(_TdpaPort, TeleoperatorNode):
         if c < 1.0:  # safe state: the spring lets go with the coupling (only removes its stored energy)
             self.coupling_error *= c
         ke = k * self.coupling_error
-        f0, z = (g * f0 + z * ke) / (g + z), g * z / (g + z)
+        f0, z = (g * f_dev + z_dev * ke) / (g + z_dev), g * z_dev / (g + z_dev)
         v_ref = c * v_r
         if c < 1.0:
             self.drift *= c
@@ -697,17 +695,28 @@ class TdpaTeleoperatorNode(_TdpaPort, TeleoperatorNode):
         if n > TDPA_DRIFT_MAX_V:
             corr *= TDPA_DRIFT_MAX_V / n
         cmd = v_ref + corr
-        if self.confined and self._beyond(cmd, fc := f0 + z * cmd):
-            # The envelope, per DoF, on the impedance seen from the network (F = f0' + Z' v_d): no
-            # faster than max velocity, no faster into a contact than keeps F within max force.  A
-            # slower command only ever removes energy (the observer books the port's real power),
-            # and the drift compensator asks the rest back within the budget.
-            cmd, _, _ = self._saturate(cmd, f0, z, fc)
+        if conf is not None:
+            # The envelope on the impedance seen from the network (F = f0' + Z' v_d), so that the
+            # controller's books hold the robot's limited motion; a slower command only removes
+            # energy, and the drift compensator asks the rest back within the budget.
+            cl = cmd.tolist()
+            cut, _ = confined(cl, f0.tolist(), z.tolist(), self.max_velocity, self.max_force)
+            if cut != cl:
+                self.counters.saturated += 1
+                cmd = np.array(cut)
         v_d, f, p, removed, acted = series_damper(cmd, f0, z, self._allowed())
         self.drift += (v_ref - v_d) * self.dt
-        v = v_d - (f - ke) / g
+        v = v_d - (f - ke) / g  # the position controller's yield
+        # Its spring winds up with its own yield only: what the envelope below refuses is not asked
+        # back by the spring (no wind-up against a limit).
         self.coupling_error += (v_d - v) * self.dt
+        f_out = f
+        if conf is not None and (vs := self._command(conf, v, f_dev, z_dev)) is not None:
+            # The last step before the device: the envelope acts on the device's side of the
+            # controller, after the observer, so the network's books (-v_d . F below) are the
+            # controller's, unchanged; what a relief takes out of the contact is the actuator's.
+            v, f = vs, f_dev + z_dev * vs
         self.environment.advance(now, v, f)
         self.v, self.f = v, f
-        self._book(-p, removed, acted)  # eq. (2): -v_to . F_to enters the network here
-        return self._send_power(now, c * f)
+        self._book(-p, removed, acted)  # eq. (2): -v_d . F_pc enters the network here
+        return self._send_power(now, c * f_out)

@@ -1,0 +1,142 @@
+"""The robot's envelope on what its device is finally commanded, and the contact it cannot see.
+
+Every element between the channel and the device (the wave solve, TDPA's position controller and
+its yield, concealment, the fade, a rejoin) may ask for any velocity; :meth:`Confinement.command`
+is the last step before the device and holds, per DoF:
+
+* ``|v| <= max_velocity``, always;
+* the contact force ``F = f0 + Z v`` the tick ends with within ``+-max_force``: a command that
+  would push past it is slowed (never reversed), and a force already past it is **relieved**: the
+  robot backs off, at up to ``max_velocity``, to the velocity that brings ``F`` back to
+  ``max_force`` (``(max_force - f0) / Z``), instead of holding it.
+
+**A robot whose force comes one tick late.**  A force-sensing arm reports the force the last tick
+left and no feedthrough (``Z = 0``).  In a contact of stiffness ``K`` its force then moves by
+``K v dt`` a tick that the port cannot predict: the wave solve and TDPA's yield, ``v = ... - F /
+b``, feed it back with a loop gain ``K dt / b`` and oscillate at the tick rate once it passes 2
+(``K = 10^4`` N/m at ``b = 5``), and the envelope cannot see the force it is about to cause.  So
+:meth:`Confinement.effective` learns, per DoF where the device reports ``Z = 0``, the feedthrough
+the contact has: ``Z^ = dF / v`` from each tick's own motion and the force the next tick reports
+(only where the force moved by more than :data:`FORCE_FLOOR` of ``max_force``, against the
+motion), kept as the largest seen, forgotten with the time constant :data:`CONTACT_MEMORY_S`, at
+most :data:`MAX_STIFFNESS` ``dt``.  The node solves with ``Z^`` as if the device had reported it,
+so the loop gain becomes ``K dt / (b + K dt) < 1``: no oscillation, under wave variables and TDPA
+alike, and the envelope predicts the force.
+
+**The overshoot.**  Where the contact is new (``Z^`` not yet learned, or forgotten), one tick at up
+to ``max_velocity`` reaches ``F <= max_force + K max_velocity dt``; that tick teaches ``Z^ = K dt``
+exactly for a linear contact, and the next one relieves the excess: at most **one tick past
+``max_force``** for a linear contact, again on each new contact.  A robot that reports its ``Z``
+(``Z > 0``) never overshoots where that ``Z`` is right.
+
+**Passive by construction.**  The envelope only changes the device's velocity; what the channel
+sees is chosen so that the change absorbs energy (``teleop.session.node``): under wave variables
+the port's wave carries the confined force where it has the sign of the cut ``v_port - v``, so the
+cut absorbs ``(v_port - v) F >= 0``, and elsewhere the wave returns as it came (nothing taken,
+nothing given); under TDPA the envelope acts after the observer and its controller, on the device
+side of the position controller, so the network's books (``E_out <= E_in``) are the controller's,
+unchanged.  The energy a relief takes out of the contact (the spring pushes the robot back) goes
+into the robot's own actuator, which brakes it: it never enters the channel.  With ``Z^ >= K dt /
+2`` the port also books at least the energy the contact stores (``sum v (f0 + Z^ v) dt >= K x^2 /
+2``), where a port that saw only the late force books less and makes the difference up.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from teleop.control.codecs import Array
+
+#: s: how fast a learned contact stiffness is forgotten (a tick keeps ``exp(-dt / this)`` of it).
+#: Long enough that a contact held still (no motion, nothing to learn from) keeps it for the next
+#: push; short enough that free motion after leaving a stiff contact is slowed for about 5 of it.
+CONTACT_MEMORY_S = 0.05
+#: Of ``max_force``: a tick whose reported force moved by less teaches nothing (a sensor's noise
+#: divided by a slow motion would read as an absurd stiffness).
+FORCE_FLOOR = 0.02
+#: N/m: the stiffest contact the estimate believes (stiffer readings are a fault, held to this).
+MAX_STIFFNESS = 1e7
+
+
+def confined(
+    v: list[float], f0: list[float], z: list[float], vmax: float, fmax: float
+) -> tuple[list[float], bool]:
+    """Per DoF, the velocity ``v`` within the envelope for a device ``F = f0 + z v`` (the module
+    docstring's rules), and whether a force past ``fmax`` was relieved (or, with ``z = 0``, held
+    back from: no push further into it)."""
+    out: list[float] = []
+    relief = False
+    for vi, fi, zi in zip(v, f0, z, strict=True):
+        w = vi
+        past = fi > fmax or fi < -fmax
+        relief = relief or past
+        if zi > 0.0:  # the force the tick ends with within +-fmax: slowed, or backed off if past it
+            hi, lo = (fmax - fi) / zi, (-fmax - fi) / zi
+            w = hi if w > hi else lo if w < lo else w
+        elif past:  # a force it cannot predict: push no further into it
+            w = min(w, 0.0) if fi > 0.0 else max(w, 0.0)
+        out.append(vmax if w > vmax else -vmax if w < -vmax else w)
+    return out, relief
+
+
+class Confinement:
+    """The final command stage of one robot (per DoF ``max_velocity`` m/s, ``max_force`` N), with
+    the stiffness of the contact it senses one tick late (module docstring).
+
+    Per tick: :meth:`effective` with the device's ``(f0, Z)``, then the node's solve, then
+    :meth:`command` with the velocity the solve asks for.  On plain floats: a few DoF each tick."""
+
+    def __init__(self, dof: int, dt: float, max_velocity: float, max_force: float) -> None:
+        self.max_velocity, self.max_force = max_velocity, max_force
+        self.stiffness = [0.0] * dof  # Z^, N s/m: the learned feedthrough per DoF (K dt)
+        self._zmax = MAX_STIFFNESS * dt
+        self._keep = math.exp(-dt / CONTACT_MEMORY_S)
+        self._floor = FORCE_FLOOR * max_force
+        # Per DoF: the least-squares sums of the ticks spent in contact (dF v, v^2, forgotten with
+        # CONTACT_MEMORY_S), the stiffness a tick entering contact showed (a lower bound: the
+        # contact began somewhere within its motion), and how much of both is in force (1 in contact,
+        # forgotten with CONTACT_MEMORY_S out of it, so free motion is not slowed for long).
+        self._sfv, self._svv = [0.0] * dof, [0.0] * dof
+        self._entry, self._held = [0.0] * dof, [0.0] * dof
+        self._f0 = [0.0] * dof  # this tick's reported force (effective), for the next tick to learn from
+        self._last: tuple[list[float], list[float]] | None = None  # last tick's reported f0, commanded v
+        self.relieved = 0  # ticks that began past max_force (backed off from it, or pushed no further)
+
+    def effective(self, f0: Array, z: Array) -> Array:
+        """``Z`` with the learned ``Z^`` where the device reports none; ``z`` itself (the same
+        object) where nothing was learned, so a device's constant feedthrough stays cached."""
+        fl, zl = f0.tolist(), z.tolist()
+        last, zh, floor, keep = self._last, self.stiffness, self._floor, self._keep
+        learned = False
+        for i, zi in enumerate(zl):
+            if zi > 0.0:
+                continue
+            v, f = (last[1][i], last[0][i]) if last is not None else (0.0, fl[i])
+            df, touching = fl[i] - f, abs(fl[i]) > floor
+            self._sfv[i] *= keep
+            self._svv[i] *= keep
+            if v != 0.0 and touching and abs(f) > floor:  # in contact over the whole tick: exact
+                self._sfv[i] += df * v
+                self._svv[i] += v * v
+            elif v != 0.0 and touching and df * v > 0.0:  # entering contact within the tick
+                self._entry[i] = max(self._entry[i], df / v)
+            self._held[i] = 1.0 if touching else self._held[i] * keep
+            ls = self._sfv[i] / self._svv[i] if self._svv[i] > 0.0 else 0.0
+            h = self._held[i] * min(max(ls, self._entry[i]), self._zmax)
+            zh[i] = h if h > 1e-9 else 0.0
+            learned = learned or zh[i] > 0.0
+        self._f0 = fl
+        if not learned:
+            return z
+        return np.array([zi if zi > 0.0 else zh[i] for i, zi in enumerate(zl)])
+
+    def command(self, v: Array, f0: Array, z: Array) -> Array | None:
+        """The velocity the device is commanded, within the envelope per DoF (module docstring),
+        or None where that is ``v`` itself.  ``z``: the effective feedthrough (:meth:`effective`)."""
+        vl = v.tolist()
+        out, relief = confined(vl, f0.tolist(), z.tolist(), self.max_velocity, self.max_force)
+        self._last = (self._f0, out)
+        self.relieved += relief
+        return None if out == vl else np.array(out)
