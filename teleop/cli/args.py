@@ -9,10 +9,12 @@ folder that must be writable) are in :mod:`teleop.cli.settings`.
 from __future__ import annotations
 
 import argparse
+import difflib
 import math
+import re
 import socket
-from collections.abc import Callable
-from typing import NoReturn, TypeAlias
+from collections.abc import Callable, Sequence
+from typing import Any, NoReturn, TypeAlias
 
 from teleop.control.codecs import ACCEPTED, CodecError, CodecSpec, expand
 from teleop.devices.scenarios import SCENARIOS
@@ -51,10 +53,40 @@ class CliError(TeleopError):
 
 
 class Parser(argparse.ArgumentParser):
-    """An ArgumentParser whose errors are one line naming the command's help, not a usage dump."""
+    """An ArgumentParser whose errors are one line naming the command's help, not a usage dump.
+
+    No abbreviations (``--dur 5`` is not ``--duration 5``: a typo must not become another flag,
+    and a new flag must not break a command line that abbreviated an old one); an unknown flag or
+    choice says the closest known one."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        ns, extras = super().parse_known_args(args, namespace)
+        flags = [a for a in extras if a.startswith("-")]
+        if flags and " " in self.prog:  # a command's parser: it knows its own flags
+            self.error(f"unrecognized arguments: {' '.join(extras)}{self._closest(flags[0])}")
+        return ns, extras
+
+    def _closest(self, flag: str) -> str:
+        """``; did you mean --x?`` for the known flag closest to ``flag`` (its ``=value`` aside)."""
+        known = [o for o in self._option_string_actions if o.startswith("--")]
+        near = difflib.get_close_matches(flag.split("=", 1)[0], known, n=1, cutoff=0.6)
+        return f"; did you mean {near[0]}?" if near else ""
 
     def error(self, message: str) -> NoReturn:
+        m = _INVALID_CHOICE.search(message)
+        if m is not None:
+            near = difflib.get_close_matches(m[1], re.findall(r"'([^']*)'", m[2]), n=1, cutoff=0.6)
+            message += f"; did you mean {near[0]}?" if near else ""
         self.exit(2, f"teleop: error: {message} (see '{self.prog} --help')\n")
+
+
+_INVALID_CHOICE = re.compile(r"invalid choice: '([^']*)' \(choose from (.*)\)")
 
 
 #: What ``add_subparsers`` returns; each command module adds its parser(s) to it.
