@@ -302,6 +302,22 @@ def _run_pair(
     return {"teleoperator": procs[0].returncode, "operator": operator}, interrupted
 
 
+def exits(codes: dict[str, int | None]) -> str:
+    """How each process ended, as words: ``teleoperator exited 1, operator stopped by SIGTERM``."""
+
+    def one(code: int | None) -> str:
+        if code is None:
+            return "never started"
+        if code < 0:
+            try:
+                return f"stopped by {signal.Signals(-code).name}"
+            except ValueError:
+                return f"stopped by signal {-code}"
+        return "exited 0 (ok)" if code == 0 else f"exited {code}"
+
+    return ", ".join(f"{role} {one(code)}" for role, code in codes.items())
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from transport.options import new_session_id
 
@@ -342,7 +358,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     try:
         find_pair(logs, params.session)
     except LogError:
-        raise CliError(f"no report: a process failed before its loop ran (exit codes {codes})") from None
+        raise CliError(f"no report: a process failed before its loop ran ({exits(codes)})") from None
     extra: dict[str, Any] = {"exit_codes": codes, "auth": {"key": key.source, "key_id": key.key_id}}
     if net.zenoh is not None:
         extra["zenoh"] = net.zenoh
