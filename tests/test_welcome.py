@@ -15,7 +15,7 @@ import pytest
 from teleop import limits
 from teleop.session.endpoint import Failed, HelloRejected
 from teleop.session.protocol import SessionParams
-from teleop.session.settings import Envelope
+from teleop.session.settings import DEFAULT_ENVELOPE, Envelope
 
 from .vnet import VirtualNet
 
@@ -117,3 +117,77 @@ def test_the_operator_command_refuses_what_a_robot_could_not_build() -> None:
     with pytest.raises(CliError, match=r"^this session \(codec pd:5.*cannot be built") as e:
         session_params(build_parser().parse_args(argv), 9)
     assert "\n" not in str(e.value)
+
+
+# --- the robot's own outgoing impairment ---------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("spec", "flag"),
+    [
+        ("delay 1000s limit 4294967295", "--max-backward-queue"),  # issue 45: 447 kB/s of held packets
+        ("limit 1001", "--max-backward-queue"),
+        ("delay 1000s", "--max-backward-hold"),
+        ("delay 600ms 200ms distribution normal", "--max-backward-hold"),  # the table's tail: 4 jitters
+        ("rate 1kbit", "--max-backward-hold"),  # a full queue of 1000 packets behind 1 kbit/s
+    ],
+)
+def test_a_backward_impairment_beyond_what_the_robot_holds_is_refused(spec: str, flag: str) -> None:
+    from .vnet import params
+
+    why = DEFAULT_ENVELOPE.check(params(netem_backward=spec))
+    assert why is not None and why.startswith("netem_backward") and flag in why and "\n" not in why
+    # The forward impairment runs in the operator's shim: its own memory, not the robot's.
+    assert DEFAULT_ENVELOPE.check(params(netem_forward=spec)) is None
+
+
+def test_a_backward_impairment_within_it_passes_and_its_memory_is_bounded() -> None:
+    """The most the default robot holds: ``limit`` 1000 packets for at most 1 s; fed at 1 kHz for
+    3 s with a 900 ms delay, its shim never holds more than 1000 datagrams of the session."""
+    from teleop.session import wire
+    from teleop.session.link.netem import make_link
+
+    from .vnet import params
+
+    spec = "delay 900ms 100ms loss 1%"
+    p = params(netem_backward=spec)
+    assert DEFAULT_ENVELOPE.check(p) is None
+    assert DEFAULT_ENVELOPE.check(params(netem_backward="delay 50ms 5ms loss 2%")) is None
+    link = make_link("delay 999ms limit 1000", 0)
+    assert DEFAULT_ENVELOPE.check(params(netem_backward="delay 999ms limit 1000")) is None
+    datagram = bytes(wire.max_session_datagram_bytes(p.dof))
+    most = 0
+    for k in range(3000):
+        link.send(k * 1e-3, datagram)
+        link.due(k * 1e-3)
+        most = max(most, link.in_flight)  # type: ignore[attr-defined]
+    assert 990 <= most <= DEFAULT_ENVELOPE.max_backward_queue  # reached, and never beyond
+
+
+def test_the_robot_refuses_the_held_forever_backward_impairment_in_session() -> None:
+    from .vnet import params
+
+    net = VirtualNet(1.0)
+    to = net.teleoperator()
+    op = net.operator(params(netem_backward="delay 1000s limit 4294967295"))
+    net.seconds(1.0)
+    (rejected,) = to.of(HelloRejected)
+    assert "--max-backward-queue" in rejected.why and not to.started()
+    (f,) = op.of(Failed)
+    assert "--max-backward-queue" in f.detail and "\n" not in f.detail
+
+
+def test_the_robots_own_backward_impairment_is_its_choice() -> None:
+    """A robot that pins a long backward delay itself (--netem-backward) admits it; the flags set
+    the caps, and a bad one is one line."""
+    from teleop.cli.endpoints import robot_envelope
+    from teleop.cli.parser import build_parser
+
+    listen = ["teleoperator", "--listen", "127.0.0.1:0", "--insecure"]
+    env = robot_envelope(build_parser().parse_args([*listen, "--netem-backward", "delay 5s"]))
+    assert env.max_backward_hold_ms >= 5000.0
+    env = robot_envelope(build_parser().parse_args([*listen, "--max-backward-queue", "20"]))
+    assert env.max_backward_queue == 20
+    from .vnet import params
+
+    assert "--max-backward-queue" in (env.check(params(netem_backward="limit 21")) or "")

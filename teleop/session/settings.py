@@ -27,8 +27,14 @@ from teleop.control.codecs import make_codec
 from teleop.control.codecs.spec import CodecSpec
 from teleop.control.passivity import DEFAULT_LINK_TIMEOUT, ON_LOSS
 from teleop.control.ratecap import RateCap
-from teleop.session.link.netem import NetemError, make_link
+from teleop.session.link.netem import NetemError, make_link, parse_netem
 from teleop.session.playout import MAX_EXTRA_MS, parse_playout
+from teleop.session.wire import max_session_datagram_bytes
+
+#: The most a robot may be told to hold in its outgoing shim: packets (the wire's u32 limit is
+#: what a spec may say; a robot's flag is bounded here) and ms.
+MAX_BACKWARD_QUEUE = 1_000_000
+MAX_BACKWARD_HOLD_MS = 3_600_000.0
 
 
 class Passivity(StrEnum):
@@ -165,6 +171,8 @@ class Proposal(Protocol):
     def playout(self) -> str: ...
     @property
     def passivity(self) -> Passivity: ...
+    @property
+    def netem_backward(self) -> str: ...
 
 
 @dataclass(frozen=True)
@@ -193,6 +201,11 @@ class Envelope:
     max_playout_ms: float = 200.0  # ms: the largest fixed playout delay it adds
     max_velocity: float = 1.5  # m/s per DoF: what it is ever commanded
     max_force: float = 50.0  # N per DoF: the contact force it pushes to at most
+    # The robot's own outgoing shim (the backward netem an operator proposes) is the robot's memory
+    # and time: it holds at most this many packets (the spec's ``limit``; netem's default) ...
+    max_backward_queue: int = 1000
+    # ... and none longer than this (delay, the jitter's widest draw, a rate's full queue).
+    max_backward_hold_ms: float = 1000.0
 
     def __post_init__(self) -> None:
         for name in ("max_range", "min_b", "max_b", "max_link_timeout", "max_velocity", "max_force", "dt"):
@@ -201,6 +214,11 @@ class Envelope:
                 raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
         if self.min_b > self.max_b:
             raise ValueError(f"min_b {_num(self.min_b)} must not exceed max_b {_num(self.max_b)}")
+        queue, hold = self.max_backward_queue, self.max_backward_hold_ms
+        if not (type(queue) is int and 1 <= queue <= MAX_BACKWARD_QUEUE):
+            raise ValueError(f"max_backward_queue must be an integer 1..{MAX_BACKWARD_QUEUE}, got {queue!r}")
+        if not 0 <= hold <= MAX_BACKWARD_HOLD_MS:
+            raise ValueError(f"max_backward_hold_ms must be 0..{_num(MAX_BACKWARD_HOLD_MS)}, got {hold!r}")
         if not 0 <= self.max_playout_ms <= MAX_EXTRA_MS:
             raise ValueError(f"max_playout_ms must be 0..{_num(MAX_EXTRA_MS)}, got {self.max_playout_ms!r}")
         if not set(self.passivity) <= set(PASSIVITY) or not self.passivity:
@@ -256,7 +274,31 @@ class Envelope:
                 f"playout {p.playout} ms exceeds this robot's limit {_num(self.max_playout_ms)} ms "
                 "(--max-playout)"
             )
-        return self._check_codec(p)
+        return self._check_codec(p) or self._check_backward(p)
+
+    def _check_backward(self, p: Proposal) -> str | None:
+        """The operator's backward impairment runs in this robot's shim: its queue (memory: at most
+        ``max_backward_queue`` datagrams of the session) and how long it holds a packet are capped.
+        A ``trace FILE`` reaches here only if the robot named it (its own choice)."""
+        text = p.netem_backward
+        if not text.strip() or text.split()[0] == "trace":
+            return None
+        try:
+            spec = parse_netem(text)
+        except NetemError:
+            return None  # (the hello's parser says what is wrong)
+        if spec.limit > self.max_backward_queue:
+            return (
+                f"netem_backward limit {spec.limit} exceeds this robot's limit {self.max_backward_queue} "
+                "packets (--max-backward-queue)"
+            )
+        hold_ms = spec.longest_hold(max_session_datagram_bytes(p.dof)) * 1e3
+        if hold_ms > self.max_backward_hold_ms:
+            return (
+                f"netem_backward holds a packet up to {_num(hold_ms)} ms, beyond this robot's limit "
+                f"{_num(self.max_backward_hold_ms)} ms (--max-backward-hold)"
+            )
+        return None
 
     def _check_codec(self, p: Proposal) -> str | None:
         """Every wave range the proposed codec would play (CQ's RANGE included) within
@@ -269,6 +311,19 @@ class Envelope:
                 f"{_num(self.max_range)} (--max-range)"
             )
         return None
+
+    def owning_backward(self, spec: str | None) -> Envelope:
+        """This envelope admitting the robot's own pinned backward impairment ``spec`` (the robot's
+        choice, at any DoF): a robot is never refused its own setting."""
+        if not spec or not spec.strip() or spec.split()[0] == "trace":
+            return self
+        ns = parse_netem(spec)
+        hold_ms = min(ns.longest_hold(max_session_datagram_bytes(self.max_dof)) * 1e3, MAX_BACKWARD_HOLD_MS)
+        return dataclasses.replace(
+            self,
+            max_backward_queue=max(self.max_backward_queue, min(ns.limit, MAX_BACKWARD_QUEUE)),
+            max_backward_hold_ms=max(self.max_backward_hold_ms, hold_ms),
+        )
 
     def admitting(self, p: Proposal) -> Envelope:
         """This envelope widened just enough to admit ``p``: the robot of a user who chose ``p``
@@ -288,7 +343,21 @@ class Envelope:
             else tuple(dict.fromkeys((*self.uncontrolled_on_loss, p.on_loss))),
             max_link_timeout=max(self.max_link_timeout, p.link_timeout),
             max_playout_ms=max(self.max_playout_ms, float(p.playout) if fixed else 0.0),
+            **_backward_admitting(self, p),
         )
+
+
+def _backward_admitting(env: Envelope, p: Proposal) -> dict[str, Any]:
+    """:meth:`Envelope.admitting`'s backward shim limits: widened to ``p``'s backward spec."""
+    text = p.netem_backward
+    if not text.strip() or text.split()[0] == "trace":
+        return {}
+    spec = parse_netem(text)
+    hold_ms = spec.longest_hold(max_session_datagram_bytes(p.dof)) * 1e3
+    return {
+        "max_backward_queue": max(env.max_backward_queue, spec.limit),
+        "max_backward_hold_ms": max(env.max_backward_hold_ms, min(hold_ms, MAX_BACKWARD_HOLD_MS)),
+    }
 
 
 def codec_range(p: Proposal) -> float:
@@ -400,9 +469,13 @@ SETTINGS: tuple[Setting, ...] = (
         "netem_backward",
         None,
         True,
-        "pinned by --netem/--netem-backward; a trace FILE only if the robot named it",
+        "pinned by --netem/--netem-backward; else its queue capped by --max-backward-queue (default "
+        f"{DEFAULT_ENVELOPE.max_backward_queue} packets: memory at most that many of the session's "
+        "datagrams) and its longest hold (delay, widest jitter, a rate's full queue) by "
+        f"--max-backward-hold (default {_num(DEFAULT_ENVELOPE.max_backward_hold_ms)} ms); "
+        "a trace FILE only if the robot named it",
         "--netem-backward",
-        ("--netem", "--netem-backward"),
+        ("--netem", "--netem-backward", "--max-backward-queue", "--max-backward-hold"),
     ),
     Setting("seed", "seed", None, True, "the operator's (seeds the shims and the human)", "--seed"),
     Setting(
