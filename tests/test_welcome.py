@@ -10,12 +10,19 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import pytest
 
 from teleop import limits
 from teleop.session.endpoint import Failed, HelloRejected
 from teleop.session.protocol import SessionParams
-from teleop.session.settings import DEFAULT_ENVELOPE, Envelope
+from teleop.session.settings import (
+    DEFAULT_ENVELOPE,
+    FADE_S,
+    SPARSE_MARGIN_S,
+    Envelope,
+    acting_alone,
+)
 
 from .vnet import VirtualNet
 
@@ -44,7 +51,9 @@ EXTREMES = (
     (2.0, TINY),
     (2.0, 1e-300),
 )
-WIDE = Envelope(max_range=limits.MAX_RANGE, min_b=TINY, max_b=limits.MAX_B, max_link_timeout=10.0)
+WIDE = Envelope(
+    max_range=limits.MAX_RANGE, min_b=TINY, max_b=limits.MAX_B, max_link_timeout=10.0, max_act_alone_ms=1e4
+)
 
 
 def _session(**kw: Any) -> tuple[str, str]:
@@ -191,3 +200,123 @@ def test_the_robots_own_backward_impairment_is_its_choice() -> None:
     from .vnet import params
 
     assert "--max-backward-queue" in (env.check(params(netem_backward="limit 21")) or "")
+
+
+# --- the longest the robot acts after its operator dies -------------------------------------------
+
+
+def _acts_after_death(p: SessionParams, env: Envelope) -> tuple[float, float]:
+    """Seconds from the arrival of a dead operator's last packet to the last tick the robot is
+    still coupled (coupling > 0: it may command motion), and to the last it commands a nonzero
+    velocity (its reconstruction may give out sooner).  The operator dies right after a payload
+    leaves (1 ms one way), so that payload is the last: the worst case of the formula."""
+    net = VirtualNet(1.0)
+    to = net.teleoperator(limits=env)
+    op = net.operator(p)
+    net.seconds(1.5)
+    assert to.started() and to.ep.port is not None
+    sent = op.sent
+    while op.sent == sent:
+        net.seconds(0.0005)
+    net.kill(op.addr)
+    arrived = net.now + 1_000_000  # its last datagram is in flight, 1 ms one way
+    node = to.ep.port.node
+    coupled = moving = arrived
+    while net.now - arrived < 2_000_000_000:
+        net.seconds(0.001)
+        if node.coupling > 0.0:
+            coupled = net.now
+            if bool(np.any(node.v != 0.0)):
+                moving = net.now
+    return (coupled - arrived) / 1e9, (moving - arrived) / 1e9
+
+
+@pytest.mark.parametrize(
+    ("change", "fade"),
+    [
+        ({}, FADE_S),  # the defaults: eds:50, link timeout 50 ms, playout auto: 0 + 110 + 100 ms
+        ({"codec": "pdp:5", "passivity": "tdpa"}, 0.09),  # 210 ms of silence: the fade shortened to fit
+        ({"playout": "80", "codec": "none"}, FADE_S),  # 80 + 51 + 100 ms
+    ],
+)
+def test_the_robot_acts_no_longer_than_the_formula_after_its_operator_dies(
+    change: dict[str, Any], fade: float
+) -> None:
+    from .vnet import params
+
+    p = params(duration=0.0, **change)
+    a = acting_alone(p, DEFAULT_ENVELOPE.max_act_alone_ms * 1e-3)
+    assert a.fade == pytest.approx(fade)
+    assert a.total <= DEFAULT_ENVELOPE.max_act_alone_ms * 1e-3 + 1e-12
+    coupled, moving = _acts_after_death(p, DEFAULT_ENVELOPE)
+    # The formula counts from the first tick after the packet arrived (half a tick later here, the
+    # teleoperator's phase) and the fade's last step may land a tick late in float: within a tick.
+    assert a.total - 0.001 <= coupled <= a.total + 0.0015, (coupled, a)
+    assert coupled <= DEFAULT_ENVELOPE.max_act_alone_ms * 1e-3 + 0.0015
+    assert moving <= coupled  # the reconstruction may give out first; never later
+
+
+def test_a_200_ms_playout_is_refused_by_a_default_robot_and_acts_its_formula_where_allowed() -> None:
+    """Issue 45: with a 200 ms playout and the longest link timeout a default robot allowed, it
+    acted 570 ms after its operator died.  Now the sum is capped (300 ms by default)."""
+    from .vnet import params
+
+    p = params(duration=0.0, playout="200")
+    why = DEFAULT_ENVELOPE.check(p)
+    assert why is not None and why.startswith("link_timeout 50 ms with codec eds:50 and playout 200")
+    assert "--max-act-alone" in why and "\n" not in why
+    assert "410 ms" not in why and "330 ms" in why  # 200 + 110 + 20
+    # In session: refused in one line.
+    net = VirtualNet(1.0)
+    to = net.teleoperator()
+    op = net.operator(p)
+    net.seconds(1.0)
+    assert not to.started() and "--max-act-alone" in op.of(Failed)[0].detail
+    # A robot that allows 410 ms acts for that long, and no longer.
+    lax = Envelope(max_act_alone_ms=410.0)
+    assert lax.check(p) is None
+    coupled, moving = _acts_after_death(p, lax)
+    assert 0.409 <= coupled <= 0.4115 and moving <= coupled, (coupled, moving)  # 200 + 110 + 100 ms
+
+
+def test_the_robots_formula_is_its_nodes() -> None:
+    """settings.silence_allowed_s and FADE_S restate the node's supervision: they agree for every
+    codec family (the silence is what ``_Port.link_timeout`` computes)."""
+    from teleop.session import node as node_module
+    from teleop.session.port import session_node
+
+    from .vnet import params
+
+    assert node_module.SPARSE_MARGIN_S == SPARSE_MARGIN_S
+    assert node_module.PortOptions().fade_time == FADE_S
+    for codec, _ in CODECS:
+        for lt in (0.001, 0.05, 0.25):
+            p = params(codec=codec, link_timeout=lt)
+            to = session_node("teleoperator", p)
+            assert acting_alone(p, 1.0).silence == to.link_timeout, codec
+
+
+def test_the_robot_caps_auto_playout_and_its_fade_to_what_its_cap_leaves() -> None:
+    """``Port.confine``: under ``auto`` the allowance may grow with jitter at run time; the robot
+    caps it at what its cap leaves after the silence and the fade (300 - 110 - 100 = 90 ms for
+    eds:50), and shortens its fade where the silence leaves less than 100 ms (pdp:5: 90 ms)."""
+    from teleop.session.port import Port, session_node
+
+    from .vnet import params
+
+    port = Port(session_node("teleoperator", params()))
+    assert port.playout.max_extra == 500
+    port.confine(DEFAULT_ENVELOPE)
+    assert port.playout.max_extra == 90
+    assert port.node._fade_step == pytest.approx(0.001 / FADE_S)
+    tdpa = Port(session_node("teleoperator", params(codec="pdp:5", passivity="tdpa")))
+    tdpa.confine(DEFAULT_ENVELOPE)
+    assert tdpa.playout.max_extra == 0 and tdpa.node._fade_step == pytest.approx(0.001 / 0.09)
+
+
+def test_the_conformance_suite_proposes_what_a_default_robot_affords() -> None:
+    from transport.conformance import DEADBAND_CODEC, LINK_TIMEOUT_S, params_for
+
+    assert LINK_TIMEOUT_S == 0.17  # rounded to ms
+    for codec in ("none", "eds:50", DEADBAND_CODEC):
+        assert DEFAULT_ENVELOPE.check(params_for(1, codec, 1.0)) is None, codec

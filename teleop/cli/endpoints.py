@@ -43,8 +43,10 @@ from teleop.session.settings import (
     DEFAULT_CODEC,
     DEFAULT_ENVELOPE,
     DEFAULT_SCENARIO,
+    MAX_ACT_ALONE_MS,
     MAX_BACKWARD_HOLD_MS,
     MAX_BACKWARD_QUEUE,
+    MIN_FADE_S,
     PASSIVITY,
     Passivity,
 )
@@ -291,6 +293,13 @@ LIMITS: tuple[_Limit, ...] = (
     _Limit(
         "max_playout_ms", "--max-playout", 1.0, nonneg_float("max playout", MAX_EXTRA_MS, "ms"), "MS",
         "the largest fixed playout delay an operator may ask (default {default})",
+    ),
+    _Limit(
+        "max_act_alone_ms", "--max-act-alone", 1.0,
+        float_range("max act alone", MIN_FADE_S * 1e3, MAX_ACT_ALONE_MS, "ms"), "MS",
+        "the longest this robot acts after its operator's last packet: playout + the link timeout "
+        "with the codec's payload interval + its fade, which it shortens to fit; a proposal that "
+        "does not fit is refused (default {default})",
     ),
     _Limit(
         "max_backward_queue", "--max-backward-queue", 1.0,

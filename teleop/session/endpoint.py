@@ -1028,8 +1028,9 @@ class Endpoint:
         self.port = self._make_port(params, k0, keys, start_ns)
         if self.role == "teleoperator":
             # Whatever the factory built, the robot runs inside its own envelope: saturated
-            # commands and an energy guard bounded by its limits, never the operator's numbers.
-            self.port.node.confine(self._limits)
+            # commands and an energy guard bounded by its limits, never the operator's numbers,
+            # and acting no longer than its cap after its operator's last packet.
+            self.port.confine(self._limits)
         if k0:
             self.port.node.joined_late()
         due_s = (first_due_ns - start_ns) / 1e9

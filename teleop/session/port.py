@@ -56,7 +56,7 @@ from teleop.session.node import (
     TeleoperatorNode,
 )
 from teleop.session.playout import PlayoutBuffer
-from teleop.session.settings import Envelope, Passivity
+from teleop.session.settings import MIN_FADE_S, Envelope, Passivity
 
 Array = npt.NDArray[np.float64]
 Node = OperatorNode | TeleoperatorNode
@@ -665,6 +665,23 @@ class Port:
         self.control_rejected = 0  # control messages that did not parse (counted, dropped)
         self.last_control_error = ""
         self._last_k = 0
+
+    def confine(self, env: Envelope) -> None:
+        """Run this (robot's) port inside ``env``: its node's saturation and guard
+        (:meth:`teleop.session.node._Port.confine`), and the longest it acts after its operator's
+        last packet within ``env.max_act_alone_ms``: playout + silence + fade
+        (:func:`teleop.session.settings.acting_alone`; the silence is the node's own).  The fade is
+        shortened to fit, and ``auto``'s allowance capped at what is left; a fixed playout the
+        envelope check already held within the cap."""
+        node = self.node
+        node.confine(env)
+        cap = env.max_act_alone_ms * 1e-3
+        playout = self.playout.fixed * node.dt
+        fade = min(node.options.fade_time, cap - playout - node.link_timeout)
+        node.fade_within(max(fade, MIN_FADE_S))
+        if self.playout.mode == "auto":
+            left = cap - node.link_timeout - max(fade, MIN_FADE_S)
+            self.playout.max_extra = min(self.playout.max_extra, max(0, math.floor(left / node.dt + 1e-9)))
 
     # --- inbound -------------------------------------------------------------------------
     def receive(

@@ -35,6 +35,56 @@ from teleop.session.wire import max_session_datagram_bytes
 #: what a spec may say; a robot's flag is bounded here) and ms.
 MAX_BACKWARD_QUEUE = 1_000_000
 MAX_BACKWARD_HOLD_MS = 3_600_000.0
+#: The longest a robot may be told to act alone (ms): the longest silence and playout, plus a fade.
+MAX_ACT_ALONE_MS = 3_600_000.0
+
+
+#: The node's link supervision (``teleop.session.node``: ``SPARSE_MARGIN_S``, ``PortOptions.fade_time``),
+#: restated here for the robot's cap on how long it acts alone (tests/test_welcome.py checks both
+#: against the node): how late the payload after a lost one may be, and the fade's length.
+SPARSE_MARGIN_S = 0.010
+FADE_S = 0.1
+#: The shortest fade a robot shortens its own to (s): below it the proposal is refused.
+MIN_FADE_S = 0.02
+
+
+def silence_allowed_s(k: int, dt: float, link_timeout: float) -> float:
+    """The silence after a payload a node allows before its link is lost (PROTOCOL.md 5.3): the
+    payload interval ``k dt`` plus the link timeout, or for a sparse codec one lost payload more."""
+    interval = k * dt
+    return interval + (max(link_timeout, interval + SPARSE_MARGIN_S) if k > 1 else link_timeout)
+
+
+def playout_extra_s(playout: str, dt: float) -> float:
+    """The fixed allowance a playout buffer adds (``teleop.session.playout``): a number of ms
+    rounded up to ticks; ``off`` and ``auto`` none (auto's is capped by the robot at run time)."""
+    if playout in ("off", "auto"):
+        return 0.0
+    return math.ceil(float(playout) * 1e-3 / dt - 1e-9) * dt
+
+
+@dataclass(frozen=True)
+class Acting:
+    """The longest a robot acts after its operator's last packet arrives, by part (s): the playout
+    buffer holds it ``playout``, the link is lost ``silence`` after it is played, and the coupling
+    fades to 0 over ``fade`` (shortened by the robot to fit its cap, never below ``MIN_FADE_S``)."""
+
+    playout: float
+    silence: float
+    fade: float
+
+    @property
+    def total(self) -> float:
+        return self.playout + self.silence + self.fade
+
+
+def acting_alone(p: Proposal, cap_s: float) -> Acting:
+    """How long a robot whose cap is ``cap_s`` acts after the last packet of a session of ``p``:
+    ``playout + silence + fade``, the fade shortened (from ``FADE_S``) to fit the cap."""
+    k = make_codec(CodecSpec.parse(p.codec), p.dof).k  # the payload interval (no range in it)
+    playout = playout_extra_s(p.playout, p.dt)
+    silence = silence_allowed_s(k, p.dt, p.link_timeout)
+    return Acting(playout, silence, min(FADE_S, cap_s - playout - silence))
 
 
 class Passivity(StrEnum):
@@ -206,6 +256,9 @@ class Envelope:
     max_backward_queue: int = 1000
     # ... and none longer than this (delay, the jitter's widest draw, a rate's full queue).
     max_backward_hold_ms: float = 1000.0
+    # ms: the longest it acts after its operator's last packet arrives (playout + silence + fade:
+    # :func:`acting_alone`); it shortens its fade to fit, and refuses what no fade fits.
+    max_act_alone_ms: float = 300.0
 
     def __post_init__(self) -> None:
         for name in ("max_range", "min_b", "max_b", "max_link_timeout", "max_velocity", "max_force", "dt"):
@@ -219,6 +272,11 @@ class Envelope:
             raise ValueError(f"max_backward_queue must be an integer 1..{MAX_BACKWARD_QUEUE}, got {queue!r}")
         if not 0 <= hold <= MAX_BACKWARD_HOLD_MS:
             raise ValueError(f"max_backward_hold_ms must be 0..{_num(MAX_BACKWARD_HOLD_MS)}, got {hold!r}")
+        if not MIN_FADE_S * 1e3 <= self.max_act_alone_ms <= MAX_ACT_ALONE_MS:
+            raise ValueError(
+                f"max_act_alone_ms must be {_num(MIN_FADE_S * 1e3)}..{_num(MAX_ACT_ALONE_MS)}, "
+                f"got {self.max_act_alone_ms!r}"
+            )
         if not 0 <= self.max_playout_ms <= MAX_EXTRA_MS:
             raise ValueError(f"max_playout_ms must be 0..{_num(MAX_EXTRA_MS)}, got {self.max_playout_ms!r}")
         if not set(self.passivity) <= set(PASSIVITY) or not self.passivity:
@@ -274,7 +332,24 @@ class Envelope:
                 f"playout {p.playout} ms exceeds this robot's limit {_num(self.max_playout_ms)} ms "
                 "(--max-playout)"
             )
-        return self._check_codec(p) or self._check_backward(p)
+        return self._check_codec(p) or self._check_backward(p) or self._check_acting(p)
+
+    def _check_acting(self, p: Proposal) -> str | None:
+        """The longest the robot acts after its operator's last packet, within ``max_act_alone_ms``
+        with a fade of at least ``MIN_FADE_S`` (it shortens its own fade to fit)."""
+        try:
+            a = acting_alone(p, self.max_act_alone_ms * 1e-3)
+        except ValueError:
+            return None  # a codec that does not parse: the hello's parser says what is wrong
+        if a.fade >= MIN_FADE_S - 1e-12:
+            return None
+        need = (a.playout + a.silence + MIN_FADE_S) * 1e3
+        return (
+            f"link_timeout {_num(p.link_timeout * 1e3)} ms with codec {p.codec} and playout {p.playout}: "
+            f"this robot would act {_num(need)} ms after its operator's last packet (playout "
+            f"{_num(a.playout * 1e3)} + silence {_num(a.silence * 1e3)} + fade {_num(MIN_FADE_S * 1e3)} "
+            f"at least), beyond its limit {_num(self.max_act_alone_ms)} ms (--max-act-alone)"
+        )
 
     def _check_backward(self, p: Proposal) -> str | None:
         """The operator's backward impairment runs in this robot's shim: its queue (memory: at most
@@ -343,8 +418,18 @@ class Envelope:
             else tuple(dict.fromkeys((*self.uncontrolled_on_loss, p.on_loss))),
             max_link_timeout=max(self.max_link_timeout, p.link_timeout),
             max_playout_ms=max(self.max_playout_ms, float(p.playout) if fixed else 0.0),
+            max_act_alone_ms=max(self.max_act_alone_ms, _full_acting_ms(p)),
             **_backward_admitting(self, p),
         )
+
+
+def _full_acting_ms(p: Proposal) -> float:
+    """What ``p`` needs of a robot's ``max_act_alone_ms`` to keep its full fade (``FADE_S``)."""
+    try:
+        a = acting_alone(p, math.inf)
+    except ValueError:
+        return 0.0
+    return min((a.playout + a.silence + FADE_S) * 1e3, MAX_ACT_ALONE_MS)
 
 
 def _backward_admitting(env: Envelope, p: Proposal) -> dict[str, Any]:
@@ -501,9 +586,13 @@ SETTINGS: tuple[Setting, ...] = (
         "link_timeout",
         None,
         True,
-        f"capped by --max-link-timeout (default {_num(DEFAULT_ENVELOPE.max_link_timeout * 1e3)} ms)",
+        f"capped by --max-link-timeout (default {_num(DEFAULT_ENVELOPE.max_link_timeout * 1e3)} ms); "
+        "with the codec's payload interval, the playout and the fade, by --max-act-alone (default "
+        f"{_num(DEFAULT_ENVELOPE.max_act_alone_ms)} ms: the longest the robot acts after its "
+        "operator's last packet; it shortens its fade, down to "
+        f"{_num(MIN_FADE_S * 1e3)} ms, to fit)",
         "--link-timeout",
-        ("--max-link-timeout",),
+        ("--max-link-timeout", "--max-act-alone"),
     ),
     Setting(
         "rate_cap",
@@ -519,9 +608,11 @@ SETTINGS: tuple[Setting, ...] = (
         "playout",
         None,
         True,
-        f"a fixed delay capped by --max-playout (default {_num(DEFAULT_ENVELOPE.max_playout_ms)} ms)",
+        f"a fixed delay capped by --max-playout (default {_num(DEFAULT_ENVELOPE.max_playout_ms)} ms) "
+        "and, with the link timeout, by --max-act-alone; auto's allowance capped at what "
+        "--max-act-alone leaves",
         "--playout",
-        ("--max-playout",),
+        ("--max-playout", "--max-act-alone"),
     ),
     Setting("variation", "variation", None, True, "the operator's (the human's variation)", "--variation"),
     Setting(
