@@ -209,7 +209,7 @@ def build_refusal(params: protocol.SessionParams, envelope: Envelope | None = No
     Builds both sides' nodes as a session does (:func:`session_node` with the scenario's built-in
     devices: the codecs for the ranges the architecture derives from ``range`` and ``b``, their
     encoders and decoders, the energy guards), confines the robot's to ``envelope``, and runs
-    their first :data:`PROBE_TICKS` ticks with each packet through the wire to the other.  A range
+    their first :data:`PROBE_TICKS` ticks with each packet handed to the other.  A range
     that underflows a codec's format (a subnormal one, or a deadband's slope range under TDPA)
     raises here, before the welcome, instead of at the session's start (issue 45).  About a
     millisecond: only an authentic hello with a valid cookie gets this far."""
@@ -220,8 +220,8 @@ def build_refusal(params: protocol.SessionParams, envelope: Envelope | None = No
         for k in range(PROBE_TICKS):
             for a, b in ((op, to), (to, op)):
                 pkt = a.tick(k * params.dt)
-                if pkt is not None:
-                    b.receive_packet(wire.decode(wire.encode(pkt)))
+                if pkt is not None:  # (the wire's encode never raises; a peer's decode only counts)
+                    b.receive_packet(pkt)
     except (ValueError, ArithmeticError) as e:  # CodecError, ModelError, ... are ValueErrors
         what = f"codec {params.codec}, {params.passivity}, range {params.full_scale:g}, b {params.b:g}"
         said = str(e).splitlines()[0] if str(e) else type(e).__name__
