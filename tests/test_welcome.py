@@ -320,3 +320,17 @@ def test_the_conformance_suite_proposes_what_a_default_robot_affords() -> None:
     assert LINK_TIMEOUT_S == 0.11  # rounded to ms
     for codec in ("none", "eds:50", DEADBAND_CODEC):
         assert DEFAULT_ENVELOPE.check(params_for(1, codec, 1.0)) is None, codec
+
+
+def test_a_run_whose_backward_queue_no_robot_takes_is_refused_in_one_line_not_a_traceback() -> None:
+    """``teleop run``'s robot admits its own run's settings (Envelope.admitting), up to what any
+    robot takes: a limit beyond MAX_BACKWARD_QUEUE widens it to that, and the proposal is refused."""
+    from teleop.session.settings import MAX_BACKWARD_QUEUE
+
+    from .vnet import params
+
+    p = params(netem_backward="limit 4294967295")
+    env = DEFAULT_ENVELOPE.admitting(p)
+    assert env.max_backward_queue == MAX_BACKWARD_QUEUE
+    why = env.check(p)
+    assert why is not None and "--max-backward-queue" in why and "\n" not in why

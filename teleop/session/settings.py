@@ -442,7 +442,7 @@ def _backward_admitting(env: Envelope, p: Proposal) -> dict[str, Any]:
     spec = parse_netem(text)
     hold_ms = spec.longest_hold(max_session_datagram_bytes(p.dof)) * 1e3
     return {
-        "max_backward_queue": max(env.max_backward_queue, spec.limit),
+        "max_backward_queue": max(env.max_backward_queue, min(spec.limit, MAX_BACKWARD_QUEUE)),
         "max_backward_hold_ms": max(env.max_backward_hold_ms, min(hold_ms, MAX_BACKWARD_HOLD_MS)),
     }
 
