@@ -139,6 +139,7 @@ def sim_config(args: argparse.Namespace) -> Any:
 
 def session_params(args: argparse.Namespace, session: int) -> Any:
     """The SessionParams an operator proposes (``run`` and ``operator``), every default filled in."""
+    from teleop.session.port import build_refusal
     from teleop.session.protocol import SessionParams
 
     sc = SCENARIOS[args.scenario]
@@ -146,7 +147,7 @@ def session_params(args: argparse.Namespace, session: int) -> Any:
     duration = args.duration if args.duration is not None else sc.duration
     check_duration(duration, dof)
     try:
-        return SessionParams(
+        params = SessionParams(
             session=session,
             scenario=args.scenario,
             dof=dof,
@@ -158,6 +159,10 @@ def session_params(args: argparse.Namespace, session: int) -> Any:
         ).validate()
     except (ValueError, CodecError, OSError) as e:
         raise CliError(str(e)) from None
+    why = build_refusal(params)  # what a robot would refuse to build, said here first
+    if why is not None:
+        raise CliError(why)
+    return params
 
 
 NO_KEY = (

@@ -367,6 +367,11 @@ class _Port:
         lost ``link_timeout`` later, as if its last packet had come at ``t`` (no ghost sessions)."""
         self._first_due = t
 
+    def fade_within(self, fade_time: float) -> None:
+        """Fade over at most ``fade_time`` s: a robot shortens its fade so that the longest it acts
+        after its operator's last packet stays within its cap (``settings.acting_alone``)."""
+        self._fade_step = max(self._fade_step, self.dt / fade_time)
+
     def joined_late(self) -> None:
         """This process joined a running session: its budget starts at the first packet it sees."""
         self.guard.new_epoch(joined_late=True)

@@ -281,7 +281,7 @@ class SessionParams(Channel):
             raise ValueError(f"scenario must be one of {', '.join(SCENARIOS)}, got {_show(self.scenario)}")
         _between("dof", self.dof, 1, limits.MAX_DOF)
         _positive("b", self.b, limits.MAX_B)
-        _positive("range", self.full_scale, limits.MAX_RANGE)
+        _between("range", self.full_scale, limits.MIN_RANGE, limits.MAX_RANGE)  # subnormal: refused
         _between("dt", self.dt, limits.MIN_DT, limits.MAX_DT)
         limits.check_duration(self.duration, self.dof, self.dt)
         if not 0.0 <= self.phase < 1.0:
@@ -1031,8 +1031,9 @@ class TeleoperatorHandshake:
     ``cookie_secret`` (the endpoint always gives one): a hello without a valid cookie for its source
     address is answered with a small :class:`Retry` and leaves no state, so hellos recorded and
     replayed from another address never reach the candidates.  ``limits``: what this side affords
-    (:class:`Envelope`).  ``defer_t3``: welcomes wait in :meth:`datagrams_to_send` to be stamped
-    with NTP's reply time t3 as they leave (a sans-I/O caller has no clock to hand in).
+    (:class:`Envelope`); ``vet``: why a proposal within it still cannot run (None: it can).
+    ``defer_t3``: welcomes wait in :meth:`datagrams_to_send` to be stamped with NTP's reply time t3
+    as they leave (a sans-I/O caller has no clock to hand in).
     """
 
     def __init__(
@@ -1048,6 +1049,7 @@ class TeleoperatorHandshake:
         local_limits: Envelope | None = None,
         defer_t3: bool = False,
         admit: Callable[[Addr, int, bool], bool] | None = None,
+        vet: Callable[[SessionParams], str | None] | None = None,
     ) -> None:
         self.expect = Pins.of(expect).pinned()
         self.local_netem = frozenset(local_netem) | configured_netem(self.expect)
@@ -1091,6 +1093,10 @@ class TeleoperatorHandshake:
         # (a stranger's junk, whatever address it claims) spend nobody's budget.
         self.admit = admit
         self.throttled = 0
+        # Builds what the session would build from a proposal within the envelope, and says in one
+        # line why it cannot run (the endpoint's ``teleop.session.port.build_refusal``): a welcome
+        # is a promise that the session starts (issue 45).
+        self.vet = vet
 
     @property
     def finished(self) -> bool:
@@ -1163,7 +1169,10 @@ class TeleoperatorHandshake:
             got = getattr(p, k)
             if want is not None and got != want:
                 return f"{k} {got!r} differs from this teleoperator's {want!r}"
-        return self.local_limits.check(p)
+        why = self.local_limits.check(p)
+        if why is None and self.vet is not None:
+            why = self.vet(p)
+        return why
 
     def receive(
         self, data: bytes, addr: Addr, now_ns: int, reply_clock: Callable[[], int] | None = None

@@ -198,6 +198,20 @@ class NetemSpec:
     cell_overhead: int = 0
     seed: int | None = None
 
+    def longest_hold(self, max_len: int) -> float:
+        """The longest (s) a link of this spec holds a packet of at most ``max_len`` bytes: its
+        delay plus the jitter's widest draw (the distribution table's largest value), plus, with a
+        ``rate``, the wait behind a full queue of ``limit`` such packets.  What a robot's envelope
+        caps in the backward spec an operator proposes (``teleop.session.settings.Envelope``)."""
+        tail = 1.0 if self.distribution in (None, "uniform") else max(DIST_TABLES[self.distribution])
+        hold = max(0.0, self.delay + abs(self.jitter) * tail)
+        if self.rate is not None:
+            n = max_len + self.packet_overhead
+            if self.cell_size:
+                n = -(-n // self.cell_size) * (self.cell_size + self.cell_overhead)
+            hold += self.limit * max(n, 0) * 8.0 / self.rate
+        return hold
+
 
 @dataclass(slots=True)
 class NetemStats:
