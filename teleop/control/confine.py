@@ -104,14 +104,20 @@ class Confinement:
         self._sfv, self._svv = [0.0] * dof, [0.0] * dof
         self._entry, self._held = [0.0] * dof, [0.0] * dof
         self._f0 = [0.0] * dof  # this tick's reported force (effective), for the next tick to learn from
+        self._idle = True  # no stiffness held: a tick out of contact has nothing to learn
         self._last: tuple[list[float], list[float]] | None = None  # last tick's reported f0, commanded v
         self.relieved = 0  # ticks that began past max_force (backed off from it, or pushed no further)
 
     def effective(self, f0: Array, z: Array) -> Array:
         """``Z`` with the learned ``Z^`` where the device reports none; ``z`` itself (the same
         object) where nothing was learned, so a device's constant feedthrough stays cached."""
-        fl, zl = f0.tolist(), z.tolist()
-        last, zh, floor, keep = self._last, self.stiffness, self._floor, self._keep
+        fl = f0.tolist()
+        floor = self._floor
+        if self._idle and max(fl) <= floor and min(fl) >= -floor:
+            self._f0 = fl  # no stiffness held and no contact: nothing to learn (most ticks)
+            return z
+        zl = z.tolist()
+        last, zh, keep = self._last, self.stiffness, self._keep
         learned = False
         for i, zi in enumerate(zl):
             if zi > 0.0:
@@ -131,6 +137,7 @@ class Confinement:
             zh[i] = h if h > 1e-9 else 0.0
             learned = learned or zh[i] > 0.0
         self._f0 = fl
+        self._idle = not learned
         if not learned:
             return z
         return np.array([zi if zi > 0.0 else zh[i] for i, zi in enumerate(zl)])
@@ -138,8 +145,28 @@ class Confinement:
     def command(self, v: Array, f0: Array, z: Array) -> Array | None:
         """The velocity the device is commanded, within the envelope per DoF (module docstring),
         or None where that is ``v`` itself.  ``z``: the effective feedthrough (:meth:`effective`)."""
-        vl = v.tolist()
-        out, relief = confined(vl, f0.tolist(), z.tolist(), self.max_velocity, self.max_force)
+        vl, fl = v.tolist(), f0.tolist()
+        vmax, fmax = self.max_velocity, self.max_force
+        if (
+            max(vl) <= vmax
+            and min(vl) >= -vmax
+            and max(fl) <= fmax
+            and min(fl) >= -fmax
+            and (z is self._z_free or self._free_of(z))
+        ):  # within every limit with no feedthrough to push a force past one (most ticks)
+            self._last = (self._f0, vl)
+            return None
+        out, relief = confined(vl, fl, z.tolist(), vmax, fmax)
         self._last = (self._f0, out)
         self.relieved += relief
         return None if out == vl else np.array(out)
+
+    _z_free: Array | None = None  # a read-only all-zero feedthrough already seen (a device's constant)
+
+    def _free_of(self, z: Array) -> bool:
+        """Whether ``z`` is all zero (remembered when read-only: a device's constant array)."""
+        if any(z.tolist()):
+            return False
+        if not z.flags.writeable:
+            self._z_free = z
+        return True
