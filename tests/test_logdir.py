@@ -371,11 +371,13 @@ def test_restarts_keep_every_record_and_the_report_pairs_by_session(genuine: Pat
     assert r.returncode == 0, r.stderr
     rep = json.loads((tmp_path / "report.json").read_text())
     assert rep["session"] == first and rep["logs"]["operator"] == "operator.mcap"
-    r = _report(logs, "--no-sim")  # the newest pair; report.json is kept, a new name is used
+    r = _report(logs, "--no-sim")  # the newest pair: report.json is now its, the first one kept
     assert r.returncode == 0, r.stderr
-    rep = json.loads((tmp_path / "report-99.json").read_text())
+    rep = json.loads((tmp_path / "report.json").read_text())
     assert rep["session"] == 99 and rep["logs"]["teleoperator"] == "teleoperator-99.mcap"
-    assert json.loads((tmp_path / "report.json").read_text())["session"] == first
+    assert json.loads((tmp_path / "report-99.json").read_text()) == rep
+    assert json.loads((tmp_path / f"report-{first}.json").read_text())["session"] == first
+    assert not list(tmp_path.glob("*.new*"))
 
 
 def _dof_bomb(n: int, only: int | None = None) -> Callable[[str, dict[str, Any]], dict[str, Any]]:
