@@ -218,7 +218,37 @@ def test_a_non_finite_state_is_stale_the_last_force_is_held_and_counted() -> Non
     _step(dev, 0.052, [0.0, 0.0, 0.0])
     _step(dev, 0.053, [0.0, 0.0, 0.0])
     _step(dev, 0.054, [0.0, 0.0, 0.0])
-    with pytest.raises(RobotFault, match="3 robot states in a row were not finite"):
+    with pytest.raises(RobotFault, match="3 robot states in a row were stale"):
+        dev.wait(0.1)
+
+
+def test_a_finite_state_the_arm_cannot_reach_is_stale_and_never_moves_the_setpoint() -> None:
+    """A pose 1 m off for one tick (finite): on main it pulled the set-point max_offset after it and
+    the arm 50 mm at 30 N while the channel commanded 0.  Now it is stale: held, counted, unused."""
+    dev, arm = _fake("127.0.0.1:force=spring,cutoff=500,max_stale=3", dof=3)
+    for k in range(20):
+        good = _step(dev, k * 0.001, [0.0, 0.0, 0.0])
+    x_d, tau = dev.x_d.copy(), arm.written[-1].tau_J
+    arm.next_state = _State(z=1.5)  # 1 m in 1 ms: 333 times what the FR3 can
+    f = _step(dev, 0.02, [0.0, 0.0, 0.0])
+    assert np.array_equal(f, good) and np.array_equal(dev.x_d, x_d)
+    assert arm.written[-1].tau_J == tau  # the last torque again, not a spring toward 1 m
+    s = dev.summary()
+    assert (s["stale_reads"], s["implausible_reads"], s["saturated"]["offset"]) == (1, 1, 0)
+    arm.next_state = _State(z=0.5 + 0.004)  # 4 mm over the 2 ms since the last good state: plausible
+    _step(dev, 0.021, [0.0, 0.0, 0.0])
+    assert dev.summary()["stale_reads"] == 1 and dev._x[2] == pytest.approx(0.504)
+    fast = _State(z=0.504)
+    fast.dq = [0.0, 0.0, 0.0, 0.0, 20.0, 0.0, 0.0]  # a joint at 20 rad/s: the FR3's is 5.26
+    arm.next_state = fast
+    _step(dev, 0.022, [0.0, 0.0, 0.0])
+    assert dev.summary()["implausible_reads"] == 2
+    jump = _State(z=0.504)
+    jump.q = [0.0, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0]  # joint 4 half a radian in a few ms
+    arm.next_state = jump
+    for k in range(2):  # with the fast joint's: three stale reads in a row, max_stale
+        _step(dev, 0.023 + k * 0.001, [0.0, 0.0, 0.0])
+    with pytest.raises(RobotFault, match="stale \\(not finite, or not plausible\\)"):
         dev.wait(0.1)
 
 
