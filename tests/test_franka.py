@@ -4,13 +4,15 @@ session against franky-sim (a real server process on loopback, a real pylibfrank
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import json
 import math
 import os
+import random
+import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -25,7 +27,6 @@ from teleop.devices.franka import FrankaRobot, RobotFault, parse_arg
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
 SIM = Path(sys.executable).with_name("franky-sim")
-LOCK = Path("/tmp/teleop-franky-sim.lock")  # one franky-sim per host: tests of every worktree queue here
 
 
 # --- a fake arm: enough of pylibfranka's surface for the device's arithmetic and its faults ---------
@@ -297,34 +298,97 @@ needs_pylibfranka = pytest.mark.skipif(
 )
 
 
+class Sim:
+    """A franky-sim of the test's own: its loopback address and what it printed (its log)."""
+
+    def __init__(self, host: str, proc: subprocess.Popen[str]) -> None:
+        self.host, self.proc = host, proc
+        self.lines: list[str] = []
+        self._changed = threading.Condition()
+
+    def drain(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            with self._changed:
+                self.lines.append(line)
+                self._changed.notify_all()
+        with self._changed:
+            self.lines.append("")  # its end
+            self._changed.notify_all()
+
+    def wait_line(self, text: str, after: int = 0, timeout_s: float = 120.0) -> int | None:
+        """The index of the first line from ``after`` on holding ``text`` (None: the sim ended, or
+        ``timeout_s`` went by)."""
+        deadline = time.monotonic() + timeout_s
+        with self._changed:
+            while True:
+                for i in range(after, len(self.lines)):
+                    if text in self.lines[i]:
+                        return i
+                    if self.lines[i] == "":
+                        return None
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self._changed.wait(left)
+
+    def accepted(self) -> int:
+        """Connections the server accepted so far (its -v log says each)."""
+        with self._changed:
+            return sum("Accepted new connection" in line for line in self.lines)
+
+
+def _own_address() -> str:
+    """A loopback address of this test's (127.X.Y.Z, never 127.0.0.1: a user's franky-sim starts
+    there), free on libfranka's port."""
+    for _ in range(50):
+        host = f"127.{random.randrange(1, 255)}.{random.randrange(256)}.{random.randrange(1, 255)}"
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind((host, 1337))
+            except OSError:
+                continue
+        return host
+    pytest.fail("no free loopback address for franky-sim")
+
+
 @pytest.fixture(scope="module")
-def franky_sim() -> Iterator[str]:
-    """One franky-sim server for the module (one per host: a lock file queues other runs), started
-    and waited for by its "Connect to the server" line, killed at the end."""
+def franky_sim() -> Iterator[Sim]:
+    """A franky-sim server of the module's own, on a loopback address of its own (``--hostname``),
+    so a user's franky-sim (on 127.0.0.1, as the Franka guide starts it) or another worktree's test
+    is never reached; waited for by its "Connect to the server using 'HOST'" line, killed at the end."""
     if not SIM.exists():
         pytest.fail(f"{SIM} is missing: pip install 'teleop[franka]'")
-    with open(LOCK, "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        p = subprocess.Popen(
-            [str(SIM), "-s", "mujoco"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1
-        )
-        try:
-            assert p.stdout is not None
-            deadline, seen = time.monotonic() + 120, []
-            for line in p.stdout:
-                seen.append(line)
-                if "Connect to the server" in line:
-                    break
-                if time.monotonic() > deadline:
-                    break
-            else:
-                pytest.fail(f"franky-sim exited: {''.join(seen)[-500:]}")
-            if not any("Connect to the server" in s for s in seen):
-                pytest.fail(f"franky-sim did not start in 120 s: {''.join(seen)[-500:]}")
-            yield "127.0.0.1"
-        finally:
-            p.kill()
-            p.wait(10)
+    host = _own_address()
+    p = subprocess.Popen(
+        [str(SIM), "-s", "mujoco", "-v", "--hostname", host],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        bufsize=1,
+    )
+    sim = Sim(host, p)
+    threading.Thread(target=sim.drain, daemon=True).start()
+    try:
+        i = sim.wait_line("Connect to the server using")
+        if i is None:
+            pytest.fail(f"franky-sim did not start: {''.join(sim.lines)[-500:]}")
+        assert f"'{host}'" in sim.lines[i], sim.lines[i]  # bound where asked, not elsewhere
+        yield sim
+    finally:
+        p.kill()
+        p.wait(10)
+
+
+def _connect(sim: Sim, spec: str) -> FrankaRobot:
+    """The device on the test's own franky-sim, which must see the connection (not a user's
+    server); the claim bounds the wait (libfranka waits forever on a busy server)."""
+    before = sim.accepted()
+    devices.claim(spec, "robot")
+    dev = devices.make("robot", spec, 3, 0.001)
+    assert isinstance(dev, FrankaRobot)
+    assert sim.accepted() > before, "the device did not reach the test's own franky-sim"
+    return dev
 
 
 def _run_device(dev: FrankaRobot, seconds: float, v: list[float], t0: float) -> tuple[float, np.ndarray]:
@@ -347,9 +411,8 @@ def _pos(dev: FrankaRobot) -> np.ndarray:
 
 @pytest.mark.integration
 @needs_pylibfranka
-def test_the_device_against_franky_sim(franky_sim: str) -> None:
-    dev = devices.make("robot", f"franka:{franky_sim}:force=spring", 3, 0.001)
-    assert isinstance(dev, FrankaRobot)
+def test_the_device_against_franky_sim(franky_sim: Sim) -> None:
+    dev = _connect(franky_sim, f"franka:{franky_sim.host}:force=spring")
     try:
         # Up first (the server keeps the arm where the last client left it): along z only, ~v t.
         # Settle first: on franky-sim the arm sags about 1 cm when the torque loop takes over (a load
@@ -388,7 +451,7 @@ def test_the_device_against_franky_sim(franky_sim: str) -> None:
     finally:
         dev.close()
         dev.close()
-    state = pylibfranka.Robot(franky_sim, pylibfranka.RealtimeConfig.kIgnore).read_once()
+    state = pylibfranka.Robot(franky_sim.host, pylibfranka.RealtimeConfig.kIgnore).read_once()
     assert str(state.robot_mode).endswith("Idle") and max(abs(x) for x in state.dq) < 0.05
 
 
@@ -400,7 +463,7 @@ def _free_port() -> int:
 
 @pytest.mark.integration
 @needs_pylibfranka
-def test_a_session_driving_franky_sim(franky_sim: str, tmp_path: Path) -> None:
+def test_a_session_driving_franky_sim(franky_sim: Sim, tmp_path: Path) -> None:
     port = _free_port()
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     to = subprocess.Popen(
@@ -408,7 +471,7 @@ def test_a_session_driving_franky_sim(franky_sim: str, tmp_path: Path) -> None:
             *TELEOP,
             "teleoperator",
             "--robot",
-            f"franka:{franky_sim}",
+            f"franka:{franky_sim.host}",
             "--dof",
             "3",
             "--insecure",
@@ -423,6 +486,7 @@ def test_a_session_driving_franky_sim(franky_sim: str, tmp_path: Path) -> None:
         text=True,
         env=env,
     )
+    before = franky_sim.accepted()
     with contextlib.ExitStack() as stack:
         stack.callback(to.kill)  # a no-op once it exited
         op = subprocess.run(
@@ -459,8 +523,11 @@ def test_a_session_driving_franky_sim(franky_sim: str, tmp_path: Path) -> None:
     assert dev["min_port_energy_J"] > -1e-5
     assert dev["max_drift_m"] <= dev["max_offset_m"] + 1e-9
     assert loop["device_paced"] and loop["ticks"] + loop["missed_deadlines"] >= 4990
-    rep = subprocess.run(
-        [*TELEOP, "report", str(tmp_path), "--no-plots", "--no-sim", "--out", str(tmp_path / "r")],
+    # The teleoperator reached the test's own server: its check, then its connection.
+    assert franky_sim.accepted() >= before + 2
+    before = franky_sim.accepted()
+    rep = subprocess.run(  # the sim comparison asked for: the report must not build the arm
+        [*TELEOP, "report", str(tmp_path), "--no-plots", "--out", str(tmp_path / "r")],
         capture_output=True,
         text=True,
         timeout=120,
@@ -471,7 +538,52 @@ def test_a_session_driving_franky_sim(franky_sim: str, tmp_path: Path) -> None:
     assert report["two_port_min_energy"] >= -1e-9  # eq. (4): the channel stayed passive
     for d in ("forward", "backward"):
         assert report["energy"][d]["min_margin"] >= -1e-9
-    assert "robot franka:127.0.0.1: success rate 1.000" in rep.stdout
+    assert f"robot franka:{franky_sim.host}: success rate 1.000" in rep.stdout
     assert "paced by its device: missed deadlines" in rep.stdout
-    state = pylibfranka.Robot(franky_sim, pylibfranka.RealtimeConfig.kIgnore).read_once()
+    assert f"teleop sim not re-run: the robot franka:{franky_sim.host} is hardware" in rep.stdout
+    assert franky_sim.accepted() == before  # the report never connected to the arm
+    state = pylibfranka.Robot(franky_sim.host, pylibfranka.RealtimeConfig.kIgnore).read_once()
     assert str(state.robot_mode).endswith("Idle") and not str(state.current_errors).strip("[]")
+
+
+@pytest.mark.integration
+@needs_pylibfranka
+def test_a_second_teleoperator_on_a_held_arm_says_why_before_it_answers_anyone(
+    franky_sim: Sim, tmp_path: Path
+) -> None:
+    """One arm, one teleoperator: the first takes the arm before it listens; the second cannot (on
+    franky-sim libfranka would wait forever), says so in one line and exits before it listens or
+    logs.  Ctrl-C ends the first within a second."""
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+
+    def teleoperator(log: Path) -> subprocess.Popen[str]:
+        cmd = [*TELEOP, "teleoperator", "--robot", f"franka:{franky_sim.host}", "--dof", "3", "--insecure"]
+        cmd += ["--listen", f"127.0.0.1:{_free_port()}", "--log", str(log), "--quiet"]
+        cmd += ["--connect-timeout", "120"]  # it waits for an operator while the second tries
+        return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+
+    n = len(franky_sim.lines)
+    first = teleoperator(tmp_path / "first")
+    with contextlib.ExitStack() as stack:
+        stack.callback(first.kill)
+        probe = franky_sim.wait_line("Accepted new connection", n, timeout_s=30)
+        assert (
+            probe is not None and franky_sim.wait_line("Accepted new connection", probe + 1, 30) is not None
+        )
+        assert first.poll() is None  # it holds the arm, waiting for an operator
+        t0 = time.monotonic()
+        second = subprocess.run(
+            [*TELEOP, "teleoperator", "--robot", f"franka:{franky_sim.host}", "--dof", "3", "--insecure",
+             "--listen", f"127.0.0.1:{_free_port()}", "--log", str(tmp_path / "second")],
+            capture_output=True, text=True, timeout=60, env=env,
+        )  # fmt: skip
+        assert second.returncode == 1 and time.monotonic() - t0 < 30
+        lines = second.stderr.strip().splitlines()
+        assert len(lines) == 1 and "Traceback" not in second.stderr, second.stderr
+        assert lines[0].startswith(f"teleop teleoperator: error: robot 'franka' at {franky_sim.host}: ")
+        assert "another client holds the arm" in lines[0]
+        assert not (tmp_path / "second").exists() or not any((tmp_path / "second").iterdir())  # no session
+        first.send_signal(signal.SIGINT)
+        t0 = time.monotonic()
+        first.wait(timeout=5)
+        assert time.monotonic() - t0 < 1.0
