@@ -342,7 +342,9 @@ def describe(dev: dict[str, Any]) -> str | None:
         return (
             f"robot {dev['spec']}: success rate {dev['control_command_success_rate']:.3f} "
             f"(min {dev['min_success_rate']:.3f}), missed robot ticks {dev['missed_robot_ticks']}, "
-            f"stale reads {dev['stale_reads']}, drift {1e3 * dev['drift_m']:.1f} mm "
+            f"stale reads {dev['stale_reads']}"
+            + (f" (implausible {n})" if (n := dev.get("implausible_reads")) else "")
+            + f", drift {1e3 * dev['drift_m']:.1f} mm "
             f"(max {1e3 * dev['max_drift_m']:.1f}), port energy min {dev['min_port_energy_J']:.3e} J, "
             f"reflex {dev['reflex'] or 'none'}"
         )
