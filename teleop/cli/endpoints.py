@@ -94,6 +94,9 @@ def cmd_teleoperator(args: argparse.Namespace) -> int:
     except DeviceError as e:
         print(f"teleop teleoperator: error: {one_line(e)}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        print("teleop teleoperator: interrupted while taking the robot", file=sys.stderr)
+        return 130
     try:
         return run_endpoint(opts, None, pins)
     finally:
