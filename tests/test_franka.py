@@ -281,6 +281,27 @@ def test_a_robot_in_reflex_at_the_start_needs_recover() -> None:
     assert arm.recovered == 1
 
 
+def test_libfrankas_blocking_calls_leave_ctrl_c_to_the_kernel() -> None:
+    """pylibfranka keeps the interpreter while it waits (a busy arm: forever), so no Python handler
+    could run: during the connect SIGINT/SIGTERM are at their default action (the process ends at
+    once); the handlers are back afterwards."""
+    seen: list[tuple[Any, Any]] = []
+    arm = _FakeArm()
+
+    class Lib(_Lib):
+        class RealtimeConfig:
+            kIgnore, kEnforce = "ignore", "enforce"
+
+        def Robot(self, host: str, cfg: str) -> _FakeArm:  # pylibfranka's name
+            seen.append((signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)))
+            return arm
+
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    FrankaRobot(3, 0.001, "127.0.0.1:rt=ignore", lib=Lib())
+    assert seen == [(signal.SIG_DFL, signal.SIG_DFL)]
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+
+
 def test_close_finishes_the_motion_once() -> None:
     dev, arm = _fake()
     _step(dev, 0.0, [0.0, 0.0, 0.0])
