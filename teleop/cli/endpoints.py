@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -94,7 +95,23 @@ def cmd_teleoperator(args: argparse.Namespace) -> int:
     envelope = robot_envelope(args)  # before the endpoint: a bad limit stops here, in one line
     opts = endpoint_options(args, "teleoperator", args.listen or ("127.0.0.1", 0))
     opts.local_limits = envelope
-    return run_endpoint(opts, None, pins)
+    from teleop.cli.args import one_line
+    from teleop.devices import DeviceError, claim
+
+    try:
+        # A hardware robot is taken before any operator is answered: an arm another teleoperator
+        # holds (or one in a reflex) is one line now, not a welcome and then a failed start.
+        release = claim(args.robot, "robot")
+    except DeviceError as e:
+        print(f"teleop teleoperator: error: {one_line(e)}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("teleop teleoperator: interrupted while taking the robot", file=sys.stderr)
+        return 130
+    try:
+        return run_endpoint(opts, None, pins)
+    finally:
+        release()
 
 
 def _names(text: str | None, allowed: tuple[str, ...], flag: str) -> tuple[str, ...] | None:
