@@ -45,6 +45,7 @@ def one_line(text: object) -> str:
 
 MAX_GRACE_US = 900.0  # the wait for a late payload must end well within the 1 ms tick
 MAX_CONNECT_TIMEOUT_S = 86400.0  # a day: longer waits overflow the loop's nanosecond clock
+CONNECT_TIMEOUT_S = 10.0  # the operator's wait for its robot's answer
 MAX_PORT = 65535
 
 
@@ -509,9 +510,10 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--connect-timeout",
         type=positive_float("connect timeout", MAX_CONNECT_TIMEOUT_S, "s"),
-        default=10.0,
+        default=None,
         metavar="S",
-        help="give up if the peer does not answer within S seconds (default 10)",
+        help=f"give up if the peer does not answer within S seconds (default {CONNECT_TIMEOUT_S:g}; "
+        "a teleoperator waits for its operator until stopped, see its --wait)",
     )
     p.add_argument("--no-rt", action="store_true", help="do not ask for SCHED_FIFO priority nor lock memory")
     p.add_argument("--asyncio", action="store_true", help="use the stdlib asyncio loop instead of uvloop")
@@ -622,3 +624,20 @@ def add_transport_args(p: argparse.ArgumentParser) -> None:
         type=zenoh_config_file,
         help="Zenoh JSON5 config loaded first (deploy/zenoh/*.json5; a regular file of at most 1 MiB)",
     )
+
+
+def connect_timeout(args: argparse.Namespace) -> float:
+    """``--connect-timeout``, or its default: how long an operator waits for its robot's answer."""
+    given: float | None = getattr(args, "connect_timeout", None)
+    return CONNECT_TIMEOUT_S if given is None else given
+
+
+def teleoperator_wait(args: argparse.Namespace) -> float:
+    """How long a teleoperator waits for an operator's hello: ``--wait`` (0: until stopped), else
+    ``--connect-timeout`` if given (``teleop run`` bounds its child so), else until stopped.  A
+    robot is started before its operator, often by another person in another terminal: it waits."""
+    wait: float | None = getattr(args, "wait", None)
+    if wait is not None:
+        return math.inf if wait == 0 else wait
+    given: float | None = getattr(args, "connect_timeout", None)
+    return math.inf if given is None else given

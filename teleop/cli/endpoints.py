@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from teleop.cli.args import (
+    MAX_CONNECT_TIMEOUT_S,
     CliError,
     Subcommands,
     add_device_args,
@@ -264,6 +265,14 @@ def add_teleoperator_parser(sub: Subcommands) -> None:
     add_endpoint_args(t)
     add_key_args(t, "required unless --insecure")
     add_transport_args(t)
+    t.add_argument(
+        "--wait",
+        type=nonneg_float("wait", MAX_CONNECT_TIMEOUT_S, "s"),
+        default=None,
+        metavar="S",
+        help="give up (exit 1) if no operator says hello within S seconds (default 0: wait until "
+        "stopped, printing where it listens and what it refused)",
+    )
     t.set_defaults(func=cmd_teleoperator)
 
 

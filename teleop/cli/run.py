@@ -39,6 +39,7 @@ from teleop.cli.args import (
     add_passivity_args,
     add_process_args,
     add_session_args,
+    connect_timeout,
     int_range,
 )
 from teleop.cli.endpoints import envelope_flags
@@ -201,7 +202,7 @@ def build_commands(args: argparse.Namespace, params: Any, logs: Path, key: RunKe
 
 def _process_options(args: argparse.Namespace, logs: Path) -> list[str]:
     """Options both children get: where to log, how long to wait, which loop."""
-    common = ["--log", str(logs), "--connect-timeout", str(args.connect_timeout), "--quiet"]
+    common = ["--log", str(logs), "--connect-timeout", str(connect_timeout(args)), "--quiet"]
     common += ["--no-rt"] if args.no_rt else []
     common += ["--asyncio"] if args.asyncio else []
     common += ["--tick-at", args.tick_at]
@@ -348,7 +349,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGINT, signal.default_int_handler)
         router = _start_router(net)
         try:
-            timeout = math.inf if params.until_stopped else params.duration + 2 * args.connect_timeout + 10
+            wait = connect_timeout(args)
+            timeout = math.inf if params.until_stopped else params.duration + 2 * wait + 10
             codes, interrupted = _run_pair(cmds.teleoperator, cmds.operator, timeout, key.pass_fds)
         finally:
             if router is not None:

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from teleop import limits
-from teleop.cli.args import CliError
+from teleop.cli.args import CliError, connect_timeout, teleoperator_wait
 from teleop.control.codecs import CodecError
 from teleop.devices.scenarios import SCENARIOS
 from teleop.session.settings import DEFAULTS, Channel
@@ -205,7 +205,7 @@ def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int
         listen=listen,
         peer=getattr(args, "peer", None),
         log_dir=log_dir,
-        connect_timeout=args.connect_timeout,
+        connect_timeout=teleoperator_wait(args) if role == "teleoperator" else connect_timeout(args),
         rt_priority=None if args.no_rt else 10,
         use_uvloop=not args.asyncio,
         tick_at=args.tick_at,

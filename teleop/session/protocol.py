@@ -98,6 +98,7 @@ _MAX_NAME_LEN = 64
 #: Reasons of the last rejected hellos that a teleoperator keeps for its report.
 REJECTIONS_KEPT = 16
 START_AHEAD_NS = 10_000_000_000  # a start at most this far ahead of the teleoperator's clock
+NEVER_NS = 1 << 62  # a handshake timer that never comes (about 146 years of the monotonic clock)
 START_SLACK_NS = 1_000_000_000  # or this far behind it (a fresh session: the operator leads by 300 ms)
 #: The start's lead follows the measured round trip: at least ``start_lead_ns``, and at least
 #: ``start_margin_ns + START_LEAD_RTTS * rtt + START_LEAD_SLACK_NS``.  With jitter up to half the
@@ -1054,7 +1055,8 @@ class TeleoperatorHandshake:
         self.expect = Pins.of(expect).pinned()
         self.local_netem = frozenset(local_netem) | configured_netem(self.expect)
         self.timeout_s = timeout_s
-        self._give_up = now_ns + round(timeout_s * 1e9)
+        # inf: a robot that waits for its operator until it is stopped
+        self._give_up = now_ns + round(timeout_s * 1e9) if math.isfinite(timeout_s) else NEVER_NS
         self.params: SessionParams | None = None
         self.peer: Addr | None = None
         self.start_ns = 0
