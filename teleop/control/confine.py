@@ -142,9 +142,10 @@ class Confinement:
             return z
         return np.array([zi if zi > 0.0 else zh[i] for i, zi in enumerate(zl)])
 
-    def command(self, v: Array, f0: Array, z: Array) -> Array | None:
+    def command(self, v: Array, f0: Array, z: Array, f: Array | None = None) -> Array | None:
         """The velocity the device is commanded, within the envelope per DoF (module docstring),
-        or None where that is ``v`` itself.  ``z``: the effective feedthrough (:meth:`effective`)."""
+        or None where that is ``v`` itself.  ``z``: the effective feedthrough (:meth:`effective`);
+        ``f``: ``f0 + z v`` if the caller has it (a cheaper test of the common case)."""
         vl, fl = v.tolist(), f0.tolist()
         vmax, fmax = self.max_velocity, self.max_force
         if (
@@ -152,8 +153,12 @@ class Confinement:
             and min(vl) >= -vmax
             and max(fl) <= fmax
             and min(fl) >= -fmax
-            and (z is self._z_free or self._free_of(z))
-        ):  # within every limit with no feedthrough to push a force past one (most ticks)
+            and (
+                z is self._z_free
+                or (f is not None and max(fe := f.tolist()) <= fmax and min(fe) >= -fmax)
+                or self._free_of(z)
+            )
+        ):  # within every limit, and the force the tick ends with too (most ticks)
             self._last = (self._f0, vl)
             return None
         out, relief = confined(vl, fl, z.tolist(), vmax, fmax)
