@@ -3,6 +3,7 @@ operator and says where, a Ctrl-C that is a person's choice, not an error."""
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -60,3 +61,36 @@ def test_a_robot_told_to_wait_a_while_gives_up_in_one_line(tmp_path: Path) -> No
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 2 and "waiting for an operator for at most 0.5 s" in lines[0]
     assert lines[1].startswith("teleop teleoperator: error: no operator said hello within 0.5 s")
+
+
+PLUGIN = '''
+import numpy as np
+
+class Arm:
+    role = "robot"
+    hardware = False  # a model: teleop sim may build it
+
+    def __init__(self, dof, dt, arg):
+        self.z = np.zeros(dof)
+
+    def affine(self, now):
+        return np.zeros(len(self.z)), self.z
+
+    def advance(self, now, v, f):
+        pass
+'''
+
+
+@pytest.mark.integration
+def test_a_device_plug_in_in_the_current_folder_is_found(tmp_path: Path) -> None:
+    """The installed ``teleop`` command (not ``python -m``, which has the folder already), run
+    where the plug-in lies, with no PYTHONPATH."""
+    (tmp_path / "mydevices_first_hour.py").write_text(PLUGIN)
+    teleop = Path(sys.executable).with_name("teleop")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    r = subprocess.run(
+        [str(teleop), "sim", "--robot", "mydevices_first_hour:Arm", "--duration", "0.2", "--out", "o"],
+        capture_output=True, text=True, timeout=120, cwd=tmp_path, env=env,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "o" / "results.json").is_file()

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 from collections.abc import Sequence
 
 from teleop.cli import conformance, doctor, endpoints, experiment, keygen, report, run, sim, sweep
@@ -28,6 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    _local_plugins()
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
@@ -39,3 +42,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
     return rc
+
+
+def _local_plugins() -> None:
+    """The current folder at the end of the import path, as ``python -m`` has it at the start: a
+    device plug-in there (``--robot mydevices:Arm``) is found without ``PYTHONPATH=.``, and being
+    last it never shadows an installed module (numpy, teleop itself)."""
+    here = os.getcwd()
+    if "" not in sys.path and here not in sys.path:
+        sys.path.append(here)
