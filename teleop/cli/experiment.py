@@ -173,10 +173,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     write_new(out / "experiment.json", (json.dumps(doc, indent=2) + "\n").encode())
     from teleop.offline import plots
 
-    title = (
-        f"{args.scenario}: {args.runs} runs per codec (variation {args.variation:g}), mean +- std, {where}"
-    )
-    plots.experiment_bars(out / "fig15.png", doc, title)
+    plots.experiment_bars(out / "fig15.png", doc, plots.experiment_title(doc))
     print(format_table(doc))
     if paired := format_paired(doc):
         print(paired)

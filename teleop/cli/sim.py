@@ -142,8 +142,9 @@ def _write_results(out: Path, doc: dict[str, Any], cases: list[Any]) -> None:
     from teleop.offline import plots
 
     write_new(out / "results.json", (json.dumps(doc, indent=2) + "\n").encode())
-    for c in cases:
+    for c, dc in zip(cases, doc["cases"], strict=True):
         tr = c.trace
+        phases = {n: (p["start"], p["end"]) for n, p in dc["phases"].items() if n != "all" and "start" in p}
         plots.velocity_force(
             out / f"{plots.safe_name(c.codec)}.png",
             tr.t,
@@ -151,9 +152,24 @@ def _write_results(out: Path, doc: dict[str, Any], cases: list[Any]) -> None:
             tr.v_to,
             tr.f_hsi,
             tr.f_to,
-            f"{c.codec}: I = {c.summary['I']:.3e}, c = {c.summary['compression']:.3g}:1",
+            f"{c.codec}, {_arch(doc)}, teleop sim, {_impairment(doc)}: I = {c.summary['I']:.3e}, "
+            f"c = {c.summary['compression']:.3g}:1",
+            phases,
         )
     print(f"wrote {out / 'results.json'} and {len(cases)} PNG plots")
+
+
+def _arch(doc: dict[str, Any]) -> str:
+    return "TDPA" if str(doc.get("passivity")) == "tdpa" else "wave variables"
+
+
+def _impairment(doc: dict[str, Any]) -> str:
+    """The run's links, for a figure's title."""
+    net = doc.get("netem") or {}
+    fwd, bwd = net.get("forward") or "", net.get("backward") or ""
+    if not fwd and not bwd:
+        return "no impairment"
+    return f"netem {fwd}" if fwd == bwd else f"netem {fwd or 'none'} / {bwd or 'none'}"
 
 
 def cmd_sim(args: argparse.Namespace) -> int:

@@ -589,6 +589,7 @@ def build(
     rep: dict[str, Any] = {
         "transport": transport,
         "codec": p.codec,
+        "architecture": str(p.passivity),
         "scenario": p.scenario,
         "duration_s": p.duration or ticks * dt,
         "until_stopped": p.duration == 0,
@@ -774,11 +775,17 @@ def write_plots(log_dir: Path, out: Path, rep: dict[str, Any], suffix: str = "")
     fold = _load(log_dir, rep["session"]).fold
     dt = fold.dt
     files = []
+    what = figure_title(rep)
     k, sig = fold.signals.get()
     t = k.astype(np.float64) * dt
     f1 = out / f"signals{suffix}.png"
-    title = f"{rep['codec']} over {rep['transport']}: I = {rep['transparency']['I']:.3e}"
-    plots.velocity_force(f1, t, sig["v_op"], sig["v_to"], sig["f_op"], sig["f_to"], title)
+    phases = {
+        n: (float(p["start"]), float(p["end"]))
+        for n, p in (rep.get("phases") or {}).items()
+        if n != "all" and isinstance(p, dict) and "start" in p and "end" in p
+    }
+    title = f"{what}: I = {rep['transparency']['I']:.3e}"
+    plots.velocity_force(f1, t, sig["v_op"], sig["v_to"], sig["f_op"], sig["f_to"], title, phases)
     files.append(f1)
     f2 = out / f"bandwidth{suffix}.png"
     k, bw = fold.bandwidth.get()
@@ -790,6 +797,7 @@ def write_plots(log_dir: Path, out: Path, rep: dict[str, Any], suffix: str = "")
             "forward": (t, bw.get("fwd"), bw.get("fwd_base")),
             "backward": (t, bw.get("bwd"), bw.get("bwd_base")),
         },
+        f"{what}: bandwidth",
     )
     files.append(f2)
     f4 = out / f"energy{suffix}.png"
@@ -801,12 +809,28 @@ def write_plots(log_dir: Path, out: Path, rep: dict[str, Any], suffix: str = "")
             "forward": (en["fwd_sent"], en["fwd_played"], en["fwd_margin"]),
             "backward": (en["bwd_sent"], en["bwd_played"], en["bwd_margin"]),
         },
+        f"{what}: energy",
     )
     files.append(f4)
     f3 = out / f"loop_timing{suffix}.png"
-    plots.timing_histogram(f3, {r: late.values() for r, late in fold.lateness.items()})
+    lateness = {r: late.values() for r, late in fold.lateness.items()}
+    plots.timing_histogram(f3, lateness, f"{what}: tick lateness of the two loops")
     files.append(f3)
     return files
+
+
+def figure_title(rep: dict[str, Any]) -> str:
+    """What a figure shows, in its title: codec, architecture, transport and impairment."""
+    link = rep.get("link") or {}
+    specs = {d: (link.get(d) or {}).get("spec") or "" for d in ("forward", "backward")}
+    if not any(specs.values()):
+        net = "no impairment"
+    elif specs["forward"] == specs["backward"]:
+        net = f"netem {specs['forward']}"
+    else:
+        net = f"netem {specs['forward'] or 'none'} / {specs['backward'] or 'none'}"
+    arch = {"wave": "wave variables", "tdpa": "TDPA"}.get(str(rep.get("architecture")), "")
+    return ", ".join(x for x in (str(rep.get("codec")), arch, f"over {rep.get('transport')}", net) if x)
 
 
 def summary_text(rep: dict[str, Any], command: str = "teleop run") -> str:
