@@ -10,6 +10,7 @@ is, shows what the fast suite alone costs).
 from __future__ import annotations
 
 import compileall
+import contextlib
 import multiprocessing.process
 import os
 import platform
@@ -108,6 +109,15 @@ def pytest_sessionstart(session: pytest.Session) -> None:
     _WALL.append(time.monotonic())
     _compile_the_project()
     _font_cache()
+    _mujoco()
+
+
+def _mujoco() -> None:
+    """MuJoCo imported before any test: its import loads glfw, whose version probe is a child
+    process, and the fast suite's guard then failed whichever test checked ``--robot mujoco``
+    first (``test_devices``, ``test_config``)."""
+    with contextlib.suppress(ImportError):  # an install without the extra: its tests skip
+        import mujoco  # noqa: F401
 
 
 def _font_cache() -> None:

@@ -7,7 +7,7 @@ import os
 import sys
 from collections.abc import Sequence
 
-from teleop.cli import conformance, doctor, endpoints, experiment, keygen, report, run, sim, sweep
+from teleop.cli import config, conformance, doctor, endpoints, experiment, keygen, report, run, sim, sweep
 from teleop.cli.args import CliError, Parser, one_line
 from teleop.files import FileRefused
 
@@ -26,13 +26,28 @@ def build_parser() -> argparse.ArgumentParser:
     keygen.add_parser(sub)
     conformance.add_parser(sub)
     doctor.add_parser(sub)
+    for name in config.COMMANDS:
+        config.add_config_args(sub.choices[name])
     return p
+
+
+def _commands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(sub.choices)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     _local_plugins()
     parser = build_parser()
+    commands = _commands(parser)
+    try:
+        argv = config.expand(sys.argv[1:] if argv is None else argv, commands)
+    except (CliError, FileRefused) as e:
+        parser.exit(2, f"teleop: error: {one_line(e)}\n")
     args = parser.parse_args(argv)
+    if getattr(args, "print_config", False):
+        print(config.text(args.command, commands[args.command], argv[1:]), end="")
+        return 0
     try:
         rc: int = args.func(args)
     except CliError as e:
