@@ -584,7 +584,7 @@ MAX_STATE_VALUES = 64  # numbers in one device state sample (a Franka's: 31)
 
 
 def read_states(
-    path: Path, max_tick: int
+    path: Path, max_tick: int, blocks: list[bytes] | None = None
 ) -> tuple[npt.NDArray[np.int64], list[str], npt.NDArray[np.float64]]:
     """The device's state samples of a log (``/ROLE/state``, ``teleop.devices``: a device's
     ``state()`` every ``state_every`` ticks): their ticks, the names of their values (``pose.0``,
@@ -594,12 +594,12 @@ def read_states(
     Hostile input as everywhere here: a sample beyond ``max_tick``, out of order, with other fields
     than the first, more than :data:`MAX_STATE_VALUES` numbers, or a number over
     :data:`MAX_TICK_VALUE` is :class:`LogError`; at most one sample a tick, so ``max_tick`` bounds
-    the allocation."""
+    the allocation.  ``blocks``: the topic's messages already read (:func:`read_columns`' ``extra``)."""
     topic = f"/{_role(path)}/state"
     ks: list[int] = []
     rows: list[list[float]] = []
     layout: list[tuple[str, int]] | None = None
-    for block in topic_lines(path, [topic])[topic]:  # a chunk's messages, one a line
+    for block in topic_lines(path, [topic])[topic] if blocks is None else blocks:  # a chunk's, one a line
         try:
             ms = json.loads(b"[" + b",".join(ln for ln in block.split(b"\n") if ln.strip()) + b"]")
         except (ValueError, RecursionError) as e:
@@ -684,18 +684,18 @@ def _index_payloads(
         got = _chunk_payloads(data[a:b], channels)
         if got:  # a message the index did not list
             return None
-    # Each record header (31 bytes) becomes blanks and a newline: every run of consecutive messages
-    # of a topic is then newline-delimited JSON as it lies, taken with one slice.
+    # Each wanted record's header (31 bytes) becomes blanks and a newline: every run of consecutive
+    # messages of a topic is then newline-delimited JSON as it lies, taken with one slice.
+    want_ids = [cid for cid in np.unique(ids).tolist() if channels.get(cid) in wanted]
+    if any(cid not in channels for cid in np.unique(ids).tolist()):
+        return None
+    mine = np.isin(ids, want_ids)
     lined = buf.copy()
-    lined[(offs[:, None] + np.arange(30)).ravel()] = 0x20
-    lined[offs + 30] = 0x0A
+    lined[(offs[mine][:, None] + np.arange(30)).ravel()] = 0x20
+    lined[offs[mine] + 30] = 0x0A
     out: dict[str, bytes] = {}
-    for cid in np.unique(ids).tolist():
-        topic = channels.get(cid)
-        if topic is None:
-            return None
-        if topic not in wanted:
-            continue
+    for cid in want_ids:
+        topic = channels[cid]
         sel = ids == cid
         # Runs: a message that does not directly follow one of its topic starts one.
         follows = np.concatenate([[False], sel[:-1] & sel[1:] & (ends[:-1] == offs[1:])])
@@ -752,7 +752,9 @@ def topic_lines(
     return out
 
 
-def read_columns(path: Path, topics: tuple[str, ...], max_tick: int) -> dict[str, npt.NDArray[Any]]:
+def read_columns(
+    path: Path, topics: tuple[str, ...], max_tick: int, extra: dict[str, list[bytes]] | None = None
+) -> dict[str, npt.NDArray[Any]]:
     """The per-tick record of ``topics`` as :func:`read_log` gives it (whole-session arrays from
     tick 0 by the record's names, ``ran``; a tick not run or a row missing filled as
     :func:`iter_ticks` fills them), read at C speed: messages through the chunks' indexes
@@ -765,7 +767,10 @@ def read_columns(path: Path, topics: tuple[str, ...], max_tick: int) -> dict[str
 
     role = _role(path)
     wanted = ("signals", *(t for t in topics if t != "signals"))
-    lines = topic_lines(path, [f"/{role}/{t}" for t in wanted])
+    lines = topic_lines(path, [f"/{role}/{t}" for t in (*wanted, *(extra or {}))])
+    if extra is not None:
+        for t in extra:
+            extra[t] = lines[f"/{role}/{t}"]
     cols: dict[str, dict[str, npt.NDArray[Any]]] = {}
     dof = 0
     for t in wanted:
