@@ -49,7 +49,7 @@ class _Sink:
 
 
 def _session(
-    folder: Path, ticks: int, session: int = 7, stall: range = range(0), robot: str = "mujoco"
+    folder: Path, ticks: int, session: int = 7, stall: range = range(0), robot: str | None = "mujoco"
 ) -> Path:
     """Two ports over ``ticks`` (the teleoperator a half tick behind, skipping ``stall``), their logs
     written as the runner writes them: ``folder/operator.mcap`` and ``folder/teleoperator.mcap``."""
@@ -228,6 +228,19 @@ def test_sessions_make_one_dataset_with_their_tasks(logs: Path, tmp_path: Path) 
         "v3.0", 2, 200, 50,
     )  # fmt: skip
     assert info["features"]["observation.robot.force"]["shape"] == [20, DOF]
+
+
+def test_robots_with_other_states_share_a_dataset_without_the_state(
+    logs: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A MuJoCo robot's session beside one of a robot without a state: the state feature is left
+    out, and the export says why in one line per episode."""
+    other = _session(tmp_path / "b", 500, session=8, robot=None)
+    out = tmp_path / "ds"
+    assert main(["export", str(logs), str(other), "--to", "lerobot", "--out", str(out)]) == 0
+    assert "observation.robot.state is left out" in capsys.readouterr().out
+    assert "observation.robot.state" not in _info(out)["features"]
+    assert _info(out)["total_frames"] == 150 + 25
 
 
 def test_the_robots_pose_reads_back_as_foxglove_transforms(logs: Path) -> None:

@@ -47,10 +47,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     episodes = []
     try:
         for d in logs:
-            ep = lerobot.read_episode(d, args.fps, args.session)
-            for note in ep.notes:
-                print(one_line(f"note: {d}: {note}"))
-            episodes.append(ep)
+            episodes.append(lerobot.read_episode(d, args.fps, args.session))
         texts = [tasks[i] if len(tasks) > 1 else tasks[0] if tasks else f"{ep.scenario} scenario, "
                  f"{ep.dof} DoF" for i, ep in enumerate(episodes)]  # fmt: skip
         info = lerobot.export(episodes, texts, out, args.fps)
@@ -59,6 +56,9 @@ def cmd_export(args: argparse.Namespace) -> int:
     except OSError as e:
         raise CliError(f"cannot export into {out}: {e.strerror or e}") from None
     took = time.perf_counter() - started
+    for d, ep in zip(logs, episodes, strict=True):
+        for note in ep.notes:
+            print(one_line(f"note: {d}: {note}"))
     seconds = sum(next(iter(ep.ticks.values())).shape[0] * ep.dt for ep in episodes)
     win = round(1 / (args.fps * episodes[0].dt))
     print(

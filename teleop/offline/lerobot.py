@@ -31,6 +31,7 @@ import numpy.typing as npt
 
 from teleop.errors import LocalError
 from teleop.offline.logfile import LogError, find_pair, log_session, read_columns, read_states
+from teleop.session.protocol import ProtocolError, SessionParams
 
 __all__ = ["FEATURES", "Episode", "ExportError", "export", "read_episode", "ticks_of"]
 
@@ -163,15 +164,27 @@ def _delay(
     return out
 
 
+def _params(path: Path, p: Any) -> SessionParams:
+    """A log's session parameters held to what a peer's hello is held to (as ``teleop report``
+    does: every type and range checked before one sizes anything)."""
+    if not isinstance(p, dict):
+        raise LogError(f"{path}: its session parameters are not a map")
+    m = {k: v for k, v in p.items() if k != "full_scale"}
+    m["range"] = p.get("full_scale")
+    own = [v for k in ("netem_forward", "netem_backward") if isinstance(v := p.get(k), str)]
+    try:
+        return SessionParams.from_msg(m, local_netem=own)
+    except ProtocolError as e:
+        raise LogError(f"{path}: its session parameters: {e}") from None
+
+
 def read_episode(log_dir: Path, fps: int, session: int | None = None) -> Episode:
     """The episode of one session in ``log_dir`` (its newest with both logs, or ``session``): the
     ticks both sides ran, from the first to the last, cut to whole frames of ``1/fps``."""
     op_path, to_path, notes = find_pair(log_dir, session)
     sid, summary, params = log_session(to_path)
     op_summary = log_session(op_path)[1]
-    from teleop.offline.report import _checked_params
-
-    p = _checked_params(to_path, params)
+    p = _params(to_path, params)
     w = 1.0 / (fps * p.dt)
     if abs(w - round(w)) > 1e-9 or round(w) < 1:
         rate = round(1 / p.dt)
@@ -385,12 +398,21 @@ def export(episodes: list[Episode], tasks: list[str], out: Path, fps: int) -> di
 
     first = episodes[0]
     for ep in episodes[1:]:
-        if (ep.dof, ep.dt, ep.state_names) != (first.dof, first.dt, first.state_names):
+        if (ep.dof, ep.dt) != (first.dof, first.dt):
             raise ExportError(
-                f"{ep.name} has {ep.dof} DoF at {1 / ep.dt:g} Hz, robot state {ep.state_names[:3]}..., "
-                f"{first.name} {first.dof} DoF at {1 / first.dt:g} Hz, {first.state_names[:3]}...: "
-                "one dataset holds sessions of one kind (export them separately)"
+                f"{ep.name} has {ep.dof} DoF at {1 / ep.dt:g} Hz, {first.name} {first.dof} DoF at "
+                f"{1 / first.dt:g} Hz: one dataset holds sessions of one kind (export them separately, "
+                "or record them with the same --dof)"
             )
+    layouts = {(tuple(ep.state_names), ep.state_every) for ep in episodes}
+    if len(layouts) > 1:  # robots with other states (a MuJoCo robot and a Franka): no common feature
+        for ep in episodes:
+            ep.notes.append(
+                "observation.robot.state is left out: the episodes' robots log different states "
+                "(export each robot's sessions apart to keep it)"
+            )
+            ep.state_names, ep.state_every = [], 0
+            ep.ticks.pop("observation.robot.state", None)
     win = round(1.0 / (fps * first.dt))
     feats = [f for f in FEATURES if f.per != "state" or first.state_names]
     task_list = list(dict.fromkeys(tasks))
@@ -482,7 +504,7 @@ def export(episodes: list[Episode], tasks: list[str], out: Path, fps: int) -> di
         _json(tmp / "meta/stats.json", _jsonable({k: _aggregate(v) for k, v in all_stats.items()}))
         info = {
             "codebase_version": CODEBASE_VERSION,
-            "robot_type": first.robot or None,
+            "robot_type": ", ".join(dict.fromkeys(ep.robot for ep in episodes if ep.robot)) or None,
             "total_episodes": len(episodes),
             "total_frames": index,
             "total_tasks": len(task_list),
