@@ -269,6 +269,30 @@ def test_the_robots_pose_reads_back_as_foxglove_transforms(logs: Path) -> None:
     assert moved > 100  # the tip moves: the transforms are the robot's, not a constant
 
 
+def test_the_docs_foxglove_layout_names_topics_a_session_has(logs: Path) -> None:
+    """Every topic the shipped layout (docs/guides/foxglove-layout.json) plots or shows is a channel
+    of a session's logs, with a field its schema has: a renamed topic breaks this test, not the layout."""
+    import re
+
+    from mcap.reader import make_reader
+
+    layout = (ROOT / "docs/guides/foxglove-layout.json").read_text()
+    json.loads(layout)
+    channels: dict[str, set[str]] = {}
+    for role in ("operator", "teleoperator"):
+        with (logs / f"{role}.mcap").open("rb") as f:
+            summary = make_reader(f).get_summary()
+        assert summary is not None
+        for c in summary.channels.values():
+            schema = json.loads(summary.schemas[c.schema_id].data)
+            channels[c.topic] = set(schema.get("properties", {}))
+    paths = re.findall(r'"(/(?:operator|teleoperator)/[a-z_]+)(?:\.([a-z_]+))?', layout)
+    assert len(paths) >= 8
+    for topic, fieldname in paths:
+        assert topic in channels, topic
+        assert not fieldname or fieldname in channels[topic], (topic, fieldname)
+
+
 def test_a_killed_sessions_log_gives_one_line_and_the_whole_frames(
     logs: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

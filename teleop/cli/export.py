@@ -50,7 +50,8 @@ def cmd_export(args: argparse.Namespace) -> int:
             episodes.append(lerobot.read_episode(d, args.fps, args.session))
         texts = [tasks[i] if len(tasks) > 1 else tasks[0] if tasks else f"{ep.scenario} scenario, "
                  f"{ep.dof} DoF" for i, ep in enumerate(episodes)]  # fmt: skip
-        info = lerobot.export(episodes, texts, out, args.fps)
+        notes: list[str] = []
+        info = lerobot.export(episodes, texts, out, args.fps, notes)
     except (LogError, lerobot.ExportError, FileRefused) as e:
         raise CliError(f"cannot export: {e}") from None
     except OSError as e:
@@ -59,6 +60,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     for d, ep in zip(logs, episodes, strict=True):
         for note in ep.notes:
             print(one_line(f"note: {d}: {note}"))
+    for note in notes:
+        print(one_line(f"note: {note}"))
     seconds = sum(next(iter(ep.ticks.values())).shape[0] * ep.dt for ep in episodes)
     win = round(1 / (args.fps * episodes[0].dt))
     print(
