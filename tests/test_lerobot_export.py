@@ -401,3 +401,24 @@ def test_lerobots_own_loader_reads_the_dataset(logs: Path, tmp_path: Path) -> No
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(pytest.main([__file__]))
+
+
+def test_a_frankas_state_for_the_log() -> None:
+    """FrankaRobot.state(): the pose (position, unit quaternion of the orientation, Foxglove's
+    x, y, z, w order), q, dq, measured torques and the set-point, from the newest read; and the
+    quaternion of a known rotation."""
+    from teleop.devices.franka import _quaternion
+    from tests.test_franka import _fake, _step
+
+    dev, arm = _fake()
+    arm.next_state.tau_J = [0.5 * i for i in range(7)]
+    arm.next_state.q = [0.1 * i for i in range(7)]
+    _step(dev, 0.0, [0.0, 0.0, 0.0])
+    state = dev.state()
+    assert state["pose"] == [0.5, 0.0, 0.5, 0.0, 0.0, 0.0, 1.0]
+    assert state["q"] == [0.1 * i for i in range(7)] and state["tau"] == [0.5 * i for i in range(7)]
+    assert len(state["dq"]) == 7 and state["setpoint"] == [0.5, 0.0, 0.5]
+    assert dev.state_every == 10
+    c, s = math.cos(math.pi / 3), math.sin(math.pi / 3)  # 60 degrees about z
+    got = _quaternion(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]))
+    np.testing.assert_allclose(got, [0.0, 0.0, math.sin(math.pi / 6), math.cos(math.pi / 6)], atol=1e-12)
