@@ -49,10 +49,17 @@ class _Sink:
 
 
 def _session(
-    folder: Path, ticks: int, session: int = 7, stall: range = range(0), robot: str | None = "mujoco"
+    folder: Path,
+    ticks: int,
+    session: int = 7,
+    stall: range = range(0),
+    robot: str | None = "mujoco",
+    rejoin: range | None = None,
 ) -> Path:
     """Two ports over ``ticks`` (the teleoperator a half tick behind, skipping ``stall``), their logs
-    written as the runner writes them: ``folder/operator.mcap`` and ``folder/teleoperator.mcap``."""
+    written as the runner writes them: ``folder/operator.mcap`` and ``folder/teleoperator.mcap``.
+    ``rejoin``: the teleoperator is killed at its start (its log has no summary) and a new one
+    rejoins at its end, into ``teleoperator-SESSION.mcap``."""
     folder.mkdir(parents=True)
     params = SessionParams(
         session=session, scenario="protocol", dof=DOF, b=20.0, full_scale=2.0, duration=ticks * DT
@@ -77,7 +84,21 @@ def _session(
         backward = []
         forward += op.tick(n, now)
         op.sent(n, now)
-        if n in stall:
+        if rejoin is not None and n == rejoin.start:  # killed: its writer finishes what it had
+            to.finish()
+            writers[1].close()
+        if rejoin is not None and n == rejoin.stop:  # a new process rejoins the session
+            w = _Writer(str(folder / f"teleoperator-{session}.mcap"), "teleoperator", 1_700_000_000 * 10**9,
+                        None, "127.0.0.1")  # fmt: skip
+            w.handle("msg", ("session", now, {"role": "teleoperator", "params": dataclasses.asdict(params)}))
+            node = make_node(
+                "teleoperator", scenario="protocol", dof=DOF, dt=DT, b=20.0, codec="eds:20", full_scale=2.0,
+                session=session, options=PortOptions(), device=robot,
+            )  # fmt: skip
+            writers[1], ports[1] = w, Port(node, sink=_Sink(w))
+            to = ports[1]
+        if n in stall or (rejoin is not None and n in rejoin):
+            forward = []
             continue
         for data in forward:
             to.receive(data, now + DT / 2, n)
@@ -228,6 +249,29 @@ def test_sessions_make_one_dataset_with_their_tasks(logs: Path, tmp_path: Path) 
         "v3.0", 2, 200, 50,
     )  # fmt: skip
     assert info["features"]["observation.robot.force"]["shape"] == [20, DOF]
+
+
+def test_a_rejoined_session_gives_an_episode_per_segment(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A teleoperator killed at tick 1500 and a new one rejoining at 1600: two episodes, the killed
+    process's segment (75 frames) and the rejoined one's (70), in the order they ran, each said."""
+    logs = _session(tmp_path / "r", 3000, rejoin=range(1500, 1600))
+    out = tmp_path / "ds"
+    assert main(["export", str(logs), "--to", "lerobot", "--out", str(out), "--task", "rejoin"]) == 0
+    said = capsys.readouterr().out
+    assert "teleoperator.mcap: a rejoined session's earlier segment" in said
+    assert "teleoperator: read teleoperator-7.mcap, the one log of session 7 that was finished" in said
+    eps = pq.read_table(out / "meta/episodes/chunk-000/file-000.parquet").to_pylist()
+    assert [(e["length"], e["dataset_from_index"], e["tasks"]) for e in eps] == [
+        (75, 0, ["rejoin"]),
+        (70, 75, ["rejoin"]),
+    ]
+    _, first = read_log(logs / "teleoperator.mcap")
+    _, second = read_log(logs / "teleoperator-7.mcap")
+    action = lerobot.ticks_of(_column(out, "action"))
+    assert action[:1500].tobytes() == first["v"][:1500].tobytes()
+    assert action[1500:].tobytes() == second["v"][1600:3000].tobytes()
 
 
 def test_robots_with_other_states_share_a_dataset_without_the_state(

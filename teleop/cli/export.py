@@ -44,12 +44,13 @@ def cmd_export(args: argparse.Namespace) -> int:
     out = Path(args.out)
     private_dir(out.absolute().parent, "--out")
     started = time.perf_counter()
-    episodes = []
+    episodes, texts, dirs = [], [], []
     try:
-        for d in logs:
-            episodes.append(lerobot.read_episode(d, args.fps, args.session))
-        texts = [tasks[i] if len(tasks) > 1 else tasks[0] if tasks else f"{ep.scenario} scenario, "
-                 f"{ep.dof} DoF" for i, ep in enumerate(episodes)]  # fmt: skip
+        for i, d in enumerate(logs):
+            for ep in lerobot.read_episodes(d, args.fps, args.session):  # a rejoin: its segments too
+                episodes.append(ep)
+                dirs.append(d)
+                texts.append(tasks[i] if len(tasks) > 1 else tasks[0] if tasks else f"{ep.scenario} scenario")
         notes: list[str] = []
         info = lerobot.export(episodes, texts, out, args.fps, notes)
     except (LogError, lerobot.ExportError, FileRefused) as e:
@@ -57,7 +58,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     except OSError as e:
         raise CliError(f"cannot export into {out}: {e.strerror or e}") from None
     took = time.perf_counter() - started
-    for d, ep in zip(logs, episodes, strict=True):
+    for d, ep in zip(dirs, episodes, strict=True):
         for note in ep.notes:
             print(one_line(f"note: {d}: {note}"))
     for note in notes:

@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,10 +31,10 @@ import numpy as np
 import numpy.typing as npt
 
 from teleop.errors import LocalError
-from teleop.offline.logfile import LogError, find_pair, log_session, read_columns, read_states
+from teleop.offline.logfile import MAX_LOGS, LogError, find_pair, log_session, read_columns, read_states
 from teleop.session.protocol import ProtocolError, SessionParams
 
-__all__ = ["FEATURES", "Episode", "ExportError", "export", "read_episode", "ticks_of"]
+__all__ = ["FEATURES", "Episode", "ExportError", "export", "read_episode", "read_episodes", "ticks_of"]
 
 CODEBASE_VERSION = "v3.0"
 CHUNKS_SIZE = 1000  # files a chunk folder holds (LeRobot's default)
@@ -144,8 +145,12 @@ def _delay(
     """Per receiver tick: the newest accepted packet's delay, from its sender's send to the
     receiver's tick that first took it (both on the session clock), held until the next."""
     n = rx_seq.size
-    prev = np.concatenate([[-1], rx_seq[:-1]])
-    new = np.flatnonzero((rx_seq >= 0) & (rx_seq != prev))
+    # The newest seq before each tick, carried over ticks not run (their rx_seq is -1: no value).
+    valid = rx_seq >= 0
+    last = rx_seq[np.maximum.accumulate(np.where(valid, np.arange(n), 0))] if n else rx_seq
+    last = np.where(np.maximum.accumulate(valid), last, -1)
+    prev = np.concatenate([[-1], last[:-1]])
+    new = np.flatnonzero(valid & (rx_seq != prev))
     sent = np.flatnonzero(tx_seq >= 0)
     seqs = tx_seq[sent]
     order = np.argsort(seqs, kind="stable")
@@ -178,10 +183,46 @@ def _params(path: Path, p: Any) -> SessionParams:
         raise LogError(f"{path}: its session parameters: {e}") from None
 
 
-def read_episode(log_dir: Path, fps: int, session: int | None = None) -> Episode:
-    """The episode of one session in ``log_dir`` (its newest with both logs, or ``session``): the
-    ticks both sides ran, from the first to the last, cut to whole frames of ``1/fps``."""
+def read_episodes(log_dir: Path, fps: int, session: int | None = None) -> list[Episode]:
+    """The episodes of one session in ``log_dir`` (its newest with both logs, or ``session``),
+    paired as ``teleop report`` pairs its logs (``find_pair``), in the order they ran: the session,
+    and, where a process was killed and restarted into it (a rejoin), each earlier segment too: the
+    killed process's log beside the other role's, over the ticks both ran."""
     op_path, to_path, notes = find_pair(log_dir, session)
+    sid = log_session(to_path)[0]
+    episodes = [read_episode(log_dir, fps, pair=(op_path, to_path), notes=notes)]
+    for role, chosen in (("operator", op_path), ("teleoperator", to_path)):
+        names = sorted({*log_dir.glob(f"{role}.mcap"), *log_dir.glob(f"{role}-*.mcap")})
+        for path in names[:MAX_LOGS]:
+            if path == chosen or not path.is_file() or path.is_symlink():
+                continue
+            try:
+                other_sid, finished, _ = log_session(path)
+            except LogError:  # another user's (UntrustedLog), damaged, or not ours: find_pair said so
+                continue
+            if other_sid != sid or finished:
+                continue
+            pair = (path, to_path) if role == "operator" else (op_path, path)
+            why = f"{path.name}: a rejoined session's earlier segment (its process was killed): an episode"
+            episodes.append(read_episode(log_dir, fps, pair=pair, notes=[why]))
+    episodes.sort(key=lambda ep: ep.first_tick)
+    return episodes
+
+
+def read_episode(
+    log_dir: Path,
+    fps: int,
+    session: int | None = None,
+    pair: tuple[Path, Path] | None = None,
+    notes: list[str] | None = None,
+) -> Episode:
+    """The episode of one session in ``log_dir`` (its newest with both logs, or ``session``; or
+    the logs ``pair``, operator's then teleoperator's): the ticks both sides ran, from the first to
+    the last, cut to whole frames of ``1/fps``."""
+    if pair is None:
+        op_path, to_path, notes = find_pair(log_dir, session)
+    else:
+        (op_path, to_path), notes = pair, list(notes or [])
     sid, summary, params = log_session(to_path)
     op_summary = log_session(op_path)[1]
     p = _params(to_path, params)
@@ -304,14 +345,16 @@ def _stats(x: npt.NDArray[Any]) -> dict[str, npt.NDArray[Any]]:
         if nan
         else (np.min, np.max, np.mean, np.std, np.quantile)
     )
-    st = {
-        "min": lo(v, axis=0, keepdims=keep),
-        "max": hi(v, axis=0, keepdims=keep),
-        "mean": mean(v, axis=0, keepdims=keep),
-        "std": std(v, axis=0, keepdims=keep),
-        "count": np.array([x.shape[0]]),
-    }
-    qs = quantile(v, QUANTILES, axis=0, keepdims=keep)
+    with warnings.catch_warnings():  # an element without any value (all NaN) is NaN: null in the JSON
+        warnings.simplefilter("ignore", RuntimeWarning)
+        st = {
+            "min": lo(v, axis=0, keepdims=keep),
+            "max": hi(v, axis=0, keepdims=keep),
+            "mean": mean(v, axis=0, keepdims=keep),
+            "std": std(v, axis=0, keepdims=keep),
+            "count": np.array([x.shape[0]]),
+        }
+        qs = quantile(v, QUANTILES, axis=0, keepdims=keep)
     for i, q in enumerate(QUANTILES):
         st[f"q{round(q * 100):02d}"] = qs[i]
     return st
@@ -319,25 +362,27 @@ def _stats(x: npt.NDArray[Any]) -> dict[str, npt.NDArray[Any]]:
 
 def _aggregate(per_episode: list[dict[str, npt.NDArray[Any]]]) -> dict[str, npt.NDArray[Any]]:
     """Episodes' statistics as one (LeRobot's ``aggregate_feature_stats``: min of mins, max of
-    maxes, the count-weighted mean, the pooled variance, count-weighted quantiles)."""
+    maxes, the count-weighted mean, the pooled variance, count-weighted quantiles); an element an
+    episode has no value of (NaN) counts in the others only."""
     counts = np.array([float(s["count"][0]) for s in per_episode])
-    w = counts / counts.sum()
     shape = (-1,) + (1,) * per_episode[0]["mean"].ndim
     means = np.stack([s["mean"] for s in per_episode])
-    mean = (means * w.reshape(shape)).sum(axis=0)
-    var = (((np.stack([s["std"] for s in per_episode]) ** 2) + (means - mean) ** 2) * w.reshape(shape)).sum(
-        axis=0
-    )
-    out = {
-        "min": np.min(np.stack([s["min"] for s in per_episode]), axis=0),
-        "max": np.max(np.stack([s["max"] for s in per_episode]), axis=0),
-        "mean": mean,
-        "std": np.sqrt(var),
-        "count": np.array([int(counts.sum())]),
-    }
-    for key in per_episode[0]:
-        if key.startswith("q"):
-            out[key] = (np.stack([s[key] for s in per_episode]) * w.reshape(shape)).sum(axis=0)
+    w = np.where(np.isfinite(means), counts.reshape(shape), 0.0)
+    total = w.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = w / total  # NaN where no episode has a value: the statistic is null in stats.json
+        mean = np.nansum(means * w, axis=0) / (total > 0)
+        spread = np.stack([s["std"] for s in per_episode]) ** 2 + (means - mean) ** 2
+        out = {
+            "min": np.fmin.reduce(np.stack([s["min"] for s in per_episode]), axis=0),
+            "max": np.fmax.reduce(np.stack([s["max"] for s in per_episode]), axis=0),
+            "mean": mean,
+            "std": np.sqrt(np.nansum(spread * w, axis=0) / (total > 0)),
+            "count": np.array([int(counts.sum())]),
+        }
+        for key in per_episode[0]:
+            if key.startswith("q"):
+                out[key] = np.nansum(np.stack([s[key] for s in per_episode]) * w, axis=0) / (total > 0)
     return out
 
 
