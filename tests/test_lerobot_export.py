@@ -383,6 +383,18 @@ def test_bad_arguments_are_one_line(
     assert e.value.code == 2 and says in err and err.count("\n") == 1, err
 
 
+def test_a_log_too_large_is_refused_by_its_size_before_it_is_read(
+    logs: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(lerobot, "MAX_LOG_BYTES", 100_000)
+    monkeypatch.setattr(lerobot, "read_columns", None)  # never reached: the size is checked first
+    with pytest.raises(SystemExit):
+        main(["export", str(logs), "--to", "lerobot", "--out", str(tmp_path / "ds")])
+    err = capsys.readouterr().err
+    assert "operator.mcap: a log of" in err and "an export reads at most 0 MiB a log" in err
+    assert err.count("\n") == 1 and not (tmp_path / "ds").exists()
+
+
 def test_a_dataset_is_never_written_over(
     logs: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -44,6 +44,9 @@ EPISODES_PATH = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.par
 DEFAULT_FPS = 50
 MAX_EPISODE_TICKS = 600_000  # ten minutes at 1 kHz: about 3 GB held while it is written
 MAX_TASK_CHARS = 1000
+#: A log an export reads at most (checked by size before it is read): ten minutes of session at
+#: 2 DoF are about 140 MB (the 60 s MuJoCo session's logs: 13.9 MB each, measured).
+MAX_LOG_BYTES = 1 << 30
 QUANTILES = (0.01, 0.10, 0.50, 0.90, 0.99)  # the quantiles LeRobot's stats carry (q01 ... q99)
 
 #: The per-tick columns read from each log (and nothing else: the export reads what it writes).
@@ -223,6 +226,12 @@ def read_episode(
         op_path, to_path, notes = find_pair(log_dir, session)
     else:
         (op_path, to_path), notes = pair, list(notes or [])
+    for path in (op_path, to_path):
+        if (size := os.stat(path).st_size) > MAX_LOG_BYTES:
+            raise ExportError(
+                f"{path}: a log of {size} bytes; an export reads at most {MAX_LOG_BYTES >> 20} MiB a log "
+                f"(an episode is at most {MAX_EPISODE_TICKS // 60_000} minutes)"
+            )
     sid, summary, params = log_session(to_path)
     op_summary = log_session(op_path)[1]
     p = _params(to_path, params)
