@@ -191,23 +191,24 @@ def read_episodes(log_dir: Path, fps: int, session: int | None = None) -> list[E
     paired as ``teleop report`` pairs its logs (``find_pair``), in the order they ran: the session,
     and, where a process was killed and restarted into it (a rejoin), each earlier segment too: the
     killed process's log beside the other role's, over the ticks both ran."""
-    op_path, to_path, notes = find_pair(log_dir, session)
-    sid = log_session(to_path)[0]
-    episodes = [read_episode(log_dir, fps, pair=(op_path, to_path), notes=notes)]
+    seen: dict[Path, tuple[int, dict[str, Any], dict[str, Any]]] = {}  # what find_pair read of each log
+    op_path, to_path, notes = find_pair(log_dir, session, seen)
+    episodes = [read_episode(log_dir, fps, pair=(op_path, to_path), notes=notes, seen=seen)]
+    sid = episodes[0].session
     for role, chosen in (("operator", op_path), ("teleoperator", to_path)):
         names = sorted({*log_dir.glob(f"{role}.mcap"), *log_dir.glob(f"{role}-*.mcap")})
         for path in names[:MAX_LOGS]:
             if path == chosen or not path.is_file() or path.is_symlink():
                 continue
             try:
-                other_sid, finished, _ = log_session(path)
+                other_sid, finished, _ = seen[path] if path in seen else log_session(path)
             except LogError:  # another user's (UntrustedLog), damaged, or not ours: find_pair said so
                 continue
             if other_sid != sid or finished:
                 continue
             pair = (path, to_path) if role == "operator" else (op_path, path)
             why = f"{path.name}: a rejoined session's earlier segment (its process was killed): an episode"
-            episodes.append(read_episode(log_dir, fps, pair=pair, notes=[why]))
+            episodes.append(read_episode(log_dir, fps, pair=pair, notes=[why], seen=seen))
     episodes.sort(key=lambda ep: ep.first_tick)
     return episodes
 
@@ -218,6 +219,7 @@ def read_episode(
     session: int | None = None,
     pair: tuple[Path, Path] | None = None,
     notes: list[str] | None = None,
+    seen: dict[Path, tuple[int, dict[str, Any], dict[str, Any]]] | None = None,
 ) -> Episode:
     """The episode of one session in ``log_dir`` (its newest with both logs, or ``session``; or
     the logs ``pair``, operator's then teleoperator's): the ticks both sides ran, from the first to
@@ -232,8 +234,9 @@ def read_episode(
                 f"{path}: a log of {size} bytes; an export reads at most {MAX_LOG_BYTES >> 20} MiB a log "
                 f"(an episode is at most {MAX_EPISODE_TICKS // 60_000} minutes)"
             )
-    sid, summary, params = log_session(to_path)
-    op_summary = log_session(op_path)[1]
+    seen = seen if seen is not None else {}
+    sid, summary, params = seen[to_path] if to_path in seen else log_session(to_path)
+    op_summary = (seen[op_path] if op_path in seen else log_session(op_path))[1]
     p = _params(to_path, params)
     w = 1.0 / (fps * p.dt)
     if abs(w - round(w)) > 1e-9 or round(w) < 1:

@@ -505,7 +505,11 @@ def log_session(path: Path) -> tuple[int, dict[str, Any], dict[str, Any]]:
     return sid, summary, params
 
 
-def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, list[str]]:
+def find_pair(
+    log_dir: Path,
+    session: int | None = None,
+    seen: dict[Path, tuple[int, dict[str, Any], dict[str, Any]]] | None = None,
+) -> tuple[Path, Path, list[str]]:
     """The operator's and the teleoperator's log of one session in ``log_dir`` (``ROLE.mcap``,
     ``ROLE-*.mcap``: restarts add files, never replace one), paired by session id: ``session``, or
     else the session of the newest log that has both.  Where a role has several logs of the session
@@ -514,7 +518,8 @@ def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, li
     (the others' processes were killed): that one is read and the others are named in the notes.
     A log another user could have planted (:class:`UntrustedLog`) is
     ignored and named in the notes.  Returns the two paths and notes on
-    what else the folder holds; :class:`LogError` when no pair is found."""
+    what else the folder holds; :class:`LogError` when no pair is found.  ``seen``: filled with what
+    :func:`log_session` gave for each log read, so a caller need not read a summary twice."""
     found: dict[int, dict[str, list[tuple[int, Path, bool]]]] = {}  # (mtime, path, finished)
     errors: dict[str, str] = {}
     ignored: list[str] = []
@@ -527,7 +532,9 @@ def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, li
                 st = os.lstat(path)
                 if not stat.S_ISREG(st.st_mode):
                     raise LogError(f"{path}: not a regular file (a log is one)")
-                sid, summary, _ = log_session(path)
+                sid, summary, params = log_session(path)
+                if seen is not None:
+                    seen[path] = (sid, summary, params)
             except UntrustedLog as e:  # flagged and ignored: the figures are the genuine logs'
                 ignored.append(f"ignored {e}")
                 errors.setdefault(role, str(e))
