@@ -34,7 +34,7 @@ from teleop.session import wire
 from teleop.session.endpoint import REAL_PLAYOUT_FLOOR_TICKS
 from teleop.session.node import OperatorNode, PortOptions, TeleoperatorNode
 from teleop.session.port import Port, make_node
-from teleop.session.settings import Passivity
+from teleop.session.settings import Envelope, Passivity
 
 CODECS = ("none", "ids:50", "eds:50", "cq:8")
 TDPA_CODECS = ("none", "eds:50", "pdp:1")  # the port's hot path under TDPA (issue 23)
@@ -123,6 +123,7 @@ def _port_pair(
         )
         for role in ("operator", "teleoperator")
     )
+    to.node.confine(Envelope())  # the robot runs inside its envelope, as the endpoint starts it
     return op, to
 
 

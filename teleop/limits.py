@@ -23,6 +23,7 @@ MAX_SEED = 2**32 - 1
 MAX_VARIATION = 2.0  # scale of the human's seeded variation (teleop.devices.models.ProtocolPlan)
 MAX_B = 1e6  # N s/m
 MAX_RANGE = 1e6  # sqrt(W), full scale of the raw 16-bit wave format
+MIN_RANGE = 2.2250738585072014e-308  # the smallest normal float: a subnormal range is refused
 MIN_LINK_TIMEOUT_S = 1e-3
 MAX_LINK_TIMEOUT_S = 10.0
 MAX_CODEC_SPEC_LEN = 64

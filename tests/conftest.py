@@ -107,6 +107,17 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 def pytest_sessionstart(session: pytest.Session) -> None:
     _WALL.append(time.monotonic())
     _compile_the_project()
+    _font_cache()
+
+
+def _font_cache() -> None:
+    """matplotlib's font list, built before any test.  Why: on a machine where it was never built
+    (a fresh one, as CI's may be) the first plot runs ``fc-list`` to build it, and the fast suite's
+    guard then fails whichever test drew first for starting a process."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.font_manager  # builds the cache, or loads it
 
 
 #: The project's packages, which every process a test starts imports (an editable install: pip

@@ -23,6 +23,7 @@ class PushingHand:
     """A hand pushing at ``speed`` m/s on every DoF, yielding little to force (``Y``)."""
 
     role = "hsi"
+    hardware = False  # a model: teleop sim may build it (teleop.devices)
     Y = 0.02  # m/s per N
 
     def __init__(self, dof: int, dt: float, arg: str | None) -> None:
@@ -39,6 +40,7 @@ class PushingHand:
 
 class _Spring:
     role = "robot"
+    hardware = False
 
     def __init__(self, dof: int, dt: float, arg: str | None) -> None:
         self.k = float(arg or 1e4)

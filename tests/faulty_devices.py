@@ -38,6 +38,7 @@ class _Faulty:
 
 class FaultyRobot(_Faulty):
     role = "robot"
+    hardware = False  # a model: teleop sim may build it
 
     def __init__(self, dof: int, dt: float, arg: str | None) -> None:
         super().__init__(ProtocolEnvironment(dof, dt, plan=ProtocolPlan.draw(0, 0.0)), dt, arg)
@@ -45,6 +46,7 @@ class FaultyRobot(_Faulty):
 
 class FaultyHsi(_Faulty):
     role = "hsi"
+    hardware = False
 
     def __init__(self, dof: int, dt: float, arg: str | None) -> None:
         super().__init__(ProtocolHuman(dof, dt, plan=ProtocolPlan.draw(0, 0.0)), dt, arg)

@@ -70,3 +70,12 @@ def test_sweep_draws_one_front_per_impairment_and_architecture(tmp_path: Path) -
         assert [c["codec"] for c in d["cases"]] == ["none", "pdp:1"] and all(c["passive"] for c in d["cases"])
         assert any(c["pareto"] for c in d["cases"])
     assert (out / "fronts.png").stat().st_size > 10_000 and (out / "pareto.png").exists()
+
+
+def test_run_says_how_each_process_ended_in_words() -> None:
+    """Not a raw dict (``exit codes {'teleoperator': 1, 'operator': -15}``): one line a person reads."""
+    from teleop.cli.run import exits
+
+    assert exits({"teleoperator": 1, "operator": -15}) == "teleoperator exited 1, operator stopped by SIGTERM"
+    ok = "teleoperator exited 0 (ok), operator never started"
+    assert exits({"teleoperator": 0, "operator": None}) == ok

@@ -135,6 +135,8 @@ CASES: list[tuple[list[str], str]] = [
     ),
     (["teleoperator", *LISTEN, "--insecure", "--allow-on-loss", ""], "--allow-on-loss '': must name some of"),
     (["teleoperator", *LISTEN, "--max-link-timeout", "20000"], "max link timeout must be 1 to 10000 ms"),
+    (["teleoperator", *LISTEN, "--max-backward-queue", "0"], "max backward queue must be an integer 1.."),
+    (["teleoperator", *LISTEN, "--max-backward-hold", "-1"], "max backward hold must be"),
     (["teleoperator", *LISTEN, "--max-velocity", "inf"], "max velocity must be a finite number"),
     (["teleoperator", *LISTEN, "--max-force", "-1"], "max force must be > 0"),
     (["teleoperator", *LISTEN, "--max-playout", "900"], "max playout must be >= 0 and <= 500 ms"),

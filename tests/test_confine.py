@@ -220,3 +220,75 @@ def test_the_limits_hold_through_a_link_loss_in_contact_and_a_rejoin(
         # each robot process meets the contact anew: its first tick in it at most
         assert len(over) <= 1 and mag.max() <= FMAX + k * VMAX * DT * (1 + 1e-9)
         assert node.guard.margin >= -1e-9
+
+
+# --- TDPA's robot, tick by tick on random signals --------------------------------------------------
+
+
+class _Scripted:
+    """A robot device whose ``affine`` plays a script of ``(f0, Z)`` and keeps what it was commanded."""
+
+    def __init__(self, script: list[tuple[list[float], list[float]]]) -> None:
+        self.script, self.k = script, 0
+        self.commanded: list[Any] = []
+
+    def affine(self, now: float) -> tuple[Any, Any]:
+        f0, z = self.script[self.k % len(self.script)]
+        self.k += 1
+        return np.array(f0), np.array(z)
+
+    def advance(self, now: float, v: Any, f: Any) -> None:
+        self.commanded.append(np.array(v))
+
+
+_f0 = st.floats(-500.0, 500.0, allow_nan=False)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    steps=st.lists(
+        st.tuples(
+            st.lists(st.floats(-5.0, 5.0), min_size=2, max_size=2),  # the velocity received
+            st.lists(_f0, min_size=2, max_size=2),
+            st.lists(st.one_of(st.just(0.0), st.floats(0.0, 1e3)), min_size=2, max_size=2),
+            st.floats(0.0, 0.05),  # J the operator reports more this tick
+        ),
+        min_size=1,
+        max_size=40,
+    ),
+    vmax=st.floats(0.05, 2.0),
+    fmax=st.floats(1.0, 100.0),
+)
+def test_tdpas_robot_on_random_signals_stays_within_its_limits_and_its_budget(
+    steps: list[Any], vmax: float, fmax: float
+) -> None:
+    """Whatever it is sent and whatever its device reports: the device is never commanded past
+    ``max_velocity``, and the network's books hold ``E_out <= E_in`` (the envelope acts on the
+    device's side of the controller, never on the books)."""
+    from teleop.session.port import make_node
+    from tests.vnet import params as vparams
+
+    node = make_node(
+        "teleoperator",
+        scenario="step",
+        dof=2,
+        dt=DT,
+        b=5.0,
+        codec="none",
+        full_scale=2.0,
+        session=1,
+        options=dataclasses.replace(vparams(passivity="tdpa").port_options()),
+    )
+    node.confine(Envelope(max_velocity=vmax, max_force=fmax, min_b=1.0))
+    assert isinstance(node, TeleoperatorNode)
+    dev = _Scripted([(f0, z) for _, f0, z, _ in steps])
+    node.environment = dev
+    received = iter([np.array(v) for v, _, _, _ in steps])
+    node.decoder.next = lambda: next(received)  # type: ignore[method-assign]
+    reported = 0.0
+    for k, (_, _, _, more) in enumerate(steps):
+        reported += more
+        node.guard.sent(reported, k * DT)
+        node.tick(k * DT)
+        assert np.abs(dev.commanded[-1]).max() <= vmax * (1 + 1e-12)
+        assert node.guard.margin >= -1e-9 * (1 + reported)

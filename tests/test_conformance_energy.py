@@ -50,7 +50,7 @@ def _session(codec: str, op_factor: float, to_factor: float) -> tuple[tuple[Any,
         )
         to = net.teleoperator()
         op = net.operator(
-            params(session=SESSION, codec=codec, duration=1.5, playout="off", link_timeout=0.25)
+            params(session=SESSION, codec=codec, duration=1.5, playout="off", link_timeout=cf.LINK_TIMEOUT_S)
         )
         net.seconds(5.0, stop=lambda: op.ep.finished and to.ep.finished)
     finally:

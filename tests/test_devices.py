@@ -29,6 +29,7 @@ class SpringRobot:
     """A third-party robot for the tests: a spring ``k`` N/m, ``--robot tests.test_devices:SpringRobot:K``."""
 
     role = "robot"
+    hardware = False  # a model: teleop sim may build it
 
     def __init__(self, dof: int, dt: float, arg: str | None) -> None:
         self.k = float(arg) if arg else 100.0
@@ -46,6 +47,21 @@ class SpringRobot:
 
     def summary(self) -> dict[str, Any]:
         return {"ticks": self.ticks, "k": self.k}
+
+
+class UndeclaredRobot:
+    """A plug-in that does not say whether it is hardware: taken for hardware."""
+
+    role = "robot"
+
+    def __init__(self, dof: int, dt: float, arg: str | None) -> None:
+        raise AssertionError("an offline tool built a device that may be hardware")
+
+    def affine(self, now: float) -> tuple[Array, Array]:
+        raise AssertionError("never built")
+
+    def advance(self, now: float, v: Array, f: Array) -> None:
+        raise AssertionError("never built")
 
 
 class NotADevice:
@@ -116,6 +132,23 @@ def test_third_party_robot_in_the_sim() -> None:
     # the spring pushes back: F = k x, so the force follows the TO's position
     x = np.cumsum(r.trace.v_to[:, 0]) * DT
     assert np.allclose(r.trace.f_to[1:, 0], 200.0 * x[1:], atol=1e-9)
+
+
+def test_only_a_session_builds_hardware() -> None:
+    """franka and a plug-in that does not declare ``hardware = False`` are hardware: an offline tool
+    refuses them in one line before building anything; the models, mujoco and a declared model pass."""
+    assert [devices.resolve(s, "robot").hardware for s in ("step", "mujoco", "franka:127.0.0.1")] == [
+        False,
+        False,
+        True,
+    ]
+    assert not devices.resolve("tests.test_devices:SpringRobot", "robot").hardware
+    for spec in ("tests.test_devices:UndeclaredRobot", "franka:127.0.0.1"):
+        with pytest.raises(DeviceError, match="is hardware: the sim never connects to it") as e:
+            run_case(SimConfig(scenario="protocol", duration=0.1, robot=spec))
+        assert "\n" not in str(e.value)
+    assert devices.is_hardware("franka:10.0.0.2", "robot") and devices.is_hardware("pkg.mod:Arm", "robot")
+    assert not devices.is_hardware("mujoco", "robot") and not devices.is_hardware(None, "robot")
 
 
 @pytest.fixture

@@ -85,7 +85,11 @@ def test_choices_are_the_robots() -> None:
 
 def test_a_proposal_within_the_envelope_passes() -> None:
     assert DEFAULT_ENVELOPE.check(params()) is None
-    assert DEFAULT_ENVELOPE.check(params(scenario="step", b=1.0, codec="ids:2", link_timeout=0.25)) is None
+    assert DEFAULT_ENVELOPE.check(params(scenario="step", b=1.0, codec="ids:2", link_timeout=0.12)) is None
+    # The longest link timeout it takes needs a robot that acts alone that long (--max-act-alone).
+    longest = params(scenario="step", b=1.0, codec="ids:2", link_timeout=0.25)
+    assert "--max-act-alone" in (DEFAULT_ENVELOPE.check(longest) or "")
+    assert Envelope(max_act_alone_ms=352.0).check(longest) is None  # 2 + 250 + 100 ms
 
 
 def test_an_envelope_with_nonsense_limits_is_refused() -> None:

@@ -319,6 +319,49 @@ def _params(**change: Any) -> Callable[[str, dict[str, Any]], dict[str, Any] | N
 
 
 @pytest.mark.integration
+def test_a_report_on_a_franka_session_never_connects_to_the_arm(genuine: Path, tmp_path: Path) -> None:
+    """The teleoperator's log names ``franka:ADDR`` with ADDR a loopback address of this test's, where
+    a socket listens on libfranka's port as the "arm": the report (sim comparison asked for) says it
+    skipped the sim because the robot is hardware, finishes, and nothing connected to the arm."""
+    import random
+    import socket
+
+    arm = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    for _ in range(20):
+        addr = f"127.{random.randrange(1, 255)}.{random.randrange(256)}.{random.randrange(1, 255)}"
+        try:
+            arm.bind((addr, 1337))  # libfranka's command port
+            break
+        except OSError:
+            continue
+    else:
+        pytest.fail("no free loopback address for the arm")
+    with arm:
+        arm.listen(8)
+        arm.setblocking(False)
+        spec = f"franka:{addr}"
+
+        def edit(topic: str, m: dict[str, Any]) -> dict[str, Any]:
+            if topic.endswith("/summary") and isinstance(m.get("device"), dict):
+                m["device"]["spec"] = spec
+            return m
+
+        logs = _copy(genuine, tmp_path, "teleoperator", edit)
+        r = subprocess.run(
+            [*TELEOP, "report", str(logs), "--no-plots", "--out", str(tmp_path)],
+            capture_output=True,
+            text=True,
+            timeout=60,  # on main it connected and waited for the arm's answer forever
+        )
+        assert r.returncode == 0, r.stderr
+        assert f"teleop sim not re-run: the robot {spec} is hardware" in r.stdout, r.stdout
+        rep = json.loads((tmp_path / "report.json").read_text())
+        assert rep["devices"]["robot"]["spec"] == spec and "I_sim" not in rep["transparency"]
+        with pytest.raises(BlockingIOError):
+            arm.accept()  # nothing connected to the arm
+
+
+@pytest.mark.integration
 def test_a_killed_process_log_is_reported_from_its_ticks(genuine: Path, tmp_path: Path) -> None:
     """No /teleoperator/summary (the process was killed, its writer finished the file)."""
     logs = _copy(genuine, tmp_path, "teleoperator", lambda t, m: None if t.endswith("/summary") else m)
@@ -371,11 +414,13 @@ def test_restarts_keep_every_record_and_the_report_pairs_by_session(genuine: Pat
     assert r.returncode == 0, r.stderr
     rep = json.loads((tmp_path / "report.json").read_text())
     assert rep["session"] == first and rep["logs"]["operator"] == "operator.mcap"
-    r = _report(logs, "--no-sim")  # the newest pair; report.json is kept, a new name is used
+    r = _report(logs, "--no-sim")  # the newest pair: report.json is now its, the first one kept
     assert r.returncode == 0, r.stderr
-    rep = json.loads((tmp_path / "report-99.json").read_text())
+    rep = json.loads((tmp_path / "report.json").read_text())
     assert rep["session"] == 99 and rep["logs"]["teleoperator"] == "teleoperator-99.mcap"
-    assert json.loads((tmp_path / "report.json").read_text())["session"] == first
+    assert json.loads((tmp_path / "report-99.json").read_text()) == rep
+    assert json.loads((tmp_path / f"report-{first}.json").read_text())["session"] == first
+    assert not list(tmp_path.glob("*.new*"))
 
 
 def _dof_bomb(n: int, only: int | None = None) -> Callable[[str, dict[str, Any]], dict[str, Any]]:

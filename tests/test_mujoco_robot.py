@@ -226,6 +226,29 @@ def test_a_diverging_engine_is_reset_and_reports_no_force() -> None:
     assert np.all(np.isfinite(f0)) and z[0] > 0
 
 
+def test_a_step_further_than_the_robot_can_go_is_stale_and_the_state_held(tmp_path: Path) -> None:
+    """A finite but implausible step (the engine astray: the tip at 500 m/s) is undone and counted,
+    the next steps are normal; with a ``ctrlrange`` the scene's own limit is the bound."""
+    robot = MujocoRobot(dof=2, dt=DT)
+    assert robot.max_step == pytest.approx(2 * 10.0 * DT)
+    v = np.array([0.1, 0.0])
+    for n in range(10):
+        f0, z = robot.affine(n * DT)
+        robot.advance(n * DT, v, f0 + z * v)
+    held = robot.position()
+    robot.d.qvel[0] = 500.0  # 0.5 m in one tick
+    f0, z = robot.affine(10 * DT)
+    robot.advance(10 * DT, v, f0 + z * v)
+    assert np.array_equal(robot.position(), held) and robot.summary()["stale_steps"] == 1
+    f0, z = robot.affine(11 * DT)
+    robot.advance(11 * DT, v, f0 + z * v)
+    assert 0 < robot.position()[0] - held[0] < 1e-3 and robot.stale_steps == 1  # about v dt: used
+    text = default_scene().read_text().replace('kv="200"/>', 'kv="200" ctrlrange="-0.5 0.5"/>')
+    scene = tmp_path / "limited.xml"
+    scene.write_text(text)
+    assert MujocoRobot(dof=3, dt=DT, arg=str(scene)).max_step == pytest.approx(2 * 0.5 * DT)
+
+
 def test_a_gain_beyond_the_integrators_reach_shows_as_an_active_port(tmp_path: Path) -> None:
     """Where the robot cannot be passive: explicit Euler with kv dt / m = 10 (the stability limit
     is 2; the default scene integrates the controller implicitly).  The observer sees the engine

@@ -433,10 +433,17 @@ def test_parse_fields_units_and_text() -> None:
 @pytest.mark.parametrize(
     ("tok", "seconds"),
     [("1s", 1.0), ("2sec", 2.0), ("10ms", 0.01), ("3MSEC", 0.003), ("250us", 250e-6), ("7usec", 7e-6),
-     ("1500", 1.5e-3), ("1e3us", 1e-3), (".5ms", 5e-4), ("100ns", 1e-7)],
+     ("1500us", 1.5e-3), ("1e3us", 1e-3), (".5ms", 5e-4), ("100ns", 1e-7), ("0", 0.0)],
 )  # fmt: skip
-def test_parse_time_units_bare_number_is_microseconds(tok: str, seconds: float) -> None:
+def test_parse_time_units(tok: str, seconds: float) -> None:
     assert parse_netem(f"delay {tok}").delay == pytest.approx(seconds)
+
+
+@pytest.mark.parametrize("spec", ["delay 50", "delay 10ms 5", "delay 1.5"])
+def test_a_time_without_its_unit_is_refused_naming_the_units(spec: str) -> None:
+    """tc reads a bare number as microseconds: ``delay 50`` ran a 15 s session at 50 us, silently."""
+    with pytest.raises(NetemError, match=r"a time needs its unit \(s, ms, us or ns\)"):
+        parse_netem(spec)
 
 
 @pytest.mark.parametrize(

@@ -207,6 +207,8 @@ def test_kill_9_of_the_robot_beside_cpu_hogs_loses_at_most_the_stated_bound(tmp_
                     f"127.0.0.1:{port}",
                     "--max-link-timeout",
                     "1000",
+                    "--max-act-alone",  # eds:50: 50 + 1000 ms of silence, the 100 ms fade, to spare
+                    "1200",
                     *common,
                 ],
                 stderr=f,

@@ -37,11 +37,17 @@ from teleop.session.link import Addr
 from teleop.session.link.phase import PHASE_MIN
 from teleop.session.port import Port, PortKeys
 from teleop.session.protocol import SessionParams
-from teleop.session.settings import DEFAULT_ENVELOPE, Passivity
+from teleop.session.settings import DEFAULT_ENVELOPE, MIN_FADE_S, Passivity
 
 QUIET_S = 0.3  # how long "no answer" is waited for
 PROBE_TIMEOUT_S = 2.0
-LINK_TIMEOUT_S = DEFAULT_ENVELOPE.max_link_timeout  # the reference robot's default --max-link-timeout
+#: The longest link timeout a reference robot affords by default for every codec the suite proposes:
+#: within --max-link-timeout, and within --max-act-alone once the deadband session's payload interval
+#: (pd:5, 100 ms; PROTOCOL.md 5.3) and the shortest fade are added (10 ms to spare).
+LINK_TIMEOUT_S = min(
+    DEFAULT_ENVELOPE.max_link_timeout,
+    round(DEFAULT_ENVELOPE.max_act_alone_ms * 1e-3 - 0.100 - MIN_FADE_S - 0.010, 3),
+)
 
 
 @dataclass
@@ -89,7 +95,7 @@ class Result:
 
 def params_for(session: int, codec: str, duration: float) -> SessionParams:
     """The session proposed to a teleoperator: 2 DoF, the protocol scenario, and a link timeout of
-    0.25 s, the longest a reference robot affords by default (``--max-link-timeout``; a longer one is
+    :data:`LINK_TIMEOUT_S`, the longest a reference robot affords by default (a longer one is
     rejected): a loaded host's stall must not put the peer into link loss, where a hello means a
     takeover and the busy rule no longer applies."""
     return SessionParams(

@@ -115,14 +115,13 @@ class Records:
             t.join()
 
     def close(self) -> None:
-        """At exit: an unused writer (no session) exits at the end of its input; open logs close."""
+        """At exit: an unused writer (no session: it holds no log) is killed, so a process stopped
+        before any session (Ctrl-C while it waits for a peer) does not wait for the writer to finish
+        importing (measured: 1-3 s on a loaded host); open logs close."""
         writer, self._writer = self._writer, None
         if writer is not None and writer.poll() is None:
-            try:
-                writer.communicate(timeout=10)
-            except subprocess.TimeoutExpired:
-                writer.kill()
-                writer.wait()
+            writer.kill()
+            writer.communicate()
         for log in self.logs.values():
             if log is not None:
                 log.close()

@@ -64,6 +64,11 @@ class SessionError(TeleopError):
     """The session could not start or run: printed as one clear line, non-zero exit."""
 
 
+class Interrupted(SessionError):
+    """Stopped by a signal before any session ran (a robot waiting for its operator, an operator
+    still in its handshake): a person's choice, said as such, exit status 130."""
+
+
 class Stop:
     def __init__(self) -> None:
         self.requested = False
@@ -153,7 +158,11 @@ class Runner:
             while (t := ep.get_timer()) is not None:
                 if self.stop.requested:
                     if not self.in_session:
-                        raise SessionError("interrupted during the handshake")
+                        raise Interrupted(
+                            "stopped while waiting for an operator; no session ran"
+                            if self.opts.role == "teleoperator"
+                            else "stopped during the handshake; no session ran"
+                        )
                     ep.stop(clock())
                 if self.device is not None and clock() >= self._first and not self.stop.requested:
                     await self.paced()

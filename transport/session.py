@@ -9,6 +9,7 @@ logs are still written.
 from __future__ import annotations
 
 import asyncio
+import math
 import signal
 import sys
 import time
@@ -24,7 +25,7 @@ from . import console
 from .base import Transport
 from .options import EndpointOptions, ZenohOptions, new_session_id
 from .records import RecordError, Records
-from .runner import Runner, SessionError, Stop
+from .runner import Interrupted, Runner, SessionError, Stop
 from .udp import UdpTransport, new_event_loop
 from .zenoh import ZENOH_PEER, ZenohTransport, make_config
 
@@ -67,6 +68,8 @@ async def _endpoint(opts: EndpointOptions, params: SessionParams | None, pins: P
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop, sig)
     tr = await _open_transport(opts, key)
+    if opts.role == "teleoperator" and not opts.quiet:
+        print(waiting_line(opts, tr), file=sys.stderr, flush=True)
     kw: dict[str, Any] = {
         "now_ns": time.monotonic_ns(),
         "psk": key,
@@ -100,6 +103,9 @@ def run_endpoint(opts: EndpointOptions, params: SessionParams | None = None, pin
     loop, loop_name = new_event_loop(opts.use_uvloop)
     try:
         summary = loop.run_until_complete(_endpoint(opts, params, pins))
+    except Interrupted as e:
+        print(f"teleop {opts.role}: {e}", file=sys.stderr)
+        return 130
     except (SessionError, DeviceError) as e:  # DeviceError: this side's device cannot run the session
         print(f"teleop {opts.role}: error: {e}", file=sys.stderr)
         return 1
@@ -116,3 +122,18 @@ def run_endpoint(opts: EndpointOptions, params: SessionParams | None = None, pin
     if proc.stopped_by_signal is not None and not summary.endpoint.params.until_stopped:
         return 128 + proc.stopped_by_signal
     return 0  # a session without a fixed end stopped by a signal ended as it should
+
+
+def waiting_line(opts: EndpointOptions, tr: Transport) -> str:
+    """Where a robot waits and under which name: a person starting its operator needs both."""
+    if opts.transport == "zenoh" and opts.zenoh is not None:
+        where = f"zenoh, prefix {opts.zenoh.prefix}"
+    else:
+        a = tr.local_address
+        where = f"udp {a[0]}:{a[1]}"
+    wait = opts.connect_timeout
+    until = "until stopped (Ctrl-C)" if not math.isfinite(wait) else f"for at most {wait:g} s"
+    return (
+        f"teleop teleoperator: robot {opts.robot_name!r} on {where}: waiting for an operator {until}"
+        f" (teleop operator --robot-name {opts.robot_name} ...)"
+    )

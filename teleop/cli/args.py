@@ -9,10 +9,12 @@ folder that must be writable) are in :mod:`teleop.cli.settings`.
 from __future__ import annotations
 
 import argparse
+import difflib
 import math
+import re
 import socket
-from collections.abc import Callable
-from typing import NoReturn, TypeAlias
+from collections.abc import Callable, Sequence
+from typing import Any, NoReturn, TypeAlias
 
 from teleop.control.codecs import ACCEPTED, CodecError, CodecSpec, expand
 from teleop.devices.scenarios import SCENARIOS
@@ -43,6 +45,7 @@ def one_line(text: object) -> str:
 
 MAX_GRACE_US = 900.0  # the wait for a late payload must end well within the 1 ms tick
 MAX_CONNECT_TIMEOUT_S = 86400.0  # a day: longer waits overflow the loop's nanosecond clock
+CONNECT_TIMEOUT_S = 10.0  # the operator's wait for its robot's answer
 MAX_PORT = 65535
 
 
@@ -51,10 +54,40 @@ class CliError(TeleopError):
 
 
 class Parser(argparse.ArgumentParser):
-    """An ArgumentParser whose errors are one line naming the command's help, not a usage dump."""
+    """An ArgumentParser whose errors are one line naming the command's help, not a usage dump.
+
+    No abbreviations (``--dur 5`` is not ``--duration 5``: a typo must not become another flag,
+    and a new flag must not break a command line that abbreviated an old one); an unknown flag or
+    choice says the closest known one."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        ns, extras = super().parse_known_args(args, namespace)
+        flags = [a for a in extras if a.startswith("-")]
+        if flags and " " in self.prog:  # a command's parser: it knows its own flags
+            self.error(f"unrecognized arguments: {' '.join(extras)}{self._closest(flags[0])}")
+        return ns, extras
+
+    def _closest(self, flag: str) -> str:
+        """``; did you mean --x?`` for the known flag closest to ``flag`` (its ``=value`` aside)."""
+        known = [o for o in self._option_string_actions if o.startswith("--")]
+        near = difflib.get_close_matches(flag.split("=", 1)[0], known, n=1, cutoff=0.6)
+        return f"; did you mean {near[0]}?" if near else ""
 
     def error(self, message: str) -> NoReturn:
+        m = _INVALID_CHOICE.search(message)
+        if m is not None:
+            near = difflib.get_close_matches(m[1], re.findall(r"'([^']*)'", m[2]), n=1, cutoff=0.6)
+            message += f"; did you mean {near[0]}?" if near else ""
         self.exit(2, f"teleop: error: {message} (see '{self.prog} --help')\n")
+
+
+_INVALID_CHOICE = re.compile(r"invalid choice: '([^']*)' \(choose from (.*)\)")
 
 
 #: What ``add_subparsers`` returns; each command module adds its parser(s) to it.
@@ -477,9 +510,10 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--connect-timeout",
         type=positive_float("connect timeout", MAX_CONNECT_TIMEOUT_S, "s"),
-        default=10.0,
+        default=None,
         metavar="S",
-        help="give up if the peer does not answer within S seconds (default 10)",
+        help=f"give up if the peer does not answer within S seconds (default {CONNECT_TIMEOUT_S:g}; "
+        "a teleoperator waits for its operator until stopped, see its --wait)",
     )
     p.add_argument("--no-rt", action="store_true", help="do not ask for SCHED_FIFO priority nor lock memory")
     p.add_argument("--asyncio", action="store_true", help="use the stdlib asyncio loop instead of uvloop")
@@ -590,3 +624,20 @@ def add_transport_args(p: argparse.ArgumentParser) -> None:
         type=zenoh_config_file,
         help="Zenoh JSON5 config loaded first (deploy/zenoh/*.json5; a regular file of at most 1 MiB)",
     )
+
+
+def connect_timeout(args: argparse.Namespace) -> float:
+    """``--connect-timeout``, or its default: how long an operator waits for its robot's answer."""
+    given: float | None = getattr(args, "connect_timeout", None)
+    return CONNECT_TIMEOUT_S if given is None else given
+
+
+def teleoperator_wait(args: argparse.Namespace) -> float:
+    """How long a teleoperator waits for an operator's hello: ``--wait`` (0: until stopped), else
+    ``--connect-timeout`` if given (``teleop run`` bounds its child so), else until stopped.  A
+    robot is started before its operator, often by another person in another terminal: it waits."""
+    wait: float | None = getattr(args, "wait", None)
+    if wait is not None:
+        return math.inf if wait == 0 else wait
+    given: float | None = getattr(args, "connect_timeout", None)
+    return math.inf if given is None else given

@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from teleop.cli.args import (
+    MAX_CONNECT_TIMEOUT_S,
     CliError,
     Subcommands,
     add_device_args,
@@ -26,6 +28,7 @@ from teleop.cli.args import (
     add_session_args,
     add_transport_args,
     float_range,
+    int_range,
     nonneg_float,
     positive_float,
     rate_cap,
@@ -38,7 +41,17 @@ from teleop.control.passivity import ON_LOSS
 from teleop.devices.scenarios import SCENARIOS
 from teleop.limits import MAX_B, MAX_LINK_TIMEOUT_S, MAX_RANGE, MIN_LINK_TIMEOUT_S
 from teleop.session.playout import MAX_EXTRA_MS
-from teleop.session.settings import DEFAULT_CODEC, DEFAULT_ENVELOPE, DEFAULT_SCENARIO, PASSIVITY, Passivity
+from teleop.session.settings import (
+    DEFAULT_CODEC,
+    DEFAULT_ENVELOPE,
+    DEFAULT_SCENARIO,
+    MAX_ACT_ALONE_MS,
+    MAX_BACKWARD_HOLD_MS,
+    MAX_BACKWARD_QUEUE,
+    MIN_FADE_S,
+    PASSIVITY,
+    Passivity,
+)
 
 
 def cmd_operator(args: argparse.Namespace) -> int:
@@ -83,7 +96,23 @@ def cmd_teleoperator(args: argparse.Namespace) -> int:
     envelope = robot_envelope(args)  # before the endpoint: a bad limit stops here, in one line
     opts = endpoint_options(args, "teleoperator", args.listen or ("127.0.0.1", 0))
     opts.local_limits = envelope
-    return run_endpoint(opts, None, pins)
+    from teleop.cli.args import one_line
+    from teleop.devices import DeviceError, claim
+
+    try:
+        # A hardware robot is taken before any operator is answered: an arm another teleoperator
+        # holds (or one in a reflex) is one line now, not a welcome and then a failed start.
+        release = claim(args.robot, "robot")
+    except DeviceError as e:
+        print(f"teleop teleoperator: error: {one_line(e)}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("teleop teleoperator: interrupted while taking the robot", file=sys.stderr)
+        return 130
+    try:
+        return run_endpoint(opts, None, pins)
+    finally:
+        release()
 
 
 def _names(text: str | None, allowed: tuple[str, ...], flag: str) -> tuple[str, ...] | None:
@@ -95,6 +124,16 @@ def _names(text: str | None, allowed: tuple[str, ...], flag: str) -> tuple[str, 
     if bad or not names:
         raise CliError(f"{flag} {text!r}: must name some of {', '.join(allowed)}, comma-separated")
     return names
+
+
+def _scaled(lim: _Limit, v: float) -> float:
+    """A limit's field value in its flag's unit (an integer field stays an integer)."""
+    return v * lim.scale if lim.scale != 1.0 else v
+
+
+def _unscaled(lim: _Limit, v: float) -> float:
+    """A limit's flag value in its field's unit (an integer flag stays an integer)."""
+    return v / lim.scale if lim.scale != 1.0 else v
 
 
 def robot_envelope(args: argparse.Namespace) -> Any:
@@ -123,6 +162,9 @@ def robot_envelope(args: argparse.Namespace) -> Any:
     from teleop.devices import max_dof
 
     archs = _names(args.allow_passivity, PASSIVITY, "--allow-passivity")
+    limits: dict[str, Any] = {
+        lim.field: _unscaled(lim, getattr(args, lim.dest)) for lim in LIMITS if not lim.widens
+    }
     try:
         return Envelope(
             max_dof=max_dof(args.robot, "robot"),
@@ -132,8 +174,9 @@ def robot_envelope(args: argparse.Namespace) -> Any:
             passivity=tuple(map(Passivity, archs)) if archs else e.passivity,
             on_loss=_names(args.allow_on_loss, ON_LOSS, "--allow-on-loss") or e.on_loss,
             uncontrolled_on_loss=_names(args.allow_no_controller, ON_LOSS, "--allow-no-controller") or (),
-            **{lim.field: getattr(args, lim.dest) / lim.scale for lim in LIMITS if not lim.widens},
-        )
+            **limits,
+        ).owning_backward(netem(args, "backward"))
+
     except ValueError as err:
         raise CliError(str(err)) from None
 
@@ -222,6 +265,14 @@ def add_teleoperator_parser(sub: Subcommands) -> None:
     add_endpoint_args(t)
     add_key_args(t, "required unless --insecure")
     add_transport_args(t)
+    t.add_argument(
+        "--wait",
+        type=nonneg_float("wait", MAX_CONNECT_TIMEOUT_S, "s"),
+        default=None,
+        metavar="S",
+        help="give up (exit 1) if no operator says hello within S seconds (default 0: wait until "
+        "stopped, printing where it listens and what it refused)",
+    )
     t.set_defaults(func=cmd_teleoperator)
 
 
@@ -270,6 +321,25 @@ LIMITS: tuple[_Limit, ...] = (
         "the largest fixed playout delay an operator may ask (default {default})",
     ),
     _Limit(
+        "max_act_alone_ms", "--max-act-alone", 1.0,
+        float_range("max act alone", MIN_FADE_S * 1e3, MAX_ACT_ALONE_MS, "ms"), "MS",
+        "the longest this robot acts after its operator's last packet: playout + the link timeout "
+        "with the codec's payload interval + its fade, which it shortens to fit; a proposal that "
+        "does not fit is refused (default {default})",
+    ),
+    _Limit(
+        "max_backward_queue", "--max-backward-queue", 1.0,
+        int_range("max backward queue", 1, MAX_BACKWARD_QUEUE), "PACKETS",
+        "the most packets an operator's backward impairment (--netem-backward's limit) may make this "
+        "robot's outgoing shim hold: its memory is at most that many datagrams (default {default})",
+    ),
+    _Limit(
+        "max_backward_hold_ms", "--max-backward-hold", 1.0,
+        nonneg_float("max backward hold", MAX_BACKWARD_HOLD_MS, "ms"), "MS",
+        "the longest an operator's backward impairment may make this robot's shim hold a packet: "
+        "delay, the jitter's widest draw and a rate's full queue (default {default})",
+    ),
+    _Limit(
         "max_velocity", "--max-velocity", 1.0, positive_float("max velocity", 1e3, "m/s"), "M_S",
         "the fastest this robot is ever commanded, m/s per DoF (default {default})",
     ),
@@ -288,7 +358,7 @@ def envelope_flags(env: Any) -> list[str]:
     out: list[str] = []
     for lim in LIMITS:
         if getattr(env, lim.field) != getattr(e, lim.field):
-            out += [lim.flag, repr(getattr(env, lim.field) * lim.scale)]
+            out += [lim.flag, repr(_scaled(lim, getattr(env, lim.field)))]
     for name, flag in (("passivity", "--allow-passivity"), ("on_loss", "--allow-on-loss")):
         if getattr(env, name) != getattr(e, name):
             out += [flag, ",".join(getattr(env, name))]
@@ -313,7 +383,7 @@ def add_envelope_args(t: argparse.ArgumentParser) -> None:
         help="accept only an operator proposing this rate cap (netem's units, e.g. 64kbit)",
     )
     for lim in LIMITS:
-        default = getattr(e, lim.field) * lim.scale
+        default = _scaled(lim, getattr(e, lim.field))
         g.add_argument(
             lim.flag,
             type=lim.parse,

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 from collections.abc import Sequence
 
-from teleop.cli import conformance, endpoints, experiment, export, keygen, report, run, sim, sweep
+from teleop.cli import conformance, doctor, endpoints, experiment, export, keygen, report, run, sim, sweep
 from teleop.cli.args import CliError, Parser, one_line
 from teleop.files import FileRefused
 
@@ -24,10 +26,12 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_parser(sub)
     keygen.add_parser(sub)
     conformance.add_parser(sub)
+    doctor.add_parser(sub)
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    _local_plugins()
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
@@ -39,3 +43,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
     return rc
+
+
+def _local_plugins() -> None:
+    """The current folder at the end of the import path, as ``python -m`` has it at the start: a
+    device plug-in there (``--robot mydevices:Arm``) is found without ``PYTHONPATH=.``, and being
+    last it never shadows an installed module (numpy, teleop itself)."""
+    here = os.getcwd()
+    if "" not in sys.path and here not in sys.path:
+        sys.path.append(here)

@@ -25,7 +25,8 @@ def write_report(
     command: str = "teleop report",
 ) -> None:
     """Build the report of ``session`` (default: the newest pair) from LOGS, add ``extra``, write
-    OUT/report.json (a new file, never over one) and the plots, print a summary.  Any damage in
+    OUT/report-SESSION.json (a new file, never over one), then OUT/report.json and the plots as
+    the newest report's, print a summary.  Any damage in
     the logs, or a report.json already there, is a :class:`CliError` (one line)."""
     from teleop.cli.args import one_line
     from teleop.files import FileRefused
@@ -48,13 +49,27 @@ def write_report(
             "cannot build the report: a log's summary is not what this stack writes "
             f"({type(e).__name__}: {e})"
         ) from None
-    path = _write_new(out, ["report.json", f"report-{rep['session']}.json"], json.dumps(rep, indent=2) + "\n")
-    suffix = "" if path.name == "report.json" else f"-{rep['session']}"
-    files = [] if args.no_plots else session_report.write_plots(logs, out, rep, suffix)
+    sid, body = rep["session"], json.dumps(rep, indent=2) + "\n"
+    kept = _write_new(out, [f"report-{sid}.json", *(f"report-{sid}-{i}.json" for i in range(2, 100))], body)
+    # report.json and the plots are always the newest report's (a second run into one folder used
+    # to leave report.json the first run's): each is a new file moved over the old name, never
+    # written through it; every report is also kept under its session's name.
+    latest = _write_new(out, [f".report-{sid}.json.new"], body)
+    files = [] if args.no_plots else session_report.write_plots(logs, out, rep, f".{sid}.new")
+    try:
+        os.replace(latest, out / "report.json")
+        plots = [f.with_name(f.name.replace(f".{sid}.new", "")) for f in files]
+        for new, plot in zip(files, plots, strict=True):
+            os.replace(new, plot)
+    except OSError as e:
+        raise CliError(f"cannot write {out / 'report.json'}: {e.strerror or e}") from None
     # Text a log holds (a warning, a device name, a file's name) is shown with its control
     # characters escaped: a hostile log cannot drive the terminal.
     print("\n".join(one_line(line) for line in text.split("\n")))
-    print(f"wrote {path}" + (f" and {', '.join(f.name for f in files)}" if files else ""))
+    print(
+        f"wrote {out / 'report.json'} (also kept as {kept.name})"
+        + (f" and {', '.join(f.name for f in plots)}" if files else "")
+    )
 
 
 def _write_new(out: Path, names: list[str], text: str) -> Path:

@@ -39,6 +39,7 @@ from teleop.cli.args import (
     add_passivity_args,
     add_process_args,
     add_session_args,
+    connect_timeout,
     int_range,
 )
 from teleop.cli.endpoints import envelope_flags
@@ -201,7 +202,7 @@ def build_commands(args: argparse.Namespace, params: Any, logs: Path, key: RunKe
 
 def _process_options(args: argparse.Namespace, logs: Path) -> list[str]:
     """Options both children get: where to log, how long to wait, which loop."""
-    common = ["--log", str(logs), "--connect-timeout", str(args.connect_timeout), "--quiet"]
+    common = ["--log", str(logs), "--connect-timeout", str(connect_timeout(args)), "--quiet"]
     common += ["--no-rt"] if args.no_rt else []
     common += ["--asyncio"] if args.asyncio else []
     common += ["--tick-at", args.tick_at]
@@ -302,6 +303,22 @@ def _run_pair(
     return {"teleoperator": procs[0].returncode, "operator": operator}, interrupted
 
 
+def exits(codes: dict[str, int | None]) -> str:
+    """How each process ended, as words: ``teleoperator exited 1, operator stopped by SIGTERM``."""
+
+    def one(code: int | None) -> str:
+        if code is None:
+            return "never started"
+        if code < 0:
+            try:
+                return f"stopped by {signal.Signals(-code).name}"
+            except ValueError:
+                return f"stopped by signal {-code}"
+        return "exited 0 (ok)" if code == 0 else f"exited {code}"
+
+    return ", ".join(f"{role} {one(code)}" for role, code in codes.items())
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from transport.options import new_session_id
 
@@ -332,7 +349,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGINT, signal.default_int_handler)
         router = _start_router(net)
         try:
-            timeout = math.inf if params.until_stopped else params.duration + 2 * args.connect_timeout + 10
+            wait = connect_timeout(args)
+            timeout = math.inf if params.until_stopped else params.duration + 2 * wait + 10
             codes, interrupted = _run_pair(cmds.teleoperator, cmds.operator, timeout, key.pass_fds)
         finally:
             if router is not None:
@@ -342,7 +360,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     try:
         find_pair(logs, params.session)
     except LogError:
-        raise CliError(f"no report: a process failed before its loop ran (exit codes {codes})") from None
+        raise CliError(f"no report: a process failed before its loop ran ({exits(codes)})") from None
     extra: dict[str, Any] = {"exit_codes": codes, "auth": {"key": key.source, "key_id": key.key_id}}
     if net.zenoh is not None:
         extra["zenoh"] = net.zenoh

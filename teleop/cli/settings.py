@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from teleop import limits
-from teleop.cli.args import CliError
+from teleop.cli.args import CliError, connect_timeout, teleoperator_wait
 from teleop.control.codecs import CodecError
 from teleop.devices.scenarios import SCENARIOS
 from teleop.session.settings import DEFAULTS, Channel
@@ -139,6 +139,7 @@ def sim_config(args: argparse.Namespace) -> Any:
 
 def session_params(args: argparse.Namespace, session: int) -> Any:
     """The SessionParams an operator proposes (``run`` and ``operator``), every default filled in."""
+    from teleop.session.port import build_refusal
     from teleop.session.protocol import SessionParams
 
     sc = SCENARIOS[args.scenario]
@@ -146,7 +147,7 @@ def session_params(args: argparse.Namespace, session: int) -> Any:
     duration = args.duration if args.duration is not None else sc.duration
     check_duration(duration, dof)
     try:
-        return SessionParams(
+        params = SessionParams(
             session=session,
             scenario=args.scenario,
             dof=dof,
@@ -158,6 +159,10 @@ def session_params(args: argparse.Namespace, session: int) -> Any:
         ).validate()
     except (ValueError, CodecError, OSError) as e:
         raise CliError(str(e)) from None
+    why = build_refusal(params)  # what a robot would refuse to build, said here first
+    if why is not None:
+        raise CliError(why)
+    return params
 
 
 NO_KEY = (
@@ -200,7 +205,7 @@ def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int
         listen=listen,
         peer=getattr(args, "peer", None),
         log_dir=log_dir,
-        connect_timeout=args.connect_timeout,
+        connect_timeout=teleoperator_wait(args) if role == "teleoperator" else connect_timeout(args),
         rt_priority=None if args.no_rt else 10,
         use_uvloop=not args.asyncio,
         tick_at=args.tick_at,

@@ -16,18 +16,21 @@ left and no feedthrough (``Z = 0``).  In a contact of stiffness ``K`` its force 
 b``, feed it back with a loop gain ``K dt / b`` and oscillate at the tick rate once it passes 2
 (``K = 10^4`` N/m at ``b = 5``), and the envelope cannot see the force it is about to cause.  So
 :meth:`Confinement.effective` learns, per DoF where the device reports ``Z = 0``, the feedthrough
-the contact has: ``Z^ = dF / v`` from each tick's own motion and the force the next tick reports
-(only where the force moved by more than :data:`FORCE_FLOOR` of ``max_force``, against the
-motion), kept as the largest seen, forgotten with the time constant :data:`CONTACT_MEMORY_S`, at
-most :data:`MAX_STIFFNESS` ``dt``.  The node solves with ``Z^`` as if the device had reported it,
-so the loop gain becomes ``K dt / (b + K dt) < 1``: no oscillation, under wave variables and TDPA
-alike, and the envelope predicts the force.
+the contact has from the robot's own motion ``v`` and the force change ``dF`` the next tick
+reports: least squares over the ticks spent in contact (``sum dF v / sum v^2``, forgotten with
+:data:`CONTACT_MEMORY_S`), at least what a tick entering the contact showed (a lower bound: the
+contact began somewhere within its motion), at most :data:`MAX_STIFFNESS` ``dt``, and held only
+while in contact (faded with :data:`CONTACT_MEMORY_S` once the force is gone, so free motion is
+not slowed for long).  A force below :data:`FORCE_FLOOR` of ``max_force`` is no contact (a
+sensor's noise).  The node solves with it as if the device had reported it, so the loop gain
+becomes ``K dt / (b + K dt) < 1``: no oscillation, under wave variables and TDPA alike, and the
+envelope predicts the force.
 
-**The overshoot.**  Where the contact is new (``Z^`` not yet learned, or forgotten), one tick at up
-to ``max_velocity`` reaches ``F <= max_force + K max_velocity dt``; that tick teaches ``Z^ = K dt``
-exactly for a linear contact, and the next one relieves the excess: at most **one tick past
-``max_force``** for a linear contact, again on each new contact.  A robot that reports its ``Z``
-(``Z > 0``) never overshoots where that ``Z`` is right.
+**The overshoot.**  On a new contact (not met before, or left for about :data:`CONTACT_MEMORY_S`),
+one tick at up to ``max_velocity`` reaches ``F <= max_force + K max_velocity dt``; that tick shows
+the stiffness (all of it for a linear contact entered at the tick's start, less for one entered
+within it), and the next one relieves the excess: at most **one tick past ``max_force``** per new
+contact.  A robot that reports its ``Z`` (``Z > 0``) never overshoots where that ``Z`` is right.
 
 **Passive by construction.**  The envelope only changes the device's velocity; what the channel
 sees is chosen so that the change absorbs energy (``teleop.session.node``): under wave variables
@@ -49,12 +52,12 @@ import numpy as np
 
 from teleop.control.codecs import Array
 
-#: s: how fast a learned contact stiffness is forgotten (a tick keeps ``exp(-dt / this)`` of it).
-#: Long enough that a contact held still (no motion, nothing to learn from) keeps it for the next
-#: push; short enough that free motion after leaving a stiff contact is slowed for about 5 of it.
+#: s: the memory of the contact's least squares, and how fast a stiffness fades once the force is
+#: gone (a tick keeps ``exp(-dt / this)``): a robot that left a stiff contact is slowed in free
+#: motion for a few of it, and one that comes back within it finds the contact known.
 CONTACT_MEMORY_S = 0.05
-#: Of ``max_force``: a tick whose reported force moved by less teaches nothing (a sensor's noise
-#: divided by a slow motion would read as an absurd stiffness).
+#: Of ``max_force``: a reported force below it is no contact (a sensor's noise, which divided by a
+#: slow motion entering a contact would read as an absurd stiffness).
 FORCE_FLOOR = 0.02
 #: N/m: the stiffest contact the estimate believes (stiffer readings are a fault, held to this).
 MAX_STIFFNESS = 1e7
@@ -101,14 +104,20 @@ class Confinement:
         self._sfv, self._svv = [0.0] * dof, [0.0] * dof
         self._entry, self._held = [0.0] * dof, [0.0] * dof
         self._f0 = [0.0] * dof  # this tick's reported force (effective), for the next tick to learn from
+        self._idle = True  # no stiffness held: a tick out of contact has nothing to learn
         self._last: tuple[list[float], list[float]] | None = None  # last tick's reported f0, commanded v
         self.relieved = 0  # ticks that began past max_force (backed off from it, or pushed no further)
 
     def effective(self, f0: Array, z: Array) -> Array:
         """``Z`` with the learned ``Z^`` where the device reports none; ``z`` itself (the same
         object) where nothing was learned, so a device's constant feedthrough stays cached."""
-        fl, zl = f0.tolist(), z.tolist()
-        last, zh, floor, keep = self._last, self.stiffness, self._floor, self._keep
+        fl = f0.tolist()
+        floor = self._floor
+        if self._idle and max(fl) <= floor and min(fl) >= -floor:
+            self._f0 = fl  # no stiffness held and no contact: nothing to learn (most ticks)
+            return z
+        zl = z.tolist()
+        last, zh, keep = self._last, self.stiffness, self._keep
         learned = False
         for i, zi in enumerate(zl):
             if zi > 0.0:
@@ -128,15 +137,41 @@ class Confinement:
             zh[i] = h if h > 1e-9 else 0.0
             learned = learned or zh[i] > 0.0
         self._f0 = fl
+        self._idle = not learned
         if not learned:
             return z
         return np.array([zi if zi > 0.0 else zh[i] for i, zi in enumerate(zl)])
 
-    def command(self, v: Array, f0: Array, z: Array) -> Array | None:
+    def command(self, v: Array, f0: Array, z: Array, f: Array | None = None) -> Array | None:
         """The velocity the device is commanded, within the envelope per DoF (module docstring),
-        or None where that is ``v`` itself.  ``z``: the effective feedthrough (:meth:`effective`)."""
-        vl = v.tolist()
-        out, relief = confined(vl, f0.tolist(), z.tolist(), self.max_velocity, self.max_force)
+        or None where that is ``v`` itself.  ``z``: the effective feedthrough (:meth:`effective`);
+        ``f``: ``f0 + z v`` if the caller has it (a cheaper test of the common case)."""
+        vl, fl = v.tolist(), f0.tolist()
+        vmax, fmax = self.max_velocity, self.max_force
+        if (
+            max(vl) <= vmax
+            and min(vl) >= -vmax
+            and max(fl) <= fmax
+            and min(fl) >= -fmax
+            and (
+                z is self._z_free
+                or (f is not None and max(fe := f.tolist()) <= fmax and min(fe) >= -fmax)
+                or self._free_of(z)
+            )
+        ):  # within every limit, and the force the tick ends with too (most ticks)
+            self._last = (self._f0, vl)
+            return None
+        out, relief = confined(vl, fl, z.tolist(), vmax, fmax)
         self._last = (self._f0, out)
         self.relieved += relief
         return None if out == vl else np.array(out)
+
+    _z_free: Array | None = None  # a read-only all-zero feedthrough already seen (a device's constant)
+
+    def _free_of(self, z: Array) -> bool:
+        """Whether ``z`` is all zero (remembered when read-only: a device's constant array)."""
+        if any(z.tolist()):
+            return False
+        if not z.flags.writeable:
+            self._z_free = z
+        return True

@@ -22,6 +22,14 @@ named must have ``role = "hsi"`` or ``"robot"`` and is called ``factory(dof=...,
 The default is the scenario's own model (named like the scenario).  A spec only ever comes from the
 local command line: nothing from the network names a device, a module or a file (DESIGN.md).
 
+**Hardware.** Only a session (``teleop teleoperator``, ``teleop operator``, and the two processes
+``teleop run`` starts) builds a device that is hardware; an offline tool (``teleop sim``,
+``experiment``, ``sweep``, ``report``, ``teleop run``'s report) refuses it, or skips what would
+build it, in one line, so it never connects to an arm.  A built-in says so in :data:`BUILTIN`
+(``franka`` is hardware; the models and ``mujoco`` are not); a third-party factory declares
+``hardware = False`` to be simulated offline, and one that does not declare it is taken for
+hardware (the safe default: a tool that cannot tell never builds it).
+
 **A real driver** is wrapped by :class:`DriverHsi` (a device that reports its velocity and renders a
 force) or :class:`DriverRobot` (one that takes a velocity command and reports a force), which add
 the safety rules a real device needs: zero force (and no motion) when the driver's data is stale or
@@ -76,6 +84,10 @@ class Builtin:
     description: str
     check: Callable[[str | None, int], None] | None = None  # checks ARG (and a DoF) before a session
     max_dof: int = MAX_DOF  # the most DoF it drives: a robot refuses a session with more (its envelope)
+    hardware: bool = False  # it drives a real device: only a session builds it (see above)
+    #: Takes the device before a session answers anyone (e.g. connects to the arm and checks it),
+    #: DeviceError in one line if it cannot; returns a release callable.  Hardware only.
+    claim: Callable[[str | None], Callable[[], None]] | None = None
 
 
 def _no_arg(name: str, arg: str | None) -> None:
@@ -120,6 +132,12 @@ def _franka(dof: int, dt: float, arg: str | None, **_: Any) -> Device:
     return FrankaRobot(dof=dof, dt=dt, arg=arg)
 
 
+def _franka_claim(arg: str | None) -> Callable[[], None]:
+    from teleop.devices.franka import claim as franka_claim
+
+    return franka_claim(arg)
+
+
 def _franka_check(arg: str | None, dof: int) -> None:
     from teleop.devices.franka import check as franka_check
 
@@ -154,6 +172,8 @@ BUILTIN: dict[str, dict[str, Builtin]] = {
             "Franka arm (FR3, Panda) through pylibfranka, Cartesian impedance, paced by the robot",
             _franka_check,
             max_dof=3,
+            hardware=True,
+            claim=_franka_claim,
         ),
     },
 }
@@ -168,6 +188,7 @@ class DeviceSpec:
     factory: Factory
     arg: str | None
     builtin: bool = False
+    hardware: bool = True  # the built-in's flag, or the factory's ``hardware`` (default: it is)
 
     def build(self, dof: int, dt: float, seed: int = 0, variation: float = 0.0) -> Device:
         """The device for ``dof`` DoF at period ``dt``; DeviceError says what went wrong.  A built-in
@@ -217,14 +238,16 @@ def resolve(spec: str, role: str) -> DeviceSpec:
     name, _, rest = spec.partition(":")
     arg = rest if rest else None
     if name in BUILTIN[role]:
-        return DeviceSpec(role, spec, BUILTIN[role][name].factory, arg, builtin=True)
+        b = BUILTIN[role][name]
+        return DeviceSpec(role, spec, b.factory, arg, builtin=True, hardware=b.hardware)
     eps = _entry_points()
     if name in eps:
         try:
             obj = eps[name].load()
         except Exception as e:  # a broken third-party package: say which, do not crash
             raise DeviceError(f"{role} {name!r}: entry point {eps[name].value} failed to load: {e}") from None
-        return DeviceSpec(role, spec, _checked(obj, role, f"entry point {name!r}"), arg)
+        factory = _checked(obj, role, f"entry point {name!r}")
+        return DeviceSpec(role, spec, factory, arg, hardware=_declares_hardware(factory))
     if not rest:
         raise DeviceError(f"unknown {role} {spec!r}; available: {available(role)}")
     attr, _, arg2 = rest.partition(":")
@@ -238,7 +261,44 @@ def resolve(spec: str, role: str) -> DeviceSpec:
         if not hasattr(obj, part):
             raise DeviceError(f"{role} {spec!r}: module {name!r} has no {attr!r}")
         obj = getattr(obj, part)
-    return DeviceSpec(role, spec, _checked(obj, role, f"{name}:{attr}"), arg2 if arg2 else None)
+    factory = _checked(obj, role, f"{name}:{attr}")
+    return DeviceSpec(role, spec, factory, arg2 if arg2 else None, hardware=_declares_hardware(factory))
+
+
+def _declares_hardware(factory: Factory) -> bool:
+    """A third-party factory is hardware unless it says ``hardware = False`` (module docstring)."""
+    return getattr(factory, "hardware", True) is not False
+
+
+def offline(spec: str, role: str, tool: str) -> DeviceSpec:
+    """``spec`` resolved for an offline ``tool`` (``teleop sim``, say), which never builds hardware:
+    DeviceError in one line if it is."""
+    ds = resolve(spec, role)
+    if ds.hardware:
+        raise DeviceError(
+            f"{role} {spec!r} is hardware: {tool} never connects to it (only a session drives it: "
+            "teleop teleoperator, or teleop run)"
+        )
+    return ds
+
+
+def is_hardware(spec: str | None, role: str) -> bool:
+    """Whether a spec read from a log names hardware, without importing anything: a built-in's own
+    flag; any other name (a module, an entry point) is taken for hardware."""
+    if spec is None:
+        return False
+    builtin = BUILTIN.get(role, {}).get(spec.partition(":")[0])
+    return builtin.hardware if builtin is not None else True
+
+
+def claim(spec: str | None, role: str) -> Callable[[], None]:
+    """Take a hardware built-in before a session answers anyone (it connects and checks the
+    device: a busy arm is one DeviceError line, before any welcome); returns its release.  A
+    device without a claim (a model, MuJoCo, a third-party one) is built at the session's start."""
+    builtin = BUILTIN.get(role, {}).get((spec or "").partition(":")[0])
+    if spec is None or builtin is None or builtin.claim is None:
+        return lambda: None
+    return builtin.claim(spec.partition(":")[2] or None)
 
 
 def check(spec: str, role: str, dof: int = 1) -> DeviceSpec:
@@ -282,7 +342,9 @@ def describe(dev: dict[str, Any]) -> str | None:
         return (
             f"robot {dev['spec']}: success rate {dev['control_command_success_rate']:.3f} "
             f"(min {dev['min_success_rate']:.3f}), missed robot ticks {dev['missed_robot_ticks']}, "
-            f"stale reads {dev['stale_reads']}, drift {1e3 * dev['drift_m']:.1f} mm "
+            f"stale reads {dev['stale_reads']}"
+            + (f" (implausible {n})" if (n := dev.get("implausible_reads")) else "")
+            + f", drift {1e3 * dev['drift_m']:.1f} mm "
             f"(max {1e3 * dev['max_drift_m']:.1f}), port energy min {dev['min_port_energy_J']:.3e} J, "
             f"reflex {dev['reflex'] or 'none'}"
         )

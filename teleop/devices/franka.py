@@ -36,8 +36,19 @@ environment along the channel's axes (pushing into the floor reads positive alon
 
 It is low-pass filtered (first order, ``cutoff`` Hz, on the robot's own time step).
 
-**Stale data.** A state with a non-finite value is stale: the last good force is held, the last
-torque is sent again, and it is counted; ``max_stale`` stale reads in a row end the session.
+**Stale data.** A state is stale if a value is not finite, or if it is not plausible: the
+end-effector moved further since the last good state than the arm can (``PLAUSIBLE_MARGIN`` x
+:data:`MAX_EE_SPEED` x the robot time between them), a joint did (the same margin on
+:data:`MAX_DQ`), or a joint's velocity exceeds that margin on its limit.  A stale state is never
+used: the set-point does not move, the last good force is held, the last torque is sent again, and
+it is counted (``stale_reads``; ``implausible_reads`` of them finite but implausible);
+``max_stale`` stale reads in a row end the session.
+
+**Only a session connects.** The device is hardware (``teleop.devices``): an offline tool never
+builds it.  A teleoperator takes the arm with :func:`claim` before it answers any operator (a busy
+or faulted arm is one line, with libfranka's reason), and libfranka's blocking calls (connect, a
+read outside the control loop, starting the control) run with SIGINT/SIGTERM at their default
+action, since pylibfranka holds the interpreter while it waits: Ctrl-C ends the process at once.
 
 **Faults.** A libfranka ``ControlException``/``NetworkException``, or the robot leaving ``Move``
 (a reflex, the user stop), raises :class:`RobotFault` with the robot's reason on the next
@@ -48,9 +59,15 @@ start only with the ``recover`` option.  :meth:`FrankaRobot.close` sends a last 
 
 from __future__ import annotations
 
+import contextlib
 import ipaddress
 import math
 import re
+import signal
+import subprocess
+import sys
+import threading
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
@@ -76,6 +93,16 @@ _ROBOT_DT = 0.001  # s: the robot's tick
 STARTUP_READS = 10  # reads after the start during which the mode may still say Idle
 SETTLE_TICKS = 1000  # robot ticks (1 s) the arm may take to come to rest when the session ends
 REST_DQ = 0.01  # rad/s: every joint slower than this is at rest
+#: FR3 limits a state is held to (Franka's datasheet; the Panda's are lower): the end-effector's
+#: translational speed, m/s, and each joint's speed, rad/s.
+MAX_EE_SPEED = 3.0
+MAX_DQ = np.array([2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26])
+#: A state is implausible beyond this multiple of the arm's limits (noise and a late tick's time
+#: stamp stay far inside it; a pose off by centimetres in a millisecond does not).
+PLAUSIBLE_MARGIN = 2.0
+#: s a teleoperator waits for the arm to answer before a session (libfranka itself waits forever
+#: on an arm another client holds).
+CLAIM_TIMEOUT_S = 10.0
 
 
 class RobotFault(DeviceError):
@@ -237,6 +264,104 @@ def _finite(*arrays: Array) -> bool:
     return all(bool(np.all(np.isfinite(a))) for a in arrays)
 
 
+@contextlib.contextmanager
+def _blocking() -> Iterator[None]:
+    """Around one of libfranka's blocking calls: SIGINT and SIGTERM at their default action (the
+    process ends at once).  pylibfranka keeps the interpreter while it waits, so a Python handler
+    (KeyboardInterrupt, asyncio's) would run only when the call returns, which on a busy or silent
+    arm is never.  Only the main thread may set handlers; elsewhere this does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    sigs = (signal.SIGINT, signal.SIGTERM)
+    old = [signal.getsignal(sig) for sig in sigs]
+    for sig in sigs:
+        signal.signal(sig, signal.SIG_DFL)
+    try:
+        yield
+    finally:
+        for sig, handler in zip(sigs, old, strict=True):
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+
+
+#: What :func:`claim` runs in a child process: connect, read one state, say the mode or the error.
+_PROBE = """
+import sys
+try:
+    import pylibfranka as p
+    s = p.Robot(sys.argv[1], p.RealtimeConfig.kIgnore).read_once()
+    print("mode", str(s.robot_mode).rpartition(".")[2], str(s.current_errors) or str(s.last_motion_errors))
+except Exception as e:
+    print("error", " ".join(str(e).split()) or type(e).__name__)
+"""
+
+#: host -> a robot connected by :func:`claim`, which the session's device takes.
+_claimed: dict[str, Any] = {}
+
+
+def _probe(host: str, timeout_s: float) -> None:
+    """Ask the arm in a child process, which can be stopped: libfranka waits forever on an arm
+    another client holds, and keeps the interpreter while it does.  DeviceError with its reason."""
+    try:
+        r = subprocess.run(
+            [sys.executable, "-c", _PROBE, host], capture_output=True, text=True, timeout=timeout_s
+        )
+    except subprocess.TimeoutExpired:
+        raise DeviceError(
+            f"robot 'franka' at {host}: no answer in {timeout_s:g} s: another client holds the arm "
+            "(libfranka takes one at a time), or the address is not a Franka's"
+        ) from None
+    except OSError as e:
+        raise DeviceError(f"robot 'franka' at {host}: cannot start the connection check: {e}") from None
+    words = (r.stdout.strip().splitlines() or [""])[-1].split(" ", 2)
+    if words[0] == "error":
+        raise DeviceError(f"robot 'franka' at {host}: cannot connect: {' '.join(words[1:])}")
+    if words[0] != "mode":
+        raise DeviceError(
+            f"robot 'franka' at {host}: the connection check failed (exit status {r.returncode})"
+        )
+
+
+def claim(arg: str | None, timeout_s: float = CLAIM_TIMEOUT_S) -> Callable[[], None]:
+    """Take the arm before a session answers anyone: check it answers (in a child process, bounded
+    by ``timeout_s``), then connect and keep the connection for the session's device; a busy,
+    unreachable or faulted arm is one DeviceError line with libfranka's reason.  Returns the
+    release (the connection is let go if no session took it)."""
+    host, opts = parse_arg(arg)
+    lib = _import()
+    _probe(host, timeout_s)
+    cfg, _ = _realtime(lib, opts.rt)
+    try:
+        with _blocking():
+            robot = lib.Robot(host, cfg)
+            state = robot.read_once()
+    except Exception as e:  # libfranka's NetworkException, IncompatibleVersion, RealtimeException
+        raise DeviceError(f"robot 'franka' at {host}: cannot connect: {_reason(e)}") from None
+    if _in_error(state) and not opts.recover:
+        raise DeviceError(_error_line(host, state))
+    _claimed[host] = robot
+
+    def release() -> None:
+        _claimed.pop(host, None)
+
+    return release
+
+
+def _mode_name(state: Any) -> str:
+    return str(state.robot_mode).rpartition(".")[2]
+
+
+def _in_error(state: Any) -> bool:
+    return _mode_name(state) in ("Reflex", "UserStopped") or bool(state.current_errors)
+
+
+def _error_line(host: str, state: Any) -> str:
+    return (
+        f"robot 'franka' at {host} is in {_mode_name(state)} "
+        f"({state.current_errors or state.last_motion_errors}); clear it, or add the option recover"
+    )
+
+
 class FrankaRobot:
     """The teleoperator's robot: a Franka arm under Cartesian impedance (module docstring)."""
 
@@ -257,24 +382,26 @@ class FrankaRobot:
         self.rt_mode = "test"
         if robot is None:
             cfg, self.rt_mode = _realtime(self.lib, o.rt)
-            try:
-                robot = self.lib.Robot(self.host, cfg)
-            except Exception as e:  # libfranka's NetworkException, IncompatibleVersion, RealtimeException
-                raise DeviceError(f"robot 'franka' at {self.host}: cannot connect: {_reason(e)}") from None
+            robot = _claimed.pop(self.host, None)  # taken before the session (claim)
+            if robot is None:
+                try:
+                    with _blocking():
+                        robot = self.lib.Robot(self.host, cfg)
+                except Exception as e:  # libfranka's NetworkException, IncompatibleVersion, RealtimeException
+                    raise DeviceError(
+                        f"robot 'franka' at {self.host}: cannot connect: {_reason(e)}"
+                    ) from None
         self.robot = robot
         try:
-            state = robot.read_once()
-            if self._in_error(state):
-                if not o.recover:
-                    raise DeviceError(
-                        f"robot 'franka' at {self.host} is in {self._mode_name(state)} "
-                        f"({state.current_errors or state.last_motion_errors}); "
-                        "clear it, or add the option recover"
-                    )
-                robot.automatic_error_recovery()
+            with _blocking():
                 state = robot.read_once()
-            robot.set_collision_behavior(COLLISION_TAU, COLLISION_TAU, COLLISION_F, COLLISION_F)
-            self.model = robot.load_model()
+                if _in_error(state):
+                    if not o.recover:
+                        raise DeviceError(_error_line(self.host, state))
+                    robot.automatic_error_recovery()
+                    state = robot.read_once()
+                robot.set_collision_behavior(COLLISION_TAU, COLLISION_TAU, COLLISION_F, COLLISION_F)
+                self.model = robot.load_model()
         except DeviceError:
             raise
         except Exception as e:
@@ -308,9 +435,11 @@ class FrankaRobot:
         self._last_now: float | None = None
         self._robot_time: float | None = None
         self._stale_run = 0
+        self._since_good = 0.0  # s of robot time since the last good state (what it may have moved)
         # figures
         self.reads = 0
         self.stale = 0
+        self.implausible = 0  # of the stale reads: finite, but not a state the arm can be in
         self.missed_robot_ticks = 0
         self.success_rate = float(state.control_command_success_rate)
         self.min_success_rate = 1.0
@@ -322,13 +451,6 @@ class FrankaRobot:
         self.max_force = 0.0
 
     # --- the robot's clock ----------------------------------------------------------------------
-    @staticmethod
-    def _mode_name(state: Any) -> str:
-        return str(state.robot_mode).rpartition(".")[2]
-
-    def _in_error(self, state: Any) -> bool:
-        return self._mode_name(state) in ("Reflex", "UserStopped") or bool(state.current_errors)
-
     def _fail(self, reason: str) -> RobotFault:
         self.fault = reason
         self.ctl = None  # nothing is commanded after a fault
@@ -343,11 +465,12 @@ class FrankaRobot:
             raise self._fail("closed")
         try:
             if self.ctl is None:
-                self.ctl = self.robot.start_torque_control()
+                with _blocking():
+                    self.ctl = self.robot.start_torque_control()
             state, duration = self.ctl.readOnce()
         except Exception as e:  # ControlException (a reflex), NetworkException (the link to the arm)
             raise self._fail(self._describe_fault(e)) from None
-        mode = self._mode_name(state)
+        mode = _mode_name(state)
         if mode in ("Reflex", "UserStopped") or (mode in ("Idle", "Other") and self.reads >= STARTUP_READS):
             raise self._fail(self._describe_mode(state, mode))
         self.reads += 1
@@ -357,7 +480,8 @@ class FrankaRobot:
 
     def _describe_fault(self, e: BaseException) -> str:
         try:
-            state = self.robot.read_once()
+            with _blocking():
+                state = self.robot.read_once()
             errors = str(state.last_motion_errors) or str(state.current_errors)
         except Exception:
             errors = ""
@@ -375,7 +499,8 @@ class FrankaRobot:
         )
 
     def _take(self, state: Any, duration: Any) -> None:
-        """The newest state, checked: a non-finite value makes the read stale (counted)."""
+        """The newest state, checked: a non-finite or implausible value makes the read stale
+        (counted, and nothing of it used)."""
         self._state = state
         try:
             dt_robot = float(duration.to_sec())
@@ -392,17 +517,32 @@ class FrankaRobot:
         if math.isfinite(rate):
             self.success_rate = rate
             self.min_success_rate = min(self.min_success_rate, rate)
-        self._good = _finite(pose, q, dq, j, cor) and math.isfinite(dt_robot)
+        finite = _finite(pose, q, dq, j, cor) and math.isfinite(dt_robot)
+        if finite:
+            self._since_good += min(max(dt_robot, _ROBOT_DT), 1.0)
+        self._good = finite and self._plausible(pose[:3, 3], q, dq)
         if not self._good:
             self.stale += 1
+            self.implausible += finite
             self._stale_run += 1
             return
-        self._stale_run = 0
+        self._stale_run, self._since_good = 0, 0.0
         self._robot_dt = min(max(dt_robot, _ROBOT_DT), 0.1)
         self._x = pose[:3, 3]
         self._r = pose[:3, :3]
         self._q, self._dq, self._j, self._coriolis = q, dq, j, cor
         self._xdot = j[:3] @ dq
+
+    def _plausible(self, x: Array, q: Array, dq: Array) -> bool:
+        """Whether a finite state is one the arm can be in: since the last good state (the robot
+        time ``_since_good``) the end-effector and each joint moved no further than their speed
+        limits allow, and no joint is faster than its limit (each with :data:`PLAUSIBLE_MARGIN`)."""
+        t, m = self._since_good, PLAUSIBLE_MARGIN
+        return (
+            float(np.linalg.norm(x - self._x)) <= m * MAX_EE_SPEED * t
+            and bool(np.all(np.abs(q - self._q) <= m * MAX_DQ * t))
+            and bool(np.all(np.abs(dq) <= m * MAX_DQ))
+        )
 
     # --- the device interface -------------------------------------------------------------------
     def _measured(self) -> Array | None:
@@ -472,7 +612,7 @@ class FrankaRobot:
             tau = self._tau  # stale: the last torque once more
         self._write(tau, finished=False)
         if self._stale_run >= o.max_stale:
-            self.fault = f"{self._stale_run} robot states in a row were not finite"
+            self.fault = f"{self._stale_run} robot states in a row were stale (not finite, or not plausible)"
         self._fresh = False
 
     def hold(self) -> None:
@@ -605,6 +745,7 @@ class FrankaRobot:
             "min_success_rate": self.min_success_rate,
             "missed_robot_ticks": self.missed_robot_ticks,
             "stale_reads": self.stale,
+            "implausible_reads": self.implausible,
             "saturated": dict(self.saturated),
             "drift_m": self.drift,
             "max_drift_m": self.max_drift,

@@ -28,6 +28,13 @@ any gain.  Where it cannot be:
 * a contact set that changes inside a step (touching, leaving) breaks the linearisation; the
   difference between the predicted and the sensed force is reported (``max_prediction_error_N``).
 
+**Stale steps.** A step after which the tip moved further along a DoF than the robot can in a
+tick, or moves faster than it can (``PLAUSIBLE_MARGIN`` x its speed limit, x ``dt`` for a step:
+the largest ``ctrlrange`` of the scene's actuators, or :data:`MAX_SPEED` where they are not
+limited), is not plausible (the engine went astray on a finite value): the last plausible state
+is restored (held), the step counted (``stale_steps``), and nothing of it is used.  A non-finite
+force resets the engine (``engine_resets``).
+
 The robot keeps a passivity observer of its own port, ``E(t) = sum v F dt`` (it starts at rest, so
 a passive robot never lets it go below 0): ``min_port_energy_J`` and ``active_ticks`` (ticks with
 ``E < -1e-9`` J) are in its summary, next to the channel's watchdog.
@@ -56,6 +63,10 @@ FOAM_AT, WALL_AT = 5.0, 10.0  # s: Section VI timeline, the scripted run's (--va
 FOAM_GAP, WALL_GAP = 0.001, 0.02  # m ahead of the tip's front
 ENERGY_TOLERANCE = 1e-9  # J
 MAX_DOF = 3
+#: m/s: the tip's speed limit where the scene's actuators have no ``ctrlrange`` (above the 1.5 m/s
+#: an envelope commands at most by default); with :data:`PLAUSIBLE_MARGIN`, a step's bound.
+MAX_SPEED = 10.0
+PLAUSIBLE_MARGIN = 2.0
 
 
 def default_scene() -> Path:
@@ -137,6 +148,12 @@ class MujocoRobot:
         self._ctrl = self.d.ctrl  # a view of the engine's buffer
         self._last = [0.0] * dof  # the last command: where the next tick is linearised
         self._skip = mujoco.mjtStage.mjSTAGE_VEL
+        limited = [bool(m.actuator_ctrllimited[i]) for i in range(dof)]
+        speed = float(np.max(np.abs(m.actuator_ctrlrange[:dof]))) if all(limited) else MAX_SPEED
+        self.max_speed = PLAUSIBLE_MARGIN * speed  # m/s along a DoF (docstring)
+        self.max_step = self.max_speed * dt  # m along a DoF in one tick
+        self.stale_steps = 0
+        self._good = (self.d.qpos.copy(), self.d.qvel.copy())  # the last plausible state: held
 
     def _check(self, m: Any, dof: int, dt: float) -> None:
         mj = self._mj
@@ -276,6 +293,7 @@ class MujocoRobot:
         self._last = [0.0] * self.dof
         self.engine_resets += 1
         mj.mj_forward(m, d)
+        self._good = (d.qpos.copy(), d.qvel.copy())
 
     def advance(self, now: float, v: Array, f: Array) -> None:
         mj, m, d = self._mj, self.m, self.d
@@ -284,6 +302,18 @@ class MujocoRobot:
         mj.mj_forwardSkip(m, d, self._skip, 0)
         sensed = self._force()
         self._integrate(m, d)
+        qpos, qvel = self._good
+        n = self.dof
+        # not finite, or further (or faster) than the robot can go
+        if not (
+            bool(np.all(np.abs(d.qpos[:n] - qpos[:n]) <= self.max_step))
+            and bool(np.all(np.abs(d.qvel[:n]) <= self.max_speed))
+        ):
+            d.qpos[:], d.qvel[:] = qpos, qvel
+            mj.mj_forward(m, d)
+            self.stale_steps += 1
+        else:
+            self._good = (d.qpos.copy(), d.qvel.copy())
         fl, vl = f.tolist(), v.tolist()
         for i in range(self.dof):
             fi = fl[i]
@@ -336,6 +366,7 @@ class MujocoRobot:
             "max_coupling": self.max_coupling,
             "negative_z_ticks": self.negative_z_ticks,
             "engine_resets": self.engine_resets,
+            "stale_steps": self.stale_steps,
             "placed_at_s": dict(self.placed),
             "max_penetration_m": dict(self.max_penetration),
         }

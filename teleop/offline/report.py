@@ -656,7 +656,14 @@ def build(
     specs = {r: (rep["devices"][r] or {}).get("spec") for r in ("hsi", "robot")}
     # The sim rebuilds the devices only if they are built-ins: a log file never names a module to import.
     sim_devices = {r: devices.builtin_only(specs[r], r) for r in ("hsi", "robot")}
-    if any(specs[r] is not None and sim_devices[r] is None for r in specs):
+    # ... and never one that is hardware: a report is offline, only a session touches an arm.
+    hardware = [
+        f"{r} {specs[r]}" for r in ("hsi", "robot") if sim_devices[r] and devices.is_hardware(specs[r], r)
+    ]
+    if hardware:
+        compare_sim = False
+        rep["sim_skipped"] = f"the {' and the '.join(hardware)} is hardware, which the sim never connects to"
+    elif any(specs[r] is not None and sim_devices[r] is None for r in specs):
         compare_sim = False
         rep["sim_skipped"] = "a third-party device: the sim rebuilds built-in devices only"
     if compare_sim:

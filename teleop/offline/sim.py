@@ -131,7 +131,9 @@ class SimConfig(Channel):
             raise ValueError(f"window must be at least one tick ({c.dt * 1e3} ms), got {c.window_ms}")
         for role, dev in (("hsi", c.hsi), ("robot", c.robot)):
             if dev is not None:
-                devices.resolve(dev, role)  # DeviceError (a ValueError) lists what is available
+                # DeviceError (a ValueError) lists what is available, or says it is hardware: the
+                # sim never connects to a real device (teleop.devices, "Hardware").
+                devices.offline(dev, role, "the sim")
         return c
 
     def port_options(self) -> PortOptions:

@@ -54,7 +54,7 @@ from typing import Any, NamedTuple, TypeAlias
 
 from teleop.session import auth, protocol, wire
 from teleop.session.link import Addr
-from teleop.session.port import Port, PortKeys
+from teleop.session.port import Port, PortKeys, build_refusal
 from teleop.session.protocol import Failure, SessionParams
 from teleop.session.schedule import (
     ADMIT_EVERY_NS,
@@ -517,6 +517,7 @@ class Endpoint:
             local_limits=self._limits,
             defer_t3=True,
             admit=self._limiter.allow,
+            vet=lambda p: build_refusal(p, self._limits),
         )
         if self._hs_sealer is None:
             self._hs_sealer = hs.hs_sealer
@@ -1027,8 +1028,9 @@ class Endpoint:
         self.port = self._make_port(params, k0, keys, start_ns)
         if self.role == "teleoperator":
             # Whatever the factory built, the robot runs inside its own envelope: saturated
-            # commands and an energy guard bounded by its limits, never the operator's numbers.
-            self.port.node.confine(self._limits)
+            # commands and an energy guard bounded by its limits, never the operator's numbers,
+            # and acting no longer than its cap after its operator's last packet.
+            self.port.confine(self._limits)
         if k0:
             self.port.node.joined_late()
         due_s = (first_due_ns - start_ns) / 1e9
@@ -1392,22 +1394,9 @@ def session_port(
 ) -> Port:
     """A session's port as a real process runs it: its node (``device`` or the scenario's), its
     outgoing shim (seeded as in ``teleop sim``), its counters, and ``sink`` for the record."""
-    from teleop.session.port import make_node, make_shim
+    from teleop.session.port import make_shim, session_node
 
-    node = make_node(
-        role,
-        scenario=params.scenario,
-        dof=params.dof,
-        dt=params.dt,
-        b=params.b,
-        codec=params.codec,
-        full_scale=params.full_scale,
-        session=params.session,
-        options=params.port_options(),
-        device=device,
-        seed=params.seed,
-        variation=params.variation,
-    )
+    node = session_node(role, params, device)
     fwd, bwd = params.netem_forward, params.netem_backward
     spec_tx, spec_rx = (fwd, bwd) if role == "operator" else (bwd, fwd)
     return Port(

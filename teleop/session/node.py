@@ -367,6 +367,11 @@ class _Port:
         lost ``link_timeout`` later, as if its last packet had come at ``t`` (no ghost sessions)."""
         self._first_due = t
 
+    def fade_within(self, fade_time: float) -> None:
+        """Fade over at most ``fade_time`` s: a robot shortens its fade so that the longest it acts
+        after its operator's last packet stays within its cap (``settings.acting_alone``)."""
+        self._fade_step = max(self._fade_step, self.dt / fade_time)
+
     def joined_late(self) -> None:
         """This process joined a running session: its budget starts at the first packet it sees."""
         self.guard.new_epoch(joined_late=True)
@@ -551,21 +556,23 @@ class TeleoperatorNode(_Port):
             z = conf.effective(f0, z)  # a contact the device senses a tick late, solved as one
         v = _scaled(w.sqrt2b * g_r - f0, c) / self._den(z, c)  # the robot is commanded c v
         f = f_wave = f0 + z * v
-        if conf is not None and (cut := self._confined(conf, v, f0, z)) is not None:
+        if conf is not None and (cut := self._confined(conf, v, f0, z, f)) is not None:
             v, f, f_wave = cut
         self.environment.advance(now, v, f)
         self.v, self.f = v, f
         return self._send(now, _scaled(w.to_wave_out(g_r, f_wave), c))
 
-    def _command(self, conf: Confinement, v: Array, f0: Array, z: Array) -> Array | None:
+    def _command(
+        self, conf: Confinement, v: Array, f0: Array, z: Array, f: Array | None = None
+    ) -> Array | None:
         """The envelope's cut of ``v`` (None: none), counted."""
-        vs = conf.command(v, f0, z)
+        vs = conf.command(v, f0, z, f)
         if vs is not None:
             self.counters.saturated += 1
         return vs
 
     def _confined(
-        self, conf: Confinement, v: Array, f0: Array, z: Array
+        self, conf: Confinement, v: Array, f0: Array, z: Array, f: Array | None = None
     ) -> tuple[Array, Array, Array] | None:
         """The envelope's cut of the solve's ``v`` (``teleop.control.confine``): ``(v', F, F_wave)``,
         ``F_wave`` being the force the outgoing wave is made from, or None when nothing was cut.
@@ -575,7 +582,7 @@ class TeleoperatorNode(_Port):
         sign of ``v - v'``); elsewhere the wave returns as it came (``F_wave = 0``: nothing taken
         from the channel, nothing given), and what the contact pushes into the robot is its
         actuator's to absorb."""
-        vs = self._command(conf, v, f0, z)
+        vs = self._command(conf, v, f0, z, f)
         if vs is None:
             return None
         fs = f0 + z * vs

@@ -56,7 +56,7 @@ from teleop.session.node import (
     TeleoperatorNode,
 )
 from teleop.session.playout import PlayoutBuffer
-from teleop.session.settings import Passivity
+from teleop.session.settings import MIN_FADE_S, Envelope, Passivity
 
 Array = npt.NDArray[np.float64]
 Node = OperatorNode | TeleoperatorNode
@@ -177,6 +177,56 @@ def make_node(
         )
     node.device_spec = spec
     return node
+
+
+def session_node(role: str, params: protocol.SessionParams, device: str | None = None) -> Node:
+    """This side's node of a session of ``params``: what :func:`teleop.session.endpoint.session_port`
+    builds, and what :func:`build_refusal` builds to vet a proposal (one construction, so the two
+    cannot disagree)."""
+    return make_node(
+        role,
+        scenario=params.scenario,
+        dof=params.dof,
+        dt=params.dt,
+        b=params.b,
+        codec=params.codec,
+        full_scale=params.full_scale,
+        session=params.session,
+        options=params.port_options(),
+        device=device,
+        seed=params.seed,
+        variation=params.variation,
+    )
+
+
+#: Ticks :func:`build_refusal` runs both nodes for: every codec's first payload goes out at tick 0.
+PROBE_TICKS = 2
+
+
+def build_refusal(params: protocol.SessionParams, envelope: Envelope | None = None) -> str | None:
+    """Why a session of ``params`` cannot run, in one line, or None: a welcome is a promise.
+
+    Builds both sides' nodes as a session does (:func:`session_node` with the scenario's built-in
+    devices: the codecs for the ranges the architecture derives from ``range`` and ``b``, their
+    encoders and decoders, the energy guards), confines the robot's to ``envelope``, and runs
+    their first :data:`PROBE_TICKS` ticks with each packet handed to the other.  A range
+    that underflows a codec's format (a subnormal one, or a deadband's slope range under TDPA)
+    raises here, before the welcome, instead of at the session's start (issue 45).  About a
+    millisecond: only an authentic hello with a valid cookie gets this far."""
+    try:
+        op, to = (session_node(role, params) for role in ("operator", "teleoperator"))
+        if envelope is not None:
+            to.confine(envelope)
+        for k in range(PROBE_TICKS):
+            for a, b in ((op, to), (to, op)):
+                pkt = a.tick(k * params.dt)
+                if pkt is not None:  # (the wire's encode never raises; a peer's decode only counts)
+                    b.receive_packet(pkt)
+    except (ValueError, ArithmeticError) as e:  # CodecError, ModelError, ... are ValueErrors
+        what = f"codec {params.codec}, {params.passivity}, range {params.full_scale:g}, b {params.b:g}"
+        said = str(e).splitlines()[0] if str(e) else type(e).__name__
+        return f"this session ({what}) cannot be built: {said}"
+    return None
 
 
 def power_ranges(full_scale: float, b: float) -> tuple[float, float]:
@@ -636,6 +686,23 @@ class Port:
         self.control_rejected = 0  # control messages that did not parse (counted, dropped)
         self.last_control_error = ""
         self._last_k = 0
+
+    def confine(self, env: Envelope) -> None:
+        """Run this (robot's) port inside ``env``: its node's saturation and guard
+        (:meth:`teleop.session.node._Port.confine`), and the longest it acts after its operator's
+        last packet within ``env.max_act_alone_ms``: playout + silence + fade
+        (:func:`teleop.session.settings.acting_alone`; the silence is the node's own).  The fade is
+        shortened to fit, and ``auto``'s allowance capped at what is left; a fixed playout the
+        envelope check already held within the cap."""
+        node = self.node
+        node.confine(env)
+        cap = env.max_act_alone_ms * 1e-3
+        playout = self.playout.fixed * node.dt
+        fade = min(node.options.fade_time, cap - playout - node.link_timeout)
+        node.fade_within(max(fade, MIN_FADE_S))
+        if self.playout.mode == "auto":
+            left = cap - node.link_timeout - max(fade, MIN_FADE_S)
+            self.playout.max_extra = min(self.playout.max_extra, max(0, math.floor(left / node.dt + 1e-9)))
 
     # --- inbound -------------------------------------------------------------------------
     def receive(

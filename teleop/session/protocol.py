@@ -98,6 +98,7 @@ _MAX_NAME_LEN = 64
 #: Reasons of the last rejected hellos that a teleoperator keeps for its report.
 REJECTIONS_KEPT = 16
 START_AHEAD_NS = 10_000_000_000  # a start at most this far ahead of the teleoperator's clock
+NEVER_NS = 1 << 62  # a handshake timer that never comes (about 146 years of the monotonic clock)
 START_SLACK_NS = 1_000_000_000  # or this far behind it (a fresh session: the operator leads by 300 ms)
 #: The start's lead follows the measured round trip: at least ``start_lead_ns``, and at least
 #: ``start_margin_ns + START_LEAD_RTTS * rtt + START_LEAD_SLACK_NS``.  With jitter up to half the
@@ -281,7 +282,7 @@ class SessionParams(Channel):
             raise ValueError(f"scenario must be one of {', '.join(SCENARIOS)}, got {_show(self.scenario)}")
         _between("dof", self.dof, 1, limits.MAX_DOF)
         _positive("b", self.b, limits.MAX_B)
-        _positive("range", self.full_scale, limits.MAX_RANGE)
+        _between("range", self.full_scale, limits.MIN_RANGE, limits.MAX_RANGE)  # subnormal: refused
         _between("dt", self.dt, limits.MIN_DT, limits.MAX_DT)
         limits.check_duration(self.duration, self.dof, self.dt)
         if not 0.0 <= self.phase < 1.0:
@@ -1031,8 +1032,9 @@ class TeleoperatorHandshake:
     ``cookie_secret`` (the endpoint always gives one): a hello without a valid cookie for its source
     address is answered with a small :class:`Retry` and leaves no state, so hellos recorded and
     replayed from another address never reach the candidates.  ``limits``: what this side affords
-    (:class:`Envelope`).  ``defer_t3``: welcomes wait in :meth:`datagrams_to_send` to be stamped
-    with NTP's reply time t3 as they leave (a sans-I/O caller has no clock to hand in).
+    (:class:`Envelope`); ``vet``: why a proposal within it still cannot run (None: it can).
+    ``defer_t3``: welcomes wait in :meth:`datagrams_to_send` to be stamped with NTP's reply time t3
+    as they leave (a sans-I/O caller has no clock to hand in).
     """
 
     def __init__(
@@ -1048,11 +1050,13 @@ class TeleoperatorHandshake:
         local_limits: Envelope | None = None,
         defer_t3: bool = False,
         admit: Callable[[Addr, int, bool], bool] | None = None,
+        vet: Callable[[SessionParams], str | None] | None = None,
     ) -> None:
         self.expect = Pins.of(expect).pinned()
         self.local_netem = frozenset(local_netem) | configured_netem(self.expect)
         self.timeout_s = timeout_s
-        self._give_up = now_ns + round(timeout_s * 1e9)
+        # inf: a robot that waits for its operator until it is stopped
+        self._give_up = now_ns + round(timeout_s * 1e9) if math.isfinite(timeout_s) else NEVER_NS
         self.params: SessionParams | None = None
         self.peer: Addr | None = None
         self.start_ns = 0
@@ -1091,6 +1095,10 @@ class TeleoperatorHandshake:
         # (a stranger's junk, whatever address it claims) spend nobody's budget.
         self.admit = admit
         self.throttled = 0
+        # Builds what the session would build from a proposal within the envelope, and says in one
+        # line why it cannot run (the endpoint's ``teleop.session.port.build_refusal``): a welcome
+        # is a promise that the session starts (issue 45).
+        self.vet = vet
 
     @property
     def finished(self) -> bool:
@@ -1163,7 +1171,10 @@ class TeleoperatorHandshake:
             got = getattr(p, k)
             if want is not None and got != want:
                 return f"{k} {got!r} differs from this teleoperator's {want!r}"
-        return self.local_limits.check(p)
+        why = self.local_limits.check(p)
+        if why is None and self.vet is not None:
+            why = self.vet(p)
+        return why
 
     def receive(
         self, data: bytes, addr: Addr, now_ns: int, reply_clock: Callable[[], int] | None = None

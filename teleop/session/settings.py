@@ -27,8 +27,66 @@ from teleop.control.codecs import make_codec
 from teleop.control.codecs.spec import CodecSpec
 from teleop.control.passivity import DEFAULT_LINK_TIMEOUT, ON_LOSS
 from teleop.control.ratecap import RateCap
-from teleop.session.link.netem import NetemError, make_link
+from teleop.session.link.netem import NetemError, make_link, parse_netem
 from teleop.session.playout import MAX_EXTRA_MS, parse_playout
+from teleop.session.wire import max_session_datagram_bytes
+
+#: The most a robot may be told to hold in its outgoing shim: packets (the wire's u32 limit is
+#: what a spec may say; a robot's flag is bounded here) and ms.
+MAX_BACKWARD_QUEUE = 1_000_000
+MAX_BACKWARD_HOLD_MS = 3_600_000.0
+#: The longest a robot may be told to act alone (ms): the longest silence and playout, plus a fade.
+MAX_ACT_ALONE_MS = 3_600_000.0
+
+
+#: The node's link supervision (``teleop.session.node``: ``SPARSE_MARGIN_S``, ``PortOptions.fade_time``),
+#: restated here for the robot's cap on how long it acts alone (tests/test_welcome.py checks both
+#: against the node): how late the payload after a lost one may be, and the fade's length.
+SPARSE_MARGIN_S = 0.010
+FADE_S = 0.1
+#: The shortest fade a robot shortens its own to (s): below it the proposal is refused.  Why not
+#: shorter: with a 30 ms fade pd:5's held payloads played more energy than was reported (the
+#: conformance suite's deadband rule failed, 491 ticks by 2e-6 J); at 90 ms it passes.
+MIN_FADE_S = 0.08
+
+
+def silence_allowed_s(k: int, dt: float, link_timeout: float) -> float:
+    """The silence after a payload a node allows before its link is lost (PROTOCOL.md 5.3): the
+    payload interval ``k dt`` plus the link timeout, or for a sparse codec one lost payload more."""
+    interval = k * dt
+    return interval + (max(link_timeout, interval + SPARSE_MARGIN_S) if k > 1 else link_timeout)
+
+
+def playout_extra_s(playout: str, dt: float) -> float:
+    """The fixed allowance a playout buffer adds (``teleop.session.playout``): a number of ms
+    rounded up to ticks; ``off`` and ``auto`` none (auto's is capped by the robot at run time)."""
+    if playout in ("off", "auto"):
+        return 0.0
+    return math.ceil(float(playout) * 1e-3 / dt - 1e-9) * dt
+
+
+@dataclass(frozen=True)
+class Acting:
+    """The longest a robot acts after its operator's last packet arrives, by part (s): the playout
+    buffer holds it ``playout``, the link is lost ``silence`` after it is played, and the coupling
+    fades to 0 over ``fade`` (shortened by the robot to fit its cap, never below ``MIN_FADE_S``)."""
+
+    playout: float
+    silence: float
+    fade: float
+
+    @property
+    def total(self) -> float:
+        return self.playout + self.silence + self.fade
+
+
+def acting_alone(p: Proposal, cap_s: float) -> Acting:
+    """How long a robot whose cap is ``cap_s`` acts after the last packet of a session of ``p``:
+    ``playout + silence + fade``, the fade shortened (from ``FADE_S``) to fit the cap."""
+    k = make_codec(CodecSpec.parse(p.codec), p.dof).k  # the payload interval (no range in it)
+    playout = playout_extra_s(p.playout, p.dt)
+    silence = silence_allowed_s(k, p.dt, p.link_timeout)
+    return Acting(playout, silence, min(FADE_S, cap_s - playout - silence))
 
 
 class Passivity(StrEnum):
@@ -165,6 +223,8 @@ class Proposal(Protocol):
     def playout(self) -> str: ...
     @property
     def passivity(self) -> Passivity: ...
+    @property
+    def netem_backward(self) -> str: ...
 
 
 @dataclass(frozen=True)
@@ -193,6 +253,14 @@ class Envelope:
     max_playout_ms: float = 200.0  # ms: the largest fixed playout delay it adds
     max_velocity: float = 1.5  # m/s per DoF: what it is ever commanded
     max_force: float = 50.0  # N per DoF: the contact force it pushes to at most
+    # The robot's own outgoing shim (the backward netem an operator proposes) is the robot's memory
+    # and time: it holds at most this many packets (the spec's ``limit``; netem's default) ...
+    max_backward_queue: int = 1000
+    # ... and none longer than this (delay, the jitter's widest draw, a rate's full queue).
+    max_backward_hold_ms: float = 1000.0
+    # ms: the longest it acts after its operator's last packet arrives (playout + silence + fade:
+    # :func:`acting_alone`); it shortens its fade to fit, and refuses what no fade fits.
+    max_act_alone_ms: float = 300.0
 
     def __post_init__(self) -> None:
         for name in ("max_range", "min_b", "max_b", "max_link_timeout", "max_velocity", "max_force", "dt"):
@@ -201,6 +269,16 @@ class Envelope:
                 raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
         if self.min_b > self.max_b:
             raise ValueError(f"min_b {_num(self.min_b)} must not exceed max_b {_num(self.max_b)}")
+        queue, hold = self.max_backward_queue, self.max_backward_hold_ms
+        if not (type(queue) is int and 1 <= queue <= MAX_BACKWARD_QUEUE):
+            raise ValueError(f"max_backward_queue must be an integer 1..{MAX_BACKWARD_QUEUE}, got {queue!r}")
+        if not 0 <= hold <= MAX_BACKWARD_HOLD_MS:
+            raise ValueError(f"max_backward_hold_ms must be 0..{_num(MAX_BACKWARD_HOLD_MS)}, got {hold!r}")
+        if not MIN_FADE_S * 1e3 <= self.max_act_alone_ms <= MAX_ACT_ALONE_MS:
+            raise ValueError(
+                f"max_act_alone_ms must be {_num(MIN_FADE_S * 1e3)}..{_num(MAX_ACT_ALONE_MS)}, "
+                f"got {self.max_act_alone_ms!r}"
+            )
         if not 0 <= self.max_playout_ms <= MAX_EXTRA_MS:
             raise ValueError(f"max_playout_ms must be 0..{_num(MAX_EXTRA_MS)}, got {self.max_playout_ms!r}")
         if not set(self.passivity) <= set(PASSIVITY) or not self.passivity:
@@ -256,7 +334,48 @@ class Envelope:
                 f"playout {p.playout} ms exceeds this robot's limit {_num(self.max_playout_ms)} ms "
                 "(--max-playout)"
             )
-        return self._check_codec(p)
+        return self._check_codec(p) or self._check_backward(p) or self._check_acting(p)
+
+    def _check_acting(self, p: Proposal) -> str | None:
+        """The longest the robot acts after its operator's last packet, within ``max_act_alone_ms``
+        with a fade of at least ``MIN_FADE_S`` (it shortens its own fade to fit)."""
+        try:
+            a = acting_alone(p, self.max_act_alone_ms * 1e-3)
+        except ValueError:
+            return None  # a codec that does not parse: the hello's parser says what is wrong
+        if a.fade >= MIN_FADE_S - 1e-12:
+            return None
+        need = (a.playout + a.silence + MIN_FADE_S) * 1e3
+        return (
+            f"link_timeout {_num(p.link_timeout * 1e3)} ms with codec {p.codec} and playout {p.playout}: "
+            f"this robot would act {_num(need)} ms after its operator's last packet (playout "
+            f"{_num(a.playout * 1e3)} + silence {_num(a.silence * 1e3)} + fade {_num(MIN_FADE_S * 1e3)} "
+            f"at least), beyond its limit {_num(self.max_act_alone_ms)} ms (--max-act-alone)"
+        )
+
+    def _check_backward(self, p: Proposal) -> str | None:
+        """The operator's backward impairment runs in this robot's shim: its queue (memory: at most
+        ``max_backward_queue`` datagrams of the session) and how long it holds a packet are capped.
+        A ``trace FILE`` reaches here only if the robot named it (its own choice)."""
+        text = p.netem_backward
+        if not text.strip() or text.split()[0] == "trace":
+            return None
+        try:
+            spec = parse_netem(text)
+        except NetemError:
+            return None  # (the hello's parser says what is wrong)
+        if spec.limit > self.max_backward_queue:
+            return (
+                f"netem_backward limit {spec.limit} exceeds this robot's limit {self.max_backward_queue} "
+                "packets (--max-backward-queue)"
+            )
+        hold_ms = spec.longest_hold(max_session_datagram_bytes(p.dof)) * 1e3
+        if hold_ms > self.max_backward_hold_ms:
+            return (
+                f"netem_backward holds a packet up to {_num(hold_ms)} ms, beyond this robot's limit "
+                f"{_num(self.max_backward_hold_ms)} ms (--max-backward-hold)"
+            )
+        return None
 
     def _check_codec(self, p: Proposal) -> str | None:
         """Every wave range the proposed codec would play (CQ's RANGE included) within
@@ -269,6 +388,19 @@ class Envelope:
                 f"{_num(self.max_range)} (--max-range)"
             )
         return None
+
+    def owning_backward(self, spec: str | None) -> Envelope:
+        """This envelope admitting the robot's own pinned backward impairment ``spec`` (the robot's
+        choice, at any DoF): a robot is never refused its own setting."""
+        if not spec or not spec.strip() or spec.split()[0] == "trace":
+            return self
+        ns = parse_netem(spec)
+        hold_ms = min(ns.longest_hold(max_session_datagram_bytes(self.max_dof)) * 1e3, MAX_BACKWARD_HOLD_MS)
+        return dataclasses.replace(
+            self,
+            max_backward_queue=max(self.max_backward_queue, min(ns.limit, MAX_BACKWARD_QUEUE)),
+            max_backward_hold_ms=max(self.max_backward_hold_ms, hold_ms),
+        )
 
     def admitting(self, p: Proposal) -> Envelope:
         """This envelope widened just enough to admit ``p``: the robot of a user who chose ``p``
@@ -288,7 +420,31 @@ class Envelope:
             else tuple(dict.fromkeys((*self.uncontrolled_on_loss, p.on_loss))),
             max_link_timeout=max(self.max_link_timeout, p.link_timeout),
             max_playout_ms=max(self.max_playout_ms, float(p.playout) if fixed else 0.0),
+            max_act_alone_ms=max(self.max_act_alone_ms, _full_acting_ms(p)),
+            **_backward_admitting(self, p),
         )
+
+
+def _full_acting_ms(p: Proposal) -> float:
+    """What ``p`` needs of a robot's ``max_act_alone_ms`` to keep its full fade (``FADE_S``)."""
+    try:
+        a = acting_alone(p, math.inf)
+    except ValueError:
+        return 0.0
+    return min((a.playout + a.silence + FADE_S) * 1e3, MAX_ACT_ALONE_MS)
+
+
+def _backward_admitting(env: Envelope, p: Proposal) -> dict[str, Any]:
+    """:meth:`Envelope.admitting`'s backward shim limits: widened to ``p``'s backward spec."""
+    text = p.netem_backward
+    if not text.strip() or text.split()[0] == "trace":
+        return {}
+    spec = parse_netem(text)
+    hold_ms = spec.longest_hold(max_session_datagram_bytes(p.dof)) * 1e3
+    return {
+        "max_backward_queue": max(env.max_backward_queue, min(spec.limit, MAX_BACKWARD_QUEUE)),
+        "max_backward_hold_ms": max(env.max_backward_hold_ms, min(hold_ms, MAX_BACKWARD_HOLD_MS)),
+    }
 
 
 def codec_range(p: Proposal) -> float:
@@ -400,9 +556,13 @@ SETTINGS: tuple[Setting, ...] = (
         "netem_backward",
         None,
         True,
-        "pinned by --netem/--netem-backward; a trace FILE only if the robot named it",
+        "pinned by --netem/--netem-backward; else its queue capped by --max-backward-queue (default "
+        f"{DEFAULT_ENVELOPE.max_backward_queue} packets: memory at most that many of the session's "
+        "datagrams) and its longest hold (delay, widest jitter, a rate's full queue) by "
+        f"--max-backward-hold (default {_num(DEFAULT_ENVELOPE.max_backward_hold_ms)} ms); "
+        "a trace FILE only if the robot named it",
         "--netem-backward",
-        ("--netem", "--netem-backward"),
+        ("--netem", "--netem-backward", "--max-backward-queue", "--max-backward-hold"),
     ),
     Setting("seed", "seed", None, True, "the operator's (seeds the shims and the human)", "--seed"),
     Setting(
@@ -428,9 +588,13 @@ SETTINGS: tuple[Setting, ...] = (
         "link_timeout",
         None,
         True,
-        f"capped by --max-link-timeout (default {_num(DEFAULT_ENVELOPE.max_link_timeout * 1e3)} ms)",
+        f"capped by --max-link-timeout (default {_num(DEFAULT_ENVELOPE.max_link_timeout * 1e3)} ms); "
+        "with the codec's payload interval, the playout and the fade, by --max-act-alone (default "
+        f"{_num(DEFAULT_ENVELOPE.max_act_alone_ms)} ms: the longest the robot acts after its "
+        "operator's last packet; it shortens its fade, down to "
+        f"{_num(MIN_FADE_S * 1e3)} ms, to fit)",
         "--link-timeout",
-        ("--max-link-timeout",),
+        ("--max-link-timeout", "--max-act-alone"),
     ),
     Setting(
         "rate_cap",
@@ -446,9 +610,11 @@ SETTINGS: tuple[Setting, ...] = (
         "playout",
         None,
         True,
-        f"a fixed delay capped by --max-playout (default {_num(DEFAULT_ENVELOPE.max_playout_ms)} ms)",
+        f"a fixed delay capped by --max-playout (default {_num(DEFAULT_ENVELOPE.max_playout_ms)} ms) "
+        "and, with the link timeout, by --max-act-alone; auto's allowance capped at what "
+        "--max-act-alone leaves",
         "--playout",
-        ("--max-playout",),
+        ("--max-playout", "--max-act-alone"),
     ),
     Setting("variation", "variation", None, True, "the operator's (the human's variation)", "--variation"),
     Setting(

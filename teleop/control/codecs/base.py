@@ -12,6 +12,7 @@ conditions (8) and (10) are never broken by the representation.
 from __future__ import annotations
 
 import importlib
+import sys
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
@@ -61,6 +62,14 @@ class RawFormat:
             raise CodecError(f"full scale (range) must be finite and > 0, got {self.full_scale!r}")
         if not 2 <= self.bits <= RAW_BITS:
             raise CodecError(f"bits must be in 2..{RAW_BITS}, got {self.bits}")
+        # A step below the smallest normal float (a subnormal range such as 5e-324) has no finite
+        # inverse: every code would be NaN (0 * inf), so such a range is refused, not played.
+        lowest = self.max_code * sys.float_info.min
+        if self.full_scale < lowest:
+            raise CodecError(
+                f"full scale (range) must be at least {lowest:.3g} for {self.bits}-bit codes "
+                f"(a step of at least the smallest normal float), got {self.full_scale!r}"
+            )
         # Computed once (the 1 kHz path reads them every tick; the properties compute them anew).
         object.__setattr__(self, "_inv_step", self.max_code / self.full_scale)
         object.__setattr__(self, "_step", self.step)

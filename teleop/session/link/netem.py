@@ -60,8 +60,10 @@ Where this model differs from netem:
    must be > 0 (tc reads 0 as no rate); the 4-state and Gilbert-Elliott probabilities leaving a state
    must sum to at most 100% (the kernel would silently misbehave).
 
-Units, as tc: a bare TIME is microseconds; a bare PERCENT is a percentage (``5`` is 5%); a bare RATE
-is bytes/s, and ``bps``/``kbps``/... are *bytes* per second (``kbit`` is 1000 bit/s).
+Units, as tc, but a TIME needs its unit (tc reads a bare number as microseconds, and ``delay 50``
+ran a session at 50 us where 50 ms was meant; a bare 0 is taken); a bare PERCENT is a percentage
+(``5`` is 5%); a bare RATE is bytes/s, and ``bps``/``kbps``/... are *bytes* per second (``kbit``
+is 1000 bit/s).
 
 The trace link follows Mahimahi's ``mm-link`` (``link_queue.cc``): the trace lists millisecond
 timestamps of delivery opportunities, repeats are allowed, and the trace loops with period equal to
@@ -131,7 +133,7 @@ netem spec (tc-netem grammar; whitespace-separated tokens, options in any order,
   rate RATE [PACKETOVERHEAD [CELLSIZE [CELLOVERHEAD]]]
   limit PACKETS                                          (default 1000)
   seed N
-TIME: NUMBER with s|sec|secs|ms|msec|msecs|us|usec|usecs|ns|nsec|nsecs; a bare number is microseconds
+TIME: NUMBER with s|sec|secs|ms|msec|msecs|us|usec|usecs|ns|nsec|nsecs (the unit is required)
 PERCENT, CORRELATION: NUMBER[%] in 0..100; a bare number is a percentage
 RATE: NUMBER with bit|kbit|mbit|gbit|tbit|kibit|mibit|gibit|tibit (bits/s) or
       bps|kbps|mbps|gbps|tbps|kibps|mibps|gibps|tibps (BYTES/s); a bare number is bytes/s
@@ -195,6 +197,20 @@ class NetemSpec:
     cell_size: int = 0
     cell_overhead: int = 0
     seed: int | None = None
+
+    def longest_hold(self, max_len: int) -> float:
+        """The longest (s) a link of this spec holds a packet of at most ``max_len`` bytes: its
+        delay plus the jitter's widest draw (the distribution table's largest value), plus, with a
+        ``rate``, the wait behind a full queue of ``limit`` such packets.  What a robot's envelope
+        caps in the backward spec an operator proposes (``teleop.session.settings.Envelope``)."""
+        tail = 1.0 if self.distribution in (None, "uniform") else max(DIST_TABLES[self.distribution])
+        hold = max(0.0, self.delay + abs(self.jitter) * tail)
+        if self.rate is not None:
+            n = max_len + self.packet_overhead
+            if self.cell_size:
+                n = -(-n // self.cell_size) * (self.cell_size + self.cell_overhead)
+            hold += self.limit * max(n, 0) * 8.0 / self.rate
+        return hold
 
 
 @dataclass(slots=True)
@@ -330,8 +346,13 @@ class _Parser:
         m = _NUM_UNIT.fullmatch(tok)
         unit = m.group(2).lower() if m else None
         if m is None or unit not in _TIME_UNITS:
-            raise self.error(self.i, f"bad {what}: expected a number with s|ms|us|ns (bare = us)")
-        return float(m.group(1)) * _TIME_UNITS[unit]
+            raise self.error(self.i, f"bad {what}: expected a number with its unit, s|ms|us|ns")
+        value = float(m.group(1))
+        if unit == "" and value != 0.0:  # tc reads a bare number as us: "delay 50" meant 50 ms?
+            raise self.error(
+                self.i, f"bad {what}: a time needs its unit (s, ms, us or ns), e.g. {m.group(1)}ms"
+            )
+        return value * _TIME_UNITS[unit]
 
     def percent(self, what: str) -> float:
         tok = self.take(what)
