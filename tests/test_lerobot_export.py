@@ -468,11 +468,10 @@ def test_a_frankas_state_for_the_log() -> None:
 
     dev, arm = _fake()
     arm.next_state.tau_J = [0.5 * i for i in range(7)]
-    arm.next_state.q = [0.1 * i for i in range(7)]
     _step(dev, 0.0, [0.0, 0.0, 0.0])
     state = dev.state()
     assert state["pose"] == [0.5, 0.0, 0.5, 0.0, 0.0, 0.0, 1.0]
-    assert state["q"] == [0.1 * i for i in range(7)] and state["tau"] == [0.5 * i for i in range(7)]
+    assert state["q"] == dev._q.tolist() == [0.0] * 7 and state["tau"] == [0.5 * i for i in range(7)]
     assert len(state["dq"]) == 7 and state["setpoint"] == [0.5, 0.0, 0.5]
     assert dev.state_every == 10
     c, s = math.cos(math.pi / 3), math.sin(math.pi / 3)  # 60 degrees about z
