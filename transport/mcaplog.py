@@ -60,6 +60,10 @@ topic                       rate       fields
 ``/ROLE/session``           once       the session's parameters, role, pid, start time; ``traces``:
                                        SHA-256 and size of a ``trace FILE`` link's file
 ``/ROLE/summary``           once       the process's summary (what ``ROLE.json`` holds)
+``/ROLE/state``             device's   ``k``, ``t``, the device's ``state()``: ``pose`` (x, y, z,
+                            own rate   qx, qy, qz, qw), a Franka's ``q``, ``dq``, ``tau``, ``setpoint``
+``/ROLE/pose``, ``/ROLE/tf`` as state  the pose as ``foxglove.PoseInFrame`` and
+                                       ``foxglove.FrameTransforms`` (``base`` -> ``tool``)
 ==========================  =========  ==================================================================
 
 The live view serves the same topics, per-tick ones decimated to every ``live_every``-th tick (50 Hz
@@ -95,7 +99,15 @@ from teleop.offline.logfile import (
     read_log,
     read_summary,
 )
-from teleop.session.logformat import ENERGY_FIELDS, INT_FIELDS, PER_TICK_TOPICS, TOPICS, WIRE_FIELDS
+from teleop.session.logformat import (
+    BASE_FRAME,
+    ENERGY_FIELDS,
+    INT_FIELDS,
+    PER_TICK_TOPICS,
+    TOOL_FRAME,
+    TOPICS,
+    WIRE_FIELDS,
+)
 from teleop.session.port import Chunk
 
 __all__ = [
@@ -128,58 +140,168 @@ PIPE_BYTES = 4 << 20
 BEHIND, CAUGHT_UP = 1 / 8, 1 / 64
 SLOW_CLOSE_S = 2.0  # a close still waiting this long for an idle writer says why, once
 
-_NUM = {"type": "number"}
-_INT = {"type": "integer"}
-_VEC = {"type": "array", "items": {"type": "number"}}
+
+def _f(kind: str, unit: str, what: str) -> dict[str, Any]:
+    """A field of a schema: its JSON type, its unit and what it is (shown by Foxglove and mcap info)."""
+    spec: dict[str, Any] = {"type": "array", "items": {"type": "number"}} if kind == "vec" else {"type": kind}
+    return {**spec, "description": f"{what} [{unit}]" if unit else what}
 
 
-def _schema(title: str, **props: Any) -> dict[str, Any]:
-    return {"title": title, "type": "object", "properties": props}
+_K = _f("integer", "tick", "the session's tick (1 kHz: ms since tick 0)")
+_T = _f("number", "s", "when the tick ran, on the session clock")
+_BYTES = "bytes"
 
+
+def _schema(title: str, what: str = "", **props: Any) -> dict[str, Any]:
+    return {"title": title, "description": what, "type": "object", "properties": props}
+
+
+_XYZ = _schema("xyz", x=_f("number", "m", "x"), y=_f("number", "m", "y"), z=_f("number", "m", "z"))
+_QUAT = _schema(
+    "quaternion",
+    "",
+    x=_f("number", "", "quaternion x"),
+    y=_f("number", "", "quaternion y"),
+    z=_f("number", "", "quaternion z"),
+    w=_f("number", "", "quaternion w"),
+)
+_STAMP = _schema("time", sec=_f("integer", "s", "seconds"), nsec=_f("integer", "ns", "nanoseconds"))
 
 SCHEMAS: dict[str, dict[str, Any]] = {
-    "signals": _schema("teleop.Signals", k=_INT, t=_NUM, v=_VEC, f=_VEC),
-    "waves": _schema("teleop.Waves", k=_INT, t=_NUM, wave_out=_VEC, wave_in=_VEC),
+    "signals": _schema(
+        "teleop.Signals",
+        "the port's variables each tick: the operator's hand, or the robot's command and force",
+        k=_K,
+        t=_T,
+        v=_f("vec", "m/s", "velocity per DoF (operator: the hand's; teleoperator: the robot's command)"),
+        f=_f(
+            "vec", "N", "force per DoF (operator: rendered to the hand; teleoperator: the robot's measured)"
+        ),
+    ),
+    "waves": _schema(
+        "teleop.Waves",
+        "the wave variables this side sent and received (eq. 3)",
+        k=_K,
+        t=_T,
+        wave_out=_f("vec", "sqrt(W)", "wave sent, per DoF"),
+        wave_in=_f("vec", "sqrt(W)", "wave received and played, per DoF"),
+    ),
     "energy": _schema(
         "teleop.Energy",
-        k=_INT,
-        t=_NUM,
-        sent=_NUM,
-        played=_NUM,
-        margin_observed=_NUM,
-        played_epoch=_NUM,
-        peer_epoch=_INT,
+        "the watchdog's energy books of this side (eqs. 5, 8)",
+        k=_K,
+        t=_T,
+        sent=_f("number", "J", "energy sent so far"),
+        played=_f("number", "J", "energy played so far"),
+        margin_observed=_f("number", "J", "the watchdog's margin: reported in minus played"),
+        played_epoch=_f("number", "J", "energy played since the peer's last restart"),
+        peer_epoch=_f("integer", "", "the peer's restarts seen"),
+        controller_ticks=_f("integer", "ticks", "ticks the passivity controller acted in so far"),
     ),
     "wire": _schema(
         "teleop.Wire",
-        k=_INT,
-        t=_NUM,
-        send_time=_NUM,
-        tx_seq=_INT,
-        rx_seq=_INT,
-        send_phase=_INT,
-        produced_payload=_NUM,
-        produced_packet=_NUM,
-        tx_wire=_NUM,
-        tx_payload=_NUM,
-        tx_baseline_wire=_NUM,
-        tx_baseline_payload=_NUM,
-        rx_wire=_NUM,
-        rx_payload=_NUM,
+        "what this side sent and received, counted at its socket",
+        k=_K,
+        t=_T,
+        send_time=_f("number", "s", "when this tick's packet left (session clock; null: none)"),
+        tx_seq=_f("integer", "", "sequence number sent this tick (-1: none)"),
+        rx_seq=_f("integer", "", "newest sequence number accepted by this tick (-1: none)"),
+        send_phase=_f("integer", "ticks", "the teleoperator's send phase (-1: the operator)"),
+        produced_payload=_f("number", _BYTES, "payload the node produced"),
+        produced_packet=_f("number", _BYTES, "packet the node produced, before the shim"),
+        tx_wire=_f("number", _BYTES, "sent on the wire"),
+        tx_payload=_f("number", _BYTES, "payload sent"),
+        tx_baseline_wire=_f("number", _BYTES, "the uncompressed stream's wire bytes"),
+        tx_baseline_payload=_f("number", _BYTES, "the uncompressed stream's payload bytes"),
+        rx_wire=_f("number", _BYTES, "received on the wire"),
+        rx_payload=_f("number", _BYTES, "payload received"),
     ),
-    "loop": _schema("teleop.Loop", k=_INT, t=_NUM, lateness_ns=_INT),
+    "loop": _schema(
+        "teleop.Loop",
+        "the real-time loop",
+        k=_K,
+        t=_T,
+        lateness_ns=_f("integer", "ns", "tick start minus its deadline"),
+    ),
     "link": _schema(
         "teleop.Link",
-        t=_NUM,
+        "once a second: the incoming link, counters and the watchdog so far",
+        t=_T,
         link={"type": "object"},
         sent={"type": "object"},
         received={"type": "object"},
         watchdog={"type": "object"},
     ),
-    "events": _schema("teleop.Event", t=_NUM, event={"type": "string"}, detail={"type": "string"}),
-    "session": _schema("teleop.Session", params={"type": "object"}),
-    "summary": _schema("teleop.Summary"),
+    "events": _schema(
+        "teleop.Event",
+        "what happened, as it happened",
+        t=_T,
+        event={"type": "string"},
+        detail={"type": "string"},
+    ),
+    "session": _schema("teleop.Session", "the session's parameters", params={"type": "object"}),
+    "summary": _schema("teleop.Summary", "the process's summary (ROLE.json)"),
+    "state": _schema(
+        "teleop.RobotState",
+        "the robot's own state at its own rate (the device's state(): teleop.devices)",
+        k=_K,
+        t=_T,
+        pose=_f("vec", "m, quaternion", "the end effector's pose in the base frame: x, y, z, qx, qy, qz, qw"),
+        q=_f("vec", "rad", "joint positions"),
+        dq=_f("vec", "rad/s", "joint velocities"),
+        tau=_f("vec", "Nm", "measured joint torques"),
+        setpoint=_f("vec", "m", "the impedance set-point (the spring's rest position) per DoF"),
+        position=_f("vec", "m", "the robot's position per DoF"),
+    ),
+    # Foxglove's well-known schemas, JSON-encoded: a 3D panel shows the pose and the tool frame.
+    "pose": _schema(
+        "foxglove.PoseInFrame",
+        "the end effector's pose",
+        timestamp=_STAMP,
+        frame_id={"type": "string"},
+        pose=_schema("foxglove.Pose", position=_XYZ, orientation=_QUAT),
+    ),
+    "tf": _schema(
+        "foxglove.FrameTransforms",
+        "the tool frame in the base frame",
+        transforms={
+            "type": "array",
+            "items": _schema(
+                "foxglove.FrameTransform",
+                timestamp=_STAMP,
+                parent_frame_id={"type": "string"},
+                child_frame_id={"type": "string"},
+                translation=_XYZ,
+                rotation=_QUAT,
+            ),
+        },
+    ),
 }
+
+
+def pose_messages(log_time_ns: int, pose: list[float]) -> dict[str, dict[str, Any]]:
+    """A state's ``pose`` (x, y, z, qx, qy, qz, qw) as Foxglove's PoseInFrame and FrameTransforms."""
+    x, y, z, qx, qy, qz, qw = pose
+    stamp = {"sec": log_time_ns // 1_000_000_000, "nsec": log_time_ns % 1_000_000_000}
+    position, rotation = {"x": x, "y": y, "z": z}, {"x": qx, "y": qy, "z": qz, "w": qw}
+    return {
+        "pose": {
+            "timestamp": stamp,
+            "frame_id": BASE_FRAME,
+            "pose": {"position": position, "orientation": rotation},
+        },
+        "tf": {
+            "transforms": [
+                {
+                    "timestamp": stamp,
+                    "parent_frame_id": BASE_FRAME,
+                    "child_frame_id": TOOL_FRAME,
+                    "translation": position,
+                    "rotation": rotation,
+                }
+            ]
+        },
+    }
 
 
 def _num(x: Any) -> Any:
@@ -359,6 +481,21 @@ class _Writer:
                     data = (tmpl % tuple(row)).encode()
                 log(data, log_time=lt)
         self.messages += 5 * len(rows)
+        self._states(c)
+
+    def _states(self, c: Chunk) -> None:
+        """The device's state samples (``state``), and a pose as Foxglove's pose and transform."""
+        t_of = c.play_time
+        for k, values in c.device_state:
+            t = float(t_of[k - c.k0])
+            lt = self.wall0_ns + (round(t * 1e9) if math.isfinite(t) else 0)
+            self._ch["state"].log(json.dumps({"k": k, "t": _num(t), **values}).encode(), log_time=lt)
+            self.messages += 1
+            pose = values.get("pose")
+            if isinstance(pose, list) and len(pose) == 7 and all(map(math.isfinite, pose)):
+                for name, m in pose_messages(lt, pose).items():
+                    self._ch[name].log(json.dumps(m).encode(), log_time=lt)
+                    self.messages += 1
 
     @property
     def error(self) -> str | None:

@@ -7,7 +7,19 @@ import os
 import sys
 from collections.abc import Sequence
 
-from teleop.cli import config, conformance, doctor, endpoints, experiment, keygen, report, run, sim, sweep
+from teleop.cli import (
+    config,
+    conformance,
+    doctor,
+    endpoints,
+    experiment,
+    export,
+    keygen,
+    report,
+    run,
+    sim,
+    sweep,
+)
 from teleop.cli.args import CliError, Parser, one_line
 from teleop.files import FileRefused
 
@@ -23,6 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     endpoints.add_teleoperator_parser(sub)
     endpoints.add_router_parser(sub)
     report.add_parser(sub)
+    export.add_parser(sub)
     keygen.add_parser(sub)
     conformance.add_parser(sub)
     doctor.add_parser(sub)

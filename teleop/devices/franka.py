@@ -701,6 +701,24 @@ class FrankaRobot:
             ctl.writeOnce(self.lib.Torques(tau.tolist()))
             self._tau = tau
 
+    #: Ticks between two samples of :meth:`state` in the log (100 Hz): enough for a 3D view and a
+    #: learner at up to 100 frames a second, at a tenth of the log's per-tick cost.
+    state_every = 10
+
+    def state(self) -> dict[str, list[float]]:
+        """The arm's state for the log (``/teleoperator/state``): the end effector's pose (x, y, z,
+        qx, qy, qz, qw, base frame), joint positions ``q`` (rad), velocities ``dq`` (rad/s), measured
+        torques ``tau`` (Nm), and the impedance set-point (m).  From the newest good read: no I/O."""
+        s = self._state
+        tau = [float(t) for t in s.tau_J] if s is not None else [math.nan] * 7
+        return {
+            "pose": [*map(float, self._x), *_quaternion(self._r)],
+            "q": self._q.tolist(),
+            "dq": self._dq.tolist(),
+            "tau": tau,
+            "setpoint": self.x_d.tolist(),
+        }
+
     def status(self) -> str:
         """A few words for the live status line."""
         return (
@@ -737,3 +755,12 @@ class FrankaRobot:
             "setpoint_m": (self.x_d - self.x0).tolist(),
             "reflex": self.fault,
         }
+
+
+def _quaternion(r: Array) -> list[float]:
+    """A rotation matrix as a unit quaternion (x, y, z, w): Foxglove's order."""
+    w = math.sqrt(max(0.0, 1.0 + r[0, 0] + r[1, 1] + r[2, 2])) / 2.0
+    x = math.copysign(math.sqrt(max(0.0, 1.0 + r[0, 0] - r[1, 1] - r[2, 2])) / 2.0, r[2, 1] - r[1, 2])
+    y = math.copysign(math.sqrt(max(0.0, 1.0 - r[0, 0] + r[1, 1] - r[2, 2])) / 2.0, r[0, 2] - r[2, 0])
+    z = math.copysign(math.sqrt(max(0.0, 1.0 - r[0, 0] - r[1, 1] + r[2, 2])) / 2.0, r[1, 0] - r[0, 1])
+    return [x, y, z, w]

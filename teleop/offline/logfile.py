@@ -35,9 +35,12 @@ __all__ = [
     "iter_messages",
     "iter_ticks",
     "log_session",
+    "read_columns",
     "read_log",
     "read_session",
+    "read_states",
     "read_summary",
+    "topic_lines",
 ]
 
 LAG_TICKS = 5000  # how far a topic may trail the signals in the file (iter_ticks)
@@ -63,7 +66,7 @@ class LogError(RemoteError):
 
 
 _MAGIC = b"\x89MCAP0\r\n"
-_OP_FOOTER, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK, _OP_DATA_END = 0x02, 0x04, 0x05, 0x06, 0x0F
+_OP_FOOTER, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK, _OP_INDEX, _OP_DATA_END = 0x02, 0x04, 0x05, 0x06, 0x07, 0x0F
 _U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
 _CHUNK_HEAD = struct.Struct("<QQQII")  # start, end, uncompressed size, CRC, compression's length
 MAX_CHUNK_BYTES = 8 << 20  # a chunk's records, uncompressed (the writer's are about 1 MiB)
@@ -90,7 +93,8 @@ class _Walk:
         self.truncated = False
         self.channels: dict[int, str] = {}
 
-    def records(self) -> Iterator[tuple[int, bytes]]:
+    def records(self, index: bool = False) -> Iterator[tuple[int, bytes]]:
+        """Chunks and messages outside chunks (and, with ``index``, message index records)."""
         f = self.f
         if self.size == 0:
             raise LogError("empty: its writer wrote nothing (killed before the session started?)")
@@ -111,7 +115,7 @@ class _Walk:
                 return
             if n > MAX_RECORD_BYTES:
                 raise LogError(f"a record of {n} bytes at offset {pos} (at most {MAX_RECORD_BYTES})")
-            if op in (_OP_CHUNK, _OP_CHANNEL, _OP_MESSAGE):
+            if op in (_OP_CHUNK, _OP_CHANNEL, _OP_MESSAGE) or (index and op == _OP_INDEX):
                 body = f.read(n)
                 if op == _OP_CHANNEL:
                     self._channel(body)
@@ -301,7 +305,7 @@ def read_session(path: Path) -> dict[str, Any]:
 _FIELDS: dict[str, tuple[tuple[str, str, str], ...]] = {
     "signals": (("t", "play_time_s", "num"), ("v", "v", "vec"), ("f", "f", "vec")),
     "waves": (("wave_out", "wave_out", "vec"), ("wave_in", "wave_in", "vec")),
-    "energy": tuple((n, s, "int" if s == "peer_epoch" else "num") for n, s in ENERGY_FIELDS.items()),
+    "energy": tuple((n, s, "int" if s in INT_FIELDS else "num") for n, s in ENERGY_FIELDS.items()),
     "wire": tuple((n, s, "int" if s in INT_FIELDS else "num") for n, s in WIRE_FIELDS.items()),
     "loop": (("lateness_ns", "lateness_ns", "int"),),
 }
@@ -501,7 +505,11 @@ def log_session(path: Path) -> tuple[int, dict[str, Any], dict[str, Any]]:
     return sid, summary, params
 
 
-def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, list[str]]:
+def find_pair(
+    log_dir: Path,
+    session: int | None = None,
+    seen: dict[Path, tuple[int, dict[str, Any], dict[str, Any]]] | None = None,
+) -> tuple[Path, Path, list[str]]:
     """The operator's and the teleoperator's log of one session in ``log_dir`` (``ROLE.mcap``,
     ``ROLE-*.mcap``: restarts add files, never replace one), paired by session id: ``session``, or
     else the session of the newest log that has both.  Where a role has several logs of the session
@@ -510,7 +518,8 @@ def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, li
     (the others' processes were killed): that one is read and the others are named in the notes.
     A log another user could have planted (:class:`UntrustedLog`) is
     ignored and named in the notes.  Returns the two paths and notes on
-    what else the folder holds; :class:`LogError` when no pair is found."""
+    what else the folder holds; :class:`LogError` when no pair is found.  ``seen``: filled with what
+    :func:`log_session` gave for each log read, so a caller need not read a summary twice."""
     found: dict[int, dict[str, list[tuple[int, Path, bool]]]] = {}  # (mtime, path, finished)
     errors: dict[str, str] = {}
     ignored: list[str] = []
@@ -523,7 +532,9 @@ def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, li
                 st = os.lstat(path)
                 if not stat.S_ISREG(st.st_mode):
                     raise LogError(f"{path}: not a regular file (a log is one)")
-                sid, summary, _ = log_session(path)
+                sid, summary, params = log_session(path)
+                if seen is not None:
+                    seen[path] = (sid, summary, params)
             except UntrustedLog as e:  # flagged and ignored: the figures are the genuine logs'
                 ignored.append(f"ignored {e}")
                 errors.setdefault(role, str(e))
@@ -574,3 +585,257 @@ def find_pair(log_dir: Path, session: int | None = None) -> tuple[Path, Path, li
             )
         pick[role] = logs[0][1]
     return pick["operator"], pick["teleoperator"], notes + ignored
+
+
+MAX_STATE_VALUES = 64  # numbers in one device state sample (a Franka's: 31)
+
+
+def read_states(
+    path: Path, max_tick: int, blocks: list[bytes] | None = None
+) -> tuple[npt.NDArray[np.int64], list[str], npt.NDArray[np.float64]]:
+    """The device's state samples of a log (``/ROLE/state``, ``teleop.devices``: a device's
+    ``state()`` every ``state_every`` ticks): their ticks, the names of their values (``pose.0``,
+    ``q.3``, ...; the first sample's fields, in its order) and the values, one row per sample.
+    Empty where the log has none (a device without a state, a log before 2026-12).
+
+    Hostile input as everywhere here: a sample beyond ``max_tick``, out of order, with other fields
+    than the first, more than :data:`MAX_STATE_VALUES` numbers, or a number over
+    :data:`MAX_TICK_VALUE` is :class:`LogError`; at most one sample a tick, so ``max_tick`` bounds
+    the allocation.  ``blocks``: the topic's messages already read (:func:`read_columns`' ``extra``)."""
+    topic = f"/{_role(path)}/state"
+    ks: list[int] = []
+    rows: list[list[float]] = []
+    layout: list[tuple[str, int]] | None = None
+    for block in topic_lines(path, [topic])[topic] if blocks is None else blocks:  # a chunk's, one a line
+        try:
+            ms = json.loads(b"[" + b",".join(ln for ln in block.split(b"\n") if ln.strip()) + b"]")
+        except (ValueError, RecursionError) as e:
+            raise LogError(f"a {topic} message is not JSON ({type(e).__name__})") from None
+        for m in ms:
+            if not isinstance(m, dict) or type(m.get("k")) is not int:
+                raise LogError(f"a {topic} message has no tick number k")
+            k = m["k"]
+            fields = [(n, v) for n, v in m.items() if n not in ("k", "t")]
+            if layout is None:
+                layout = [(n, len(v) if isinstance(v, list) else -1) for n, v in fields]
+                if sum(max(w, 1) for _, w in layout) > MAX_STATE_VALUES:
+                    raise LogError(f"{topic}: more than {MAX_STATE_VALUES} values a sample")
+            if [(n, len(v) if isinstance(v, list) else -1) for n, v in fields] != layout:
+                raise LogError(f"{topic}: a sample at tick {k} has other fields than the first")
+            if not 0 <= k <= max_tick or (ks and k <= ks[-1]):
+                raise LogError(f"{topic}: tick {k} out of order or beyond the session's {max_tick}")
+            row: list[float] = []
+            for _, v in fields:
+                row.extend(v if isinstance(v, list) else [v])
+            ks.append(k)
+            rows.append(row)
+    names = [f"{n}.{i}" if w >= 0 else n for n, w in layout or [] for i in range(max(w, 1))]
+    try:
+        values = np.array(rows, dtype=np.float64).reshape(len(rows), len(names))
+    except (ValueError, TypeError) as e:
+        raise LogError(f"{topic}: a value that is not a number ({e})") from None
+    if (np.abs(values) > MAX_TICK_VALUE).any():
+        raise LogError(f"{topic}: a value beyond {MAX_TICK_VALUE:g}")
+    return np.array(ks, dtype=np.int64), names, values
+
+
+def _index_payloads(
+    data: bytes, index: dict[int, bytes], channels: dict[int, str], max_bytes: int, wanted: set[str]
+) -> dict[str, bytes] | None:
+    """A decompressed chunk's messages by topic, one message a line, found through the chunk's
+    message indexes (``index``: channel id -> its MessageIndex records) with numpy instead of a
+    Python step per record: about 20 times faster than :func:`_chunk_payloads` (what a 60 s
+    session's export needs, ``teleop.offline.lerobot``).
+
+    Nothing in the index is trusted: every offset must start a message record of its channel
+    inside the chunk, the records must not overlap, and what lies between them (channel and schema
+    records) is walked record by record; a message the index leaves out, or any mismatch, returns
+    None, and the caller walks the chunk as :func:`_chunk_payloads` does."""
+    n = len(data)
+    offs_parts, ids_parts = [], []
+    for cid, body in index.items():
+        (length,) = _U32.unpack_from(body, 2)
+        if 6 + length > len(body) or length % 16:
+            return None
+        pairs = np.frombuffer(body, dtype="<u8", count=length // 8, offset=6).reshape(-1, 2)
+        offs_parts.append(pairs[:, 1])
+        ids_parts.append(np.full(pairs.shape[0], cid, dtype=np.int64))
+    if not offs_parts:
+        return None
+    offs_u = np.concatenate(offs_parts)
+    if offs_u.size == 0 or int(offs_u.max()) > n - 31:
+        return None
+    offs = offs_u.astype(np.int64)
+    order = np.argsort(offs, kind="stable")
+    offs, ids = offs[order], np.concatenate(ids_parts)[order]
+    buf = np.frombuffer(data, dtype=np.uint8)
+    if not (buf[offs] == _OP_MESSAGE).all():
+        return None
+    lens = buf[offs[:, None] + np.arange(1, 9)].copy().view("<u8").ravel()
+    if int(lens.max()) > n or int(lens.min()) < 22:
+        return None
+    if int(lens.max()) - 22 > max_bytes:
+        raise LogError(f"a message of {int(lens.max()) - 22} bytes (at most {max_bytes} on these topics)")
+    ends = offs + 9 + lens.astype(np.int64)
+    if int(ends[-1]) > n or (ends[:-1] > offs[1:]).any():
+        return None
+    cids = buf[offs[:, None] + np.array([9, 10])].copy().view("<u2").ravel()
+    if not (cids == ids).all():
+        return None
+    # The gaps: channel and schema records (the chunk's first message's channel is declared there).
+    gap_starts = np.concatenate([[0], ends])
+    gap_ends = np.concatenate([offs, [n]])
+    for a, b in zip(
+        gap_starts[gap_starts < gap_ends].tolist(), gap_ends[gap_starts < gap_ends].tolist(), strict=True
+    ):
+        got = _chunk_payloads(data[a:b], channels)
+        if got:  # a message the index did not list
+            return None
+    # Each wanted record's header (31 bytes) becomes blanks and a newline: every run of consecutive
+    # messages of a topic is then newline-delimited JSON as it lies, taken with one slice.
+    want_ids = [cid for cid in np.unique(ids).tolist() if channels.get(cid) in wanted]
+    if any(cid not in channels for cid in np.unique(ids).tolist()):
+        return None
+    mine = np.isin(ids, want_ids)
+    lined = buf.copy()
+    lined[(offs[mine][:, None] + np.arange(30)).ravel()] = 0x20
+    lined[offs[mine] + 30] = 0x0A
+    out: dict[str, bytes] = {}
+    for cid in want_ids:
+        topic = channels[cid]
+        sel = ids == cid
+        # Runs: a message that does not directly follow one of its topic starts one.
+        follows = np.concatenate([[False], sel[:-1] & sel[1:] & (ends[:-1] == offs[1:])])
+        first = np.flatnonzero(sel & ~follows)
+        last = np.flatnonzero(sel & ~np.concatenate([follows[1:], [False]]))
+        spans = zip((offs[first] + 30).tolist(), ends[last].tolist(), strict=True)
+        out[topic] = b"".join(lined[a:b].tobytes() for a, b in spans) + b"\n"
+    return out
+
+
+def topic_lines(
+    path: Path, topics: list[str], max_bytes: int = MAX_TICK_MESSAGE_BYTES
+) -> dict[str, list[bytes]]:
+    """The messages of ``topics`` (full names) of a log, as blocks of newline-separated JSON, in
+    file order: each chunk's through its message indexes (:func:`_index_payloads`), a chunk
+    without them (the last of a writer killed) record by record."""
+    wanted = set(topics)
+    out: dict[str, list[bytes]] = {t: [] for t in topics}
+    with _walk(path) as walk:
+        chunk: bytes | None = None
+        index: dict[int, bytes] = {}
+
+        def flush() -> None:
+            if chunk is None:
+                return
+            data = walk.chunk_records(chunk)
+            known = dict(walk.channels)
+            got = _index_payloads(data, index, known, max_bytes, wanted) if index else None
+            if got is None:
+                slow = _chunk_payloads(data, walk.channels)
+                if any(len(m) > max_bytes for t in wanted for m in slow.get(t, ())):
+                    raise LogError(f"a message of over {max_bytes} bytes on {', '.join(topics)}")
+                got = {t: b"\n".join(ps) + b"\n" for t, ps in slow.items()}
+            else:
+                walk.channels.update(known)
+            for t, lines in got.items():
+                if t in wanted and lines:
+                    out[t].append(lines)
+
+        for op, body in walk.records(index=True):
+            if op == _OP_INDEX:
+                (cid,) = _U16.unpack_from(body, 0)
+                index[cid] = body
+                continue
+            flush()
+            chunk, index = (body, {}) if op == _OP_CHUNK else (None, {})
+            if op == _OP_MESSAGE:
+                (cid,) = _U16.unpack_from(body, 0)
+                if walk.channels.get(cid) in wanted:
+                    if len(body) - 22 > max_bytes:
+                        raise LogError(f"a message of {len(body) - 22} bytes (at most {max_bytes})")
+                    out[walk.channels[cid]].append(body[22:] + b"\n")
+        flush()
+    return out
+
+
+def read_columns(
+    path: Path, topics: tuple[str, ...], max_tick: int, extra: dict[str, list[bytes]] | None = None
+) -> dict[str, npt.NDArray[Any]]:
+    """The per-tick record of ``topics`` as :func:`read_log` gives it (whole-session arrays from
+    tick 0 by the record's names, ``ran``; a tick not run or a row missing filled as
+    :func:`iter_ticks` fills them), read at C speed: messages through the chunks' indexes
+    (:func:`topic_lines`) and parsed by pyarrow's JSON reader, where :func:`iter_ticks` steps
+    through every record in Python.  For a whole session held at once (``teleop export``); every
+    bound of :func:`iter_ticks` holds (ticks up to ``max_tick``, :data:`MAX_TICK_VALUE`, DoF)."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+    import pyarrow.json as pj
+
+    role = _role(path)
+    wanted = ("signals", *(t for t in topics if t != "signals"))
+    lines = topic_lines(path, [f"/{role}/{t}" for t in (*wanted, *(extra or {}))])
+    if extra is not None:
+        for t in extra:
+            extra[t] = lines[f"/{role}/{t}"]
+    cols: dict[str, dict[str, npt.NDArray[Any]]] = {}
+    dof = 0
+    for t in wanted:
+        kinds = {"vec": pa.list_(pa.float64()), "int": pa.float64(), "num": pa.float64()}
+        schema = pa.schema([("k", pa.int64()), *((f, kinds[kind]) for f, _, kind in _FIELDS[t])])
+        data = b"".join(lines[f"/{role}/{t}"])
+        c: dict[str, npt.NDArray[Any]] = {}
+        if data:
+            try:
+                table = pj.read_json(
+                    pa.py_buffer(data),
+                    read_options=pj.ReadOptions(block_size=max(1 << 20, 4 * MAX_TICK_MESSAGE_BYTES)),
+                    parse_options=pj.ParseOptions(explicit_schema=schema, unexpected_field_behavior="ignore"),
+                )
+            except (pa.ArrowInvalid, pa.ArrowTypeError) as e:
+                raise LogError(f"a /ROLE/{t} message does not follow its schema: {str(e)[:200]}") from None
+            k = table.column("k")
+            if k.null_count:
+                raise LogError(f"a /ROLE/{t} message has no tick number k")
+            c["k"] = k.to_numpy()
+            for f, name, kind in _FIELDS[t]:
+                col = table.column(f).combine_chunks()
+                if kind == "vec":
+                    lengths = pc.list_value_length(col).to_numpy(zero_copy_only=False)
+                    width = dof or (int(lengths[0]) if lengths.size else 0)
+                    if col.null_count or (lengths != width).any():
+                        raise LogError(f"/ROLE/{t}: {f} must have {width} values (DoF) in every message")
+                    if width > MAX_DOF:
+                        raise LogError(f"/ROLE/{t}: {f} has {width} values (at most {MAX_DOF} DoF)")
+                    dof = width
+                    flat = col.flatten().to_numpy(zero_copy_only=False).astype(np.float64)
+                    c[name] = flat.reshape(-1, width)
+                else:
+                    c[name] = col.to_numpy(zero_copy_only=False).astype(np.float64)
+                if (np.abs(c[name]) > MAX_TICK_VALUE).any():
+                    raise LogError(f"a /ROLE/{t} message has {f} beyond {MAX_TICK_VALUE:g} in size")
+            ks = c["k"]
+            if ks.min() < 0 or (np.diff(ks) <= 0).any():
+                raise LogError(f"/ROLE/{t}: tick numbers must increase from 0 (ticks are logged in order)")
+            if int(ks[-1]) > max_tick:
+                raise LogError(f"/ROLE/{t}: tick {int(ks[-1])} beyond the session's {max_tick} ticks")
+        cols[t] = c
+    ks = cols["signals"].get("k", np.zeros(0, dtype=np.int64))
+    n = int(ks[-1]) + 1 if ks.size else 0
+    ran = np.zeros(n, dtype=bool)
+    ran[ks] = True
+    out: dict[str, npt.NDArray[Any]] = {"ran": ran}
+    for t in wanted:
+        c = cols[t]
+        if c:
+            at = np.minimum(np.searchsorted(ks, c["k"]), max(ks.size - 1, 0))
+            hit = (ks[at] == c["k"]) if ks.size else np.zeros(c["k"].size, dtype=bool)
+            rows = c["k"][hit]
+        for _, name, kind in _FIELDS[t]:
+            full = np.full((n, dof) if kind == "vec" else n, math.nan)
+            if kind != "vec":
+                full[~ran] = fill_value(name)
+            if c:
+                full[rows] = c[name][hit]
+            out[name] = np.nan_to_num(full, nan=fill_value(name)).astype(np.int64) if kind == "int" else full
+    return out

@@ -312,6 +312,11 @@ class Chunk:
         # which iDS/eDS sample after; recorded so a replay of the run sends when the run did.
         self.send_phase = np.full(size, -1, dtype=np.int64)
         self.peer_epoch = np.zeros(size, dtype=np.int64)
+        # The watchdog controller's ticks so far (cumulative), so a tick it acted in is exact in the log
+        # (an export's per-sample flag: teleop.offline.lerobot); -1: a tick not run.
+        self.controller_ticks = np.full(size, -1, dtype=np.int64)
+        # The device's own state, at its own rate (``state_every`` ticks; teleop.devices): (tick, values).
+        self.device_state: list[tuple[int, dict[str, list[float]]]] = []
         self.lateness_ns = np.zeros(size, dtype=np.int64)  # the real-time loop's, when it says
         self.bytes = {name: np.zeros(size) for name in BYTES}
 
@@ -338,6 +343,7 @@ class Chunk:
             "rx_seq": self.rx_seq[:n],
             "send_phase": self.send_phase[:n],
             "peer_epoch": self.peer_epoch[:n],
+            "controller_ticks": self.controller_ticks[:n],
             "lateness_ns": self.lateness_ns[:n],
             **{k: v[:n] for k, v in self.bytes.items()},
         }
@@ -367,7 +373,7 @@ class MemorySink:
 def fill_value(name: str) -> float:
     """A record field's value at a tick not run: no sequence number (-1), no bytes, no epoch
     change and no lateness (0), otherwise no value (NaN)."""
-    if name in ("tx_seq", "rx_seq", "send_phase"):
+    if name in ("tx_seq", "rx_seq", "send_phase", "controller_ticks"):
         return -1
     if name in BYTES or name.startswith("produced") or name in ("peer_epoch", "lateness_ns"):
         return 0
@@ -462,6 +468,17 @@ class Recorder:
         self._next: tuple[Chunk, _Columns] | None = None  # made ahead by settle()
         tx.on_tick = self._tx_bytes
         rx.on_tick = self._rx_bytes
+        self._state_every = 0  # ticks between two samples of the device's state; 0: it has none
+        self._state: Callable[[], dict[str, list[float]]] = dict
+
+    def watch(self, device: object) -> None:
+        """Record ``device``'s state beside the channel's signals, if it has one: ``state()`` (a
+        map of named lists of numbers, cheap: it is called in the tick) every ``state_every``
+        ticks, its own rate (``teleop.devices``).  Why here: the robot's joints and pose are what a
+        learner or a 3D view needs, and the recorder is the one place that sees every tick."""
+        every, state = getattr(device, "state_every", 0), getattr(device, "state", None)
+        if callable(state) and isinstance(every, int) and every > 0:
+            self._state_every, self._state = every, state
 
     def _at(self, k: int) -> tuple[Chunk, int]:
         """The chunk and row of tick ``k``: a tick past the chunk seals it and opens the next one
@@ -542,6 +559,9 @@ class Recorder:
         c.rx_seq[r] = node.last_rx_seq
         c.send_phase[r] = send_phase
         c.peer_epoch[r] = node.peer_restarts
+        c.controller_ticks[r] = node.guard.report.controller_active_ticks
+        if self._state_every and k % self._state_every == 0:
+            c.device_state.append((k, self._state()))
         if self.first < 0:
             self.first = k
         self.last = max(self.last, k)
@@ -662,6 +682,7 @@ class Port:
         self.clock = ClockTracker(node.dt, phase if teleoperator else 0.0, moves_phase=teleoperator)
         self.sink: ChunkSink = sink if sink is not None else MemorySink()
         self.rec = Recorder(node.wave.dof, self.sink, self.tx, self.rx, self._baseline, self.raw_payload_len)
+        self.rec.watch(node.device)
         self.control_rejected = 0  # control messages that did not parse (counted, dropped)
         self.last_control_error = ""
         self._last_k = 0
