@@ -337,3 +337,16 @@ def test_a_real_run_a_process_joined_late_is_incomplete() -> None:
     assert experiment.incomplete(report(14500, 14480, 14450)) is None  # a few stalled ticks
     why = experiment.incomplete(report(14873, 6241, 6241))
     assert why is not None and "only 6241 of 15000 ticks" in why
+
+
+def test_a_phase_a_run_barely_entered_is_left_out_of_the_experiment() -> None:
+    """A 5 s run of the protocol enters its foam for a few ticks: that I is no measure of the foam
+    (3.5e-7 in one such run), and fig15 drew it; a phase under MIN_PHASE_S is left out."""
+    run = _run(0, 1.0)
+    brief = dict(run.phases["free"], start=5.0, end=5.0 + 0.5 * experiment.MIN_PHASE_S, ticks=500)
+    run.phases["foam"] = brief
+    doc = experiment.aggregate({"none": [run]}, 1, False, {"scenario": "protocol"})
+    assert set(doc["cases"][0]["phases"]) == {"free", "all"}
+    run.phases["foam"] = dict(brief, end=5.0 + experiment.MIN_PHASE_S)
+    doc = experiment.aggregate({"none": [run]}, 1, False, {"scenario": "protocol"})
+    assert set(doc["cases"][0]["phases"]) == {"free", "foam", "all"}

@@ -110,6 +110,17 @@ def _phase_names(runs: Sequence[RunResult]) -> list[str]:
     return [n for n in PHASE_ORDER if n in names] + sorted(names - set(PHASE_ORDER))
 
 
+#: s: a phase a run spent less time in than this is left out of the experiment's figures (its I
+#: over a few ticks of a phase's start is no measure of the phase); the whole run always counts.
+MIN_PHASE_S = 1.0
+
+
+def _reached(block: Mapping[str, Any], name: str) -> bool:
+    if not block.get("ticks"):
+        return False
+    return name == "all" or float(block.get("end", 0.0)) - float(block.get("start", 0.0)) >= MIN_PHASE_S
+
+
 def aggregate(
     runs: Mapping[str, Sequence[RunResult]], n_runs: int, real: bool, settings: dict[str, Any]
 ) -> dict[str, Any]:
@@ -123,8 +134,9 @@ def aggregate(
         done = [r for r in mine if r.error is None]
         phases: dict[str, Any] = {}
         for name in _phase_names(done):
-            # A phase the run never reached (a short --duration) has no ticks: no figure, not 0.
-            blocks = [r.phases[name] for r in done if r.phases.get(name, {}).get("ticks")]
+            # A phase the run never reached (a short --duration) has no ticks: no figure, not 0;
+            # nor has one it barely entered (a 5 s run's foam: 3.5e-7 from a few ticks, drawn once).
+            blocks = [r.phases[name] for r in done if _reached(r.phases.get(name, {}), name)]
             if not blocks:
                 continue
             n_dof = max((len(b["I_dof"]) for b in blocks), default=0)
