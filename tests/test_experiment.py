@@ -261,7 +261,7 @@ def test_aggregate_mean_and_sample_spread() -> None:
 def test_experiment_command_writes_json_and_figure(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    args = ["experiment", "--runs", "2", "--codec", "none", "--codec", "ids:50", "--duration", "5.5"]
+    args = ["experiment", "--runs", "2", "--codec", "none", "--codec", "ids:50", "--duration", "7.5"]
     rc = main([*args, "--out", str(tmp_path)])
     assert rc == 0
     doc = json.loads((tmp_path / "experiment.json").read_text())
