@@ -688,3 +688,17 @@ def test_teleop_report_refuses_what_is_not_a_log_in_one_line(tmp_path: Path, kin
         "transport": "invalid choice: 'nan'",
     }[kind]
     assert want in lines[0], lines[0]
+
+
+def test_a_log_cut_before_its_session_began_is_named_as_cut_not_as_a_strangers(tmp_path: Path) -> None:
+    """A report of a log cut short said 'not a teleoperator's log' (issue 48): a log that never
+    reached its closing magic is named as cut; a finished file without a session is a stranger's."""
+    from teleop.offline.logfile import LogError, log_session
+
+    whole = _mcap(tmp_path / "teleoperator.mcap", [("x", b"{}")])
+    with pytest.raises(LogError, match="not a teleoperator's log"):
+        log_session(whole)
+    data = whole.read_bytes()
+    whole.write_bytes(data[: len(data) // 2])
+    with pytest.raises(LogError, match="was cut short before its session began"):
+        log_session(whole)

@@ -221,6 +221,16 @@ def _nonblocking(path: str, flags: int) -> int:
     return os.open(path, flags | os.O_NONBLOCK | os.O_NOFOLLOW)
 
 
+def _finished(path: Path) -> bool:
+    """Whether the MCAP file ends with the format's closing magic (its writer finished it)."""
+    with _walk(path) as walk:
+        f = walk.f
+        if walk.size < 2 * len(_MAGIC):
+            return False
+        f.seek(walk.size - len(_MAGIC))
+        return f.read(len(_MAGIC)) == _MAGIC
+
+
 def _role(path: Path) -> str:
     return path.stem.split("-", 1)[0]
 
@@ -498,6 +508,11 @@ def log_session(path: Path) -> tuple[int, dict[str, Any], dict[str, Any]]:
     if params is None:
         params = read_session(path).get("params")
         if params is None:
+            if not _finished(path):  # a log cut short, not a stranger's file: say which
+                raise LogError(
+                    f"{path} was cut short before its session began (its writer was killed, or the "
+                    f"disk filled): no /{role}/session message, so no ticks of a session to report"
+                )
             raise LogError(f"{path} has no /{role}/summary or /{role}/session message: not a {role}'s log")
     sid = params.get("session") if isinstance(params, dict) else None
     if type(sid) is not int:
