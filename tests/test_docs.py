@@ -166,6 +166,14 @@ def test_cli_reference_lists_every_command_and_option() -> None:
                     assert f"`{opt}`" in text, f"teleop {name} {opt}"
 
 
+def test_the_cli_reference_in_the_repository_is_the_parsers(tmp_path: Path) -> None:
+    """docs/reference/cli.md is the whole reference, readable without building the site (it was
+    one include line): it must be what the parsers say now."""
+    assert docgen.CLI_PAGE.read_text() == docgen.cli_page(), (
+        "docs/reference/cli.md is stale: run .venv/bin/python -m tools.docgen --cli"
+    )
+
+
 def test_generated_snippets_cover_every_include(tmp_path: Path) -> None:
     """Every ``--8<-- "NAME"`` in a page is a file the generator writes (or PROTOCOL.md)."""
     written = {p.name for p in docgen.write_all(tmp_path)}

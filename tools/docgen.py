@@ -4,6 +4,7 @@ experiment tables (from ``docs/experiment/*/experiment.json``) and the benchmark
 ``bench/results/*.json``, see :mod:`bench.tables`).  Nothing here is typed by hand.
 
     python -m tools.docgen OUTDIR      # writes the snippets that the docs pages include
+    python -m tools.docgen --cli       # writes docs/reference/cli.md (kept in the repository)
 
 ``mkdocs build`` runs it before every build (``tools/mkdocs_hooks.py``), into ``docs/_generated/``.
 """
@@ -105,6 +106,19 @@ def cli_reference() -> str:
     return "\n".join(parts)
 
 
+CLI_PAGE = ROOT / "docs" / "reference" / "cli.md"
+
+
+def cli_page() -> str:
+    """docs/reference/cli.md, whole: in the repository (readable without building the site), held
+    to the parsers by ``tests/test_docs.py``; ``python -m tools.docgen --cli`` writes it again."""
+    return (
+        "# CLI reference\n\n"
+        "Every `teleop` command and option, as the parsers in `teleop/cli/` define them. A bad value is\n"
+        "one line, `teleop: error: ...`, and exit status 2, before anything runs.\n\n" + cli_reference()
+    )
+
+
 def experiment_snippet(folder: str) -> str:
     path = ROOT / "docs" / "experiment" / folder / "experiment.json"
     doc = json.loads(path.read_text())
@@ -124,9 +138,6 @@ def write_all(outdir: Path) -> list[Path]:
     """Write every generated snippet into ``outdir``; return the paths."""
     outdir.mkdir(parents=True, exist_ok=True)
     written = tables.write_all(outdir)
-    cli = outdir / "cli.md"
-    tables.write_if_changed(cli, cli_reference())
-    written.append(cli)
     session_settings = outdir / "settings.md"  # the one settings table (teleop.session.settings.SETTINGS)
     tables.write_if_changed(session_settings, settings_table())
     written.append(session_settings)
@@ -145,10 +156,15 @@ def write_all(outdir: Path) -> list[Path]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m tools.docgen", description=__doc__.split("\n\n")[0])
-    ap.add_argument("outdir", type=Path)
+    ap.add_argument("outdir", type=Path, nargs="?", help="where the site's snippets go")
+    ap.add_argument("--cli", action="store_true", help="write docs/reference/cli.md from the parsers")
     args = ap.parse_args(argv)
-    for path in write_all(args.outdir):
-        print(path)
+    if args.cli:
+        tables.write_if_changed(CLI_PAGE, cli_page())
+        print(CLI_PAGE)
+    if args.outdir is not None:
+        for path in write_all(args.outdir):
+            print(path)
     return 0
 
 
