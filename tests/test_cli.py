@@ -79,3 +79,22 @@ def test_run_says_how_each_process_ended_in_words() -> None:
     assert exits({"teleoperator": 1, "operator": -15}) == "teleoperator exited 1, operator stopped by SIGTERM"
     ok = "teleoperator exited 0 (ok), operator never started"
     assert exits({"teleoperator": 0, "operator": None}) == ok
+
+
+def test_progress_says_the_time_spent_and_the_time_left() -> None:
+    """Sweeps and experiments showed ``[i/N]`` with no time left (issue 48)."""
+    import io
+
+    from teleop.cli.progress import Progress, duration_text
+
+    now = [100.0]
+    out = io.StringIO()
+    p = Progress(4, out, "teleop experiment: ", clock=lambda: now[0])
+    now[0] += 30.0
+    p.step("none seed 0")
+    assert out.getvalue() == "teleop experiment: 1/4 none seed 0  (30 s spent, about 1 min 30 s left)\n"
+    now[0] += 90.0
+    for _ in range(3):
+        p.step("x")
+    assert out.getvalue().splitlines()[-1].endswith("(2 min 00 s spent, done)")
+    assert duration_text(3725) == "1 h 02 min"

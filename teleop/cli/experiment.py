@@ -15,9 +15,8 @@ import io
 import json
 import shutil
 import sys
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 
 from teleop.cli.args import (
     CliError,
@@ -30,6 +29,7 @@ from teleop.cli.args import (
     int_range,
     nonneg_float,
 )
+from teleop.cli.progress import Progress
 from teleop.cli.settings import channel, check_duration, fresh_out, private_dir, sim_config
 from teleop.control.codecs import ACCEPTED
 from teleop.devices.scenarios import SCENARIOS
@@ -37,26 +37,6 @@ from teleop.files import write_new
 from teleop.limits import MAX_SEED
 
 MAX_RUNS = 1000
-
-
-@dataclass
-class Progress:
-    """A one-line ``\\r`` counter on a terminal; one line per run otherwise (a log file)."""
-
-    total: int
-    stream: TextIO
-    done: int = 0
-
-    def step(self, text: str) -> None:
-        self.done += 1
-        if self.stream.isatty():
-            bar = "#" * (20 * self.done // self.total)
-            self.stream.write(f"\r[{bar:<20}] {self.done}/{self.total} {text:<40}")
-            if self.done == self.total:
-                self.stream.write("\n")
-        else:
-            self.stream.write(f"teleop experiment: {self.done}/{self.total} {text}\n")
-        self.stream.flush()
 
 
 def _settings(args: argparse.Namespace, dof: int, duration: float) -> dict[str, Any]:
@@ -167,7 +147,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
         f"{args.seed + args.runs - 1}, {where}",
         flush=True,
     )
-    progress = Progress(len(codecs) * args.runs, sys.stderr)
+    progress = Progress(len(codecs) * args.runs, sys.stderr, "teleop experiment: ")
     runs = _real_runs(args, codecs, out, progress) if args.real else _sim_runs(args, codecs, progress)
     doc = aggregate(runs, args.runs, args.real, _settings(args, dof, duration))
     write_new(out / "experiment.json", (json.dumps(doc, indent=2) + "\n").encode())

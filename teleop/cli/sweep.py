@@ -6,6 +6,7 @@ import argparse
 import json
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from teleop.cli.args import (
@@ -17,6 +18,7 @@ from teleop.cli.args import (
     codec_set,
     int_range,
 )
+from teleop.cli.progress import Progress
 from teleop.cli.settings import check_duration, fresh_out, private_dir, sim_config
 from teleop.control.codecs import ACCEPTED, CodecError, CodecSpec
 from teleop.devices.scenarios import SCENARIOS
@@ -24,16 +26,16 @@ from teleop.files import write_new
 from teleop.session.settings import Passivity
 
 
-def _progress(done: int, total: int, spec: str) -> None:
-    """A one-line bar on a terminal; one line per case otherwise (logs stay readable)."""
-    width = 30
-    bar = "#" * (width * done // total) + "-" * (width - width * done // total)
-    if sys.stderr.isatty():
-        end = "\n" if done == total else ""
-        sys.stderr.write(f"\r  [{bar}] {done}/{total} {spec:<12}{end}")
-    else:
-        sys.stderr.write(f"  [{done}/{total}] {spec}\n")
-    sys.stderr.flush()
+def _progress_for() -> Callable[[int, int, str], None]:
+    """``run_sweep``'s progress callback: :class:`Progress` with the time left."""
+    bar: list[Progress] = []
+
+    def step(done: int, total: int, spec: str) -> None:
+        if not bar:
+            bar.append(Progress(total, sys.stderr, "  "))
+        bar[0].step(spec)
+
+    return step
 
 
 def _grid(args: argparse.Namespace, passivity: Passivity) -> list[CodecSpec]:
@@ -76,7 +78,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
                     f"{workers} workers",
                     file=sys.stderr,
                 )
-                doc = run_sweep(codecs, base, workers=workers, progress=_progress)
+                doc = run_sweep(codecs, base, workers=workers, progress=_progress_for())
             except (ValueError, CodecError, OSError) as e:
                 raise CliError(str(e)) from None
             print(f"{passivity}, netem {base.netem_forward or 'none'}:")
