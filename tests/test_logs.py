@@ -702,3 +702,22 @@ def test_a_log_cut_before_its_session_began_is_named_as_cut_not_as_a_strangers(t
     whole.write_bytes(data[: len(data) // 2])
     with pytest.raises(LogError, match="was cut short before its session began"):
         log_session(whole)
+
+
+def test_the_status_line_keeps_within_120_columns_unless_wide() -> None:
+    """Status lines ran to 224 characters and wrapped (issue 48); big counts included."""
+    from transport.watch import STATUS_COLUMNS, status_line
+
+    op, to = _pair()
+    _run(op, to, range(3000))
+    for port, role in ((op, "operator"), (to, "teleoperator")):
+        port.tx.packets = port.rx.packets = 999_999  # a week's session at a sparse codec's rate
+        pv = port.node.passivity
+        pv.violations, pv.controller_active_ticks = 99_999, 999_999
+        line = status_line(role, port, 2999, 99_999, insecure=True, rtt_ns=50_000)
+        assert len(line) <= STATUS_COLUMNS, line
+        assert "tx 999999 rx 999999" in line and "watchdog 99999/999999" in line and "INSECURE" in line
+        wide = status_line(role, port, 2999, 99_999, insecure=True, rtt_ns=50_000, wide=True)
+        assert "violations 99999, controller 999999 ticks" in wide and len(wide) > len(line)
+    small = status_line("operator", *_pair()[:1], 10, 0, insecure=False)
+    assert len(small) <= STATUS_COLUMNS

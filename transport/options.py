@@ -34,6 +34,7 @@ class EndpointOptions:
     grace_us: float = 400.0
     quiet: bool = False
     live: bool = False  # a status line every second: traffic, link, watchdog
+    wide: bool = False  # the status line in full, past 120 columns (transport.watch.status_line)
     transport: str = "udp"  # "udp" or "zenoh"
     zenoh: ZenohOptions | None = None
     psk: bytes | None = None  # the deployment's pre-shared key (teleop.session.auth); None: refuse to start

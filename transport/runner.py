@@ -93,7 +93,7 @@ class Runner:
         self.opts, self.tr, self.stop, self.records = opts, tr, stop, records
         self.clock = time.monotonic_ns
         self.log: McapLog | None = None  # the running session's (None: no log)
-        self.watch = Watch(opts.role, opts.live, opts.insecure)
+        self.watch = Watch(opts.role, opts.live, opts.insecure, opts.wide)
         self.warnings: list[str] = []
         self.sleeper = PreciseSleep(spin_ns=opts.spin_us * 1000)
         self.session = 0

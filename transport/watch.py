@@ -62,24 +62,50 @@ class LogWatch:
             log.status("link", t, {"t": t, **link, "watchdog": watchdog})
 
 
+#: Columns a status line keeps within (a terminal's 120): ``--wide`` prints everything.
+STATUS_COLUMNS = 120
+
+
 def status_line(
-    role: str, port: Port, k: int, overruns: int, insecure: bool, rtt_ns: int | None = None
+    role: str,
+    port: Port,
+    k: int,
+    overruns: int,
+    insecure: bool,
+    rtt_ns: int | None = None,
+    wide: bool = False,
 ) -> str:
     """``--live``'s line, once a second: traffic, link, watchdog, latency.
 
     Latency: the incoming direction's sent -> played so far (the sender's tick to the tick that
     released the payload here; the teleoperator's phase is added on its side, where it is known),
     the incoming link's transit, and on the operator the handshake's round trip and its floor
-    (``rtt_ns``).  One side sees one direction: the round trip is the report's."""
+    (``rtt_ns``).  One side sees one direction: the round trip is the report's.  Within
+    :data:`STATUS_COLUMNS` unless ``wide``: the watchdog as ``violations/controller ticks``, the
+    latency as p50/p99, and what does not fit left to ``--wide`` and the report."""
     node = port.node
     pv = node.passivity
-    return (
-        f"  [{role} {(k + 1) * port.dt:5.1f} s] sent {port.tx.packets} "
-        f"recv {port.rx.packets}  {'LINK LOST' if node.link_lost else 'link ok'}  watchdog: "
-        f"violations {pv.violations}, controller {pv.controller_active_ticks} ticks, "
-        f"margin {node.guard.margin:.3e} J, overruns {overruns}{_latency(port, rtt_ns)}"
-        f"{'  INSECURE (no key)' if insecure else ''}"
+    link = "LINK LOST" if node.link_lost else "link ok"
+    warn = ("  INSECURE (no key)" if wide else "  INSECURE") if insecure else ""
+    if wide:
+        return (
+            f"  [{role} {(k + 1) * port.dt:5.1f} s] sent {port.tx.packets} "
+            f"recv {port.rx.packets}  {link}  watchdog: "
+            f"violations {pv.violations}, controller {pv.controller_active_ticks} ticks, "
+            f"margin {node.guard.margin:.3e} J, overruns {overruns}{_latency(port, rtt_ns)}{warn}"
+        )
+    head = (
+        f"  [{role} {(k + 1) * port.dt:5.1f} s] tx {port.tx.packets} rx {port.rx.packets}  {link}  "
+        f"watchdog {pv.violations}/{pv.controller_active_ticks} margin {node.guard.margin:.1e} J  "
+        f"overruns {overruns}"
     )
+    d = port.playout.delay_ms()
+    if d["p50"] is not None and d["p99"] is not None:
+        shift = port.clock.phase * port.dt * 1e3
+        lat = f"  latency {d['p50'] + shift:.1f}/{d['p99'] + shift:.1f} ms"
+        if len(head) + len(lat) + len(warn) <= STATUS_COLUMNS:
+            head += lat
+    return head + warn
 
 
 def _latency(port: Port, rtt_ns: int | None) -> str:
@@ -124,8 +150,8 @@ class Monitor:
     datagrams left: the log's events and live view (:class:`LogWatch`) and ``--live``'s status line
     once a second of the session clock (``k`` may jump: a stall, a device that missed deadlines)."""
 
-    def __init__(self, role: str, live: bool, insecure: bool) -> None:
-        self.role, self.live, self.insecure = role, live, insecure
+    def __init__(self, role: str, live: bool, insecure: bool, wide: bool = False) -> None:
+        self.role, self.live, self.insecure, self.wide = role, live, insecure, wide
         self.log: McapLog | None = None  # the running session's (None: no log, no live view)
         self.rtt_ns: int | None = None  # operator: the handshake's round trip (the status line's floor)
         self.device: Any = None  # a device that paces the session adds its own figures
@@ -142,7 +168,7 @@ class Monitor:
             self.watch.tick(self.log, port, k, t, loop.overruns, loop.skipped)
         if self.live and k >= self._next_status:
             self._next_status = ((k - 999) // 1000 + 1) * 1000 + 999
-            line = status_line(self.role, port, k, loop.overruns, self.insecure, self.rtt_ns)
+            line = status_line(self.role, port, k, loop.overruns, self.insecure, self.rtt_ns, self.wide)
             if loop.device_paced:
                 status = getattr(self.device, "status", None)
                 line += f", missed deadlines {loop.missed}" + (f", {status()}" if callable(status) else "")

@@ -541,6 +541,11 @@ def add_endpoint_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no summary line at the end")
     p.add_argument("--live", action="store_true", help="print a status line every second (traffic, watchdog)")
     p.add_argument(
+        "--wide",
+        action="store_true",
+        help="--live's line in full (link transit, handshake round trip), past 120 columns",
+    )
+    p.add_argument(
         "--grace-us",
         type=nonneg_float("grace", MAX_GRACE_US, "us", " (within the 1 ms tick)"),
         default=400.0,

@@ -195,7 +195,7 @@ def build_commands(args: argparse.Namespace, params: Any, logs: Path, key: RunKe
     # The user chose these settings for both sides: the robot's envelope admits exactly them.
     envelope = envelope_flags(DEFAULT_ENVELOPE.admitting(params))
     to_cmd = [*TELEOP, "teleoperator", *net.teleoperator, *robot, *netem, *envelope, *view_to, *common]
-    live = [] if args.no_live else ["--live"]
+    live = [] if args.no_live else ["--live", *(["--wide"] if args.wide else [])]
     op_cmd = [*TELEOP, "operator", *net.operator, *live, *hsi, *view_op, *_session_options(params), *common]
     return Commands(net, to_cmd, op_cmd)
 
@@ -404,6 +404,7 @@ def add_parser(sub: Subcommands) -> None:
     r.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     r.add_argument("--no-sim", action="store_true", help="skip the teleop sim comparison in the report")
     r.add_argument("--no-live", action="store_true", help="no status line every second during the run")
+    r.add_argument("--wide", action="store_true", help="the status line in full, past 120 columns")
     add_live_view_arg(
         r,
         "serve both processes' log channels live over the Foxglove WebSocket protocol: the operator "

@@ -211,6 +211,7 @@ def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int
         tick_at=args.tick_at,
         quiet=args.quiet,
         live=args.live,
+        wide=args.wide,
         grace_us=args.grace_us,
         udp_rcvbuf=args.udp_rcvbuf * 1024,
         transport=args.transport,
