@@ -8,6 +8,7 @@ import random
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from teleop.errors import TeleopError
 from teleop.session import auth
 from teleop.session.link import Addr
 from teleop.session.settings import Envelope
@@ -61,3 +62,14 @@ class ZenohOptions:
 def new_session_id() -> int:
     """A random session id (PROTOCOL.md 4.1: 1..2**32-1, never reused on purpose)."""
     return random.SystemRandom().randrange(1, 2**32)
+
+
+class Interrupted(TeleopError):
+    """Stopped by a signal before any session ran (a robot waiting for its operator, an operator
+    still in its handshake): a person's choice, said as such (exit status 130), not an error."""
+
+    @classmethod
+    def of(cls, role: str) -> Interrupted:
+        if role == "teleoperator":
+            return cls("stopped while waiting for an operator; no session ran")
+        return cls("stopped during the handshake; no session ran")

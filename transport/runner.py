@@ -43,7 +43,7 @@ from teleop.session.summary import SessionSummary
 from . import console
 from .base import Transport
 from .mcaplog import LOG_CHUNK_TICKS, McapLog
-from .options import EndpointOptions
+from .options import EndpointOptions, Interrupted
 from .realtime import HostMarks, LoopStats, PreciseSleep, freeze_heap, lock_memory, setup_realtime
 from .records import Records
 from .watch import Monitor as Watch
@@ -62,11 +62,6 @@ GRACE_POLL_S = 20e-6  # grace: a short sleep rather than a spin (under SCHED_FIF
 
 class SessionError(TeleopError):
     """The session could not start or run: printed as one clear line, non-zero exit."""
-
-
-class Interrupted(SessionError):
-    """Stopped by a signal before any session ran (a robot waiting for its operator, an operator
-    still in its handshake): a person's choice, said as such, exit status 130."""
 
 
 class Stop:
@@ -158,11 +153,7 @@ class Runner:
             while (t := ep.get_timer()) is not None:
                 if self.stop.requested:
                     if not self.in_session:
-                        raise Interrupted(
-                            "stopped while waiting for an operator; no session ran"
-                            if self.opts.role == "teleoperator"
-                            else "stopped during the handshake; no session ran"
-                        )
+                        raise Interrupted.of(self.opts.role)
                     ep.stop(clock())
                 if self.device is not None and clock() >= self._first and not self.stop.requested:
                     await self.paced()

@@ -23,9 +23,9 @@ from teleop.session.summary import SessionSummary
 
 from . import console
 from .base import Transport
-from .options import EndpointOptions, ZenohOptions, new_session_id
+from .options import EndpointOptions, Interrupted, ZenohOptions, new_session_id
 from .records import RecordError, Records
-from .runner import Interrupted, Runner, SessionError, Stop
+from .runner import Runner, SessionError, Stop
 from .udp import UdpTransport, new_event_loop
 from .zenoh import ZENOH_PEER, ZenohTransport, make_config
 
