@@ -381,3 +381,29 @@ def test_a_rejoin_under_junk_spoofed_as_the_operator_is_not_delayed() -> None:
     flooded = _rejoin_time(_spoofed_as_operator(1000.0, 4.0))
     print(f"rejoin: {flooded:.3f} s under 1000/s spoofed junk against {quiet:.3f} s without it")
     assert flooded <= max(2 * quiet, quiet + 1.0)
+
+
+def test_a_robot_says_what_it_refused_unverified_at_once_then_once_a_second() -> None:
+    """An operator with another key looked like a missing peer (issue 48): the robot says how many
+    datagrams it dropped, from where and why, the first at once and then at most once a second."""
+    import itertools
+
+    from teleop.session import auth
+    from teleop.session.endpoint import Endpoint, Unverified
+
+    from .vnet import PSK, port_factory
+
+    net = VirtualNet(1.0)
+    to = net.teleoperator()
+    wrong = Endpoint.operator(
+        params(), TO, port_factory("operator"), now_ns=net.now, psk=auth.robot_key(bytes(32), "robot"),
+        rng=net.rand(), connect_timeout_s=3.0,
+    )  # fmt: skip
+    net._add(OP, wrong, 0)
+    assert bytes(32) != PSK  # the operator's deployment key is not the robot's
+    net.seconds(2.5)
+    said = to.of(Unverified)
+    assert said and said[0].count == 1 and said[0].addr == OP and "tag" in said[0].why
+    assert all(b.count > a.count for a, b in itertools.pairwise(said))
+    assert len(said) <= 1 + 2.5  # at most one a second after the first
+    assert not to.started()

@@ -25,6 +25,7 @@ from teleop.session.endpoint import (
     PeerRestarted,
     Replaced,
     SessionEnded,
+    Unverified,
 )
 from teleop.session.summary import ProcessSummary, SessionSummary
 
@@ -79,6 +80,11 @@ def say(opts: EndpointOptions, ev: Event) -> None:
     role, line = opts.role, None
     if isinstance(ev, HelloRejected):
         line = f"rejected the operator: {ev.why}"
+    elif isinstance(ev, Unverified):
+        line = (
+            f"refused {ev.count} datagram(s) whose tag failed, the last from {addr_text(ev.addr)} "
+            f"({ev.why}): an operator with a different key, or naming another robot?"
+        )
     elif isinstance(ev, Replaced) and not opts.quiet:
         line = f"session {ev.old_session} replaced by a new operator"
     elif isinstance(ev, ClockShifted) and not opts.quiet:

@@ -98,6 +98,7 @@ __all__ = [
     "Strangers",
     "TickPolicy",
     "TicksEnded",
+    "Unverified",
 ]
 
 REJOIN_OFFER_INTERVAL_NS = 250_000_000  # operator, link lost: an offer this often
@@ -310,6 +311,17 @@ class HelloRejected:
 
 
 @dataclass(frozen=True)
+class Unverified:
+    """Datagrams a waiting robot dropped because their tag did not verify under its key: so far
+    ``count``, the last from ``addr`` for ``why``.  Said at the first, then at most once a second:
+    a wrong key on one side looks like a missing peer unless the other says what it refused."""
+
+    count: int
+    addr: Addr
+    why: str
+
+
+@dataclass(frozen=True)
 class SessionEnded:
     reason: EndReason
     summary: EndpointSummary  # SessionSummary(summary).document() is its JSON map
@@ -330,6 +342,7 @@ Event: TypeAlias = (
     | LinkLost
     | LinkRestored
     | HelloRejected
+    | Unverified
     | SessionEnded
     | Failed
     | TicksEnded
@@ -436,6 +449,7 @@ class Endpoint:
         self._max_len = [wire.MAX_HANDSHAKE_DATAGRAM_BYTES, wire.MAX_DATAGRAM_BYTES]
         self.oversize = 0
         self._rejections_seen = 0
+        self._unverified_seen, self._unverified_next = 0, 0
         self.own_offers_ignored = 0
         self.busy_rejects = 0
         self.retries_sent = 0
@@ -594,7 +608,7 @@ class Endpoint:
                 self._check_operator_handshake(now_ns)
             elif self._to_hs is not None:
                 self._out += self._to_hs.receive(data, addr, now_ns)
-                self._report_rejections(self._to_hs)
+                self._report_rejections(self._to_hs, now_ns)
                 if self._to_hs.done:
                     self._from_to_handshake(self._to_hs, now_ns)
         elif self.state in (State.STARTING, State.RUNNING, State.LINGER):
@@ -1056,11 +1070,16 @@ class Endpoint:
         self.state = State.FAILED
         self._events.append(Failed(reason, detail))
 
-    def _report_rejections(self, hs: protocol.TeleoperatorHandshake) -> None:
+    def _report_rejections(self, hs: protocol.TeleoperatorHandshake, now_ns: int = 0) -> None:
         new = hs.rejected - self._rejections_seen
         self._rejections_seen = hs.rejected
         for why in list(hs.rejections)[-min(new, 3) :] if new > 0 else ():
             self._events.append(HelloRejected(why))
+        n = hs.unauthenticated
+        if n > self._unverified_seen and (self._unverified_seen == 0 or now_ns >= self._unverified_next):
+            self._unverified_seen, self._unverified_next = n, now_ns + 1_000_000_000
+            addr = hs.last_unauthenticated_from or ("", 0)
+            self._events.append(Unverified(n, addr, hs.last_unauthenticated))
 
     # --- during the session -------------------------------------------------------------------
     def _session_datagram(

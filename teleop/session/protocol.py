@@ -1085,6 +1085,7 @@ class TeleoperatorHandshake:
         self._seen = auth.SeenTags(SEEN_TAGS)
         self.unauthenticated = 0  # datagrams whose tag did not verify: dropped, never answered
         self.last_unauthenticated = ""
+        self.last_unauthenticated_from: Addr | None = None  # (the address it came from, as seen)
         self.cookie_secret = cookie_secret
         self.local_limits = local_limits or Envelope()
         self.retries_sent = 0  # hellos without a valid cookie, answered with a retry, nothing kept
@@ -1151,6 +1152,7 @@ class TeleoperatorHandshake:
         except auth.AuthError as e:
             self.unauthenticated += 1
             self.last_unauthenticated = str(e)
+            self.last_unauthenticated_from = addr
             return None
 
     def _reject(self, addr: Addr, session: int | None, why: str, t_ns: int) -> list[tuple[bytes, Addr]]:
