@@ -83,6 +83,7 @@ def cmd_teleoperator(args: argparse.Namespace) -> int:
     envelope = robot_envelope(args)  # before the endpoint: a bad limit stops here, in one line
     opts = endpoint_options(args, "teleoperator", args.listen or ("127.0.0.1", 0))
     opts.local_limits = envelope
+    opts.show_holder = args.show_holder
     return run_endpoint(opts, None, pins)
 
 
@@ -222,6 +223,12 @@ def add_teleoperator_parser(sub: Subcommands) -> None:
     add_endpoint_args(t)
     add_key_args(t, "required unless --insecure")
     add_transport_args(t)
+    t.add_argument(
+        "--show-holder",
+        action="store_true",
+        help="over Zenoh, this robot's description (teleop robots) names the session holding it "
+        "(default: busy, without whose)",
+    )
     t.set_defaults(func=cmd_teleoperator)
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 
-from teleop.cli import conformance, endpoints, experiment, keygen, report, run, sim, sweep
+from teleop.cli import conformance, endpoints, experiment, keygen, report, robots, run, sim, sweep
 from teleop.cli.args import CliError, Parser, one_line
 from teleop.files import FileRefused
 
@@ -20,6 +20,7 @@ def build_parser() -> argparse.ArgumentParser:
     endpoints.add_operator_parser(sub)
     endpoints.add_teleoperator_parser(sub)
     endpoints.add_router_parser(sub)
+    robots.add_parser(sub)
     report.add_parser(sub)
     keygen.add_parser(sub)
     conformance.add_parser(sub)
