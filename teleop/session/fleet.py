@@ -105,7 +105,7 @@ class Description:
 
     def __post_init__(self) -> None:
         auth.check_robot_name(self.name)
-        if not (isinstance(self.dof, int) and 1 <= self.dof <= 64):
+        if not (type(self.dof) is int and 1 <= self.dof <= 64):  # a bool is not a DoF
             raise ValueError(f"dof must be 1..64, got {self.dof!r:.40}")
         if not (isinstance(self.kind, str) and 1 <= len(self.kind) <= MAX_KIND and self.kind.isprintable()):
             raise ValueError(f"kind must be 1..{MAX_KIND} printable characters, got {self.kind!r:.40}")
@@ -115,7 +115,7 @@ class Description:
             raise ValueError(f"prefix must be a plain key like teleop/robots/a, got {self.prefix!r:.80}")
         if self.state not in STATES:
             raise ValueError(f"state must be one of {', '.join(STATES)}, got {self.state!r:.40}")
-        if self.holder is not None and not (isinstance(self.holder, int) and 0 <= self.holder < 2**32):
+        if self.holder is not None and not (type(self.holder) is int and 0 <= self.holder < 2**32):
             raise ValueError(f"holder must be a session id 0..2**32-1, got {self.holder!r:.40}")
         if self.holder is not None and self.state != "busy":
             raise ValueError("a free robot has no holder")
