@@ -119,3 +119,23 @@ def test_keys_and_names() -> None:
         fl.token_key("a/b")
     with pytest.raises(ValueError):
         replace(desc(), prefix="a//b")
+
+
+@pytest.mark.parametrize(
+    ("argv", "said"),
+    [
+        (["robots", "--zenoh-router", "tcp/127.0.0.1:7447"], "no key: pass --key-file"),
+        (["robots", "--insecure"], "needs a connect endpoint"),
+        (["robots", "--insecure", "--zenoh-router", "tcp/127.0.0.1:99999"], "port must be 1..65535"),
+        (["robots", "--insecure", "--zenoh-router", "x", "--name", "a/b"], "a robot name is 1 to 64"),
+    ],
+)
+def test_teleop_robots_refuses_bad_input_in_one_line(
+    argv: list[str], said: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from teleop.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and said in err and err.count("\n") == 1, err
