@@ -12,7 +12,7 @@ description recorded from a robot and replayed after the robot died (or from ano
 verify.  No clock is read on either side, and no clocks need agree.
 
 Layout (PROTOCOL.md section 9): ``body | tag(16)`` with ``body`` a msgpack map and
-``tag = BLAKE2s-128(key = K_d, "describe" | nonce | body)``, ``K_d`` derived from the robot key.
+``tag = BLAKE2s-128(key=K_d, message=nonce || body)``, ``K_d`` derived from the robot key.
 Pure: no clock, no socket.
 """
 
@@ -42,7 +42,7 @@ MAX_DESCRIPTION_BYTES = 2048
 STATES = ("free", "busy")
 MAX_KIND = 32
 MAX_PREFIX = 200
-_PERSON = b"teleopfl"
+_PERSON = b"teleopv1"  # section 2.2's: "describe" is a message no other derivation uses
 _PREFIX = re.compile(r"[A-Za-z0-9._-]+(/[A-Za-z0-9._-]+)*")
 _ENVELOPE_FIELDS = {f.name for f in fields(Envelope)}
 
@@ -150,9 +150,7 @@ def _check_envelope(env: Any) -> None:
 
 
 def _tag(robot: bytes, nonce: bytes, body: bytes) -> bytes:
-    m = hashlib.blake2s(key=describe_key(robot), digest_size=TAG_BYTES)
-    m.update(b"describe" + nonce + body)
-    return m.digest()
+    return hashlib.blake2s(nonce + body, key=describe_key(robot), digest_size=TAG_BYTES).digest()
 
 
 def _check_nonce(nonce: bytes) -> bytes:
