@@ -139,3 +139,58 @@ def test_teleop_robots_refuses_bad_input_in_one_line(
         main(argv)
     err = capsys.readouterr().err
     assert e.value.code == 2 and said in err and err.count("\n") == 1, err
+
+
+class _Query:
+    def __init__(self, payload: bytes | None) -> None:
+        self.payload = None if payload is None else _Bytes(payload)
+        self.replies: list[tuple[str, bytes]] = []
+
+    def reply(self, key: str, data: bytes) -> None:
+        self.replies.append((key, data))
+
+
+class _Bytes:
+    def __init__(self, b: bytes) -> None:
+        self.b = b
+
+    def __len__(self) -> int:
+        return len(self.b)
+
+    def to_bytes(self) -> bytes:
+        return self.b
+
+
+class _Session:
+    """Just enough of a Zenoh session to declare an Announcer on."""
+
+    def liveliness(self) -> Any:
+        return self
+
+    def declare_token(self, key: str) -> Any:
+        return self
+
+    def declare_queryable(self, key: str, cb: Any) -> Any:
+        return self
+
+    def undeclare(self) -> None:
+        pass
+
+
+def test_a_robot_answers_only_a_nonce_and_at_most_its_rate() -> None:
+    from transport.fleet import ANSWER_BURST, Announcer
+
+    a = Announcer(_Session(), "arm-1", KEY, lambda: desc())
+    for bad in (None, b"", bytes(15), bytes(17), bytes(4096)):
+        q = _Query(bad)
+        a._on_query(q)
+        assert not q.replies
+    assert a.refused == 5 and a.answered == 0
+    queries = [_Query(bytes([i % 256]) * 16) for i in range(int(ANSWER_BURST) + 50)]
+    for q in queries:  # a flood, faster than the bucket refills
+        a._on_query(q)
+    answered = [q for q in queries if q.replies]
+    assert int(ANSWER_BURST) <= len(answered) < int(ANSWER_BURST) + 50 and a.throttled > 0
+    key, data = answered[0].replies[0]
+    assert key == "teleop/robots/arm-1/info"  # the concrete key, never the wildcard asked
+    assert fl.open_description(data, KEY, bytes(16), "arm-1") == desc()

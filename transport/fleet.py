@@ -33,10 +33,17 @@ from .zenoh import TransportError, _reason
 MAX_ROBOTS = 10_000
 #: How long a listing waits for answers; a robot that has not answered by then is listed untrusted.
 LIST_TIMEOUT_S = 1.0
+#: A robot answers at most this many queries a second (a bucket this deep): each answer costs its
+#: 1 kHz loop ~20 us of the GIL on a Zenoh thread, so a flood of queries is refused unanswered.
+ANSWERS_PER_S = 200.0
+ANSWER_BURST = 200.0
 
 
 class Announcer:
     """A robot's token and its describing queryable on an open session; ``close()`` withdraws both.
+
+    It answers only a query carrying a nonce of exactly ``NONCE_BYTES``, at most ``ANSWERS_PER_S``
+    a second (``throttled`` counts the rest).
 
     ``describe`` is called on a Zenoh thread per query: it must be quick and never block (it reads
     the endpoint's state, which the GIL keeps consistent enough for free/busy)."""
@@ -48,7 +55,8 @@ class Announcer:
         self._key = robot_key
         self._describe = describe
         self._info = fl.info_key(name)
-        self.answered = self.refused = 0
+        self.answered = self.refused = self.throttled = 0
+        self._bucket, self._filled = ANSWER_BURST, time.monotonic()
         try:
             self._token = session.liveliness().declare_token(fl.token_key(name))
             self._queryable = session.declare_queryable(self._info, self._on_query)
@@ -61,6 +69,13 @@ class Announcer:
         if payload is None or len(payload) != fl.NONCE_BYTES:
             self.refused += 1
             return
+        now = time.monotonic()
+        self._bucket = min(ANSWER_BURST, self._bucket + (now - self._filled) * ANSWERS_PER_S)
+        self._filled = now
+        if self._bucket < 1.0:
+            self.throttled += 1
+            return
+        self._bucket -= 1.0
         try:
             data = fl.seal(self._describe(), self._key, payload.to_bytes())
             query.reply(self._info, data)  # on the concrete key: never the wildcard that was asked
