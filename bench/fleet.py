@@ -82,11 +82,20 @@ def robots_worker(mode: str, router: str, ports: list[int]) -> None:
     """Every robot: a token, a subscriber on forward that echoes on backward.  Until stdin closes."""
     import zenoh
 
-    from transport.zenoh import open_session
+    from transport.zenoh import TransportError, open_session
 
     held = []
     for i, port in enumerate(ports):
-        s = open_session(_config(mode, router, port, listen=True))
+        for _ in range(10):  # a port picked free may be taken by the time it binds: another
+            try:
+                s = open_session(_config(mode, router, port, listen=True))
+                break
+            except TransportError:
+                if mode != "peer":
+                    raise
+                port = ports[i] = _free_port()
+        else:
+            raise TransportError(f"no free port for robot {i} in 10 tries")
         pub = _publisher(s, _key(i, "backward"))
 
         def echo(sample: Any, pub: Any = pub) -> None:
@@ -96,7 +105,7 @@ def robots_worker(mode: str, router: str, ports: list[int]) -> None:
         token = s.liveliness().declare_token(f"teleop/robots/bench-{i}")
         held.append((s, pub, sub, token))
     del zenoh
-    print("ready", flush=True)
+    print("ready " + ",".join(map(str, ports)), flush=True)  # the ports bound (peer mode)
     sys.stdin.read()
     os._exit(0)  # hundreds of sessions: their closes are the router's business, not the bench's
 
@@ -109,6 +118,7 @@ def operators_worker(mode: str, router: str, ports: list[int], rate: float, seco
     rtts: list[list[int]] = [[] for _ in range(n)]
     got = [0] * n
     measuring = threading.Event()
+    window = [2**63]  # the measured window's start (monotonic ns)
     pubs, held = [], []
     for i, port in enumerate(ports):
         s = open_session(_config(mode, router, port, listen=False))
@@ -117,7 +127,7 @@ def operators_worker(mode: str, router: str, ports: list[int], rate: float, seco
             t = time.monotonic_ns()
             pair, sent = _STAMP.unpack_from(sample.payload.to_bytes())
             got[pair] += 1
-            if measuring.is_set():
+            if measuring.is_set() and sent >= window[0]:  # sent in the window: not a warm-up echo
                 rtts[pair].append(t - sent)
 
         held.append((s, s.declare_subscriber(_key(i, "backward"), back)))
@@ -136,9 +146,9 @@ def operators_worker(mode: str, router: str, ports: list[int], rate: float, seco
         time.sleep(0.01)  # the warm-up's pace, not a wait for anything
     warm = min(got) > 0
     print("measuring", flush=True)
-    measuring.set()
     sent = 0
-    t0 = time.monotonic_ns()
+    t0 = window[0] = time.monotonic_ns()
+    measuring.set()
     k = 0
     while (now := time.monotonic_ns()) - t0 < seconds * 1e9:
         due = t0 + k * period
@@ -195,8 +205,10 @@ def step(mode: str, pairs: int, rate: float, seconds: float) -> dict[str, Any]:
             [*me, "--worker", "robots", *args], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
         )
         assert procs["robots"].stdout is not None
-        if procs["robots"].stdout.readline().strip() != "ready":
+        ready = procs["robots"].stdout.readline().split()
+        if not ready or ready[0] != "ready":
             return {"mode": mode, "pairs": pairs, "rate": rate, "broke": "the robots could not open"}
+        args[-1] = ready[1]  # the ports the robots bound
         ops = subprocess.Popen(
             [*me, "--worker", "operators", *args, "--rate", str(rate), "--seconds", str(seconds)],
             stdout=subprocess.PIPE,
