@@ -209,3 +209,21 @@ def test_operators_naming_a_robot_race_and_one_session_starts(router: str, key: 
     finally:
         stop(to)
         lister.close()
+
+
+@pytest.mark.parametrize("robot", ["absent", "fake-0"])
+def test_an_operator_never_takes_an_untrusted_or_absent_robot(
+    router: str, key: tuple[Path, bytes], robot: str
+) -> None:
+    forged = robots(router, key[0], "fake", 1, "--stranger")
+    try:
+        r = subprocess.run(
+            [*TELEOP, "operator", "--transport", "zenoh", "--zenoh-mode", "client", "--zenoh-router", router,
+             "--robot-name", robot, "--key-file", str(key[0]), "--no-rt", "--connect-timeout", "1"],
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+    finally:
+        stop(forged)
+    said = {"absent": "not announced", "fake-0": "announced but not trusted (bad tag"}[robot]
+    assert r.returncode == 1 and f"robot {robot} not found through Zenoh in 1 s: {said}" in r.stderr, r.stderr
+    assert r.stderr.count("\n") == 1

@@ -56,6 +56,10 @@ class Announcer:
         self._describe = describe
         self._info = fl.info_key(name)
         self.answered = self.refused = self.throttled = 0
+        try:  # what it will say, checked now: a robot that cannot describe itself fails to start
+            fl.seal(describe(), robot_key, bytes(fl.NONCE_BYTES))
+        except ValueError as e:
+            raise TransportError(f"cannot announce robot {name}: {e}") from None
         self._bucket, self._filled = ANSWER_BURST, time.monotonic()
         try:
             self._token = session.liveliness().declare_token(fl.token_key(name))
@@ -165,20 +169,21 @@ def find_robot(session: Any, psk: bytes, name: str, timeout: float) -> fl.Descri
         raise TransportError(f"cannot look for robot {name}: {_reason(e)}") from None
     deadline = time.monotonic() + timeout
     last = "not announced"
+    pause = threading.Event()  # never set: paces the retries
+    tried = False
     try:
-        while True:
-            left = deadline - time.monotonic()
-            if appeared.wait(max(left, 0.0)):
-                appeared.clear()
-                for r in list_robots(session, psk, name, timeout=min(LIST_TIMEOUT_S, max(left, 0.1))):
-                    if r.description is not None:
-                        return r.description
-                    last = f"announced but not trusted ({r.problem})"
+        while appeared.wait(max(deadline - time.monotonic(), 0.0)):
+            if tried:  # alive, no trusted answer yet (its queryable may lag its token): again shortly
+                pause.wait(min(0.1, max(deadline - time.monotonic(), 0.0)))
+            tried = True
+            left = max(deadline - time.monotonic(), 0.1)
+            for r in list_robots(session, psk, name, timeout=min(LIST_TIMEOUT_S, left)):
+                if r.description is not None:
+                    return r.description
+                last = f"announced but not trusted ({r.problem})"
             if time.monotonic() >= deadline:
-                raise TransportError(f"robot {name} not found through Zenoh in {timeout:g} s: {last}")
-            if last != "not announced":
-                appeared.wait(min(0.1, max(deadline - time.monotonic(), 0.0)))
-                appeared.set()  # alive but not answering yet (its queryable comes with its token): ask again
+                break
+        raise TransportError(f"robot {name} not found through Zenoh in {timeout:g} s: {last}")
     finally:
         with contextlib.suppress(Exception):
             sub.undeclare()

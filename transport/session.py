@@ -116,7 +116,7 @@ async def _endpoint(opts: EndpointOptions, params: SessionParams | None, pins: P
         loop.add_signal_handler(sig, stop, sig)
     built: list[Endpoint] = []  # the endpoint, once built: what the robot's description reads
     z = opts.zenoh or ZenohOptions()
-    describe = _describer(opts, pins, z.prefix or fl.default_prefix(opts.robot_name), built)
+    describe = _describer(opts, pins, (z.prefix or fl.default_prefix(opts.robot_name)).strip("/"), built)
     tr = await _open_transport(opts, key, describe)
     kw: dict[str, Any] = {
         "now_ns": time.monotonic_ns(),
