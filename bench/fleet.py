@@ -90,9 +90,9 @@ def robots_worker(mode: str, router: str, ports: list[int]) -> None:
             try:
                 s = open_session(_config(mode, router, port, listen=True))
                 break
-            except TransportError:
+            except TransportError as e:
                 if mode != "peer":
-                    raise
+                    raise TransportError(f"robot session {i + 1} of {len(ports)}: {e}") from None
                 port = ports[i] = _free_port()
         else:
             raise TransportError(f"no free port for robot {i} in 10 tries")
@@ -112,7 +112,7 @@ def robots_worker(mode: str, router: str, ports: list[int]) -> None:
 
 def operators_worker(mode: str, router: str, ports: list[int], rate: float, seconds: float) -> None:
     """Every operator sends at ``rate`` for a warm-up, then ``seconds`` measured; prints the result."""
-    from transport.zenoh import open_session
+    from transport.zenoh import TransportError, open_session
 
     n = len(ports)
     rtts: list[list[int]] = [[] for _ in range(n)]
@@ -121,7 +121,10 @@ def operators_worker(mode: str, router: str, ports: list[int], rate: float, seco
     window = [2**63]  # the measured window's start (monotonic ns)
     pubs, held = [], []
     for i, port in enumerate(ports):
-        s = open_session(_config(mode, router, port, listen=False))
+        try:
+            s = open_session(_config(mode, router, port, listen=False))
+        except TransportError as e:
+            raise TransportError(f"operator session {i + 1} of {n} (robots hold {n} more): {e}") from None
 
         def back(sample: Any) -> None:
             t = time.monotonic_ns()
@@ -188,6 +191,14 @@ def step(mode: str, pairs: int, rate: float, seconds: float) -> dict[str, Any]:
     ports = [_free_port() for _ in range(pairs)] if mode == "peer" else [0] * pairs
     me = [sys.executable, "-m", "bench.fleet"]
     args = ["--mode", mode, "--router", router, "--ports", ",".join(map(str, ports))]
+
+    # A step that hangs (a session that never opens nor fails) is killed: its readline then ends.
+    def kill_all() -> None:
+        for p in list(procs.values()):
+            p.kill()
+
+    watchdog = threading.Timer(120 + 4 * seconds + pairs * 0.2, kill_all)
+    watchdog.start()
     try:
         if mode == "router":
             procs["router"] = subprocess.Popen(
@@ -205,9 +216,10 @@ def step(mode: str, pairs: int, rate: float, seconds: float) -> dict[str, Any]:
             [*me, "--worker", "robots", *args], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
         )
         assert procs["robots"].stdout is not None
-        ready = procs["robots"].stdout.readline().split()
+        line = procs["robots"].stdout.readline().strip()
+        ready = line.split()
         if not ready or ready[0] != "ready":
-            return {"mode": mode, "pairs": pairs, "rate": rate, "broke": "the robots could not open"}
+            return {"mode": mode, "pairs": pairs, "rate": rate, "broke": f"the robots could not open: {line}"}
         args[-1] = ready[1]  # the ports the robots bound
         ops = subprocess.Popen(
             [*me, "--worker", "operators", *args, "--rate", str(rate), "--seconds", str(seconds)],
@@ -218,10 +230,23 @@ def step(mode: str, pairs: int, rate: float, seconds: float) -> dict[str, Any]:
         assert ops.stdout is not None
         line = ops.stdout.readline().strip()
         if line != "measuring":
-            return {"mode": mode, "pairs": pairs, "rate": rate, "broke": "the operators could not open"}
+            return {
+                "mode": mode,
+                "pairs": pairs,
+                "rate": rate,
+                "broke": f"the operators could not open: {line}",
+            }
         cpu0 = {k: _cpu_s(p.pid) for k, p in procs.items()}
         t0 = time.monotonic()
-        result: dict[str, Any] = json.loads(ops.stdout.readline())
+        line = ops.stdout.readline()
+        if not line.startswith("{"):
+            return {
+                "mode": mode,
+                "pairs": pairs,
+                "rate": rate,
+                "broke": f"the operators failed: {line.strip()}",
+            }
+        result: dict[str, Any] = json.loads(line)
         dt = time.monotonic() - t0
         cpu = {
             k: (_cpu_s(p.pid) - cpu0[k]) / dt
@@ -231,6 +256,7 @@ def step(mode: str, pairs: int, rate: float, seconds: float) -> dict[str, Any]:
     except (OSError, ValueError, ProcessLookupError, FileNotFoundError) as e:
         return {"mode": mode, "pairs": pairs, "rate": rate, "broke": f"the bench failed: {e}"}
     finally:
+        watchdog.cancel()
         for p in procs.values():
             if p.poll() is None:
                 p.send_signal(signal.SIGTERM)
@@ -269,11 +295,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=4.0)
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "fleet.json")
     a = ap.parse_args(argv)
-    if a.worker == "robots":
-        robots_worker(a.mode, a.router, [int(p) for p in a.ports.split(",")])
-        return 0
-    if a.worker == "operators":
-        operators_worker(a.mode, a.router, [int(p) for p in a.ports.split(",")], a.rate, a.seconds)
+    if a.worker is not None:
+        ports = [int(p) for p in a.ports.split(",")]
+        try:
+            if a.worker == "robots":
+                robots_worker(a.mode, a.router, ports)
+            else:
+                operators_worker(a.mode, a.router, ports, a.rate, a.seconds)
+        except Exception as e:  # what broke, in one line to the orchestrator; no session closes
+            print(f"failed {type(e).__name__}: {e}", flush=True)
+            os._exit(1)
         return 0
     load0 = os.getloadavg()
     runs: dict[str, Any] = {}
