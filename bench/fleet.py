@@ -150,6 +150,7 @@ def operators_worker(mode: str, router: str, ports: list[int], rate: float, seco
     warm = min(got) > 0
     print("measuring", flush=True)
     sent = 0
+    cpu0 = time.process_time()
     t0 = window[0] = time.monotonic_ns()
     measuring.set()
     k = 0
@@ -162,6 +163,7 @@ def operators_worker(mode: str, router: str, ports: list[int], rate: float, seco
         sent += n
         k += 1
     wall = (time.monotonic_ns() - t0) / 1e9
+    cpu = (time.process_time() - cpu0) / wall  # its own: it exits before the orchestrator could read it
     time.sleep(min(1.0, 50 * period / 1e9))  # the last echoes' grace
     measuring.clear()
     all_rtt = np.array([x for r in rtts for x in r], dtype=np.float64) / 1e3
@@ -173,6 +175,7 @@ def operators_worker(mode: str, router: str, ports: list[int], rate: float, seco
         "received": received,
         "loss": 1.0 - received / sent if sent else 1.0,
         "rate_achieved": sent / n / wall,
+        "cpu_fraction_self": cpu,
         "rtt_us": {
             "p50": float(np.percentile(all_rtt, 50)) if received else None,
             "p99": float(np.percentile(all_rtt, 99)) if received else None,
@@ -236,7 +239,8 @@ def step(mode: str, pairs: int, rate: float, seconds: float) -> dict[str, Any]:
                 "rate": rate,
                 "broke": f"the operators could not open: {line}",
             }
-        cpu0 = {k: _cpu_s(p.pid) for k, p in procs.items()}
+        others = {k: p for k, p in procs.items() if k != "operators"}
+        cpu0 = {k: _cpu_s(p.pid) for k, p in others.items()}
         t0 = time.monotonic()
         line = ops.stdout.readline()
         if not line.startswith("{"):
@@ -248,11 +252,8 @@ def step(mode: str, pairs: int, rate: float, seconds: float) -> dict[str, Any]:
             }
         result: dict[str, Any] = json.loads(line)
         dt = time.monotonic() - t0
-        cpu = {
-            k: (_cpu_s(p.pid) - cpu0[k]) / dt
-            for k, p in procs.items()
-            if p.poll() is None or k == "operators"
-        }
+        cpu = {k: (_cpu_s(p.pid) - cpu0[k]) / dt for k, p in others.items()}
+        cpu["operators"] = result.pop("cpu_fraction_self")
     except (OSError, ValueError, ProcessLookupError, FileNotFoundError) as e:
         return {"mode": mode, "pairs": pairs, "rate": rate, "broke": f"the bench failed: {e}"}
     finally:
@@ -310,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
     runs: dict[str, Any] = {}
     for rate in (float(x) for x in a.rates.split(",")):
         steps = []
-        pairs = 1
+        pairs, refined = 1, False
         while pairs <= a.max_pairs:
             row: dict[str, Any] = {"pairs": pairs}
             for mode in ("peer", "router"):
@@ -321,17 +322,30 @@ def main(argv: list[str] | None = None) -> int:
             if p.get("rtt_us", {}).get("p50") is not None and q.get("rtt_us", {}).get("p50") is not None:
                 row["router_adds_us"] = {k: q["rtt_us"][k] - p["rtt_us"][k] for k in ("p50", "p99")}
             steps.append(row)
+            if refined:
+                break
             if q.get("broke"):
+                held = [s["pairs"] for s in steps if not s["router"].get("broke")]
+                mid = (max(held, default=0) + pairs) // 2
+                if held and max(held) < mid < pairs:
+                    pairs, refined = mid, True  # once between the last that held and the first that broke
+                    continue
                 break
             pairs *= 2
-        last = steps[-1]
+        steps.sort(key=lambda s: s["pairs"])
         runs[f"{rate:g}"] = {
             "rate": rate,
             "steps": steps,
             "most_pairs_held": max((s["pairs"] for s in steps if not s["router"].get("broke")), default=0),
-            "broke_at": last["pairs"] if last["router"].get("broke") else None,
-            "what_broke": last["router"].get("broke")
-            or f"nothing up to {a.max_pairs} pairs (the bench's cap)",
+            "broke_at": min((s["pairs"] for s in steps if s["router"].get("broke")), default=None),
+            "what_broke": next(
+                (
+                    s["router"]["broke"]
+                    for s in sorted(steps, key=lambda s: s["pairs"])
+                    if s["router"].get("broke")
+                ),
+                f"nothing up to {a.max_pairs} pairs (the bench's cap)",
+            ),
         }
     write_result(
         a.out,
