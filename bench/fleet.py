@@ -271,6 +271,57 @@ def step(mode: str, pairs: int, rate: float, seconds: float) -> dict[str, Any]:
     return result
 
 
+def limit_worker(router: str, cap: int) -> None:
+    """Open plain client sessions to ``router`` one after another until one fails; print how many."""
+    from transport.zenoh import TransportError, make_config, open_session
+
+    held: list[Any] = []
+    why = f"none refused up to {cap}"
+    t0 = took = time.monotonic()
+    while len(held) < cap:
+        try:
+            held.append(open_session(make_config("client", None, [router], None)))
+        except TransportError as e:
+            why = str(e)
+            break
+        took = time.monotonic()
+    took -= t0  # to open those admitted
+    print(json.dumps({"admitted": len(held), "open_s": took, "refused": why}), flush=True)
+    os._exit(0)  # hundreds of sessions: no closes
+
+
+def session_limit(max_sessions: int | None, cap: int = 1200) -> dict[str, Any]:
+    """How many client sessions (plain: no declarations) one ``teleop router`` admits, opened one
+    after another from one process; with ``max_sessions`` in the router's config, or Zenoh's default."""
+    import tempfile
+
+    port = _free_port()
+    router = f"tcp/127.0.0.1:{port}"
+    with tempfile.TemporaryDirectory() as tmp:
+        cmd = [sys.executable, "-m", "teleop.cli", "router", "--listen", router]
+        if max_sessions is not None:
+            cfg = Path(tmp) / "router.json5"
+            cfg.write_text(f"{{ transport: {{ unicast: {{ max_sessions: {max_sessions} }} }} }}")
+            cmd += ["--config", str(cfg)]
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, text=True)
+        try:
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline:
+                with socket.socket() as s:
+                    if s.connect_ex(("127.0.0.1", port)) == 0:
+                        break
+                time.sleep(0.05)  # polling for the router's listener
+            worker = [sys.executable, "-m", "bench.fleet", "--worker", "limit", "--router", router]
+            out = subprocess.run(
+                [*worker, "--max-pairs", str(cap)], capture_output=True, text=True, timeout=300
+            )
+            got: dict[str, Any] = json.loads(out.stdout)
+        finally:
+            proc.kill()
+            proc.wait(timeout=20)
+    return {"max_sessions": max_sessions, **got}
+
+
 def broke(r: dict[str, Any], rate: float) -> str | None:
     """What broke at this step, or None."""
     if not r["warm"]:
@@ -286,7 +337,7 @@ def broke(r: dict[str, Any], rate: float) -> str | None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.fleet", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--worker", choices=["robots", "operators"])
+    ap.add_argument("--worker", choices=["robots", "operators", "limit"])
     ap.add_argument("--mode", choices=["router", "peer"], default="router")
     ap.add_argument("--router", default="")
     ap.add_argument("--ports", default="")
@@ -294,8 +345,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rates", default="30,1000")
     ap.add_argument("--max-pairs", type=int, default=256)
     ap.add_argument("--seconds", type=float, default=4.0)
+    ap.add_argument(
+        "--no-limit-probe", action="store_true", help="skip counting the sessions a router admits"
+    )
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "fleet.json")
     a = ap.parse_args(argv)
+    if a.worker == "limit":
+        limit_worker(a.router, a.max_pairs)
+        return 0
     if a.worker is not None:
         ports = [int(p) for p in a.ports.split(",")]
         try:
@@ -308,6 +365,9 @@ def main(argv: list[str] | None = None) -> int:
             os._exit(1)
         return 0
     load0 = os.getloadavg()
+    limits = [] if a.no_limit_probe else [session_limit(m) for m in (None, 5000, 100)]
+    for lim in limits:
+        print(f"sessions one router admits: {json.dumps(lim)}", file=sys.stderr, flush=True)
     runs: dict[str, Any] = {}
     for rate in (float(x) for x in a.rates.split(",")):
         steps = []
@@ -357,6 +417,7 @@ def main(argv: list[str] | None = None) -> int:
             "cpus": os.cpu_count(),
             "load_avg_at_start": list(load0),
             "load_avg_at_end": list(os.getloadavg()),
+            "session_limits": limits,
             "runs": runs,
         },
     )
