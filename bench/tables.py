@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import statistics
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -308,6 +309,15 @@ def flood(source: str = "flood.json", command: str = "python -m bench.flood --re
     )
 
 
+def _fleet_broke(text: str) -> str:
+    """A step's verdict, short: a session the router would not open says how many were open."""
+    m = re.search(r"operator session (\d+) of (\d+) \(robots hold (\d+) more\)", text)
+    if m is None:
+        return text
+    nth, open_ = int(m[1]), int(m[3]) + int(m[1]) - 1
+    return f"the router opened no more sessions: the operators' {nth}th timed out with {open_} open"
+
+
 def fleet() -> Table:
     """Robots per router (``bench/fleet.py``): each step's round trips peer to peer and through the
     router, what the router adds, the CPU of the router and of the synthetic endpoints, and what broke."""
@@ -341,7 +351,7 @@ def fleet() -> Table:
                 cells.append(b.one(f"{base}.router.load_avg_1min", ".1f"))
             else:
                 cells.append("-")
-            cells.append(router.get("broke") or "")
+            cells.append(_fleet_broke(router.get("broke") or ""))
             rows.append(tuple(cells))
     load = b.doc["load_avg_at_start"][0]
     return Table(
@@ -368,7 +378,7 @@ def fleet_sessions() -> Table:
                 "Zenoh's default (1000)" if ms is None else f"max_sessions {ms}",
                 b.one(f"session_limits[{i}].admitted", ".0f"),
                 b.one(f"session_limits[{i}].open_s", ".1f"),
-                lim["refused"].split(": ", 1)[-1] if lim["admitted"] < 1200 else "none refused",
+                "connect timed out (2 s)" if "Timeout" in lim["refused"] else lim["refused"],
             )
         )
     return Table(
