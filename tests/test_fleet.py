@@ -162,10 +162,16 @@ class _Bytes:
 
 
 class _Session:
-    """Just enough of a Zenoh session to declare an Announcer on."""
+    """Just enough of a Zenoh session to declare an Announcer on; ``holders`` hold its token already."""
+
+    def __init__(self, holders: int = 0) -> None:
+        self.holders = holders
 
     def liveliness(self) -> Any:
         return self
+
+    def get(self, key: str, timeout: float | None = None) -> list[Any]:
+        return [type("Reply", (), {"ok": key})() for _ in range(self.holders)]
 
     def declare_token(self, key: str) -> Any:
         return self
@@ -194,3 +200,17 @@ def test_a_robot_answers_only_a_nonce_and_at_most_its_rate() -> None:
     key, data = answered[0].replies[0]
     assert key == "teleop/robots/arm-1/info"  # the concrete key, never the wildcard asked
     assert fl.open_description(data, KEY, bytes(16), "arm-1") == desc()
+
+
+def test_a_second_robot_of_one_name_is_refused_in_one_line() -> None:
+    from transport.fleet import Announcer
+    from transport.zenoh import TransportError
+
+    with pytest.raises(TransportError, match="a robot named arm-1 is already announced here"):
+        Announcer(_Session(holders=1), "arm-1", KEY, lambda: desc())
+    with pytest.raises(TransportError, match="cannot announce robot arm-1: prefix"):
+        Announcer(_Session(), "arm-1", KEY, _bad_prefix)  # what it would say is checked before it says it
+
+
+def _bad_prefix() -> fl.Description:
+    raise ValueError("prefix must be a plain key like teleop/robots/a, got 'a b'")

@@ -227,3 +227,18 @@ def test_an_operator_never_takes_an_untrusted_or_absent_robot(
     said = {"absent": "not announced", "fake-0": "announced but not trusted (bad tag"}[robot]
     assert r.returncode == 1 and f"robot {robot} not found through Zenoh in 1 s: {said}" in r.stderr, r.stderr
     assert r.stderr.count("\n") == 1
+
+
+def test_a_second_robot_of_one_name_does_not_start(router: str, key: tuple[Path, bytes]) -> None:
+    first = robots(router, key[0], "twin", 1)
+    try:
+        r = subprocess.run(
+            [*TELEOP, "teleoperator", "--transport", "zenoh", "--zenoh-mode", "client",
+             "--zenoh-router", router, "--name", "twin-0", "--key-file", str(key[0]), "--no-rt",
+             "--connect-timeout", "5"],
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+    finally:
+        stop(first)
+    assert r.returncode == 1 and "a robot named twin-0 is already announced here" in r.stderr, r.stderr
+    assert r.stderr.count("\n") == 1

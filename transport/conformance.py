@@ -187,7 +187,7 @@ class _Zenoh(_Carrier):
             d = fl.Description(
                 name, 64, "conformance", prefix.strip("/"), "free", None, fl.envelope_fields(Envelope())
             )
-            self.announcer = Announcer(self.session, name, key, lambda: d)
+            self.announcer = Announcer(self.session, name, key, lambda: d, exclusive=False)
 
     def _on(self, sample: Any) -> None:
         t = time.monotonic_ns()

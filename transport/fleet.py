@@ -49,12 +49,24 @@ class Announcer:
     the endpoint's state, which the GIL keeps consistent enough for free/busy)."""
 
     def __init__(
-        self, session: Any, name: str, robot_key: bytes, describe: Callable[[], fl.Description]
+        self,
+        session: Any,
+        name: str,
+        robot_key: bytes,
+        describe: Callable[[], fl.Description],
+        exclusive: bool = True,
     ) -> None:
+        """``exclusive``: refuse to announce a name someone holds already (a test tool may share)."""
         self.name = auth.check_robot_name(name)
         self._key = robot_key
         self._describe = describe
         self._info = fl.info_key(name)
+        if exclusive and _alive(
+            session, fl.token_key(name)
+        ):  # two robots of one name: operators could not tell them apart
+            raise TransportError(
+                f"a robot named {name} is already announced here: give each robot its own --name"
+            )
         self.answered = self.refused = self.throttled = 0
         try:  # what it will say, checked now: a robot that cannot describe itself fails to start
             fl.seal(describe(), robot_key, bytes(fl.NONCE_BYTES))
@@ -91,6 +103,14 @@ class Announcer:
         for entity in (self._queryable, self._token):
             with contextlib.suppress(Exception):
                 entity.undeclare()
+
+
+def _alive(session: Any, token: str, timeout: float = LIST_TIMEOUT_S) -> bool:
+    """Whether someone holds the liveliness token ``token`` (one query; done when the router answers)."""
+    try:
+        return any(reply.ok is not None for reply in session.liveliness().get(token, timeout=timeout))
+    except zenoh.ZError as e:
+        raise TransportError(f"cannot query robots: {_reason(e)}") from None
 
 
 @dataclass(frozen=True)
