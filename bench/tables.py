@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import statistics
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -305,6 +306,87 @@ def flood(source: str = "flood.json", command: str = "python -m bench.flood --re
         tuple(rows),
         note=f" {b.doc['targets_met']} of {b.doc['cases_run']} cases met every target (p99 within 2x, no link"
         f" lost, margins >= 0, no log chunk dropped).{base_note}",
+    )
+
+
+def _fleet_broke(text: str) -> str:
+    """A step's verdict, short: a session the router would not open says how many were open."""
+    m = re.search(r"operator session (\d+) of (\d+) \(robots hold (\d+) more\)", text)
+    if m is None:
+        return text
+    nth, open_ = int(m[1]), int(m[3]) + int(m[1]) - 1
+    return f"the router opened no more sessions: the operators' {nth}th timed out with {open_} open"
+
+
+def fleet() -> Table:
+    """Robots per router (``bench/fleet.py``): each step's round trips peer to peer and through the
+    router, what the router adds, the CPU of the router and of the synthetic endpoints, and what broke."""
+    b = Builder("fleet.json")
+    rows: list[tuple[Cell, ...]] = []
+    for rate_key, run in b.doc["runs"].items():
+        for i, st in enumerate(run["steps"]):
+            base = f"runs.{rate_key}.steps[{i}]"
+            peer, router = st["peer"], st["router"]
+            cells: list[Cell] = [f"{run['rate']:g} /s", str(st["pairs"])]
+            for mode, r in (("peer", peer), ("router", router)):
+                if r.get("rtt_us", {}).get("p50") is None:
+                    cells.append("-")
+                    continue
+                path = f"{base}.{mode}.rtt_us"
+                cells.append(("{} / {}", (b.fig(f"{path}.p50", ".0f"), b.fig(f"{path}.p99", ".0f"))))
+            if "router_adds_us" in st:
+                a = f"{base}.router_adds_us"
+                cells.append(("{} / {}", (b.fig(f"{a}.p50", ".0f"), b.fig(f"{a}.p99", ".0f"))))
+            else:
+                cells.append("-")
+            cpu = router.get("cpu_fraction", {})
+            if {"router", "robots", "operators"} <= cpu.keys():
+                c = f"{base}.router.cpu_fraction"
+                figs = (b.fig(f"{c}.router", ".0f", scale=100), b.fig(f"{c}.robots", ".0f", scale=100),
+                        b.fig(f"{c}.operators", ".0f", scale=100))  # fmt: skip
+                cells.append(("{} % / {} % / {} %", figs))
+            else:
+                cells.append("-")
+            if "load_avg_1min" in router:
+                cells.append(b.one(f"{base}.router.load_avg_1min", ".1f"))
+            else:
+                cells.append("-")
+            cells.append(_fleet_broke(router.get("broke") or ""))
+            rows.append(tuple(cells))
+    load = b.doc["load_avg_at_start"][0]
+    return Table(
+        "fleet",
+        "fleet.json",
+        "python -m bench.fleet",
+        ("rate", "pairs", "RTT peer p50 / p99 (us)", "RTT via router p50 / p99 (us)",
+         "router adds p50 / p99 (us)", "CPU router / robots / operators", "load (1 min)", "what broke"),
+        tuple(rows),
+        note=f" Synthetic endpoints (two processes hold every robot and every operator), on a 2-core "
+        f"host others were loading (load average {load:.1f} at the start): a loaded-host figure, to be "
+        "rerun on a quiet one.",
+    )  # fmt: skip
+
+
+def fleet_sessions() -> Table:
+    """How many client sessions one ``teleop router`` admitted (``bench/fleet.py``'s probe)."""
+    b = Builder("fleet.json")
+    rows: list[tuple[Cell, ...]] = []
+    for i, lim in enumerate(b.doc["session_limits"]):
+        ms = lim["max_sessions"]
+        rows.append(
+            (
+                "Zenoh's default (1000)" if ms is None else f"max_sessions {ms}",
+                b.one(f"session_limits[{i}].admitted", ".0f"),
+                b.one(f"session_limits[{i}].open_s", ".1f"),
+                "connect timed out (2 s)" if "Timeout" in lim["refused"] else lim["refused"],
+            )
+        )
+    return Table(
+        "fleet-sessions",
+        "fleet.json",
+        "python -m bench.fleet",
+        ("router config", "client sessions admitted", "opened in (s)", "the next one"),
+        tuple(rows),
     )
 
 
@@ -1133,6 +1215,8 @@ TABLES: dict[str, Callable[[], Table]] = {
     "frontier0-pool": lambda: frontier0("frontier0_pool.json", "python -m bench.frontier0 --pool"),
     "flood": flood,
     "transports": transports,
+    "fleet": fleet,
+    "fleet-sessions": fleet_sessions,
     "soak-memory": soak_memory,
     "soak-loop": soak_loop,
     "log-cost": log_cost,

@@ -162,11 +162,17 @@ class _Zenoh(_Carrier):
 
     distinct_addresses = False
 
-    def __init__(self, role: str, prefix: str, config: Any, key: bytes) -> None:
+    def __init__(self, role: str, prefix: str, config: Any, key: bytes, name: str | None = None) -> None:
+        """``name``: playing a teleoperator of that name, announce it as one does (transport.fleet),
+        free, so an operator that names it and gives no prefix finds it here."""
         import threading
 
         import zenoh
 
+        from teleop.session import fleet as fl
+        from teleop.session.settings import Envelope
+
+        from .fleet import Announcer
         from .zenoh import ZENOH_PEER, _keys, open_session
 
         tx, rx = _keys(role, prefix)
@@ -182,6 +188,12 @@ class _Zenoh(_Carrier):
             congestion_control=zenoh.CongestionControl.DROP,
             priority=zenoh.Priority.REAL_TIME,
         )
+        self.announcer: Any = None
+        if name is not None:
+            d = fl.Description(
+                name, 64, "conformance", prefix.strip("/"), "free", None, fl.envelope_fields(Envelope())
+            )
+            self.announcer = Announcer(self.session, name, key, lambda: d, exclusive=False)
 
     def _on(self, sample: Any) -> None:
         t = time.monotonic_ns()
@@ -202,6 +214,8 @@ class _Zenoh(_Carrier):
         return out
 
     def close(self) -> None:
+        if self.announcer is not None:
+            self.announcer.close()
         self.sub.undeclare()
         self.pub.undeclare()
         self.session.close()
@@ -1272,7 +1286,7 @@ def check_operator(
     k_r = auth.robot_key(psk, robot)
     k_hs = auth.handshake_key(k_r)
     if zenoh is not None:
-        sock = _Zenoh("teleoperator", *zenoh, k_r)
+        sock = _Zenoh("teleoperator", *zenoh, k_r, name=robot)
         r = Result("operator", f"zenoh {zenoh[0]}")
     else:
         assert listen is not None

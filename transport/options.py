@@ -46,6 +46,7 @@ class EndpointOptions:
     robot_name: str = auth.DEFAULT_ROBOT_NAME  # the robot this operator names / this robot is
     local_limits: Envelope = field(default_factory=Envelope)  # teleoperator: what it affords
     udp_rcvbuf: int = DEFAULT_RCVBUF_BYTES  # the UDP socket's receive buffer asked for (transport.udp)
+    show_holder: bool = False  # teleoperator over Zenoh: its description names the session holding it
 
 
 @dataclass
@@ -55,8 +56,11 @@ class ZenohOptions:
     mode: str = "peer"  # peer | client
     listen: list[str] = field(default_factory=list)
     connect: list[str] = field(default_factory=list)
-    prefix: str = "teleop/default"
+    # None: a teleoperator's is teleop/robots/<name> (teleop.session.fleet); an operator finds the
+    # robot it names through Zenoh and takes the prefix the robot's description gives
+    prefix: str | None = None
     config_file: str | None = None
+    find_timeout: float = 10.0  # s an operator waits for the robot it names to be announced
 
 
 def new_session_id() -> int:

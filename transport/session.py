@@ -13,16 +13,19 @@ import math
 import signal
 import sys
 import time
+from collections.abc import Callable
 from typing import Any
 
 from teleop.devices import DeviceError
 from teleop.session import auth
-from teleop.session.endpoint import Endpoint, Monitor, PortFactory, TickPolicy
+from teleop.session import fleet as fl
+from teleop.session.endpoint import Endpoint, Monitor, PortFactory, State, TickPolicy
 from teleop.session.protocol import PROTOCOL_VERSION, Pins, SessionParams
 from teleop.session.summary import SessionSummary
 
 from . import console
 from .base import Transport
+from .fleet import Announcer, find_robot
 from .options import EndpointOptions, Interrupted, ZenohOptions, new_session_id
 from .records import RecordError, Records
 from .runner import Runner, SessionError, Stop
@@ -43,17 +46,62 @@ __all__ = [
 # --------------------------------------------------------------------------------------------
 # entry points
 # --------------------------------------------------------------------------------------------
-async def _open_transport(opts: EndpointOptions, key: bytes) -> Transport:
+async def _open_transport(
+    opts: EndpointOptions, key: bytes, describe: Callable[[], fl.Description] | None = None
+) -> Transport:
+    """The session's transport.  Over Zenoh a teleoperator announces itself (``describe``, its
+    state now: transport.fleet) and an operator given no prefix finds the robot it names."""
     if opts.transport == "udp":
         return await UdpTransport.bind(opts.listen, rcvbuf=opts.udp_rcvbuf)
     if opts.transport == "zenoh":
         z = opts.zenoh or ZenohOptions()
+        name = opts.robot_name
         try:
-            config = make_config(z.mode, z.listen, z.connect, z.config_file)
+            config = make_config(
+                z.mode, z.listen, z.connect, z.config_file, announcing=opts.role == "teleoperator"
+            )
         except ValueError as e:
             raise SessionError(str(e)) from None
-        return await ZenohTransport.open(opts.role, z.prefix, config, key=key)
+        locate: Callable[[Any], str] | None = None
+        announce: Callable[[Any], Any] | None = None
+        prefix = z.prefix or fl.default_prefix(name)
+        if opts.role == "operator" and z.prefix is None:
+            assert opts.psk is not None
+            psk, wait = opts.psk, z.find_timeout
+
+            def locate(session: Any) -> str:
+                d = find_robot(session, psk, name, wait)
+                print(f"teleop operator: found robot {name} ({d.kind}, {d.dof} DoF, {d.state}) on {d.prefix}")
+                return d.prefix
+
+        elif opts.role == "teleoperator" and describe is not None:
+
+            def announce(session: Any) -> Announcer:
+                return Announcer(session, name, key, describe)
+
+        return await ZenohTransport.open(opts.role, prefix, config, key=key, locate=locate, announce=announce)
     raise SessionError(f"unknown transport {opts.transport!r}; accepted: udp, zenoh")
+
+
+def _describer(
+    opts: EndpointOptions, pins: Pins | None, prefix: str, built: list[Endpoint]
+) -> Callable[[], fl.Description]:
+    """The teleoperator's description now: free until a session is claimed by a handshake, busy while
+    it runs (its session id shown only with ``show_holder``).  Read on a Zenoh thread."""
+    env = opts.local_limits
+    dof = (pins.dof if pins is not None else None) or env.max_dof
+    kind = (opts.device or "sim").partition(":")[0][: fl.MAX_KIND] or "sim"
+    fields = fl.envelope_fields(env)
+    busy_states = (State.STARTING, State.RUNNING, State.LINGER)
+
+    def describe() -> fl.Description:
+        ep = built[0] if built else None
+        busy = ep is not None and ep.state in busy_states
+        holder = ep.params.session if busy and opts.show_holder and ep is not None and ep.params else None
+        state = "busy" if busy else "free"
+        return fl.Description(opts.robot_name, dof, kind, prefix, state, holder, fields)
+
+    return describe
 
 
 async def _endpoint(opts: EndpointOptions, params: SessionParams | None, pins: Pins | None) -> SessionSummary:
@@ -67,7 +115,10 @@ async def _endpoint(opts: EndpointOptions, params: SessionParams | None, pins: P
     stop = Stop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop, sig)
-    tr = await _open_transport(opts, key)
+    built: list[Endpoint] = []  # the endpoint, once built: what the robot's description reads
+    z = opts.zenoh or ZenohOptions()
+    describe = _describer(opts, pins, (z.prefix or fl.default_prefix(opts.robot_name)).strip("/"), built)
+    tr = await _open_transport(opts, key, describe)
     if opts.role == "teleoperator" and not opts.quiet:
         print(waiting_line(opts, tr), file=sys.stderr, flush=True)
     kw: dict[str, Any] = {
@@ -84,7 +135,9 @@ async def _endpoint(opts: EndpointOptions, params: SessionParams | None, pins: P
             peer = ZENOH_PEER if opts.transport == "zenoh" else opts.peer
             assert params is not None and peer is not None
             return Endpoint.operator(params, peer, make_port, **kw)
-        return Endpoint.teleoperator(pins or Pins(), make_port, local_limits=opts.local_limits, **kw)
+        ep = Endpoint.teleoperator(pins or Pins(), make_port, local_limits=opts.local_limits, **kw)
+        built.append(ep)
+        return ep
 
     records = Records(opts.role, opts.log_dir, opts.live_view, opts.live_view_host)
     try:
@@ -126,8 +179,9 @@ def run_endpoint(opts: EndpointOptions, params: SessionParams | None = None, pin
 
 def waiting_line(opts: EndpointOptions, tr: Transport) -> str:
     """Where a robot waits and under which name: a person starting its operator needs both."""
-    if opts.transport == "zenoh" and opts.zenoh is not None:
-        where = f"zenoh, prefix {opts.zenoh.prefix}"
+    if opts.transport == "zenoh":
+        prefix = (opts.zenoh.prefix if opts.zenoh else None) or fl.default_prefix(opts.robot_name)
+        where = f"zenoh, keys {prefix.strip('/')}"
     else:
         a = tr.local_address
         where = f"udp {a[0]}:{a[1]}"

@@ -63,6 +63,7 @@ import tempfile
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -86,6 +87,12 @@ RT_QUEUE_BATCHES = 16  # Zenoh's maximum; its default of 2 dropped ~0.5 % at 1 k
 _RT_QUEUE = "transport/link/tx/queue/size/real_time"
 _MAX_MESSAGE = "transport/link/rx/max_message_size"
 _USRPWD = "transport/auth/usrpwd"
+_LEASE = "transport/link/tx/lease"
+_KEEP_ALIVE = "transport/link/tx/keep_alive"
+#: An announcing robot's lease (Zenoh's default is 10 s): silent this long, its router drops it, and
+#: its liveliness token with it.  Keep-alives go FLEET_KEEP_ALIVE times a lease (every 250 ms).
+FLEET_LEASE_MS = 1000
+FLEET_KEEP_ALIVE = 4
 #: Files a config names that Zenoh opens itself: each must be a regular file of bounded size, checked
 #: by its type before Zenoh sees it (a FIFO there hung zenoh.open past SIGTERM; /dev/zero never ends).
 _NAMED_FILES = (
@@ -143,6 +150,7 @@ def make_config(
     listen: list[str] | None = None,
     connect: list[str] | None = None,
     config_file: str | None = None,
+    announcing: bool = False,
 ) -> zenoh.Config:
     """A Zenoh config: ``config_file`` (JSON5) first if given, then these overrides.
 
@@ -150,7 +158,9 @@ def make_config(
     list left unset everywhere is empty, never Zenoh's all-interfaces default).  Scouting is forced
     off; the REAL_TIME transmit queue is ``RT_QUEUE_BATCHES`` unless the file changes it.  In client
     mode the connect timeout is ``CLIENT_CONNECT_TIMEOUT_MS`` unless the file sets
-    one.  ValueError says what is wrong and what is allowed.
+    one.  A robot that announces itself (``announcing``, transport.fleet) gets the lease
+    ``FLEET_LEASE_MS`` unless the file sets one, so a robot whose cable is pulled leaves every
+    listing within it.  ValueError says what is wrong and what is allowed.
     """
     if mode not in MODES:
         raise ValueError(f"Zenoh mode must be one of {', '.join(MODES)}, got {mode!r}")
@@ -191,6 +201,9 @@ def make_config(
     for key in _NAMED_FILES:  # a missing one is left to Zenoh, which names it when it opens
         if isinstance(path := _get(config, key), str) and os.path.exists(path):
             read_regular(path, MAX_CONFIG_BYTES, f"Zenoh config {key}:")  # FileRefused: one line
+    if announcing and unset(_LEASE):
+        put(_LEASE, FLEET_LEASE_MS)
+        put(_KEEP_ALIVE, FLEET_KEEP_ALIVE)
     if unset(_RT_QUEUE):
         put(_RT_QUEUE, RT_QUEUE_BATCHES)
     max_msg = _get(config, _MAX_MESSAGE)
@@ -324,6 +337,7 @@ class ZenohTransport:
         self._session: Any = None
         self._publisher: Any = None
         self._subscriber: Any = None
+        self._announcer: Any = None
         self._zid = "zenoh"
         self.tx_key = ""
         self.rx_key = ""
@@ -343,17 +357,27 @@ class ZenohTransport:
         config: zenoh.Config,
         inbox_size: int = 4096,
         key: bytes | None = None,
+        locate: Callable[[Any], str] | None = None,
+        announce: Callable[[Any], Any] | None = None,
     ) -> ZenohTransport:
         """Open the session and declare the publisher and subscriber; TransportError if it can't.
 
         With the robot ``key``, a peer-mode session admits only Zenoh peers holding it
-        (:func:`open_session`)."""
-        tx, rx = _keys(role, prefix)
+        (:func:`open_session`).  ``locate(session)``, if given, finds the prefix on the open session
+        (``transport.fleet.find_robot``; run off the event loop) instead of ``prefix``; ``announce(session)``
+        declares what announces this robot once the keys are declared (closed with the transport)."""
         self = cls(inbox_size)
-        self.tx_key, self.rx_key = tx, rx
         self._loop = asyncio.get_running_loop()
         self.admission = admission(config, key)
         self._session = await _open_session(config, key)
+        try:
+            if locate is not None:
+                prefix = await asyncio.get_running_loop().run_in_executor(None, locate, self._session)
+            tx, rx = _keys(role, prefix)
+        except (TransportError, ValueError):
+            self.close()
+            raise
+        self.tx_key, self.rx_key = tx, rx
         try:
             self._zid = str(self._session.zid())
             self._subscriber = self._session.declare_subscriber(rx, self._on_sample)
@@ -368,7 +392,18 @@ class ZenohTransport:
             raise TransportError(
                 f"cannot declare Zenoh publisher {tx} / subscriber {rx}: {_reason(e)}"
             ) from None
+        if announce is not None:
+            try:
+                self._announcer = announce(self._session)
+            except (TransportError, ValueError):
+                self.close()
+                raise
         return self
+
+    @property
+    def session(self) -> Any:
+        """The open Zenoh session (None once closed): for a listing on the same session."""
+        return self._session
 
     def _on_sample(self, sample: Any) -> None:
         """Zenoh thread: stamp, enqueue, wake the loop. Never blocks."""
@@ -448,6 +483,10 @@ class ZenohTransport:
     def close(self) -> None:
         """Undeclare and close the session; idempotent."""
         self._loop = None
+        if self._announcer is not None:
+            with contextlib.suppress(Exception):
+                self._announcer.close()
+            self._announcer = None
         for entity in (self._subscriber, self._publisher):
             if entity is not None:
                 with contextlib.suppress(Exception):

@@ -619,9 +619,10 @@ def add_transport_args(p: argparse.ArgumentParser) -> None:
     )
     z.add_argument(
         "--zenoh-prefix",
-        default="teleop/default",
+        default=None,
         metavar="KEY",
-        help="key prefix: data on KEY/forward and KEY/backward (default teleop/default)",
+        help="key prefix: data on KEY/forward and KEY/backward (default: a teleoperator's is "
+        "teleop/robots/NAME, announced with its name; an operator finds the robot it names and uses its)",
     )
     z.add_argument(
         "--zenoh-config",

@@ -29,11 +29,14 @@ def cmd_conformance(args: argparse.Namespace) -> int:
     psk, _ = endpoint_key(args)
     zenoh = None
     if args.transport == "zenoh":
+        from teleop.session.fleet import default_prefix
         from transport.zenoh import TransportError, make_config
 
         z = zenoh_options(args)
         try:
-            zenoh = (z.prefix, make_config(z.mode, z.listen, z.connect, z.config_file))
+            # No prefix: the one a teleoperator of this name takes by default (teleop.session.fleet)
+            prefix = z.prefix or default_prefix(args.robot_name)
+            zenoh = (prefix, make_config(z.mode, z.listen, z.connect, z.config_file))
         except (ValueError, TransportError) as e:
             raise CliError(str(e)) from None
     try:

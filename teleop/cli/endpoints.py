@@ -109,6 +109,7 @@ def cmd_teleoperator(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print("teleop teleoperator: interrupted while taking the robot", file=sys.stderr)
         return 130
+    opts.show_holder = args.show_holder
     try:
         return run_endpoint(opts, None, pins)
     finally:
@@ -272,6 +273,12 @@ def add_teleoperator_parser(sub: Subcommands) -> None:
         metavar="S",
         help="give up (exit 1) if no operator says hello within S seconds (default 0: wait until "
         "stopped, printing where it listens and what it refused)",
+    )
+    t.add_argument(
+        "--show-holder",
+        action="store_true",
+        help="over Zenoh, this robot's description (teleop robots) names the session holding it "
+        "(default: busy, without whose)",
     )
     t.set_defaults(func=cmd_teleoperator)
 

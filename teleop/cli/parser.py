@@ -16,6 +16,7 @@ from teleop.cli import (
     export,
     keygen,
     report,
+    robots,
     run,
     sim,
     sweep,
@@ -34,6 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     endpoints.add_operator_parser(sub)
     endpoints.add_teleoperator_parser(sub)
     endpoints.add_router_parser(sub)
+    robots.add_parser(sub)
     report.add_parser(sub)
     export.add_parser(sub)
     keygen.add_parser(sub)
