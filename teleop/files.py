@@ -1,7 +1,7 @@
 """Opening files safely: the one place the stack opens a file it reads as input or writes.
 
 Why here: the trace loader (``teleop.session.link.netem``), the command line, the Zenoh config and the log
-writer all need the same rules (DESIGN.md, "Trust nothing from the network, or from a file"):
+writer all need the same rules (trust nothing from the network, or from a file):
 
 * an **input** (a netem trace, a Zenoh config) is a regular file of bounded size: its type is
   checked with ``stat`` *before* it is opened, so a FIFO, a device (``/dev/zero``) or a directory

@@ -1,7 +1,7 @@
 """What one process can afford: the ranges every session parameter is checked against.
 
 One table for the command line, ``teleop sim`` and the handshake parser, so a value that the
-network proposes is held to the same bounds as one typed by the user (DESIGN.md: validate every
+network proposes is held to the same bounds as one typed by the user (validate every
 field against a range the local side can afford).  A real process streams its per-tick records to
 disk a chunk at a time (``teleop.session.port``, ``teleop.offline.logfile``), so its memory does
 not grow with the session: a session runs until stopped (duration :data:`UNTIL_STOPPED`) or for at most

@@ -207,3 +207,20 @@ def test_readme_links_resolve() -> None:
         if "://" in target:
             continue
         assert (ROOT / target).exists(), target
+
+
+def test_nothing_in_the_repository_points_at_a_file_outside_it() -> None:
+    """The design notes the project was built from are not in this repository: code and docs
+    name what is here (issue 50 counted 10 such pointers)."""
+    outside = re.compile(r"DESIGN\.md|DEVELOPERS\.md|\.\./shared")
+    found = []
+    for sub in ("teleop", "transport", "bench", "tests", "tools", "docs", "deploy", ".ci"):
+        for path in (ROOT / sub).rglob("*"):
+            if path.is_file() and path.suffix in (".py", ".md", ".toml", ".yml", ".json5", ".sh", ""):
+                if path.name == "test_docs.py" or "_generated" in path.parts:
+                    continue
+                text = path.read_text(errors="replace")
+                found += [f"{path.relative_to(ROOT)}: {m.group(0)}" for m in outside.finditer(text)]
+    for name in ("README.md", "PROTOCOL.md", "pyproject.toml", "mkdocs.yml"):
+        found += [f"{name}: {m.group(0)}" for m in outside.finditer((ROOT / name).read_text())]
+    assert not found, found

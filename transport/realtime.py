@@ -129,7 +129,7 @@ def host_steal_ms(path: str = "/proc/stat") -> float | None:
     SCHED_FIFO or not, and that shows here; a timer the host delivers late to an idle vCPU (a loop
     asleep until its tick) stalls it as much and does not (traced on this project's VM: most of
     its millisecond stalls are that kind).  The file is the kernel's, read before and after the
-    ticks, never in one; its first line is still checked, as any file's (DESIGN.md)."""
+    ticks, never in one; its first line is still checked, as any file's."""
     try:
         with open(path, "rb") as f:
             head = f.readline(4096).split()

@@ -20,7 +20,7 @@ built-in (:data:`BUILTIN`), an entry point of the group ``teleop.devices`` (a th
 registers ``name = "package.module:Class"`` there), or ``package.module:Class[:ARG]``.  The object
 named must have ``role = "hsi"`` or ``"robot"`` and is called ``factory(dof=..., dt=..., arg=...)``.
 The default is the scenario's own model (named like the scenario).  A spec only ever comes from the
-local command line: nothing from the network names a device, a module or a file (DESIGN.md).
+local command line: nothing from the network names a device, a module or a file.
 
 **Hardware.** Only a session (``teleop teleoperator``, ``teleop operator``, and the two processes
 ``teleop run`` starts) builds a device that is hardware; an offline tool (``teleop sim``,

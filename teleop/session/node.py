@@ -61,7 +61,8 @@ from teleop.session.settings import DEFAULTS, Channel, Envelope, Passivity
 
 SPARSE_MARGIN_S = 0.010  # s: how late the payload after a lost one may be before the link is lost
 #: J of input energy a TDPA port may leave unreported before an event-based (deadband) encoder must
-#: send: the receiver's budget lags the truth by at most this between sparse updates (teleop.tdpa).
+#: send: the receiver's budget lags the truth by at most this between sparse updates
+#: (teleop.control.passivity).
 TDPA_REPORT_QUANTUM_J = 2e-3
 #: The TDPA operator's rendered damping, as a fraction of the session's impedance ``b``.  Why: with
 #: the environment's direct feedthrough (Tustin's D, ``teleop.devices.models``) the robot cannot move into
@@ -249,7 +250,7 @@ class _Port:
     def confine(self, env: Envelope) -> None:
         """Run this (robot's) node inside ``env``: its command saturated to ``max_velocity`` and
         ``max_force`` per DoF, and its energy guard bounded by the envelope, never by the numbers
-        the operator proposed (DESIGN.md: the robot is sovereign).  Called as the session starts."""
+        the operator proposed (the robot is sovereign).  Called as the session starts."""
         self.confined = True
         self.max_velocity, self.max_force = env.max_velocity, env.max_force
         self.confinement = Confinement(self._dof, self.dt, env.max_velocity, env.max_force)

@@ -231,7 +231,7 @@ class Proposal(Protocol):
 class Envelope:
     """The robot's own limits: what it affords whatever a key-holding operator proposes.
 
-    A key proves who the operator is, not that its settings are safe (DESIGN.md): every setting an
+    A key proves who the operator is, not that its settings are safe: every setting an
     operator proposes is held to one of these by the rule :data:`SETTINGS` gives it, and a proposal
     outside them is refused with a reject naming the field and the limit.  The robot also saturates
     what it is commanded to ``max_velocity`` and ``max_force`` per DoF (``teleop.session.node``: saturation

@@ -197,7 +197,7 @@ MAX_PAYLOAD_BYTES = (limits.MAX_DOF * _MOST_VALUES_PER_DOF * _RAW_BITS + 7) // 8
 MAX_PACKET_BYTES = len(encode(Packet(_U32, BACKWARD, _U32, _U64, _U64, 255, bytes(MAX_PAYLOAD_BYTES))))
 #: The largest datagram (or Zenoh sample) of the protocol, authenticated envelope included: data
 #: packet or control message.  Transports refuse anything longer by its length alone, before any
-#: hashing or parsing (DESIGN.md: the cost of refusing must be small and flat).
+#: hashing or parsing (the cost of refusing must be small and flat).
 MAX_DATAGRAM_BYTES = max(MAX_PACKET_BYTES, limits.MAX_CONTROL_BYTES) + auth.OVERHEAD
 #: The largest handshake-key datagram: a control message in its envelope (hello, welcome, retry, reject).
 MAX_HANDSHAKE_DATAGRAM_BYTES = limits.MAX_CONTROL_BYTES + auth.OVERHEAD

@@ -257,7 +257,7 @@ class PlayoutDecoder:
 
     A payload becomes ``(value, count)``: play ``value`` for ``count`` ticks.  When the queue runs
     dry the output is zero, never a held value: holding would replay energy that was never sent
-    (DESIGN.md, "hold-last-sample generates energy").  When it grows beyond ``max_queue`` ticks
+    (in wave variables hold-last-sample generates energy).  When it grows beyond ``max_queue`` ticks
     (a burst after a stall) the oldest samples are dropped, which only removes energy.
     """
 

@@ -18,7 +18,7 @@ supervision of ``teleop.session.node`` takes the codec's longest interval into a
 still signal is never taken for a dead link, and a lost payload is replaced within ``MAXMS``.
 
 *Passive reconstruction.*  Holding (or extrapolating) plays energy that was never sent: in wave
-variables a held sample generates energy (DESIGN.md).  Two rules keep the channel passive:
+variables a held sample generates energy.  Two rules keep the channel passive:
 
 1. The receiver plays a held sample only within the in-band budget, ``E_in reported - E_played``
    (eq. 5), enforced by its energy guard (``teleop.control.passivity``) on every tick.
