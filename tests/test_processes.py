@@ -239,7 +239,7 @@ def _ignore_sigint() -> None:
 def test_ctrl_c_stops_both_cleanly(tmp_path: Path, inherited: str) -> None:
     out = tmp_path / "run"
     p = subprocess.Popen(
-        [*TELEOP, "run", "--out", str(out), "--no-plots", "--no-sim", "--duration", "30"],
+        [*TELEOP, "run", "--out", str(out), "--no-plots", "--duration", "30"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -256,6 +256,8 @@ def test_ctrl_c_stops_both_cleanly(tmp_path: Path, inherited: str) -> None:
         assert 500 < pr["loop"]["ticks"] < 30000, role
         assert not _alive(pr["pid"]), f"{role} left running"
     assert rep["exit_codes"] == {"teleoperator": 130, "operator": 130}
+    # The report is written, without re-running the sim (seconds of work after a Ctrl-C).
+    assert rep["sim_skipped"].startswith("interrupted (Ctrl-C)") and "I_sim" not in rep["transparency"]
 
 
 def test_peer_never_answers(tmp_path: Path) -> None:
@@ -477,6 +479,7 @@ def test_teleoperator_restarted_mid_session_and_the_operator_recovers(tmp_path: 
     assert 0 < t["first_tick"] < 5000
     assert t["received"]["packets"] > 500  # and the operator's packets flowed again
     from teleop.offline import report
+    from teleop.offline.logfile import checked_params
 
     rep = report.build(logs, "udp", compare_sim=False)
     for d in ("forward", "backward"):
@@ -487,7 +490,7 @@ def test_teleoperator_restarted_mid_session_and_the_operator_recovers(tmp_path: 
 
     assert rep["logs"] == {"operator": "operator.mcap", "teleoperator": f"teleoperator-{session}.mcap"}
     paths = (logs / "operator.mcap", logs / f"teleoperator-{session}.mcap")
-    phases = report._phases(report._checked_params(paths[0], o["params"]), 5.0)
+    phases = report._phases(checked_params(paths[0], o["params"]), 5.0)
     assert_fold_matches(report.fold_logs(*paths, phases, 2, 1e-3), figures(*paths, phases, 1e-3))
 
 

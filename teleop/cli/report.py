@@ -23,6 +23,7 @@ def write_report(
     extra: dict[str, Any] | None = None,
     session: int | None = None,
     command: str = "teleop report",
+    skip_sim: str | None = None,
 ) -> None:
     """Build the report of ``session`` (default: the newest pair) from LOGS, add ``extra``, write
     OUT/report-SESSION.json (a new file, never over one), then OUT/report.json and the plots as
@@ -36,7 +37,7 @@ def write_report(
     try:
         traces = tuple(Path(t) for t in getattr(args, "trace", None) or ())
         rep = session_report.build(
-            logs, transport, compare_sim=not args.no_sim, session=session, traces=traces
+            logs, transport, compare_sim=not args.no_sim, session=session, traces=traces, skip_sim=skip_sim
         )
         rep.update(extra or {})
         text = session_report.summary_text(rep, command)

@@ -364,7 +364,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     extra: dict[str, Any] = {"exit_codes": codes, "auth": {"key": key.source, "key_id": key.key_id}}
     if net.zenoh is not None:
         extra["zenoh"] = net.zenoh
-    write_report(logs, out, args, args.transport, extra, session=params.session, command="teleop run")
+    # After a Ctrl-C the report is written but the sim not re-run (seconds of work): every command
+    # ends within a second of Ctrl-C; `teleop report` builds the comparison later.
+    skip = "interrupted (Ctrl-C); teleop report LOGS builds the comparison" if interrupted else None
+    write_report(
+        logs, out, args, args.transport, extra, session=params.session, command="teleop run", skip_sim=skip
+    )
     if interrupted and not params.until_stopped:  # an open session ends with Ctrl-C: that is no error
         return 130
     return 0 if all(c == 0 for c in codes.values()) else 1

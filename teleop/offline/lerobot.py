@@ -31,8 +31,15 @@ import numpy as np
 import numpy.typing as npt
 
 from teleop.errors import LocalError
-from teleop.offline.logfile import MAX_LOGS, LogError, find_pair, log_session, read_columns, read_states
-from teleop.session.protocol import ProtocolError, SessionParams
+from teleop.offline.logfile import (
+    MAX_LOGS,
+    LogError,
+    checked_params,
+    find_pair,
+    log_session,
+    read_columns,
+    read_states,
+)
 
 __all__ = ["FEATURES", "Episode", "ExportError", "export", "read_episode", "read_episodes", "ticks_of"]
 
@@ -172,20 +179,6 @@ def _delay(
     return out
 
 
-def _params(path: Path, p: Any) -> SessionParams:
-    """A log's session parameters held to what a peer's hello is held to (as ``teleop report``
-    does: every type and range checked before one sizes anything)."""
-    if not isinstance(p, dict):
-        raise LogError(f"{path}: its session parameters are not a map")
-    m = {k: v for k, v in p.items() if k != "full_scale"}
-    m["range"] = p.get("full_scale")
-    own = [v for k in ("netem_forward", "netem_backward") if isinstance(v := p.get(k), str)]
-    try:
-        return SessionParams.from_msg(m, local_netem=own)
-    except ProtocolError as e:
-        raise LogError(f"{path}: its session parameters: {e}") from None
-
-
 def read_episodes(log_dir: Path, fps: int, session: int | None = None) -> list[Episode]:
     """The episodes of one session in ``log_dir`` (its newest with both logs, or ``session``),
     paired as ``teleop report`` pairs its logs (``find_pair``), in the order they ran: the session,
@@ -237,7 +230,7 @@ def read_episode(
     seen = seen if seen is not None else {}
     sid, summary, params = seen[to_path] if to_path in seen else log_session(to_path)
     op_summary = (seen[op_path] if op_path in seen else log_session(op_path))[1]
-    p = _params(to_path, params)
+    p = checked_params(to_path, params)
     w = 1.0 / (fps * p.dt)
     if abs(w - round(w)) > 1e-9 or round(w) < 1:
         rate = round(1 / p.dt)

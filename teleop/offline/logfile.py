@@ -25,6 +25,7 @@ from teleop.errors import RemoteError
 from teleop.limits import MAX_DOF
 from teleop.session.logformat import ENERGY_FIELDS, INT_FIELDS, PER_TICK_TOPICS, TOPICS, WIRE_FIELDS
 from teleop.session.port import fill_value
+from teleop.session.protocol import ProtocolError, SessionParams
 
 __all__ = [
     "PER_TICK_TOPICS",
@@ -854,3 +855,19 @@ def read_columns(
                 full[rows] = c[name][hit]
             out[name] = np.nan_to_num(full, nan=fill_value(name)).astype(np.int64) if kind == "int" else full
     return out
+
+
+def checked_params(path: Path, p: Any) -> SessionParams:
+    """A log's session parameters held to what a peer's hello is held to (``SessionParams.from_msg``:
+    every type, and the ranges of ``teleop.limits``), before any of them sizes an allocation or a
+    loop: an edited ``dof``, ``duration`` or ``dt`` is one :class:`LogError`.  A ``trace FILE`` spec
+    is kept as text; nothing here (or in the report) opens the file it names."""
+    if not isinstance(p, dict):
+        raise LogError(f"{path}: its session parameters are not a map")
+    m = {k: v for k, v in p.items() if k != "full_scale"}
+    m["range"] = p.get("full_scale")
+    own = [v for k in ("netem_forward", "netem_backward") if isinstance(v := p.get(k), str)]
+    try:
+        return SessionParams.from_msg(m, local_netem=own)
+    except ProtocolError as e:
+        raise LogError(f"{path}: its session parameters: {e}") from None

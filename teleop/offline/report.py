@@ -27,7 +27,7 @@ from teleop.control import metrics
 from teleop.devices import scenarios
 from teleop.files import MAX_TRACE_BYTES, read_regular
 from teleop.offline import plots
-from teleop.offline.logfile import LogError, find_pair, iter_ticks, log_session, read_session
+from teleop.offline.logfile import LogError, checked_params, find_pair, iter_ticks, log_session, read_session
 from teleop.offline.sim import (
     NOT_SENT,
     NOT_TAKEN,
@@ -38,7 +38,7 @@ from teleop.offline.sim import (
 )
 from teleop.session.link.phase import latency
 from teleop.session.port import wire_block
-from teleop.session.protocol import ProtocolError, SessionParams
+from teleop.session.protocol import SessionParams
 
 Array = npt.NDArray[np.float64]
 Block = dict[str, npt.NDArray[Any]]
@@ -54,22 +54,6 @@ SIM_CAP_S = 300.0
 PLOT_POINTS = 1 << 17  # samples kept per plotted series: every tick up to 131 s, then thinned
 BANDWIDTH_WINDOW = 100  # ticks per bandwidth point (100 ms at 1 kHz)
 HIST_US = 100_000  # the lateness histogram's 1 us bins; later ticks are kept one by one
-
-
-def _checked_params(path: Path, p: Any) -> SessionParams:
-    """A log's session parameters held to what a peer's hello is held to (``SessionParams.from_msg``:
-    every type, and the ranges of ``teleop.limits``), before any of them sizes an allocation or a
-    loop: an edited ``dof``, ``duration`` or ``dt`` is one :class:`LogError`.  A ``trace FILE`` spec
-    is kept as text; nothing here (or in the report) opens the file it names."""
-    if not isinstance(p, dict):
-        raise LogError(f"{path}: its session parameters are not a map")
-    m = {k: v for k, v in p.items() if k != "full_scale"}
-    m["range"] = p.get("full_scale")
-    own = [v for k in ("netem_forward", "netem_backward") if isinstance(v := p.get(k), str)]
-    try:
-        return SessionParams.from_msg(m, local_netem=own)
-    except ProtocolError as e:
-        raise LogError(f"{path}: its session parameters: {e}") from None
 
 
 def _trace_specs(
@@ -466,7 +450,7 @@ def _fold_of(op_path: str, to_path: str, mtimes: tuple[int, int]) -> _Logs:
     summaries, params = {}, {}
     for role, path in paths.items():
         _, summaries[role], params[role] = log_session(path)
-    p = _checked_params(paths["operator"], params["operator"])
+    p = checked_params(paths["operator"], params["operator"])
     ticks = round((p.duration or limits.MAX_DURATION_S) / p.dt)
     # A session without a fixed end: its last phase lasts until the end of the log.
     phases = _phases(p, p.duration or 1e9)
@@ -567,6 +551,7 @@ def build(
     log_dir: Path,
     transport: str,
     compare_sim: bool = True,
+    skip_sim: str | None = None,
     session: int | None = None,
     traces: tuple[Path, ...] = (),
 ) -> dict[str, Any]:
@@ -647,6 +632,9 @@ def build(
     if logs.notes:
         rep["notes"] = logs.notes
     netem = {"forward": p.netem_forward, "backward": p.netem_backward}
+    if compare_sim and skip_sim is not None:  # the caller's reason (a Ctrl-C: end within a second)
+        compare_sim = False
+        rep["sim_skipped"] = skip_sim
     if compare_sim:
         netem, why = _trace_specs(logs.paths, p, traces)
         if why is not None:
