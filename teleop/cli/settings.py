@@ -236,5 +236,5 @@ def zenoh_options(args: argparse.Namespace) -> Any:
         connect=connect,
         prefix=args.zenoh_prefix,
         config_file=args.zenoh_config,
-        find_timeout=getattr(args, "connect_timeout", 10.0),  # conformance has none
+        find_timeout=connect_timeout(args),  # its default where a command has none (conformance)
     )
