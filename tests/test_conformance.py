@@ -59,7 +59,7 @@ def _check_teleoperator(
 
 
 def _check_operator(
-    tmp_path: Path, key: str, brk: str | None, codec: str = "eds:50", timeout: int = 20
+    tmp_path: Path, key: str, brk: str | None, codec: str = "eds:50", timeout: int = 20, duration: float = 1.5
 ) -> tuple[int, dict[str, object], str]:
     """The checker against our operator (``brk``: broken as tests/broken_peer.py says).  A broken
     operator that never completes what the checker waits for (a retry it ignores, a bye it never
@@ -73,12 +73,14 @@ def _check_operator(
     )  # fmt: skip
     wait_for(lambda: udp_bound(port), 60, "the checker's socket")
     op = _peer(brk, "operator", "--key-file", key, "--peer", f"127.0.0.1:{port}", "--listen", "127.0.0.1:0",
-               "--codec", codec, "--duration", "1.5", "--connect-timeout", "4", "--quiet")  # fmt: skip
+               "--codec", codec, "--duration", str(duration), "--connect-timeout", "4",
+               "--quiet")  # fmt: skip
     try:
-        stdout, _ = conf.communicate(timeout=120)
+        stdout, stderr = conf.communicate(timeout=120)
     finally:
         op.kill()
         op.wait()
+    assert "Traceback" not in stderr, stderr
     return conf.returncode, json.loads(out.read_text()), stdout
 
 
@@ -217,6 +219,22 @@ def test_a_broken_operator_is_caught(tmp_path: Path, key: str, brk: str, rule: s
     rc, result, out = _check_operator(tmp_path, key, brk, timeout=8)
     assert rc == 1, out
     assert any(rule in f for f in _failed(result)), out
+
+
+@pytest.mark.parametrize("brk", ["array16", "bad-crc", "energy-int", "version-2", "wrong-codec-id"])
+def test_an_operator_whose_every_data_packet_is_refused_fails_its_rule(
+    tmp_path: Path, key: str, brk: str
+) -> None:
+    """Issue 49: after such a fault the reference robot ends its session (no packet it takes within
+    2 s + R of tick 0) and listens again; the checker then crashed with no rule printed and no JSON.
+    Now every rule is reported, the data rule FAILs with its reason, and no check is a checker error."""
+    rc, result, out = _check_operator(tmp_path, key, brk, timeout=10, duration=4.0)
+    assert rc == 1, out
+    assert _failed_in(result, "3.1", "every data body decodes") or _failed_in(
+        result, "3.1", "every session-key body is a data packet"
+    ), out
+    assert conformance.RULE_CHECKER not in out, out
+    assert "every data body decodes" in out and "4.6" in out, out  # printed, the bye rules too
 
 
 @pytest.fixture
