@@ -40,10 +40,11 @@ def _peer(brk: str | None, *args: str) -> subprocess.Popen[str]:
 
 
 def _check_teleoperator(
-    tmp_path: Path, key: str, brk: str | None, *extra: str
+    tmp_path: Path, key: str, brk: str | None, *extra: str, robot: tuple[str, ...] = ()
 ) -> tuple[int, dict[str, object], str]:
+    """``extra``: options of the checker; ``robot``: of the teleoperator checked."""
     port = _free_port()
-    to = _peer(brk, "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--quiet")
+    to = _peer(brk, "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--quiet", *robot)
     try:
         wait_for(lambda: udp_bound(port), 60, "the teleoperator's socket")
         out = tmp_path / "conf.json"
@@ -219,6 +220,22 @@ def test_a_broken_operator_is_caught(tmp_path: Path, key: str, brk: str, rule: s
     rc, result, out = _check_operator(tmp_path, key, brk, timeout=8)
     assert rc == 1, out
     assert any(rule in f for f in _failed(result)), out
+
+
+def test_a_teleoperator_that_refuses_the_deadband_takeover_gets_every_rule_reported(
+    tmp_path: Path, key: str
+) -> None:
+    """Issue 49: a robot that refuses the pd:5 session (here its --max-act-alone: pd:5 would act
+    290 ms alone) left the bye rules (4.6), checked on that session only, out of the report."""
+    rc, result, out = _check_teleoperator(
+        tmp_path, key, None, "--no-ghost-probe", "--duration", str(FAULT_SESSION_S),
+        robot=("--max-act-alone", "250"),
+    )  # fmt: skip
+    checks = result["checks"]
+    assert isinstance(checks, list)
+    bye = [c for c in checks if c["section"] == "4.6"]
+    assert len(bye) == 2 and all(c["passed"] is None and "no session" in c["detail"] for c in bye), out
+    assert rc == 0 and not _failed(result), out
 
 
 @pytest.mark.parametrize("brk", ["array16", "bad-crc", "energy-int", "version-2", "wrong-codec-id"])
