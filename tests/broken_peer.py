@@ -280,6 +280,14 @@ def _wrong_codec_id() -> None:  # 3.1: every data packet names another codec
     _on_fields(lambda f: [*f[:7], (f[7] + 1) % 256, *f[8:]])
 
 
+def _magic_str() -> None:  # 3.1: magic sent as a str, not bin
+    _on_fields(lambda f: [f[0].decode("latin-1"), *f[1:]])
+
+
+def _payload_1() -> None:  # 3.5: every payload one byte long
+    _on_packet(lambda p: p._replace(payload=p.payload[:1]))
+
+
 def _answers_replays() -> None:  # 2.4, 4.3 step 6: a robot whose window takes a counter twice
     from teleop.session import auth
 
@@ -328,6 +336,8 @@ BREAKS = {
     "energy-int": _energy_int,
     "version-2": _version_2,
     "wrong-codec-id": _wrong_codec_id,
+    "magic-str": _magic_str,
+    "payload-1": _payload_1,
 }
 
 if __name__ == "__main__":
