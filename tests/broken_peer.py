@@ -284,6 +284,14 @@ def _magic_str() -> None:  # 3.1: magic sent as a str, not bin
     _on_fields(lambda f: [f[0].decode("latin-1"), *f[1:]])
 
 
+def _wrong_session() -> None:  # 3.1: every data packet names another session
+    _on_packet(lambda p: p._replace(session=p.session ^ 1))
+
+
+def _wrong_direction_field() -> None:  # 3.1: every data packet names the other direction
+    _on_packet(lambda p: p._replace(direction=p.direction ^ 1))
+
+
 def _payload_1() -> None:  # 3.5: every payload one byte long
     _on_packet(lambda p: p._replace(payload=p.payload[:1]))
 
@@ -338,6 +346,8 @@ BREAKS = {
     "wrong-codec-id": _wrong_codec_id,
     "magic-str": _magic_str,
     "payload-1": _payload_1,
+    "wrong-session": _wrong_session,
+    "wrong-direction-field": _wrong_direction_field,
 }
 
 if __name__ == "__main__":

@@ -238,6 +238,23 @@ def test_a_teleoperator_that_refuses_the_deadband_takeover_gets_every_rule_repor
     assert rc == 0 and not _failed(result), out
 
 
+def test_an_operator_that_never_says_hello_gets_every_session_rule_reported(tmp_path: Path, key: str) -> None:
+    """No hello in --timeout: the hello rule fails, and the session's rules are SKIP with why."""
+    out_json = tmp_path / "conf.json"
+    r = subprocess.run(
+        [*TELEOP, "conformance", "operator", "--listen", f"127.0.0.1:{_free_port()}", "--key-file", key,
+         "--timeout", "1", "--json", str(out_json)],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+    checks = json.loads(out_json.read_text())["checks"]
+    assert checks[0]["section"] == "4.3 step 1" and checks[0]["passed"] is False, r.stdout
+    rest = checks[1:]
+    assert any(c["section"] == "4.6" for c in rest), r.stdout
+    why = "no session: no hello came"
+    assert rest and all(c["passed"] is None and c["detail"] == why for c in rest), r.stdout
+
+
 @pytest.mark.parametrize(
     "brk,section,rule",
     [
@@ -248,6 +265,8 @@ def test_a_teleoperator_that_refuses_the_deadband_takeover_gets_every_rule_repor
         ("wrong-codec-id", "3.1", "every data body decodes"),
         ("magic-str", "3.1", "every data body decodes"),
         ("payload-1", "3.5", "every payload has its codec's size"),
+        ("wrong-session", "3.1", "every data body decodes"),
+        ("wrong-direction-field", "3.1", "every data body decodes"),
     ],
 )
 def test_an_operator_whose_every_data_packet_is_refused_fails_its_rule(

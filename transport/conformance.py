@@ -1330,6 +1330,7 @@ def check_operator(
                 False,
                 f"nothing authentic in {timeout_s:g} s",
             )
+            _skip_data_rules(r, "no session: no hello came", "none")
             return r
         # (the address is learnt from the next datagram: wait_for drops the source)
         first = got[0]
@@ -1351,6 +1352,7 @@ def check_operator(
             f"0x{first[1]:02x}",
         )
         if not isinstance(hello, protocol.Hello):
+            _skip_data_rules(r, "no session: its hello did not parse", "none")
             return r
         _hello_fields(r, opened[1])
         expect: dict[str, Any] = {}
