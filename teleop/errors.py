@@ -9,7 +9,7 @@ the type (and on enums such as ``teleop.session.protocol.Failure``), never on an
 
 from __future__ import annotations
 
-__all__ = ["DeviceError", "LocalError", "RemoteError", "TeleopError"]
+__all__ = ["DeviceError", "LocalError", "RemoteError", "TeleopError", "one_line"]
 
 
 class TeleopError(Exception):
@@ -29,3 +29,14 @@ class DeviceError(LocalError):
 
     Here, not in ``teleop.devices``, so the drivers it loads lazily raise it without importing the
     registry that imports them."""
+
+
+#: Control characters (C0, DEL, C1) shown escaped: a file name or a log's text in an error must
+#: keep it one line, and must not drive the terminal (an escape sequence in a planted file's name).
+_CONTROL = {c: f"\\x{c:02x}" for c in (*range(0x20), *range(0x7F, 0xA0))}
+
+
+def one_line(text: object) -> str:
+    """``text`` with every control character escaped (newlines too): what an error prints.  Here,
+    not in ``teleop.cli``, so that the process shell (``transport``) shows a peer's text with it."""
+    return str(text).translate(_CONTROL)

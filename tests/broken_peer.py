@@ -237,6 +237,65 @@ def _array16() -> None:  # 3.1: data bodies encoded as msgpack array 16 (dc 00 0
     port.wire.encode = array16  # type: ignore[attr-defined]
 
 
+def _on_fields(change: Any) -> None:
+    """Every data body this process encodes has its 10 msgpack fields rewritten by ``change(fields)``
+    (the CRC made anew): faults the receiver MUST refuse every packet for (3.1)."""
+    import zlib
+
+    import msgpack
+
+    from teleop.session import port, wire
+
+    encode = wire.encode
+
+    def changed(p: Any) -> bytes:
+        fields = msgpack.unpackb(encode(p)[:-4], raw=False)
+        arr = bytes(msgpack.packb(change(fields), use_bin_type=True))
+        return arr + zlib.crc32(arr).to_bytes(4, "little")
+
+    port.wire.encode = changed  # type: ignore[attr-defined]
+
+
+def _bad_crc() -> None:  # 3.1: every data body's CRC-32 is wrong
+    from teleop.session import port, wire
+
+    encode = wire.encode
+
+    def bad(p: Any) -> bytes:
+        body = encode(p)
+        return body[:-4] + bytes(x ^ 0xFF for x in body[-4:])
+
+    port.wire.encode = bad  # type: ignore[attr-defined]
+
+
+def _energy_int() -> None:  # 3.1: energy sent as an integer, not a float64
+    _on_fields(lambda f: [*f[:9], int(f[9] * 1e9)])
+
+
+def _version_2() -> None:  # 3.1: every data packet says version 2
+    _on_fields(lambda f: [f[0], 2, *f[2:]])
+
+
+def _wrong_codec_id() -> None:  # 3.1: every data packet names another codec
+    _on_fields(lambda f: [*f[:7], (f[7] + 1) % 256, *f[8:]])
+
+
+def _magic_str() -> None:  # 3.1: magic sent as a str, not bin
+    _on_fields(lambda f: [f[0].decode("latin-1"), *f[1:]])
+
+
+def _wrong_session() -> None:  # 3.1: every data packet names another session
+    _on_packet(lambda p: p._replace(session=p.session ^ 1))
+
+
+def _wrong_direction_field() -> None:  # 3.1: every data packet names the other direction
+    _on_packet(lambda p: p._replace(direction=p.direction ^ 1))
+
+
+def _payload_1() -> None:  # 3.5: every payload one byte long
+    _on_packet(lambda p: p._replace(payload=p.payload[:1]))
+
+
 def _answers_replays() -> None:  # 2.4, 4.3 step 6: a robot whose window takes a counter twice
     from teleop.session import auth
 
@@ -281,6 +340,14 @@ BREAKS = {
     "wave-field": _wave_field,
     "array16": _array16,
     "answers-replays": _answers_replays,
+    "bad-crc": _bad_crc,
+    "energy-int": _energy_int,
+    "version-2": _version_2,
+    "wrong-codec-id": _wrong_codec_id,
+    "magic-str": _magic_str,
+    "payload-1": _payload_1,
+    "wrong-session": _wrong_session,
+    "wrong-direction-field": _wrong_direction_field,
 }
 
 if __name__ == "__main__":

@@ -399,3 +399,20 @@ def test_key_file_directory_fifo_unreadable(tmp_path: Path) -> None:
         locked.chmod(0o000)
         with pytest.raises(ValueError, match=r"cannot read key file .*: Permission denied"):
             auth.read_key_file(locked)
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="chown to another user needs root")
+def test_a_key_file_of_another_user_is_refused_even_0600_in_a_sticky_folder(tmp_path: Path) -> None:
+    """Issue 49: a 0600 key file another user planted in a sticky world-writable folder (as /tmp)
+    was taken; it is refused in one line, as a log of another user's is."""
+    folder = tmp_path / "shared"
+    folder.mkdir()
+    folder.chmod(0o1777)
+    path = folder / "k"
+    auth.write_key_file(path, KEY)
+    assert auth.read_key_file(path) == KEY  # this user's (root's): taken
+    os.chown(path, 4321, 4321)
+    with pytest.raises(ValueError) as e:
+        auth.read_key_file(path)
+    text = str(e.value)
+    assert "owned by uid 4321" in text and str(path) in text and "\n" not in text, text

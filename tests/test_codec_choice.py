@@ -86,7 +86,8 @@ def test_the_wire_carries_the_canonical_spec_only() -> None:
     for text in ("low-rate", "pdr:pct=0.8"):
         with pytest.raises(ProtocolError, match="not a wire spec"):
             SessionParams.from_msg(_hello(text))
-    assert SessionParams.from_msg(_hello("EDS:050")).codec == "eds:50"  # still lenient (PROTOCOL.md 3.5)
+    with pytest.raises(ProtocolError, match="canonical form 'eds:50'"):  # no longer lenient (issue 49)
+        SessionParams.from_msg(_hello("EDS:050"))
 
 
 def test_help_lists_every_form_and_preset() -> None:

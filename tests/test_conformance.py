@@ -40,10 +40,11 @@ def _peer(brk: str | None, *args: str) -> subprocess.Popen[str]:
 
 
 def _check_teleoperator(
-    tmp_path: Path, key: str, brk: str | None, *extra: str
+    tmp_path: Path, key: str, brk: str | None, *extra: str, robot: tuple[str, ...] = ()
 ) -> tuple[int, dict[str, object], str]:
+    """``extra``: options of the checker; ``robot``: of the teleoperator checked."""
     port = _free_port()
-    to = _peer(brk, "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--quiet")
+    to = _peer(brk, "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--quiet", *robot)
     try:
         wait_for(lambda: udp_bound(port), 60, "the teleoperator's socket")
         out = tmp_path / "conf.json"
@@ -59,7 +60,7 @@ def _check_teleoperator(
 
 
 def _check_operator(
-    tmp_path: Path, key: str, brk: str | None, codec: str = "eds:50", timeout: int = 20
+    tmp_path: Path, key: str, brk: str | None, codec: str = "eds:50", timeout: int = 20, duration: float = 1.5
 ) -> tuple[int, dict[str, object], str]:
     """The checker against our operator (``brk``: broken as tests/broken_peer.py says).  A broken
     operator that never completes what the checker waits for (a retry it ignores, a bye it never
@@ -73,12 +74,14 @@ def _check_operator(
     )  # fmt: skip
     wait_for(lambda: udp_bound(port), 60, "the checker's socket")
     op = _peer(brk, "operator", "--key-file", key, "--peer", f"127.0.0.1:{port}", "--listen", "127.0.0.1:0",
-               "--codec", codec, "--duration", "1.5", "--connect-timeout", "4", "--quiet")  # fmt: skip
+               "--codec", codec, "--duration", str(duration), "--connect-timeout", "4",
+               "--quiet")  # fmt: skip
     try:
-        stdout, _ = conf.communicate(timeout=120)
+        stdout, stderr = conf.communicate(timeout=120)
     finally:
         op.kill()
         op.wait()
+    assert "Traceback" not in stderr, stderr
     return conf.returncode, json.loads(out.read_text()), stdout
 
 
@@ -217,6 +220,66 @@ def test_a_broken_operator_is_caught(tmp_path: Path, key: str, brk: str, rule: s
     rc, result, out = _check_operator(tmp_path, key, brk, timeout=8)
     assert rc == 1, out
     assert any(rule in f for f in _failed(result)), out
+
+
+def test_a_teleoperator_that_refuses_the_deadband_takeover_gets_every_rule_reported(
+    tmp_path: Path, key: str
+) -> None:
+    """Issue 49: a robot that refuses the pd:5 session (here its --max-act-alone: pd:5 would act
+    290 ms alone) left the bye rules (4.6), checked on that session only, out of the report."""
+    rc, result, out = _check_teleoperator(
+        tmp_path, key, None, "--no-ghost-probe", "--duration", str(FAULT_SESSION_S),
+        robot=("--max-act-alone", "250"),
+    )  # fmt: skip
+    checks = result["checks"]
+    assert isinstance(checks, list)
+    bye = [c for c in checks if c["section"] == "4.6"]
+    assert len(bye) == 2 and all(c["passed"] is None and "no session" in c["detail"] for c in bye), out
+    assert rc == 0 and not _failed(result), out
+
+
+def test_an_operator_that_never_says_hello_gets_every_session_rule_reported(tmp_path: Path, key: str) -> None:
+    """No hello in --timeout: the hello rule fails, and the session's rules are SKIP with why."""
+    out_json = tmp_path / "conf.json"
+    r = subprocess.run(
+        [*TELEOP, "conformance", "operator", "--listen", f"127.0.0.1:{_free_port()}", "--key-file", key,
+         "--timeout", "1", "--json", str(out_json)],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+    checks = json.loads(out_json.read_text())["checks"]
+    assert checks[0]["section"] == "4.3 step 1" and checks[0]["passed"] is False, r.stdout
+    rest = checks[1:]
+    assert any(c["section"] == "4.6" for c in rest), r.stdout
+    why = "no session: no hello came"
+    assert rest and all(c["passed"] is None and c["detail"] == why for c in rest), r.stdout
+
+
+@pytest.mark.parametrize(
+    "brk,section,rule",
+    [
+        ("array16", "3.1", "every session-key body is a data packet"),
+        ("bad-crc", "3.1", "every data body decodes"),
+        ("energy-int", "3.1", "every data body decodes"),
+        ("version-2", "3.1", "every data body decodes"),
+        ("wrong-codec-id", "3.1", "every data body decodes"),
+        ("magic-str", "3.1", "every data body decodes"),
+        ("payload-1", "3.5", "every payload has its codec's size"),
+        ("wrong-session", "3.1", "every data body decodes"),
+        ("wrong-direction-field", "3.1", "every data body decodes"),
+    ],
+)
+def test_an_operator_whose_every_data_packet_is_refused_fails_its_rule(
+    tmp_path: Path, key: str, brk: str, section: str, rule: str
+) -> None:
+    """Issue 49: after such a fault the reference robot ends its session (no packet it takes within
+    2 s + R of tick 0) and listens again; the checker then crashed with no rule printed and no JSON.
+    Now every rule is reported, the data rule FAILs with its reason, and no check is a checker error."""
+    rc, result, out = _check_operator(tmp_path, key, brk, timeout=10, duration=4.0)
+    assert rc == 1, out
+    assert _failed_in(result, section, rule), out
+    assert conformance.RULE_CHECKER not in out, out
+    assert "every data body decodes" in out and "4.6" in out, out  # printed, the bye rules too
 
 
 @pytest.fixture

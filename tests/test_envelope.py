@@ -55,6 +55,25 @@ def test_each_unsafe_proposal_is_refused_naming_the_field_and_the_limit(
     assert "\n" not in why
 
 
+def test_a_value_just_above_a_limit_never_reads_as_equal_to_it() -> None:
+    """Issue 49: %g printed "range 2 exceeds this robot's limit 2" for 2.0000001 against 2."""
+    why = _refused(params(full_scale=2.0000001), dataclasses.replace(DEFAULT_ENVELOPE, max_range=2.0))
+    assert why.startswith("range 2.0000001 exceeds this robot's limit 2 (--max-range)"), why
+    why = _refused(params(b=20.000000000000004), dataclasses.replace(DEFAULT_ENVELOPE, max_b=20.0))
+    assert why.startswith("b 20.000000000000004 N s/m exceeds this robot's limit 20 N s/m"), why
+    assert _refused(params(full_scale=2.5)).startswith("range 2.5 exceeds this robot's limit 2 ")  # (short)
+
+
+@given(st.floats(allow_nan=False, allow_infinity=False), st.floats(allow_nan=False, allow_infinity=False))
+def test_a_reasons_numbers_are_exact(a: float, b: float) -> None:
+    """Each number a reason prints reads back as itself, so two different ones never print alike."""
+    from teleop.session.settings import _num
+
+    assert float(_num(a)) == a
+    if a != b:
+        assert _num(a) != _num(b)
+
+
 def test_cq_range_under_tdpa_is_held_to_the_robots_power_ranges() -> None:
     why = _refused(params(codec="cq:16:50", passivity="tdpa", full_scale=2.0))
     assert why.startswith("codec") and "--max-range" in why

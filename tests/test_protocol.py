@@ -1817,3 +1817,32 @@ def test_an_unconfirmed_start_says_what_the_operator_refused_meanwhile() -> None
     assert op.error == (
         "did not confirm the start (13 start(s) sent; 1 datagram(s) refused unverified, the last: tag)"
     )
+
+
+@pytest.mark.parametrize(
+    "field,sent,canonical",
+    [
+        ("codec", " cq:8", "cq:8"),
+        ("codec", "CQ:8", "cq:8"),
+        ("codec", "cq:08", "cq:8"),
+        ("codec", "cq:\u0668", "cq:8"),  # an Arabic-Indic 8
+        ("playout", "1_0", "10"),
+        ("playout", " 2", "2"),
+        ("playout", "2ms", "2"),
+        ("playout", "OFF", "off"),
+        ("playout", "\u0662", "2"),
+    ],
+)
+def test_a_hello_with_a_non_canonical_spelling_is_rejected_naming_the_field(
+    field: str, sent: str, canonical: str
+) -> None:
+    """Issue 49: the robot took these as the canonical value; PROTOCOL.md 4.1 asks for the canonical
+    spelling, and the reject names the field and that form."""
+    to = waiting()
+    r = one(to.receive(hello(**{field: sent}), OP, T0), OP)
+    assert isinstance(r, Reject) and r.t_ns == T0, r
+    want = f"bad hello: {field} must be sent in its canonical form {canonical!r}, got {sent!r}"
+    assert r.why == want, r.why
+    assert to.params is None
+    to = waiting()  # the canonical spelling itself is welcome
+    assert isinstance(one(to.receive(hello(**{field: canonical}), OP, T0), OP), Welcome)

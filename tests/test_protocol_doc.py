@@ -28,7 +28,7 @@ from teleop.control.codecs.base import RawFormat, pack
 from teleop.session import auth, protocol, wire
 from teleop.session.node import PortOptions
 from teleop.session.port import Port, make_node
-from teleop.session.protocol import SessionParams
+from teleop.session.protocol import ProtocolError, SessionParams
 from transport.zenoh import _keys as zenoh_keys
 
 DOC_PATH = Path(__file__).resolve().parent.parent / "PROTOCOL.md"
@@ -532,6 +532,12 @@ def test_canonical_codec_specs(given: str, canonical: str) -> None:
     assert make_codec(given, 2, 2.0).spec == canonical
     assert mentioned(given) and mentioned(canonical)
     assert make_codec(canonical, 2, 2.0).spec == canonical
+    # ... and a hello that spells it otherwise is refused, naming the canonical form (issue 49)
+    params = SessionParams(session=7, codec=canonical, scenario="step", dof=2, b=1, full_scale=2, duration=5)
+    msg = params.to_msg()
+    assert SessionParams.from_msg(msg).codec == canonical
+    with pytest.raises(ProtocolError, match=re.escape(f"canonical form '{canonical}'")):
+        SessionParams.from_msg({**msg, "codec": given})
 
 
 def test_an_integer_energy_is_refused() -> None:

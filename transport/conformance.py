@@ -430,8 +430,9 @@ class _DataCheck:
         self.last_energy = pkt.energy
 
 
-def _data_checks(r: Result, d: _DataCheck, codec: str, ticks: int, bye: bool = True) -> None:
-    """``bye``: the session ends here with the peer's bye (else we left it running: no bye rules)."""
+def _data_checks(r: Result, d: _DataCheck, codec: str, ticks: int, bye: bool | str = True) -> None:
+    """``bye``: the session ends here with the peer's bye (False: we left it running, no bye rules;
+    a string: it ended otherwise, the bye rules are SKIP with this reason)."""
     r.check(
         "3.1",
         "MUST",
@@ -473,21 +474,35 @@ def _data_checks(r: Result, d: _DataCheck, codec: str, ticks: int, bye: bool = T
     byes = d.byes
     if not bye:
         return
+    if isinstance(bye, str):
+        r.check("4.6", "MUST", RULE_BYE, None, bye)
+        r.check("4.6", "MUST", RULE_BYE_PRODUCED, None, bye)
+        return
     r.check(
         "4.6",
         "MUST",
-        "bye is sent at the end (up to 3 copies, each its own counter)",
+        RULE_BYE,
         bool(byes) and len({c for c, _ in byes}) == len(byes) <= 3,
         f"{len(byes)} bye(s)",
     )
     if byes:
-        r.check(
-            "4.6",
-            "MUST",
-            "bye's produced counts at least the packets that arrived",
-            byes[0][1].produced >= d.packets,
-            f"produced {byes[0][1].produced}, arrived {d.packets}",
-        )
+        ok = byes[0][1].produced >= d.packets
+        r.check("4.6", "MUST", RULE_BYE_PRODUCED, ok, f"produced {byes[0][1].produced}, arrived {d.packets}")
+    else:
+        r.check("4.6", "MUST", RULE_BYE_PRODUCED, None, "no bye came")
+
+
+RULE_BYE = "bye is sent at the end (up to 3 copies, each its own counter)"
+RULE_BYE_PRODUCED = "bye's produced counts at least the packets that arrived"
+
+
+def _skip_data_rules(r: Result, why: str, codec: str, tag: str = "") -> None:
+    """Every rule :func:`_data_checks` would judge, as SKIP with ``why``: a session that never ran
+    leaves each rule reported, not silently left out (issue 49)."""
+    scratch = Result(r.role, r.peer)
+    _data_checks(scratch, _DataCheck(bytes(32), wire.FORWARD, 0, 0), codec, 0)
+    for c in scratch.checks:
+        r.check(c.section, c.level, c.rule + tag, None, why)
 
 
 # --------------------------------------------------------------------------------------------
@@ -869,11 +884,23 @@ def check_teleoperator(
             # (over Zenoh every carrier has the one address: the first serves, no third session)
             then = a if zenoh is not None else (c := _Socket())
         _session_as_operator(r, a, b, peer, k_r, sealer, k_hs, codec, duration, then, earlier)
+    except Exception as e:  # whatever the peer sent: the rules so far, and this, are reported
+        _checker_error(r, e)
     finally:
         for carrier in (a, b, c):
             if carrier is not None:
                 carrier.close()
     return r
+
+
+RULE_CHECKER = "the checker runs to its end (else a fault of teleop conformance: please report it)"
+
+
+def _checker_error(r: Result, e: Exception) -> None:
+    """A fault of the checker itself still ends in rules printed and the JSON written (issue 49:
+    one ended in a traceback and nothing else); it fails the run, as the rules after it were not
+    checked."""
+    r.check("-", "MUST", RULE_CHECKER, False, f"{type(e).__name__}: {e}"[:300])
 
 
 def _nonce(n: bytes | None) -> bytes:
@@ -1183,6 +1210,7 @@ def _deadband_session(
         why = failed.detail if failed is not None else ep.state.value
         rule = "the payloads never play more energy than the reports say was sent (eq. 5, 10)"
         r.check("3.6", "MUST", rule + tag, None, f"no session: {why}")
+        _skip_data_rules(r, f"no session: {why}", DEADBAND_CODEC, tag)  # (the bye rules 4.6 among them)
         return []
     fwd, bwd = auth.session_keys(k_r, session, ep.port.keys.nonce, _nonce(ep.peer_nonce))
     data.append(_DataCheck(bwd, wire.BACKWARD, session, make_codec(DEADBAND_CODEC, 2, 2.0).codec_id))
@@ -1302,6 +1330,7 @@ def check_operator(
                 False,
                 f"nothing authentic in {timeout_s:g} s",
             )
+            _skip_data_rules(r, "no session: no hello came", "none")
             return r
         # (the address is learnt from the next datagram: wait_for drops the source)
         first = got[0]
@@ -1323,6 +1352,7 @@ def check_operator(
             f"0x{first[1]:02x}",
         )
         if not isinstance(hello, protocol.Hello):
+            _skip_data_rules(r, "no session: its hello did not parse", "none")
             return r
         _hello_fields(r, opened[1])
         expect: dict[str, Any] = {}
@@ -1388,9 +1418,12 @@ def check_operator(
             ep.state.value,
         )
         if not ep.running or ep.params is None or ep.port is None:
+            _skip_data_rules(r, f"no session: the handshake ended {ep.state.value}", hello.params.codec)
             return r
         p = ep.params
-        fwd, _ = auth.session_keys(k_r, p.session, hello.nonce, ep.port.keys.nonce)
+        # (both now: a session the reference ends early, all of the operator's data refused, leaves
+        # it listening again with no port, and the checks below must still run; issue 49)
+        fwd, bwd = auth.session_keys(k_r, p.session, hello.nonce, ep.port.keys.nonce)
         codec_id = make_codec(p.codec_spec, p.dof, p.full_scale).codec_id
         data.append(_DataCheck(fwd, wire.FORWARD, p.session, codec_id))
         now = time.monotonic_ns()
@@ -1411,16 +1444,24 @@ def check_operator(
         r.check("4.3 step 5", "MUST", rule, lead >= MIN_LEAD_LEFT_NS, f"{lead / 1e6:+.1f} ms")
         rule = "the start states the round trip of its exchange (rtt_ns)"
         r.check("4.3 step 5", "SHOULD", rule, ep.start_rtt_ns is not None, f"rtt_ns {ep.start_rtt_ns}")
-        drv.run(lambda: ep.finished, p.span_s + 10.0)
-        _data_checks(r, data[0], p.codec, p.ticks)
+        # Until its session ends, or the reference ends it (every data packet refused, say): it then
+        # listens again, and would take the operator's next hello as another session (issue 49).
+        port = ep.port
+        drv.run(lambda: ep.finished or ep.port is not port, p.span_s + 10.0)
+        bye: bool | str = True
+        if ep.port is not port:
+            why = [e.reason.value for e in drv.events if isinstance(e, SessionEnded)]
+            bye = f"the reference robot ended the session first ({why[-1] if why else 'it listens again'})"
+        _data_checks(r, data[0], p.codec, p.ticks, bye)
         # The operator's tick 0 is start_ns on this clock (4.3 step 5: start_ns = S_O + offset).
         timing = "4.3 step 5, 5.1"  # a start_ns off S_O + offset shows as ticks off on this clock
         stream_checks(
             r, data[0], p.codec, p.dof, p.full_scale, p.dt, agreed_start, p.passivity, timing, ratio=True
         )
-        _, bwd = auth.session_keys(k_r, p.session, hello.nonce, ep.port.keys.nonce)
         sender = peer_addr[0] if peer_addr and sock.distinct_addresses else None
         audit_envelopes(r, sock.log, sender, wire.FORWARD, k_hs, fwd, bwd, p.dof)
+    except Exception as e:  # whatever the peer sent: the rules so far, and this, are reported
+        _checker_error(r, e)
     finally:
         sock.close()
     return r

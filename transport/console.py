@@ -12,6 +12,7 @@ import os
 import sys
 from typing import Any
 
+from teleop.errors import one_line
 from teleop.session import auth
 from teleop.session.endpoint import (
     ClockShifted,
@@ -96,8 +97,8 @@ def say(opts: EndpointOptions, ev: Event) -> None:
         )
     elif isinstance(ev, SessionEnded) and ev.reason == EndReason.PEER_FAULT:
         line = f"the peer's device ended the session: {ev.summary.fault}"
-    if line is not None:
-        print(f"teleop {role}: {line}", file=sys.stderr, flush=True)
+    if line is not None:  # a peer's text among it (a reject's or bye's why): escaped, one line
+        print(f"teleop {role}: {one_line(line)}", file=sys.stderr, flush=True)
 
 
 def process_summary(

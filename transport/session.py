@@ -17,6 +17,7 @@ from collections.abc import Callable
 from typing import Any
 
 from teleop.devices import DeviceError
+from teleop.errors import one_line
 from teleop.session import auth
 from teleop.session import fleet as fl
 from teleop.session.endpoint import Endpoint, Monitor, PortFactory, State, TickPolicy
@@ -71,7 +72,8 @@ async def _open_transport(
 
             def locate(session: Any) -> str:
                 d = find_robot(session, psk, name, wait)
-                print(f"teleop operator: found robot {name} ({d.kind}, {d.dof} DoF, {d.state}) on {d.prefix}")
+                found = f"found robot {name} ({d.kind}, {d.dof} DoF, {d.state}) on {d.prefix}"
+                print(f"teleop operator: {one_line(found)}")  # (the robot's own description)
                 return d.prefix
 
         elif opts.role == "teleoperator" and describe is not None:
@@ -157,13 +159,14 @@ def run_endpoint(opts: EndpointOptions, params: SessionParams | None = None, pin
     try:
         summary = loop.run_until_complete(_endpoint(opts, params, pins))
     except Interrupted as e:
-        print(f"teleop {opts.role}: {e}", file=sys.stderr)
+        print(f"teleop {opts.role}: {one_line(e)}", file=sys.stderr)
         return 130
     except (SessionError, DeviceError) as e:  # DeviceError: this side's device cannot run the session
-        print(f"teleop {opts.role}: error: {e}", file=sys.stderr)
+        # (a peer's text among it: the robot's reject why, escaped on one line; issue 49)
+        print(f"teleop {opts.role}: error: {one_line(e)}", file=sys.stderr)
         return 1
     except OSError as e:
-        print(f"teleop {opts.role}: error: {e.strerror or e}", file=sys.stderr)
+        print(f"teleop {opts.role}: error: {one_line(e.strerror or e)}", file=sys.stderr)
         return 1
     finally:
         loop.close()

@@ -19,6 +19,7 @@ from typing import Any, NoReturn, TypeAlias
 from teleop.control.codecs import ACCEPTED, CodecError, CodecSpec, expand
 from teleop.devices.scenarios import SCENARIOS
 from teleop.errors import TeleopError
+from teleop.errors import one_line as one_line  # (its home was here: callers import it from here)
 from teleop.limits import (
     MAX_B,
     MAX_CODEC_SPEC_LEN,
@@ -32,16 +33,6 @@ from teleop.limits import (
     MIN_LINK_TIMEOUT_S,
 )
 from teleop.session.settings import DEFAULTS, Passivity
-
-#: Control characters (C0, DEL, C1) shown escaped: a file name or a log's text in an error must
-#: keep it one line, and must not drive the terminal (an escape sequence in a planted file's name).
-_CONTROL = {c: f"\\x{c:02x}" for c in (*range(0x20), *range(0x7F, 0xA0))}
-
-
-def one_line(text: object) -> str:
-    """``text`` with every control character escaped (newlines too): what an error prints."""
-    return str(text).translate(_CONTROL)
-
 
 MAX_GRACE_US = 900.0  # the wait for a late payload must end well within the 1 ms tick
 MAX_CONNECT_TIMEOUT_S = 86400.0  # a day: longer waits overflow the loop's nanosecond clock

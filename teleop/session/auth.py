@@ -108,7 +108,8 @@ def read_key_file(path: str | os.PathLike[str]) -> bytes:
     """The key in ``path``; ValueError (one line naming the file and the fix) if it is not a good key file.
 
     Like ssh with a private key, a key file that its group or others can read is refused: the key
-    would no longer be secret.
+    would no longer be secret.  So is one owned by another user than this one or root: it may have
+    been planted (issue 49).
     """
     name = os.fsdecode(path)
     try:
@@ -125,6 +126,13 @@ def read_key_file(path: str | os.PathLike[str]) -> bytes:
             raise ValueError(f"key file {name} is a directory, not a key file")
         if not stat.S_ISREG(st.st_mode):
             raise ValueError(f"key file {name} is not a regular file")
+        # Owned by this user or root, as log folders (teleop.files): another user's file, even 0600,
+        # may have been planted (a sticky /tmp stops others replacing our files, not adding theirs).
+        if st.st_uid not in (0, os.geteuid()):
+            raise ValueError(
+                f"key file {name} is owned by uid {st.st_uid}, not by this user ({os.geteuid()}) or root: "
+                "not used (another user could have planted it)"
+            )
         if st.st_mode & 0o077:
             raise ValueError(
                 f"key file {name} is open to its group or others (mode {stat.S_IMODE(st.st_mode):o}); "

@@ -153,6 +153,14 @@ def _show(v: object, width: int = 40) -> str:
     return r if len(r) <= width else r[: width - 3] + "..."
 
 
+def _canonical(name: str, sent: str, canonical: str) -> None:
+    """:class:`ProtocolError` naming the field and its canonical form unless ``sent`` is it."""
+    if sent != canonical:
+        raise ProtocolError(
+            f"{name} must be sent in its canonical form {_show(canonical)}, got {_show(sent)}"
+        )
+
+
 def _got(v: object) -> str:
     return f"got {type(v).__name__} {_show(v)}"
 
@@ -374,6 +382,12 @@ class SessionParams(Channel):
             WaveImpedance.of(p.b, p.dof)
             playout = p.check_channel(netem_files=False)
             make_codec(p.codec_spec, p.dof, p.full_scale, power=p.tdpa)  # CodecError: not under TDPA
+            # Only the canonical spellings (PROTOCOL.md 3.5, 4.1): ' eds:50', 'EDS:50', 'eds:050', an
+            # Arabic-Indic digit or playout '1_0' named the same session as the canonical text and
+            # were taken (issue 49); the hello's text is what both sides log and compare.
+            _canonical("codec", codec, p.codec)
+            if "playout" in m:
+                _canonical("playout", fields["playout"], playout)
         except ProtocolError:
             raise
         except (CodecError, ValueError, ArithmeticError) as e:  # the validators of other modules

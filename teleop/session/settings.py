@@ -196,8 +196,19 @@ DEFAULTS = Channel()
 
 
 def _num(x: float) -> str:
-    """A number as a reject reason says it: ``0.25``, ``1e+06``."""
-    return f"{x:g}"
+    """A number as a reject reason says it: ``0.25``, ``1e+06``, and every digit it needs beyond
+    ``%g``'s six (``2.0000001``): a value above a limit never reads as equal to it (issue 49:
+    "range 2 exceeds this robot's limit 2")."""
+    if isinstance(x, int):
+        return str(x)
+    short = f"{x:g}"
+    return short if float(short) == x else repr(float(x))
+
+
+def _ms(seconds: float) -> str:
+    """A duration in seconds said in ms: the float noise of the conversion and of sums
+    (``410.00000000000006``) rounded off at 1e-9 ms, far below what any limit here tells apart."""
+    return _num(round(seconds * 1e3, 9))
 
 
 class Proposal(Protocol):
@@ -276,7 +287,7 @@ class Envelope:
             raise ValueError(f"max_backward_hold_ms must be 0..{_num(MAX_BACKWARD_HOLD_MS)}, got {hold!r}")
         if not MIN_FADE_S * 1e3 <= self.max_act_alone_ms <= MAX_ACT_ALONE_MS:
             raise ValueError(
-                f"max_act_alone_ms must be {_num(MIN_FADE_S * 1e3)}..{_num(MAX_ACT_ALONE_MS)}, "
+                f"max_act_alone_ms must be {_ms(MIN_FADE_S)}..{_num(MAX_ACT_ALONE_MS)}, "
                 f"got {self.max_act_alone_ms!r}"
             )
         if not 0 <= self.max_playout_ms <= MAX_EXTRA_MS:
@@ -345,11 +356,11 @@ class Envelope:
             return None  # a codec that does not parse: the hello's parser says what is wrong
         if a.fade >= MIN_FADE_S - 1e-12:
             return None
-        need = (a.playout + a.silence + MIN_FADE_S) * 1e3
+        need = a.playout + a.silence + MIN_FADE_S
         return (
-            f"link_timeout {_num(p.link_timeout * 1e3)} ms with codec {p.codec} and playout {p.playout}: "
-            f"this robot would act {_num(need)} ms after its operator's last packet (playout "
-            f"{_num(a.playout * 1e3)} + silence {_num(a.silence * 1e3)} + fade {_num(MIN_FADE_S * 1e3)} "
+            f"link_timeout {_ms(p.link_timeout)} ms with codec {p.codec} and playout {p.playout}: "
+            f"this robot would act {_ms(need)} ms after its operator's last packet (playout "
+            f"{_ms(a.playout)} + silence {_ms(a.silence)} + fade {_ms(MIN_FADE_S)} "
             f"at least), beyond its limit {_num(self.max_act_alone_ms)} ms (--max-act-alone)"
         )
 
@@ -588,11 +599,11 @@ SETTINGS: tuple[Setting, ...] = (
         "link_timeout",
         None,
         True,
-        f"capped by --max-link-timeout (default {_num(DEFAULT_ENVELOPE.max_link_timeout * 1e3)} ms); "
+        f"capped by --max-link-timeout (default {_ms(DEFAULT_ENVELOPE.max_link_timeout)} ms); "
         "with the codec's payload interval, the playout and the fade, by --max-act-alone (default "
         f"{_num(DEFAULT_ENVELOPE.max_act_alone_ms)} ms: the longest the robot acts after its "
         "operator's last packet; it shortens its fade, down to "
-        f"{_num(MIN_FADE_S * 1e3)} ms, to fit)",
+        f"{_ms(MIN_FADE_S)} ms, to fit)",
         "--link-timeout",
         ("--max-link-timeout", "--max-act-alone"),
     ),
@@ -643,7 +654,7 @@ def _default_text(s: Setting) -> str:
         return s.default
     v = getattr(DEFAULTS, s.field)
     if s.field == "link_timeout":
-        return f"{_num(v * 1e3)} ms"
+        return f"{_ms(v)} ms"
     if s.field == "on_loss":
         return f"{v} (zero without the controller)"
     if isinstance(v, bool):
