@@ -131,7 +131,7 @@ def test_a_device_that_reports_its_impedance_keeps_it_untouched() -> None:
 
 
 def _run(passivity: str, robot: str, k: float, dof: int = 2) -> tuple[dict[str, Any], Any, Any]:
-    """A 1.5 s sim of the hand pushing at 5 m/s into the spring; returns the summary and what the
+    """A 0.8 s sim of the hand pushing at 5 m/s into the spring; returns the summary and what the
     robot's device was commanded and felt."""
     ports: list[Any] = []
     make = sim._ports
@@ -148,7 +148,7 @@ def _run(passivity: str, robot: str, k: float, dof: int = 2) -> tuple[dict[str, 
         passivity=passivity,  # type: ignore[arg-type]
         b=5.0,
         dof=dof,
-        duration=1.5,
+        duration=0.8,
         hsi=HAND,
         robot=f"tests.contact_devices:{robot}:{k:g}",
         envelope=env,
@@ -197,14 +197,14 @@ def test_the_limits_hold_through_a_link_loss_in_contact_and_a_rejoin(
 ) -> None:
     net = VirtualNet(1.0)
     device = f"tests.contact_devices:{robot}:{k:g}"
-    p = params(codec="cq:16", b=5.0, passivity=passivity, duration=3.0, scenario="step")
+    p = params(codec="cq:16", b=5.0, passivity=passivity, duration=2.2, scenario="step")
     robots = [net.teleoperator(device=device, limits=LIMITS)]
     op = net.operator(p, device=HAND)
-    net.seconds(0.6)  # in contact by now (GAP at 0.5 m/s: 10 ms)
+    net.seconds(0.4)  # in contact by now (GAP at 0.5 m/s: 10 ms)
     net.dark.append((net.now, net.now + 500_000_000))  # 0.5 s with no datagram either way
-    net.seconds(0.8)
+    net.seconds(0.7)
     net.kill(TO)
-    net.seconds(0.2)
+    net.seconds(0.15)
     robots.append(net.teleoperator(device=device, limits=LIMITS, offset_ns=5_000_000_000))
     net.seconds(2.5, stop=lambda: bool(op.of(SessionEnded)))
     assert op.of(SessionEnded)
