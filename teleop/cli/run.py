@@ -364,9 +364,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     extra: dict[str, Any] = {"exit_codes": codes, "auth": {"key": key.source, "key_id": key.key_id}}
     if net.zenoh is not None:
         extra["zenoh"] = net.zenoh
-    # After a Ctrl-C the report is written but the sim not re-run (seconds of work): every command
-    # ends within a second of Ctrl-C; `teleop report` builds the comparison later.
+    # After a Ctrl-C the report is written but neither the sim re-run nor the plots drawn (seconds
+    # of work): every command ends within a second of Ctrl-C; `teleop report LOGS` does both later.
     skip = "interrupted (Ctrl-C); teleop report LOGS builds the comparison" if interrupted else None
+    if interrupted and not args.no_plots:
+        args.no_plots = True
+        print(f"teleop run: interrupted: plots not drawn (teleop report {logs} draws them)", flush=True)
     write_report(
         logs, out, args, args.transport, extra, session=params.session, command="teleop run", skip_sim=skip
     )
