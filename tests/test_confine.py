@@ -277,7 +277,7 @@ def test_tdpas_robot_on_random_signals_stays_within_its_limits_and_its_budget(
         codec="none",
         full_scale=2.0,
         session=1,
-        options=dataclasses.replace(vparams(passivity="tdpa").port_options()),
+        options=vparams(passivity="tdpa").port_options(),
     )
     node.confine(Envelope(max_velocity=vmax, max_force=fmax, min_b=1.0))
     assert isinstance(node, TeleoperatorNode)
