@@ -8,7 +8,7 @@ counters, no recorder, no event loop.  ``bench.cpu`` runs the pair beside ``tele
 divides each process's CPU by this one's.
 
 The empty loop is the other reference, for timing: the session's scheduler
-(``transport.realtime.Ticker``, same spin, same real-time setup, one event-loop pass per tick) with
+(``shell.realtime.Ticker``, same spin, same real-time setup, one event-loop pass per tick) with
 nothing to do, run as a process of its own beside a session, so that a shared host's stalls hit
 both and a session's period error is judged against it (``bench.cpu``).
 
@@ -29,8 +29,8 @@ from pathlib import Path
 from typing import Any
 
 from bench import write_result
+from shell.realtime import HostMarks, Ticker, setup_realtime
 from teleop.session.auth import Opener, Sealer
-from transport.realtime import HostMarks, Ticker, setup_realtime
 from transport.udp import new_event_loop
 
 KEY = bytes(range(32))

@@ -814,7 +814,7 @@ def lateness_in_window(log_dir: Path, window: tuple[float, float]) -> dict[str, 
     calm part), from the loop's per-tick record (``/ROLE/loop`` in ROLE.mcap, with each tick's time)."""
     import numpy as np
 
-    from transport.mcaplog import iter_messages
+    from shell.mcaplog import iter_messages
 
     out: dict[str, Any] = {}
     for role in ROLES:

@@ -101,7 +101,7 @@ def _processes(run_pid: int) -> dict[str, int]:
         out[role] = child
         for grandchild in _children(child):
             with contextlib.suppress(OSError):
-                if b"transport.mcaplog" in Path(f"/proc/{grandchild}/cmdline").read_bytes():
+                if b"shell.mcaplog" in Path(f"/proc/{grandchild}/cmdline").read_bytes():
                     out[f"{role}-writer"] = grandchild
     return out
 
@@ -250,7 +250,7 @@ def _mode_notes() -> dict[str, str]:
 def _loop_per_minute(mcap: Path) -> list[dict[str, float]]:
     """Per minute of the session: p50, p99 and max lateness (us) of the ticks run, from the log
     (streamed a block of ticks at a time; 8 bytes a tick kept)."""
-    from transport.mcaplog import iter_ticks
+    from shell.mcaplog import iter_ticks
 
     by_min: dict[int, list[npt.NDArray[np.int64]]] = {}
     for _, b in iter_ticks(mcap, ("loop",)):

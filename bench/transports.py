@@ -31,8 +31,8 @@ from typing import Any
 import numpy as np
 
 from bench import write_result
+from shell.realtime import Ticker, percentiles_us, setup_realtime
 from transport.base import Transport
-from transport.realtime import Ticker, percentiles_us, setup_realtime
 from transport.udp import UdpTransport, new_event_loop
 from transport.zenoh import ZenohTransport, make_config
 

@@ -314,7 +314,7 @@ def _answers_replays() -> None:  # 2.4, 4.3 step 6: a robot whose window takes a
 def _keeps_ghost() -> None:  # 4.3 step 8: a TO that holds a session its operator never joined
     from teleop.session import node
 
-    node._Port.expect_first_by = lambda self, t: None  # type: ignore[method-assign]
+    node._Node.expect_first_by = lambda self, t: None  # type: ignore[method-assign]
 
 
 BREAKS = {

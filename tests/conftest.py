@@ -132,7 +132,7 @@ def _font_cache() -> None:
 
 #: The project's packages, which every process a test starts imports (an editable install: pip
 #: compiled none of them).
-_PACKAGES = ("teleop", "transport", "tests", "bench")
+_PACKAGES = ("teleop", "transport", "shell", "conformance", "tests", "bench")
 
 
 def _compile_the_project() -> None:

@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from shell.mcaplog import read_log
 from teleop.control import metrics
-from transport.mcaplog import read_log
 
 Array = npt.NDArray[Any]
 

@@ -14,8 +14,8 @@ from typing import Any
 
 import pytest
 
+import shell.process
 import teleop.cli.run
-import transport.session
 from teleop.cli import CliError, build_parser, main
 from teleop.cli.run import build_commands, run_key
 from teleop.cli.settings import NO_KEY, session_params
@@ -50,7 +50,7 @@ def endpoints(monkeypatch: pytest.MonkeyPatch) -> list[Any]:
         got.append(opts)
         return 0
 
-    monkeypatch.setattr(transport.session, "run_endpoint", run_endpoint)
+    monkeypatch.setattr(shell.process, "run_endpoint", run_endpoint)
     return got
 
 

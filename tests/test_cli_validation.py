@@ -15,9 +15,9 @@ from typing import Any
 
 import pytest
 
+import shell.process
 import teleop.cli.run
 import teleop.offline.sim
-import transport.session
 from teleop import limits
 from teleop.cli import build_parser, main
 from teleop.cli.settings import private_dir
@@ -38,7 +38,7 @@ def no_session(monkeypatch: pytest.MonkeyPatch) -> None:
     def trip(*args: Any, **kwargs: Any) -> Any:
         raise SessionStarted("a session started despite a bad argument")
 
-    monkeypatch.setattr(transport.session, "run_endpoint", trip)
+    monkeypatch.setattr(shell.process, "run_endpoint", trip)
     monkeypatch.setattr(teleop.offline.sim, "run_set", trip)
     monkeypatch.setattr(teleop.cli.run, "_spawn", trip)
 

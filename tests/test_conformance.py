@@ -16,9 +16,9 @@ from pathlib import Path
 
 import pytest
 
+from conformance import checker
 from teleop.session import auth, protocol, wire
 from tests.waiting import tcp_clients, tcp_listening, udp_bound, wait_for
-from transport import conformance
 
 pytestmark = pytest.mark.integration
 TELEOP = [sys.executable, "-m", "teleop.cli"]
@@ -278,7 +278,7 @@ def test_an_operator_whose_every_data_packet_is_refused_fails_its_rule(
     rc, result, out = _check_operator(tmp_path, key, brk, timeout=10, duration=4.0)
     assert rc == 1, out
     assert _failed_in(result, section, rule), out
-    assert conformance.RULE_CHECKER not in out, out
+    assert checker.RULE_CHECKER not in out, out
     assert "every data body decodes" in out and "4.6" in out, out  # printed, the bye rules too
 
 
@@ -371,12 +371,12 @@ def _seq_check(seqs: list[int], produced: int) -> bool | None:
     """The 3.1 seq rule of ``teleop conformance`` over data packets of these seqs, then a bye."""
     key = bytes(range(32))
     sealer = auth.Sealer(key, auth.SESSION, wire.BACKWARD)
-    d = conformance._DataCheck(key, wire.BACKWARD, 7, 0)
+    d = checker._DataCheck(key, wire.BACKWARD, 7, 0)
     for s in seqs:
         d(sealer.seal(wire.encode(wire.Packet(7, wire.BACKWARD, s, s, s * 1000, 0, bytes(4), 0.0))), 0)
     d(sealer.seal(protocol.encode(protocol.Bye(7, produced, 0))), 0)
-    r = conformance.Result("teleoperator", "test")
-    conformance._data_checks(r, d, "none", len(seqs))
+    r = checker.Result("teleoperator", "test")
+    checker._data_checks(r, d, "none", len(seqs))
     return next(c.passed for c in r.checks if c.section == "3.1" and "seq" in c.rule)
 
 

@@ -12,11 +12,11 @@ from typing import Any
 
 import pytest
 
+from conformance import checker as cf
 from teleop.control.codecs import make_codec
 from teleop.session import port as port_mod
 from teleop.session import wire
 from teleop.session.settings import Passivity
-from transport import conformance as cf
 
 from . import vnet
 from .vnet import VirtualNet, params

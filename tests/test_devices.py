@@ -11,9 +11,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import shell.process
 import teleop.cli.run
 import teleop.offline.sim
-import transport.session
 from teleop import devices
 from teleop.cli import main
 from teleop.devices import DeviceError, DriverHsi, DriverRobot
@@ -156,7 +156,7 @@ def no_session(monkeypatch: pytest.MonkeyPatch) -> None:
     def trip(*args: Any, **kwargs: Any) -> Any:
         raise AssertionError("a session started despite a bad argument")
 
-    monkeypatch.setattr(transport.session, "run_endpoint", trip)
+    monkeypatch.setattr(shell.process, "run_endpoint", trip)
     monkeypatch.setattr(teleop.offline.sim, "run_set", trip)
     monkeypatch.setattr(teleop.cli.run, "_spawn", trip)
 

@@ -214,7 +214,8 @@ def test_nothing_in_the_repository_points_at_a_file_outside_it() -> None:
     name what is here (issue 50 counted 10 such pointers)."""
     outside = re.compile(r"DESIGN\.md|DEVELOPERS\.md|\.\./shared")
     found = []
-    for sub in ("teleop", "transport", "bench", "tests", "tools", "docs", "deploy", ".ci"):
+    subs = ("teleop", "transport", "shell", "conformance", "bench", "tests", "tools", "docs", "deploy", ".ci")
+    for sub in subs:
         for path in (ROOT / sub).rglob("*"):
             if path.is_file() and path.suffix in (".py", ".md", ".toml", ".yml", ".json5", ".sh", ""):
                 if path.name == "test_docs.py" or "_generated" in path.parts:
@@ -224,3 +225,40 @@ def test_nothing_in_the_repository_points_at_a_file_outside_it() -> None:
     for name in ("README.md", "PROTOCOL.md", "pyproject.toml", "mkdocs.yml"):
         found += [f"{name}: {m.group(0)}" for m in outside.finditer((ROOT / name).read_text())]
     assert not found, found
+
+
+def _layout() -> str:
+    text = (ROOT / "docs" / "reference" / "development.md").read_text()
+    block = text.split("## Layout", 1)[1]
+    return block.split("```text\n", 1)[1].split("```", 1)[0]
+
+
+def _unnamed(layout: str) -> list[str]:
+    """The project's modules the layout does not name as a word (bench's and tools' modules are
+    listed by their folder: ``python -m bench.NAME``)."""
+    words = set(re.findall(r"[A-Za-z_][A-Za-z0-9_]*", layout))
+    missing = []
+    for pkg in ("teleop", "transport", "shell", "conformance", "bench", "tools"):
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            if pkg in ("bench", "tools") and path.stem != "__init__":
+                continue
+            name = path.stem if path.stem not in ("__init__", "__main__") else path.parent.name
+            if name not in words:
+                missing.append(str(path.relative_to(ROOT)))
+    return missing
+
+
+def test_the_development_layout_names_every_module_and_only_folders_that_exist() -> None:
+    """The layout in the development docs against the tree (issue 50: it once called a moved module
+    the runner and missed seven): every module of every package is named there as a word, and every
+    top-level ``folder/`` it lists is in the repository."""
+    layout = _layout()
+    assert not _unnamed(layout), f"modules the layout does not name: {_unnamed(layout)}"
+    tops = re.findall(r"^([a-z_]+)/", layout, re.M)
+    assert {"teleop", "transport", "shell", "conformance", "docs"} <= set(tops)
+    assert all((ROOT / t).is_dir() for t in tops), [t for t in tops if not (ROOT / t).is_dir()]
+
+
+def test_the_layout_check_can_fail() -> None:
+    """A module the layout stops naming is reported."""
+    assert _unnamed(_layout().replace("sockfilter", "")) == ["transport/sockfilter.py"]

@@ -206,7 +206,7 @@ def test_a_log_folder_the_stack_makes_is_private_whatever_the_umask(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Under umask 002 a plain mkdir makes a group-writable folder, which would then be refused."""
-    import transport.session
+    import shell.process
 
     class Started(Exception):
         pass
@@ -214,7 +214,7 @@ def test_a_log_folder_the_stack_makes_is_private_whatever_the_umask(
     def trip(*args: object, **kwargs: object) -> int:
         raise Started
 
-    monkeypatch.setattr(transport.session, "run_endpoint", trip)
+    monkeypatch.setattr(shell.process, "run_endpoint", trip)
     logs = tmp_path / "new" / "logs"
     old = os.umask(0o002)
     try:

@@ -1,10 +1,12 @@
 """The layers, checked on every module of every package: each imports only its own layer and those
-below it, there is no import cycle, and ``transport/`` uses only the core's public names.
+below it, there is no import cycle, and the shells use only the core's public names.
 
 From the bottom: ``teleop``'s base modules (errors, files, limits), ``teleop.control`` (the
 numerics), ``teleop.devices``, ``teleop.session`` (sans-I/O wire, handshake, node, port, endpoint),
-``teleop.offline`` (sim, sweep, report), ``transport`` (the I/O shell), ``teleop.cli`` (the top: it
-wires core and shells together).  Every import statement counts, at any depth (a function-local
+``teleop.offline`` (sim, sweep, report), ``transport`` (the carriers: UDP, Zenoh, the socket
+filter), ``shell`` (the process around an endpoint: the 1 kHz loop, console, logs), ``conformance``
+(the checker, a driver of its own over the transports), ``teleop.cli`` (the top: it wires core and
+shells together).  Every import statement counts, at any depth (a function-local
 import too: it hides a cycle, it does not break it), so a violation fails here rather than as a
 cycle at run time.  A module no layer names fails too, so a new package must say where it stands.
 """
@@ -26,8 +28,14 @@ LAYERS = {
     "teleop.session": 3,
     "teleop.offline": 4,
     "transport": 5,
-    "teleop.cli": 6,
+    "shell": 6,
+    "conformance": 7,
+    "teleop.cli": 8,
 }
+
+
+#: Every package of the project's code (tests, bench and tools stand outside the layers).
+PACKAGES = ("teleop", "transport", "shell", "conformance")
 
 
 def _name(path: Path) -> str:
@@ -35,7 +43,7 @@ def _name(path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-MODULES = {_name(p): p for folder in ("teleop", "transport") for p in sorted((ROOT / folder).rglob("*.py"))}
+MODULES = {_name(p): p for folder in PACKAGES for p in sorted((ROOT / folder).rglob("*.py"))}
 
 
 def _imports(path: Path) -> list[tuple[str, list[str], int]]:
@@ -71,8 +79,8 @@ def _layer(module: str) -> str:
 
 def test_the_walk_sees_imports() -> None:
     """The walker itself: it finds known imports, absolute and relative (so the checks can fail)."""
-    found = _targets(ROOT / "transport" / "runner.py")
-    assert "transport.realtime" in found
+    found = _targets(ROOT / "shell" / "runner.py")
+    assert "shell.realtime" in found
     assert "teleop.session.endpoint" in found
     assert _layer("teleop.session.link.netem") == "teleop.session"
     assert _layer("teleop.errors") == "teleop"
@@ -128,8 +136,8 @@ def test_the_cycle_check_can_fail() -> None:
     ]
 
 
-@pytest.mark.parametrize("path", [p for m, p in MODULES.items() if m.startswith("transport")], ids=str)
-def test_transport_uses_only_public_core_names(path: Path) -> None:
+@pytest.mark.parametrize("path", [p for m, p in MODULES.items() if not m.startswith("teleop")], ids=str)
+def test_shells_use_only_public_core_names(path: Path) -> None:
     bad = []
     for module, names, line in _imports(path):
         if not module.startswith("teleop"):
@@ -138,3 +146,30 @@ def test_transport_uses_only_public_core_names(path: Path) -> None:
             bad.append((module, line))
         bad += [(f"{module}.{n}", line) for n in names if n.startswith("_")]
     assert not bad, f"{path.relative_to(ROOT)} imports private core names: {bad}"
+
+
+def _classes() -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {}
+    for module, path in MODULES.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ClassDef):
+                out.setdefault(node.name, []).append(module)
+    return out
+
+
+def test_one_name_per_idea_no_two_classes_share_a_name() -> None:
+    """Two ``Port`` classes and two ``Monitor`` classes once meant two ideas under one name (issue 50):
+    every class of every package has a name of its own."""
+    classes = _classes()
+    assert "Port" in classes and "Endpoint" in classes  # the walk sees classes
+    assert not {n: m for n, m in classes.items() if len(m) > 1}
+
+
+def test_no_module_is_named_like_a_package() -> None:
+    """``transport/session.py`` beside ``teleop/session/`` read as one idea: a module's last name is
+    never the name of a package elsewhere in the project.  The CLI's modules are named for their
+    commands (``teleop conformance`` is ``teleop.cli.conformance``), so they stand outside the rule."""
+    packages = {m.rsplit(".", 1)[-1] for m, p in MODULES.items() if p.name == "__init__.py"}
+    modules = [m for m, p in MODULES.items() if p.name != "__init__.py" and not m.startswith("teleop.cli.")]
+    clash = [m for m in modules if m.rsplit(".", 1)[-1] in packages]
+    assert not clash, clash

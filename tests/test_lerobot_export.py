@@ -1,6 +1,6 @@
 """Issue 46: sessions exported as a LeRobot v3.0 dataset at full rate, and the robot's pose in the logs.
 
-The logs here are written in this process by the log writer's own class (``transport.mcaplog._Writer``,
+The logs here are written in this process by the log writer's own class (``shell.mcaplog._Writer``,
 what the writer process runs) from two ports joined as ``teleop sim`` joins them, with the MuJoCo
 robot: no process is started, so these tests are in the fast suite.  The last test hands the dataset
 to LeRobot's own loader, in the environment ``.ci/lerobot-env`` builds (it skips where it is absent).
@@ -21,13 +21,13 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from shell.mcaplog import _Writer
 from teleop.cli import main
 from teleop.offline import lerobot
 from teleop.offline.logfile import iter_messages, read_log, read_states
 from teleop.session.node import PortOptions
 from teleop.session.port import Chunk, Port, make_node
 from teleop.session.protocol import SessionParams
-from transport.mcaplog import _Writer
 
 # Imported at collection, as tests/test_mujoco_robot.py does: importing MuJoCo runs glfw's version
 # probe, a child process, which the fast suite allows only outside its tests.

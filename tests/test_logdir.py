@@ -1,6 +1,6 @@
 """Logs never lost, and never trusted (issue 21, items 3-5).
 
-A run's files are new files (``transport.logdir``): a restart keeps the earlier record, a planted
+A run's files are new files (``shell.logdir``): a restart keeps the earlier record, a planted
 symlink is never written through, two processes of a role never share a file, a full disk is one
 line.  A killed writer is reported and the chunks it wrote stay readable; ``teleop report`` pairs
 logs by session, reports a killed process's log from its ticks, never opens a path a log names,
@@ -21,10 +21,10 @@ from typing import Any
 
 import pytest
 
+from shell import logdir
 from teleop import files
 from teleop.offline.logfile import LogError, iter_ticks, read_session, read_summary
 from tests.waiting import ticks_logged, udp_bound, wait_for
-from transport import logdir
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
 LINK = ["--duration", "1", "--netem-forward"]
@@ -38,7 +38,7 @@ def _mcap(path: Path, chunk_size: int, declare_first: bool = False, finish: bool
     import foxglove
     from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 
-    from transport.mcaplog import SCHEMAS
+    from shell.mcaplog import SCHEMAS
 
     ctx = foxglove.Context()
     opts = MCAPWriteOptions(compression=MCAPCompression.Zstd, chunk_size=chunk_size)
@@ -175,8 +175,8 @@ def test_a_full_disk_is_one_line_and_leaves_no_partial_summary(
 def test_a_killed_writer_is_reported_and_its_chunks_stay_readable(
     tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:
+    from shell.mcaplog import McapLog
     from tests.test_logs import _pair, _run
-    from transport.mcaplog import McapLog
 
     f = logdir.reserve(tmp_path, "operator", 7)
     log = McapLog(f.mcap, "operator", 1_700_000_000 * 10**9, file_id=(f.dev, f.ino))
@@ -204,15 +204,15 @@ def test_a_full_disk_under_the_writer_is_one_line_and_the_log_stays_readable(
     as on a full disk): one console line, ``log.error``, and the chunks written before readable."""
     import resource
 
+    from shell.mcaplog import McapLog
     from tests.test_logs import _pair, _run
-    from transport.mcaplog import McapLog
 
     def limit() -> None:
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (400_000, 400_000))
 
     proc = subprocess.Popen(
-        [sys.executable, "-m", "transport.mcaplog"],
+        [sys.executable, "-m", "shell.mcaplog"],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         preexec_fn=limit,

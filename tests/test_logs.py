@@ -26,6 +26,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from shell.mcaplog import PER_TICK_TOPICS, TOPICS, McapLog, read_log
 from teleop.control import metrics
 from teleop.session.link.counters import DirectionCounters
 from teleop.session.link.quantiles import MOVE_PER_ADD, Quantiles
@@ -33,7 +34,6 @@ from teleop.session.logformat import STATE_TOPICS
 from teleop.session.node import PortOptions
 from teleop.session.port import MemorySink, Port, make_node
 from tests.waiting import ticks_logged, udp_bound, wait_for
-from transport.mcaplog import PER_TICK_TOPICS, TOPICS, McapLog, read_log
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
 
@@ -241,7 +241,7 @@ def test_a_close_that_waits_for_an_idle_writer_says_why(
     stopped for a second) prints one line saying why; promoted, the same wait prints none."""
     import threading
 
-    from transport import mcaplog
+    from shell import mcaplog
 
     monkeypatch.setattr(mcaplog, "promote_writer", lambda proc: promoted)
     monkeypatch.setattr(mcaplog, "SLOW_CLOSE_S", 0.2)
@@ -265,7 +265,7 @@ def test_a_replaced_sessions_log_keeps_its_writer_idle_until_no_loop_ticks() -> 
     session that ended with nothing after it promotes its writer at the close."""
     import threading
 
-    from transport import records as rec
+    from shell import records as rec
 
     calls: list[str] = []
     promoted = threading.Event()
@@ -624,7 +624,7 @@ def test_a_damaged_log_is_a_clear_error_not_a_crash_or_a_huge_allocation(
 ) -> None:
     """``teleop report`` may read logs copied from another host: every field is checked as it is
     read, a tick jump is bounded before anything is allocated, and what is wrong is said."""
-    from transport.mcaplog import LogError, iter_ticks
+    from shell.mcaplog import LogError, iter_ticks
 
     # A message on another channel ("x") between two closes a chunk: the checks across chunks.
     path = _mcap(
@@ -706,7 +706,7 @@ def test_a_log_cut_before_its_session_began_is_named_as_cut_not_as_a_strangers(t
 
 def test_the_status_line_keeps_within_120_columns_unless_wide() -> None:
     """Status lines ran to 224 characters and wrapped (issue 48); big counts included."""
-    from transport.watch import STATUS_COLUMNS, status_line
+    from shell.watch import STATUS_COLUMNS, status_line
 
     op, to = _pair()
     _run(op, to, range(3000))

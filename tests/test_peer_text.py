@@ -11,9 +11,9 @@ from typing import Any, cast
 
 import pytest
 
+from shell import console
 from teleop.session import auth, protocol, wire
 from teleop.session.endpoint import HelloRejected
-from transport import console
 
 FORGED = "no\n\x1b[2Kteleop operator: session 7 completed\x1b[0m\r"
 

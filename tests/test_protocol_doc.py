@@ -302,12 +302,12 @@ def _default(callable_: object, param: str) -> object:
 def _code_map() -> dict[str, object]:
     """Each constant PROTOCOL.md section 7 names, as the code holds it: the document names no code,
     so the map from its names to the code is here (and in the development docs' code map)."""
+    from shell import options
     from teleop import limits
     from teleop.control import passivity
     from teleop.control.codecs import base, frequency
     from teleop.devices import scenarios
     from teleop.session import endpoint, schedule
-    from transport import options
 
     hs = protocol.OperatorHandshake
     return {

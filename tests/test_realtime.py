@@ -11,8 +11,8 @@ from typing import Any
 
 import pytest
 
+from shell.realtime import HostMarks, LoopStats, SpinLearner, Ticker, host_steal_ms
 from teleop.session.schedule import LoopFigures
-from transport.realtime import HostMarks, LoopStats, SpinLearner, Ticker, host_steal_ms
 
 
 def test_the_spin_follows_the_hosts_wake_up_latency_within_bounds() -> None:
@@ -65,7 +65,7 @@ _FREEZE_SCRIPT = """
 import gc, weakref
 from teleop.session.node import PortOptions
 from teleop.session.port import Port, make_node
-from transport.realtime import freeze_heap
+from shell.realtime import freeze_heap
 
 def port():
     node = make_node("operator", scenario="protocol", dof=2, dt=1e-3, b=20.0, codec="none",
@@ -95,7 +95,7 @@ def test_freeze_heap_frees_an_earlier_sessions_port_then_freezes_the_rest() -> N
 
 _NO_IMPORT_SCRIPT = """
 import sys
-from transport.realtime import freeze_heap
+from shell.realtime import freeze_heap
 from tests.vnet import VirtualNet, params
 
 net = VirtualNet(0.1)
@@ -124,7 +124,7 @@ def test_a_sessions_ticks_import_nothing() -> None:
 
 _LOCK_SCRIPT = """
 import json, os, resource, sys
-from transport.realtime import lock_memory
+from shell.realtime import lock_memory
 if sys.argv[1] == "refused":  # no CAP_IPC_LOCK (not root any more) and a 64 KiB ulimit -l
     resource.setrlimit(resource.RLIMIT_MEMLOCK, (65536, 65536))
     os.setgid(65534)

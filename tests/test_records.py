@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from shell import logdir
 from teleop import files
 from teleop.cli import main
 from tests.waiting import wait_for
-from transport import logdir
 
 NOBODY = ["setpriv", "--reuid=nobody", "--regid=nogroup", "--clear-groups"]
 as_root = pytest.mark.skipif(
@@ -184,8 +184,8 @@ def test_kill_9_of_the_robot_beside_cpu_hogs_loses_at_most_the_stated_bound(tmp_
     5 s in.  Its log holds every tick it ran up to the bound (LOG_CHUNK_TICKS + MAX_AHEAD_TICKS),
     a hole in its ticks is a stall the loop logged (``stall``), never a dropped chunk, and its
     console says what happened in one line, with no traceback."""
+    from shell.mcaplog import LOG_CHUNK_TICKS, MAX_AHEAD_TICKS
     from teleop.offline.logfile import iter_messages, iter_ticks
-    from transport.mcaplog import LOG_CHUNK_TICKS, MAX_AHEAD_TICKS
 
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
@@ -238,7 +238,7 @@ def test_kill_9_of_the_robot_beside_cpu_hogs_loses_at_most_the_stated_bound(tmp_
         procs[:0] = [subprocess.Popen([sys.executable, "-c", HOG], preexec_fn=_plain) for _ in range(2)]
         session_at = time.monotonic()
         writer = [
-            k for k in _children(to.pid) if b"transport.mcaplog" in Path(f"/proc/{k}/cmdline").read_bytes()
+            k for k in _children(to.pid) if b"shell.mcaplog" in Path(f"/proc/{k}/cmdline").read_bytes()
         ]
         assert len(writer) == 1
         _wait_for(lambda: time.monotonic() > session_at + 5.0, "5 s of session")  # (a deadline, not data)
@@ -252,7 +252,7 @@ def test_kill_9_of_the_robot_beside_cpu_hogs_loses_at_most_the_stated_bound(tmp_
             hog.kill()
             hog.wait()
         # And the writer leaves its idle priority, as the robot's close would have made it
-        # (transport.mcaplog.promote_writer): on a host other work keeps busy, an idle writer took
+        # (shell.mcaplog.promote_writer): on a host other work keeps busy, an idle writer took
         # a minute to finish (what it writes was fixed at the kill: its pipe's content).
         tids: list[str] = []
         with contextlib.suppress(OSError):  # (it may have finished already)

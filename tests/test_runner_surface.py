@@ -9,7 +9,7 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-RUNNER = ROOT / "transport" / "runner.py"
+RUNNER = ROOT / "shell" / "runner.py"
 
 
 def _endpoint_names(tree: ast.AST) -> set[str]:
@@ -70,7 +70,7 @@ def test_the_walk_sees_a_local_alias_of_the_endpoint() -> None:
 
 def test_nothing_outside_the_tests_builds_or_imports_a_private_class() -> None:
     found = []
-    for top in ("teleop", "transport", "bench", "tools"):
+    for top in ("teleop", "transport", "shell", "conformance", "bench", "tools"):
         for path in (ROOT / top).rglob("*.py"):
             tree = ast.parse(path.read_text())
             for node in ast.walk(tree):

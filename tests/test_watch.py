@@ -1,11 +1,11 @@
-"""transport.watch.LogWatch: the log's events say what happened, never a count that went down."""
+"""shell.watch.LogWatch: the log's events say what happened, never a count that went down."""
 
 from __future__ import annotations
 
 from types import SimpleNamespace
 from typing import Any
 
-from transport.watch import LogWatch
+from shell.watch import LogWatch
 
 
 class _Log:

@@ -281,7 +281,7 @@ def test_a_200_ms_playout_is_refused_by_a_default_robot_and_acts_its_formula_whe
 
 def test_the_robots_formula_is_its_nodes() -> None:
     """settings.silence_allowed_s and FADE_S restate the node's supervision: they agree for every
-    codec family (the silence is what ``_Port.link_timeout`` computes)."""
+    codec family (the silence is what ``_Node.link_timeout`` computes)."""
     from teleop.session import node as node_module
     from teleop.session.port import session_node
 
@@ -315,7 +315,7 @@ def test_the_robot_caps_auto_playout_and_its_fade_to_what_its_cap_leaves() -> No
 
 
 def test_the_conformance_suite_proposes_what_a_default_robot_affords() -> None:
-    from transport.conformance import DEADBAND_CODEC, LINK_TIMEOUT_S, params_for
+    from conformance.checker import DEADBAND_CODEC, LINK_TIMEOUT_S, params_for
 
     assert LINK_TIMEOUT_S == 0.11  # rounded to ms
     for codec in ("none", "eds:50", DEADBAND_CODEC):

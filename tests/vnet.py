@@ -26,7 +26,7 @@ from teleop.session.settings import Envelope
 PSK = bytes(range(32))
 OP, TO, TO_B, EVE = ("10.0.0.1", 5000), ("10.0.0.2", 7000), ("10.0.0.3", 7000), ("10.0.0.66", 6666)
 MS = 1_000_000
-MAX_CATCHUP = 20  # ticks a host runs back to back before it skips (transport.realtime.Ticker)
+MAX_CATCHUP = 20  # ticks a host runs back to back before it skips (shell.realtime.Ticker)
 
 #: An adversary: (now, src, dst, data) -> the datagrams to deliver instead, as (src, dst, data).
 Tap = Callable[[int, Addr, Addr, bytes], list[tuple[Addr, Addr, bytes]]]

@@ -557,7 +557,7 @@ LIVE_VIEW_PORT = 8765  # Foxglove's default WebSocket port
 
 
 def add_live_view_arg(p: argparse.ArgumentParser, help_text: str) -> None:
-    """--live-view [PORT]: the Foxglove WebSocket live view (``transport.mcaplog``)."""
+    """--live-view [PORT]: the Foxglove WebSocket live view (``shell.mcaplog``)."""
     p.add_argument(
         "--live-view",
         nargs="?",

@@ -1,6 +1,6 @@
 """``teleop conformance operator|teleoperator``: check another implementation against PROTOCOL.md.
 
-The suite (``transport.conformance``) plays the other side with this project's endpoint over UDP and
+The suite (``conformance.checker``) plays the other side with this project's endpoint over UDP and
 prints one line per rule (PASS/FAIL/SKIP, section, MUST/SHOULD); the exit status is 1 when a MUST
 failed, 0 otherwise.
 """
@@ -24,7 +24,7 @@ from teleop.cli.settings import endpoint_key, zenoh_options
 
 
 def cmd_conformance(args: argparse.Namespace) -> int:
-    from transport.conformance import check_operator, check_teleoperator, write_json
+    from conformance.checker import check_operator, check_teleoperator, write_json
 
     psk, _ = endpoint_key(args)
     zenoh = None

@@ -4,7 +4,7 @@ Each check ends in ``ok`` or ``warn`` and one line saying what to do.  The check
 whether a session's loop keeps its millisecond: the kernel's preemption model, the rights the
 runner asks for (SCHED_FIFO, locked memory, a 1 ns timer slack), the CPU frequency governor, and
 an idle loop run for ``--duration`` seconds exactly as a session's scheduler runs it
-(``transport.realtime.Ticker``, SCHED_FIFO where permitted), counting its late wake-ups beside
+(``shell.realtime.Ticker``, SCHED_FIFO where permitted), counting its late wake-ups beside
 the CPU time the hypervisor stole meanwhile (``/proc/stat``).  Nothing is changed on the machine;
 the process's own priority and timer slack are restored before it exits.  Exit status 0 when
 every check is ok, 1 when one warns (a script can gate a session on it).
@@ -31,7 +31,7 @@ PR_GET_TIMERSLACK, PR_SET_TIMERSLACK = 30, 29
 
 
 @dataclass(frozen=True)
-class Check:
+class Finding:
     name: str
     ok: bool
     said: str  # what was found, and what to do where it is not ok
@@ -48,13 +48,13 @@ def _read(path: str) -> str | None:
         return None
 
 
-def check_kernel() -> Check:
+def check_kernel() -> Finding:
     version = os.uname().version
     rt = "PREEMPT_RT" in version or _read("/sys/kernel/realtime") == "1"
     if rt:
-        return Check("kernel", True, f"PREEMPT_RT ({os.uname().release})")
+        return Finding("kernel", True, f"PREEMPT_RT ({os.uname().release})")
     model = next((m for m in ("PREEMPT_DYNAMIC", "PREEMPT") if m in version), "none")
-    return Check(
+    return Finding(
         "kernel",
         False,
         f"{os.uname().release} is not PREEMPT_RT (preemption: {model}): wake-ups may come milliseconds "
@@ -62,28 +62,28 @@ def check_kernel() -> Check:
     )
 
 
-def check_fifo() -> Check:
+def check_fifo() -> Finding:
     try:
         before = os.sched_getscheduler(0), os.sched_getparam(0)
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
         os.sched_setscheduler(0, before[0], before[1])
     except (PermissionError, OSError, AttributeError) as e:
         soft = resource.getrlimit(resource.RLIMIT_RTPRIO)[0]
-        return Check(
+        return Finding(
             "SCHED_FIFO",
             False,
             f"not permitted ({e.__class__.__name__}; ulimit -r is {soft}): the loop runs at normal "
             "priority; run as root, or give the user an rtprio limit (limits.conf: @realtime - rtprio 98)",
         )
-    return Check("SCHED_FIFO", True, "permitted (the runner asks for priority 10)")
+    return Finding("SCHED_FIFO", True, "permitted (the runner asks for priority 10)")
 
 
-def check_memlock() -> Check:
+def check_memlock() -> Finding:
     soft = resource.getrlimit(resource.RLIMIT_MEMLOCK)[0]
     if os.geteuid() == 0 or soft == resource.RLIM_INFINITY or soft >= MEMLOCK_MIB << 20:
         said = "unlimited" if soft == resource.RLIM_INFINITY or os.geteuid() == 0 else f"{soft >> 20} MiB"
-        return Check("memory lock", True, f"{said}: the runner locks its pages (no tick waits on the disk)")
-    return Check(
+        return Finding("memory lock", True, f"{said}: the runner locks its pages (no tick waits on the disk)")
+    return Finding(
         "memory lock",
         False,
         f"ulimit -l is {soft >> 10} KiB, under the {MEMLOCK_MIB} MiB a session locks: a page the kernel "
@@ -91,7 +91,7 @@ def check_memlock() -> Check:
     )
 
 
-def check_timer_slack() -> Check:
+def check_timer_slack() -> Finding:
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         before = libc.prctl(PR_GET_TIMERSLACK, 0, 0, 0, 0)
@@ -99,25 +99,28 @@ def check_timer_slack() -> Check:
         now = libc.prctl(PR_GET_TIMERSLACK, 0, 0, 0, 0)
         libc.prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(max(before, 1)), 0, 0, 0)
     except (OSError, AttributeError) as e:
-        return Check("timer slack", False, f"cannot be read ({e}): sleeps may wake up to 50 us late")
+        return Finding("timer slack", False, f"cannot be read ({e}): sleeps may wake up to 50 us late")
     if ok and now == 1:
-        return Check("timer slack", True, f"settable to 1 ns (default here {before} ns; the runner sets it)")
-    return Check("timer slack", False, f"stays {now} ns: sleeps may wake up that late; check prctl's rights")
+        said = f"settable to 1 ns (default here {before} ns; the runner sets it)"
+        return Finding("timer slack", True, said)
+    return Finding(
+        "timer slack", False, f"stays {now} ns: sleeps may wake up that late; check prctl's rights"
+    )
 
 
-def check_governor() -> Check:
+def check_governor() -> Finding:
     paths = glob.glob("/sys/devices/system/cpu/cpu[0-9]*/cpufreq/scaling_governor")
     found = {g for p in paths if (g := _read(p))}
     if not found:
-        return Check(
+        return Finding(
             "CPU governor",
             False,
             "no cpufreq here (a VM: its host sets the frequency): nothing to set in this machine; on "
             "bare metal, use the performance governor",
         )
     if found == {"performance"}:
-        return Check("CPU governor", True, "performance on every CPU")
-    return Check(
+        return Finding("CPU governor", True, "performance on every CPU")
+    return Finding(
         "CPU governor",
         False,
         f"{', '.join(sorted(found))}: a CPU clocked down wakes slower; "
@@ -125,9 +128,9 @@ def check_governor() -> Check:
     )
 
 
-def check_idle_loop(duration: float) -> Check:
+def check_idle_loop(duration: float) -> Finding:
     """The session's scheduler with nothing to do: how often it woke a tick late."""
-    from transport.realtime import HostMarks, Ticker
+    from shell.realtime import HostMarks, Ticker
 
     try:
         policy = os.sched_getscheduler(0), os.sched_getparam(0)
@@ -157,13 +160,13 @@ def check_idle_loop(duration: float) -> Check:
         f"(worst {worst:.0f} us, {'SCHED_FIFO' if fifo else 'normal priority'}), host steal {steal}"
     )
     if stalls == 0 and not host.steal_ms:
-        return Check("idle loop", True, said)
+        return Finding("idle loop", True, said)
     cause = (
         "the hypervisor took the CPU (steal): ask for dedicated vCPUs"
         if host.steal_ms
         else "the kernel woke it late: a real-time kernel, isolated CPUs (isolcpus) or a quieter machine"
     )
-    return Check("idle loop", False, f"{said}: each is a tick missed; {cause}")
+    return Finding("idle loop", False, f"{said}: each is a tick missed; {cause}")
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
@@ -184,7 +187,7 @@ def add_parser(sub: Subcommands) -> None:
     d = sub.add_parser(
         "doctor",
         help="check this machine for a 1 kHz session (kernel, rights, governor, an idle loop)",
-        description="Check this machine for a 1 kHz session: the kernel (PREEMPT_RT or not), the "
+        description="Finding this machine for a 1 kHz session: the kernel (PREEMPT_RT or not), the "
         "SCHED_FIFO, memory lock and timer slack rights the runner asks for, the CPU governor, and "
         "an idle loop run as a session's scheduler runs it, counting late wake-ups and the "
         "hypervisor's steal. Each check says ok or warn and what to do. Exit status 1 if one warns.",
@@ -197,4 +200,3 @@ def add_parser(sub: Subcommands) -> None:
         help="seconds of the idle loop (default 5)",
     )
     d.set_defaults(func=cmd_doctor)
-

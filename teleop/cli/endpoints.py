@@ -55,8 +55,8 @@ from teleop.session.settings import (
 
 
 def cmd_operator(args: argparse.Namespace) -> int:
-    from transport.options import new_session_id
-    from transport.session import run_endpoint
+    from shell.options import new_session_id
+    from shell.process import run_endpoint
 
     if args.transport == "udp" and args.peer is None:
         raise CliError("--peer HOST:PORT is required with --transport udp (the teleoperator's address)")
@@ -65,8 +65,8 @@ def cmd_operator(args: argparse.Namespace) -> int:
 
 
 def cmd_teleoperator(args: argparse.Namespace) -> int:
+    from shell.process import run_endpoint
     from teleop.session.protocol import Pins  # what this robot was configured with: a hello must match
-    from transport.session import run_endpoint
 
     activated = os.environ.get("LISTEN_PID") == str(os.getpid())  # systemd passed the socket
     if args.transport == "udp" and args.listen is None and not activated:

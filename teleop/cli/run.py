@@ -320,13 +320,13 @@ def exits(codes: dict[str, int | None]) -> str:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from transport.options import new_session_id
+    from shell.options import new_session_id
 
     params = session_params(args, new_session_id())
     check_robot(args.robot, params.dof)
     out = private_dir(Path(args.out), "--out")
     logs = private_dir(out / "logs", "--out")
-    # Logs of earlier runs stay: this run's files get names of their own (transport.logdir), and
+    # Logs of earlier runs stay: this run's files get names of their own (shell.logdir), and
     # the report pairs them by this session's id.
     with run_key(args) as key:
         cmds = build_commands(args, params, logs, key)

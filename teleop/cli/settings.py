@@ -55,7 +55,7 @@ def private_dir(path: Path, option: str) -> Path:
     or as the folder), made 0755 if missing
     (whatever the umask: a umask of 002 would make it group-writable, and refused), refused if
     another user can write it or a folder on the way, and checked writable; CliError says why.
-    ``transport.logdir.reserve`` walks it again."""
+    ``shell.logdir.reserve`` walks it again."""
     from teleop.files import FileRefused, open_dir
 
     try:
@@ -196,7 +196,7 @@ def endpoint_key(args: argparse.Namespace) -> tuple[bytes, bool]:
 
 def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int]) -> Any:
     """The EndpointOptions of one real process (``operator`` or ``teleoperator``)."""
-    from transport.options import EndpointOptions
+    from shell.options import EndpointOptions
 
     log_dir = private_dir(Path(args.log), "--log") if args.log else None
     psk, insecure = endpoint_key(args)
@@ -225,7 +225,7 @@ def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int
 
 
 def zenoh_options(args: argparse.Namespace) -> Any:
-    from transport.options import ZenohOptions
+    from shell.options import ZenohOptions
 
     connect = list(args.zenoh_connect or [])
     if args.zenoh_router:

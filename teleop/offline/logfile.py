@@ -1,8 +1,8 @@
-"""Reading the logs the runner writes (``ROLE.mcap``, format in ``transport.mcaplog``): the
+"""Reading the logs the runner writes (``ROLE.mcap``, format in ``shell.mcaplog``): the
 summary, every message, or the per-tick record as consecutive blocks of arrays.
 
 It lives in the core because ``teleop report`` and the tests read logs and the core imports nothing
-from ``transport/``; it only reads the path it is given, and treats the file as hostile: every
+from ``shell/``; it only reads the path it is given, and treats the file as hostile: every
 size, count and tick jump is bounded before it allocates, and any damage is one :class:`LogError`.
 """
 

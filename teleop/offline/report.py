@@ -2,7 +2,7 @@
 
 Every figure here is read from the logs: bytes counted at the sockets, ticks counted by the loops,
 signals recorded by the nodes.  Signals are aligned by tick index (the handshake's common start).
-The logs are the processes' ``ROLE.mcap`` files (``transport.mcaplog``: per-tick channels and the
+The logs are the processes' ``ROLE.mcap`` files (``shell.mcaplog``: per-tick channels and the
 summary), read with the ``mcap`` library; a session without a fixed end is compared with
 ``teleop sim`` over the ticks both sides actually ran.
 """

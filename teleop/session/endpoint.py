@@ -14,7 +14,7 @@ early tick, grace, skips, the loop's figures).  Without one the caller runs each
 ``ep.tick(k, now_ns)`` at ``t0_ns + k dt`` (the virtual-time tests' network).
 
 It never reads a clock, opens a socket or a file, or sleeps: ``now_ns`` is the caller's monotonic
-clock, so the same object runs live in ``transport.runner`` and in virtual time in the tests
+clock, so the same object runs live in ``shell.runner`` and in virtual time in the tests
 (two endpoints joined by the seeded link model, with faults and an adversary).  Every protocol
 decision and constant of the session lives here, and when each tick runs; the runner only waits,
 reads, feeds and sends.
@@ -838,7 +838,9 @@ class Endpoint:
             period = round(self.params.dt * 1e9)
             late = now - deadline
             if late > policy.max_catchup * period:  # a stall: skip, counted, rather than catch up
-                jump = late // period
+                # ... the session's ticks only: a stall past its end skips to the end (the loop's
+                # ticks and skipped ticks add up to the session's, a report's invariant).
+                jump = min(late // period, max(self.params.ticks - k, 0))
                 loop.skipped += jump
                 k += jump
                 late -= jump * period

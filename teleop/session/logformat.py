@@ -1,6 +1,6 @@
 """The log format: a session's MCAP topics and the per-tick fields each carries.
 
-Here, beside the port whose chunks fill them, so the writer (``transport.mcaplog``) and the reader
+Here, beside the port whose chunks fill them, so the writer (``shell.mcaplog``) and the reader
 (``teleop.offline.logfile``) import one definition and cannot drift apart.
 """
 

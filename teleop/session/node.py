@@ -151,7 +151,7 @@ class PortOptions:
         object.__setattr__(self, "passivity", channel.passivity)
 
 
-class _Port:
+class _Node:
     """What both nodes share: sequence numbers, codec ends, energy guard, inbound checks."""
 
     tx_direction: int
@@ -457,7 +457,7 @@ def _scaled(x: Array, c: float) -> Array:
     return x if c == 1.0 else c * x
 
 
-class OperatorNode(_Port):
+class OperatorNode(_Node):
     """HSI side: the simulated human on an ideal haptic device; sends g_l, receives h_l."""
 
     tx_direction = wire.FORWARD
@@ -510,7 +510,7 @@ class OperatorNode(_Port):
         return self._send(now, _scaled(w.hsi_wave_out(v, h_l), c))
 
 
-class TeleoperatorNode(_Port):
+class TeleoperatorNode(_Node):
     """TO side: an ideal velocity-controlled robot in the environment; receives g_r, sends h_r."""
 
     tx_direction = wire.BACKWARD
@@ -590,7 +590,7 @@ class TeleoperatorNode(_Port):
         return vs, fs, np.where(fs * (v - vs) >= 0.0, fs, 0.0)
 
 
-class _TdpaPort(_Port):
+class _TdpaNode(_Node):
     """What both TDPA nodes share: the TDPA guard, and the energy report riding every packet.
 
     The packet's ``energy`` field carries this port's cumulative input energy ``E_in`` (J into the
@@ -641,7 +641,7 @@ class _TdpaPort(_Port):
         return pkt
 
 
-class TdpaOperatorNode(_TdpaPort, OperatorNode):
+class TdpaOperatorNode(_TdpaNode, OperatorNode):
     """HSI side under TDPA: sends ``v_hsi``, displays the received ``F_to`` through the adaptive
     parallel damper (``teleop.control.passivity.parallel_damper``) over its own rendered damping."""
 
@@ -663,7 +663,7 @@ class TdpaOperatorNode(_TdpaPort, OperatorNode):
         return self._send_power(now, c * v)
 
 
-class TdpaTeleoperatorNode(_TdpaPort, TeleoperatorNode):
+class TdpaTeleoperatorNode(_TdpaNode, TeleoperatorNode):
     """TO side under TDPA: commands the received ``v_hsi`` through the adaptive series damper
     (``teleop.control.passivity.series_damper``), sends its force ``F_to``."""
 

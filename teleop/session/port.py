@@ -4,7 +4,7 @@ A :class:`Port` owns the node, the outgoing impairment shim, the wire counters o
 as this side sees them, the link observer of the incoming direction, the per-tick recorder and the
 summary.  Its surface is ``receive(datagram, t, k)``, ``tick(k, t) -> datagrams``, ``next_due()``,
 ``flush(t, k)`` and ``summary()``; it never reads a clock or a socket.  ``teleop sim`` joins two
-ports with virtual links (``teleop.offline.sim``); the real-time runner (``transport.runner``)
+ports with virtual links (``teleop.offline.sim``); the real-time runner (``shell.runner``)
 puts one, inside its endpoint, between the clock and the transport.  So the counters, the link
 figures and the summary of a simulated and a real run come from the same code, and their ``wire``
 blocks compare key by key.
@@ -689,7 +689,7 @@ class Port:
 
     def confine(self, env: Envelope) -> None:
         """Run this (robot's) port inside ``env``: its node's saturation and guard
-        (:meth:`teleop.session.node._Port.confine`), and the longest it acts after its operator's
+        (:meth:`teleop.session.node._Node.confine`), and the longest it acts after its operator's
         last packet within ``env.max_act_alone_ms``: playout + silence + fade
         (:func:`teleop.session.settings.acting_alone`; the silence is the node's own).  The fade is
         shortened to fit, and ``auto``'s allowance capped at what is left; a fixed playout the

@@ -3,7 +3,7 @@
 Everything here is a pure function of the bytes and the ``now`` it is given (h11 / aioquic style):
 it never reads a clock, never touches a socket and never opens a file, so the whole handshake can
 be driven in memory with fake clocks and fuzzed with arbitrary bytes.  The runner
-(``transport.runner``) owns the socket and the clock and filters peer addresses.
+(``shell.runner``) owns the socket and the clock and filters peer addresses.
 
 **Wire format.** A control message is a msgpack map ``{"t": kind, "v": 1, ...fields}`` packed with
 ``use_bin_type=True``; data packets are msgpack arrays (``teleop.session.wire``), so the first byte tells the

@@ -1,6 +1,6 @@
 """When a real-time endpoint ticks, and what its loop's timing was: sans-I/O, in the caller's time.
 
-The policy that used to live in the real-time runner (``transport.runner``) is here, so that it
+The policy that used to live in the real-time runner (``shell.runner``) is here, so that it
 runs, and is tested, in virtual time: the endpoint's ``get_timer`` says each tick's deadline, ``handle_timer``
 runs the tick that is due (:class:`TickPolicy`), and :class:`LoopFigures` counts how the deadlines
 were met.  Tick ``k`` of a session is due at ``t0 + k * period``; ``t0`` is the endpoint's and

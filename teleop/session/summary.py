@@ -77,7 +77,7 @@ class ProcessSummary:
     event_loop: str
     stopped_by_signal: int | None = None
     waited_for_session_s: float | None = None
-    loop: dict[str, Any] | None = None  # transport.realtime.LoopStats.summary
+    loop: dict[str, Any] | None = None  # shell.realtime.LoopStats.summary
     warnings: list[str] = field(default_factory=list)
     # The transport's counters (Transport.report: inbox_overflow, socket_errors, oversize refused by
     # length before any work; UDP also its receive buffer and the kernel's drops), under ``received``.

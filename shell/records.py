@@ -1,8 +1,8 @@
 """A process's records of its sessions: one MCAP log (and live view) per session, and its ``ROLE.json``.
 
 The runner hands each session's port the sink :meth:`Records.open` returns; the port hands it the
-per-tick record a chunk (250 ticks, ``transport.mcaplog.LOG_CHUNK_TICKS``) at a time. The sink is
-``transport.mcaplog.McapLog``, whose writer process writes ``ROLE.mcap`` as the session runs (and,
+per-tick record a chunk (250 ticks, ``shell.mcaplog.LOG_CHUNK_TICKS``) at a time. The sink is
+``shell.mcaplog.McapLog``, whose writer process writes ``ROLE.mcap`` as the session runs (and,
 with a live view, serves the same channels over the Foxglove WebSocket protocol), so memory stays
 flat however long the session lasts and the loop never encodes or writes a message.
 :meth:`Records.end` closes a session's log and writes its summary
@@ -53,7 +53,7 @@ class Records:
         return self.log_dir is not None or self.live_view is not None
 
     def open(self, session: int, t_common_ns: int) -> McapLog | _Discard:
-        """The sink of a new session: a new MCAP file in the log folder (``transport.logdir.reserve``:
+        """The sink of a new session: a new MCAP file in the log folder (``shell.logdir.reserve``:
         ``ROLE.mcap`` or, if an earlier run or session holds it, ``ROLE-SESSION[-N].mcap``; nothing is
         renamed or overwritten) and/or the live view, or one that drops the record."""
         if not self.wanted:
@@ -79,7 +79,7 @@ class Records:
 
     def end(self, s: SessionSummary, session: int, t_end: float, why: str, replaced: bool) -> None:
         """Session ``session`` is over after ``t_end`` s: its end event, its log closed with the
-        summary, ``ROLE.json`` beside it (a full disk is one line, ``transport.logdir.save_summary``)."""
+        summary, ``ROLE.json`` beside it (a full disk is one line, ``shell.logdir.save_summary``)."""
         log = self.logs.pop(session, None)
         if log is not None:
             log.event(t_end, "session_end", why)
@@ -108,7 +108,7 @@ class Records:
     def wait_finished(self) -> None:
         """Until replaced sessions' logs are finished (blocking: run it off the event loop).  No loop
         ticks any more: their writers, kept idle while the next session ticked, finish at normal
-        priority (:func:`transport.mcaplog.promote_writer`)."""
+        priority (:func:`shell.mcaplog.promote_writer`)."""
         for t, log in self._finishing:
             if log is not None and t.is_alive():
                 log.promote()

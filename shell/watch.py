@@ -1,6 +1,6 @@
 """What the runner shows of a running port: the log's low-rate channels and the console status line.
 
-A few integer comparisons a tick; the messages are queued by the log (``transport.mcaplog``), never
+A few integer comparisons a tick; the messages are queued by the log (``shell.mcaplog``), never
 written from the loop.
 """
 
@@ -16,7 +16,7 @@ from teleop.session.schedule import LoopFigures
 
 from .mcaplog import McapLog
 
-__all__ = ["LogWatch", "Monitor", "live_messages", "status_line"]
+__all__ = ["LogWatch", "Watch", "live_messages", "status_line"]
 
 
 class LogWatch:
@@ -145,7 +145,7 @@ def live_messages(port: Port, k: int, t: float) -> dict[str, dict[str, Any]]:
     }
 
 
-class Monitor:
+class Watch:
     """The endpoint's monitor in a real process (``Endpoint(monitor=...)``), after each tick's
     datagrams left: the log's events and live view (:class:`LogWatch`) and ``--live``'s status line
     once a second of the session clock (``k`` may jump: a stall, a device that missed deadlines)."""

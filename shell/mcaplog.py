@@ -19,7 +19,7 @@ on a loaded host by leaving ``SCHED_IDLE`` while its pipe fills (:meth:`McapLog.
 
 **Who pays.** The loop pickles each chunk, in a gap between two ticks; a sender thread writes it,
 and pickles the small items, into the stdin of a writer *process* (``python -m
-transport.mcaplog``), which turns chunks into messages, compresses and writes them, and serves the
+shell.mcaplog``), which turns chunks into messages, compresses and writes them, and serves the
 live view.  A process, not a thread: measured with a writer thread in the same process
 (bench/soak.py, first version), the loop's p99 period error was about 2x that without the log, since
 encoding 5000 messages a second, and foxglove's writer, hold the interpreter lock the loop needs
@@ -124,7 +124,7 @@ __all__ = [
 NICE = 10  # the writer process's niceness (on top of SCHED_IDLE, or instead where refused)
 LIVE_BATCH = 5  # live-view ticks per queued item
 QUEUE_ITEMS = 256  # items (chunks, live batches 10 a second, events) in flight
-#: Ticks a port's chunk holds in a real-time session (``transport.runner``): sealed and handed to
+#: Ticks a port's chunk holds in a real-time session (``shell.runner``): sealed and handed to
 #: the writer four times a second, so a kill -9 of the process loses at most this much unsealed.
 LOG_CHUNK_TICKS = 250
 #: Ticks of sealed chunks the process itself may hold ahead of the writer's pipe (0.75 s at 1 kHz):
@@ -387,7 +387,7 @@ class _Writer:
         file_id: tuple[int, int] | None = None,
     ) -> None:
         """``file_id``: (device, inode) of the empty file the parent created at ``path``
-        (``transport.logdir.reserve``): only that file is opened, never a name swapped in since;
+        (``shell.logdir.reserve``): only that file is opened, never a name swapped in since;
         without it the file is created here, exclusively."""
         import foxglove
         from foxglove.mcap import MCAPCompression, MCAPWriteOptions
@@ -521,7 +521,7 @@ def spawn_writer() -> subprocess.Popen[bytes]:
     # that second open: a Ctrl-C then killed it and lost the log).  It also ignores SIGINT/SIGTERM,
     # and ends when told or when its stdin closes (its parent died), finishing the file either way.
     proc = subprocess.Popen(
-        [sys.executable, "-m", "transport.mcaplog", str(os.getpriority(os.PRIO_PROCESS, 0))],
+        [sys.executable, "-m", "shell.mcaplog", str(os.getpriority(os.PRIO_PROCESS, 0))],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         process_group=0,
@@ -550,7 +550,7 @@ class McapLog:
     writer.  From the loop each call is a ``put_nowait`` on a bounded queue (a chunk pickled first,
     see :meth:`write`); a sender thread pickles the other items and writes all of them into the
     writer's stdin (a blocking write releases the GIL), and the writer process (``python -m
-    transport.mcaplog``) does all the encoding, compression and writing under its own interpreter
+    shell.mcaplog``) does all the encoding, compression and writing under its own interpreter
     lock, so none of it can hold the loop's."""
 
     def __init__(
@@ -566,7 +566,7 @@ class McapLog:
         max_ahead_ticks: int | None = None,
     ) -> None:
         """``process``: a writer from :func:`spawn_writer` (default: one started now); ``file_id``:
-        (device, inode) of the empty file at ``path`` that ``transport.logdir.reserve`` created;
+        (device, inode) of the empty file at ``path`` that ``shell.logdir.reserve`` created;
         ``max_ahead_ticks``: ticks of chunks this process may hold ahead of the pipe (a real-time
         session's :data:`MAX_AHEAD_TICKS`; None: no bound, for a writer fed in virtual time)."""
         self.max_ahead_ticks = max_ahead_ticks

@@ -1,6 +1,6 @@
 """What a real-time process says of its endpoint's events: console lines and the process's summary.
 
-Text only, kept out of the runner (``transport.runner``) so that the runner stays the loop: the
+Text only, kept out of the runner (``shell.runner``) so that the runner stays the loop: the
 hints of a failed handshake, the lines of a replaced or skewed session, ``ROLE.json``'s process
 section, and the last line of a run.
 """
@@ -29,8 +29,8 @@ from teleop.session.endpoint import (
     Unverified,
 )
 from teleop.session.summary import ProcessSummary, SessionSummary
+from transport.base import Addr, Transport
 
-from .base import Addr, Transport
 from .options import EndpointOptions
 
 __all__ = ["addr_text", "clock_shift_text", "failure", "last_line", "log_line", "process_summary", "say"]

@@ -31,7 +31,7 @@ run), and no tick runs twice.
 **When the datagrams leave.**  The endpoint may run a tick before its deadline, in the time the
 spin would burn, and send its datagrams at the deadline (``teleop.session.schedule``, ``--tick-at
 wake``), or run it from the deadline (``--tick-at deadline``).  The real-time runner
-(``transport.runner``) sleeps with :class:`PreciseSleep` and takes its figures from the endpoint
+(``shell.runner``) sleeps with :class:`PreciseSleep` and takes its figures from the endpoint
 (``teleop.session.schedule.LoopFigures``, the same accounting as here: :meth:`LoopStats.of`).
 The figures above are of the deadline instant either way; :meth:`Ticker.departed` adds the
 instant each tick's datagrams left (``send_lateness_us``, ``send_period_error_us``), which is what
@@ -410,7 +410,7 @@ class Ticker:
 
     def sleep(self) -> None:
         """The first half of :meth:`wait`: sleep until ``spin`` before the next deadline.  A caller
-        may then do work that need not wait for the deadline (``transport.session`` reads what
+        may then do work that need not wait for the deadline (``shell.process`` reads what
         arrived), in time the spin would otherwise burn, before :meth:`spin_to_deadline`."""
         clock = self.clock
         deadline = self.t0 + self.k * self.period

@@ -1,8 +1,8 @@
 """A process's side of a session: its options, its transport and its records around the real-time
-runner (``transport.runner``: the loop around a sans-I/O :class:`teleop.session.endpoint.Endpoint`).
+runner (``shell.runner``: the loop around a sans-I/O :class:`teleop.session.endpoint.Endpoint`).
 
-The session's records (its MCAP log, live view and ``ROLE.json``) are ``transport.records``'s; the
-process's options are ``transport.options``'.  SIGINT/SIGTERM stop the session (it lingers); the
+The session's records (its MCAP log, live view and ``ROLE.json``) are ``shell.records``'s; the
+process's options are ``shell.options``'.  SIGINT/SIGTERM stop the session (it lingers); the
 logs are still written.
 """
 
@@ -23,15 +23,15 @@ from teleop.session import fleet as fl
 from teleop.session.endpoint import Endpoint, Monitor, PortFactory, State, TickPolicy
 from teleop.session.protocol import PROTOCOL_VERSION, Pins, SessionParams
 from teleop.session.summary import SessionSummary
+from transport.base import Transport
+from transport.fleet import Announcer, find_robot
+from transport.udp import UdpTransport, new_event_loop
+from transport.zenoh import ZENOH_PEER, ZenohTransport, make_config
 
 from . import console
-from .base import Transport
-from .fleet import Announcer, find_robot
 from .options import EndpointOptions, Interrupted, ZenohOptions, new_session_id
 from .records import RecordError, Records
 from .runner import Runner, SessionError, Stop
-from .udp import UdpTransport, new_event_loop
-from .zenoh import ZENOH_PEER, ZenohTransport, make_config
 
 __all__ = [
     "PROTOCOL_VERSION",

@@ -171,9 +171,8 @@ class _Zenoh(_Carrier):
 
         from teleop.session import fleet as fl
         from teleop.session.settings import Envelope
-
-        from .fleet import Announcer
-        from .zenoh import ZENOH_PEER, _keys, open_session
+        from transport.fleet import Announcer
+        from transport.zenoh import ZENOH_PEER, _keys, open_session
 
         tx, rx = _keys(role, prefix)
         self._peer = ZENOH_PEER

@@ -1,5 +1,5 @@
 """The options of one real process (``teleop operator`` / ``teleoperator``): what the command line
-resolved, handed to :func:`transport.session.run_endpoint`.  The session's own settings are
+resolved, handed to :func:`shell.process.run_endpoint`.  The session's own settings are
 :class:`teleop.session.protocol.SessionParams` (the operator's proposal) and the teleoperator's pins."""
 
 from __future__ import annotations
@@ -12,8 +12,7 @@ from teleop.errors import TeleopError
 from teleop.session import auth
 from teleop.session.link import Addr
 from teleop.session.settings import Envelope
-
-from .udp import DEFAULT_RCVBUF_BYTES
+from transport.udp import DEFAULT_RCVBUF_BYTES
 
 
 @dataclass
@@ -35,7 +34,7 @@ class EndpointOptions:
     grace_us: float = 400.0
     quiet: bool = False
     live: bool = False  # a status line every second: traffic, link, watchdog
-    wide: bool = False  # the status line in full, past 120 columns (transport.watch.status_line)
+    wide: bool = False  # the status line in full, past 120 columns (shell.watch.status_line)
     transport: str = "udp"  # "udp" or "zenoh"
     zenoh: ZenohOptions | None = None
     psk: bytes | None = None  # the deployment's pre-shared key (teleop.session.auth); None: refuse to start

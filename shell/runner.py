@@ -3,9 +3,9 @@
 The endpoint holds the whole session (handshake, start, rejoin, takeover, busy, bye, linger), each
 tick and when it is due (its timers, ``teleop.session.schedule``: early drain, early tick, grace,
 skips); it is sans-I/O and tested in virtual time.  This module only does I/O: it waits (on the
-socket, or a sleep then a spin: ``transport.realtime.PreciseSleep``), reads, feeds the endpoint,
+socket, or a sleep then a spin: ``shell.realtime.PreciseSleep``), reads, feeds the endpoint,
 fires its timer, sends, and turns its events into log messages, console lines
-(``transport.console``) and ``ROLE.json`` (``transport.records``).  Clocks are ``time.monotonic_ns``.
+(``shell.console``) and ``ROLE.json`` (``shell.records``).  Clocks are ``time.monotonic_ns``.
 A stop (SIGINT/SIGTERM) ends the session, which lingers; the logs are still written.
 """
 
@@ -39,14 +39,14 @@ from teleop.session.port import Port, PortKeys
 from teleop.session.protocol import SessionParams
 from teleop.session.schedule import EARLY_MARGIN_NS
 from teleop.session.summary import SessionSummary
+from transport.base import Transport
 
 from . import console
-from .base import Transport
 from .mcaplog import LOG_CHUNK_TICKS, McapLog
 from .options import EndpointOptions, Interrupted
 from .realtime import HostMarks, LoopStats, PreciseSleep, freeze_heap, lock_memory, setup_realtime
 from .records import Records
-from .watch import Monitor as Watch
+from .watch import Watch
 
 __all__ = ["Runner", "SessionError", "Stop"]
 
