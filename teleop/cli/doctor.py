@@ -187,7 +187,7 @@ def add_parser(sub: Subcommands) -> None:
     d = sub.add_parser(
         "doctor",
         help="check this machine for a 1 kHz session (kernel, rights, governor, an idle loop)",
-        description="Finding this machine for a 1 kHz session: the kernel (PREEMPT_RT or not), the "
+        description="Check this machine for a 1 kHz session: the kernel (PREEMPT_RT or not), the "
         "SCHED_FIFO, memory lock and timer slack rights the runner asks for, the CPU governor, and "
         "an idle loop run as a session's scheduler runs it, counting late wake-ups and the "
         "hypervisor's steal. Each check says ok or warn and what to do. Exit status 1 if one warns.",
