@@ -175,12 +175,17 @@ def test_the_cli_reference_in_the_repository_is_the_parsers(tmp_path: Path) -> N
 
 
 def test_generated_snippets_cover_every_include(tmp_path: Path) -> None:
-    """Every ``--8<-- "NAME"`` in a page is a file the generator writes (or PROTOCOL.md)."""
+    """Every ``--8<-- "NAME"`` in a page is a file the generator writes (or PROTOCOL.md), or a
+    section of a file (``FILE:SECTION``) whose markers are there."""
     written = {p.name for p in docgen.write_all(tmp_path)}
     for page in (ROOT / "docs").rglob("*.md"):
         if "_generated" in page.parts:
             continue
         for name in re.findall(r'^--8<-- "([^"]+)"', page.read_text(), flags=re.M):
+            file, _, section = name.partition(":")
+            if section:
+                assert f"--8<-- [start:{section}]" in (ROOT / file).read_text(), f"{page}: {name}"
+                continue
             assert name in written or (ROOT / name).is_file(), f"{page}: {name}"
 
 
@@ -262,3 +267,33 @@ def test_the_development_layout_names_every_module_and_only_folders_that_exist()
 def test_the_layout_check_can_fail() -> None:
     """A module the layout stops naming is reported."""
     assert _unnamed(_layout().replace("sockfilter", "")) == ["transport/sockfilter.py"]
+
+
+def _nav_pages() -> list[str]:
+    """The site's pages in mkdocs.yml's nav order: the one list of pages."""
+    nav = (ROOT / "mkdocs.yml").read_text().split("\nnav:\n", 1)[1]
+    return re.findall(r":\s*([\w/.-]+\.md)\s*$", nav, re.M)
+
+
+def test_the_page_list_lives_in_mkdocs_nav_and_the_readme_and_index_follow_it() -> None:
+    """The page list was kept three times and drifted (issue 50: the index lacked four pages): the
+    nav is the list, and the README's table and the site's index name the same pages in its order."""
+    pages = _nav_pages()
+    assert len(pages) >= 20 and pages[0] == "index.md", pages
+    # (the README links the protocol's own file, which the site's reference/protocol.md includes)
+    rows = re.findall(r"^\|[^|]*\| \[[^]]+\]\(([\w/.-]+\.md)\)", README.read_text(), re.M)
+    readme = ["reference/protocol.md" if r == "PROTOCOL.md" else r.removeprefix("docs/") for r in rows]
+    assert readme == pages[1:]
+    index = (ROOT / "docs" / "index.md").read_text().split("## Guides", 1)[1]
+    assert re.findall(r"^- \[[^]]+\]\(([\w/.-]+\.md)\)", index, re.M) == pages[1:]
+    assert all((ROOT / "docs" / p).is_file() for p in pages)
+
+
+def test_the_sample_output_is_held_once_in_the_readme_and_included_by_the_first_session() -> None:
+    """The README's sample output was copied into first-session.md (34 lines) and could drift: the
+    guide includes the README's block; ``python -m tools.docgen --sample`` rewrites it from a run."""
+    block = docgen.SAMPLE.search(README.read_text())
+    assert block is not None and block.group(2).startswith("teleop run: ")
+    guide = (ROOT / "docs" / "guides" / "first-session.md").read_text()
+    assert '--8<-- "README.md:sample"' in guide
+    assert block.group(2).splitlines()[-1] not in guide  # included, not copied

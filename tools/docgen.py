@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
 import sys
 from collections.abc import Sequence
@@ -154,11 +155,44 @@ def write_all(outdir: Path) -> list[Path]:
     return written
 
 
+SAMPLE = re.compile(
+    r"(<!-- --8<-- \[start:sample\] -->\n```text\n)(.*?)(```\n<!-- --8<-- \[end:sample\] -->)", re.S
+)
+
+
+def sample_output() -> str:
+    """What the README's main command prints, from a run of this tree (``teleop run`` in a fresh
+    folder, as the quick start runs it), in the terminal's order: its first line, the status lines
+    (stderr), then the report.  The README holds it once; the first-session guide includes it."""
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        teleop = str(Path(sys.executable).with_name("teleop"))
+        r = subprocess.run([teleop, "run"], capture_output=True, text=True, cwd=tmp, timeout=300)
+    if r.returncode not in (0, 3):
+        raise SystemExit(f"teleop run exited {r.returncode}: {r.stderr.strip()[-500:]}")
+    first, rest = r.stdout.split("\n", 1)
+    return f"{first}\n{r.stderr}{rest}"
+
+
+def write_sample(readme: Path) -> None:
+    """The README's sample block (between its ``--8<-- [start:sample]`` markers) from a new run."""
+    text = readme.read_text()
+    if not SAMPLE.search(text):
+        raise SystemExit(f"{readme}: no sample block between its start:sample and end:sample markers")
+    readme.write_text(SAMPLE.sub(lambda m: m.group(1) + sample_output() + m.group(3), text, count=1))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m tools.docgen", description=__doc__.split("\n\n")[0])
     ap.add_argument("outdir", type=Path, nargs="?", help="where the site's snippets go")
     ap.add_argument("--cli", action="store_true", help="write docs/reference/cli.md from the parsers")
+    ap.add_argument("--sample", action="store_true", help="rewrite the README's sample output from a run")
     args = ap.parse_args(argv)
+    if args.sample:
+        write_sample(ROOT / "README.md")
+        print(ROOT / "README.md")
     if args.cli:
         tables.write_if_changed(CLI_PAGE, cli_page())
         print(CLI_PAGE)
