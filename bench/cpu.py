@@ -205,7 +205,7 @@ def run_case(codec: str, dof: int, duration: float, tmp: Path, root: Path | None
     session = sampler.stop()
     r = subprocess.CompletedProcess(cmd, proc.returncode, stdout, stderr)
     ref.wait(timeout=duration + 60)
-    if r.returncode != 0:
+    if r.returncode not in (0, 3):  # 3: a poor session (teleop.session.verdict): it ran, measured
         sys.exit(f"teleop run {codec} {dof} DoF failed{' (reference)' if root else ''}: {r.stderr}")
     rep = json.loads((run_dir / "report.json").read_text())
     if missing := [role for role in ROLES if not rep["processes"].get(role)]:

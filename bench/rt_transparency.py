@@ -42,7 +42,7 @@ def one_run(
     cmd += ["--duration", repr(duration), "--out", str(out), "--no-plots", "--no-live"]
     cmd += ["--netem", netem] if netem else []
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=duration * 4 + 60)
-    if r.returncode != 0:
+    if r.returncode not in (0, 3):  # 3: a poor session (teleop.session.verdict): it ran, measured
         return {"error": (r.stderr or r.stdout).strip().splitlines()[-1:]}
     rep = json.loads((out / "report.json").read_text())
     if rep["codec"] != codec or rep["transport"] != transport:

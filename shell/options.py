@@ -12,6 +12,7 @@ from teleop.errors import TeleopError
 from teleop.session import auth
 from teleop.session.link import Addr
 from teleop.session.settings import Envelope
+from teleop.session.verdict import Bounds
 from transport.udp import DEFAULT_RCVBUF_BYTES
 
 
@@ -33,6 +34,7 @@ class EndpointOptions:
     linger: float = 0.2
     grace_us: float = 400.0
     quiet: bool = False
+    bounds: Bounds = field(default_factory=Bounds)  # past these the session is poor (exit 3)
     live: bool = False  # a status line every second: traffic, link, watchdog
     wide: bool = False  # the status line in full, past 120 columns (shell.watch.status_line)
     transport: str = "udp"  # "udp" or "zenoh"

@@ -23,6 +23,7 @@ from teleop.session import fleet as fl
 from teleop.session.endpoint import Endpoint, Monitor, PortFactory, State, TickPolicy
 from teleop.session.protocol import PROTOCOL_VERSION, Pins, SessionParams
 from teleop.session.summary import SessionSummary
+from teleop.session.verdict import judge_process
 from transport.base import Transport
 from transport.fleet import Announcer, find_robot
 from transport.udp import UdpTransport, new_event_loop
@@ -154,7 +155,8 @@ async def _endpoint(opts: EndpointOptions, params: SessionParams | None, pins: P
 
 
 def run_endpoint(opts: EndpointOptions, params: SessionParams | None = None, pins: Pins | None = None) -> int:
-    """Run one process's side of a session; returns the exit status (0 ok, 1 error, 130 interrupted)."""
+    """Run one process's side of a session; returns the exit status (0 ok, 1 error, 3 a poor session:
+    :mod:`teleop.session.verdict`, 130 interrupted)."""
     loop, loop_name = new_event_loop(opts.use_uvloop)
     try:
         summary = loop.run_until_complete(_endpoint(opts, params, pins))
@@ -177,7 +179,11 @@ def run_endpoint(opts: EndpointOptions, params: SessionParams | None = None, pin
         return 1
     if proc.stopped_by_signal is not None and not summary.endpoint.params.until_stopped:
         return 128 + proc.stopped_by_signal
-    return 0  # a session without a fixed end stopped by a signal ended as it should
+    # A session without a fixed end stopped by a signal ended as it should: judged as any other.
+    verdict = judge_process(summary.document(), opts.bounds)
+    if not opts.quiet:
+        print(verdict.line(f"teleop {opts.role}"), file=sys.stderr)
+    return verdict.exit_status
 
 
 def waiting_line(opts: EndpointOptions, tr: Transport) -> str:

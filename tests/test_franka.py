@@ -24,6 +24,7 @@ import pytest
 from teleop import devices
 from teleop.devices import DeviceError
 from teleop.devices.franka import FrankaRobot, RobotFault, parse_arg
+from tests.ran import RAN
 from tests.waiting import wait_for
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
@@ -534,8 +535,8 @@ def test_a_session_driving_franky_sim(franky_sim: Sim, tmp_path: Path) -> None:
             env=env,
         )
         _, to_err = to.communicate(timeout=60)
-    assert op.returncode == 0, op.stderr
-    assert to.returncode == 0, to_err
+    assert op.returncode in RAN, op.stderr
+    assert to.returncode in RAN, to_err
     role = json.loads((tmp_path / "teleoperator.json").read_text())
     dev, loop = role["device"], role["loop"]
     assert role["completed"] and "fault" not in role
@@ -562,7 +563,7 @@ def test_a_session_driving_franky_sim(franky_sim: Sim, tmp_path: Path) -> None:
         timeout=120,
         env=env,
     )
-    assert rep.returncode == 0, rep.stderr
+    assert rep.returncode in RAN, rep.stderr
     report = json.loads((tmp_path / "r" / "report.json").read_text())
     assert report["two_port_min_energy"] >= -1e-9  # eq. (4): the channel stayed passive
     for d in ("forward", "backward"):

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.ran import RAN
 from tests.test_processes import _free_port, _spawn
 from tests.test_restart_real import DelayRelay, _operator
 from tests.waiting import wait_for
@@ -47,8 +48,8 @@ def test_a_session_starts_and_completes_behind_a_long_delay(tmp_path: Path, key:
         _, to_err = to.communicate(timeout=30)
     finally:
         relay.close()
-    assert op.returncode == 0, op_err
-    assert to.returncode == 0, to_err
+    assert op.returncode in RAN, op_err
+    assert to.returncode in RAN, to_err
     o = json.loads((tmp_path / "op" / "operator.json").read_text())
     t = json.loads((tmp_path / "to" / "teleoperator.json").read_text())
     assert o["completed"] and t["completed"] and not t["joined_late"]
@@ -78,8 +79,8 @@ def test_a_restarted_robot_rejoins_behind_a_long_delay(tmp_path: Path, key: str,
         _, to2_err = to2.communicate(timeout=60)
     finally:
         relay.close()
-    assert op.returncode == 0, op_err
-    assert to2.returncode == 0, to2_err
+    assert op.returncode in RAN, op_err
+    assert to2.returncode in RAN, to2_err
     o = json.loads((tmp_path / "op" / "operator.json").read_text())
     t = json.loads((tmp_path / "to2" / "teleoperator.json").read_text())
     assert o["rejoin"]["rejoins"] == 1 and o["completed"]

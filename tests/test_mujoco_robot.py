@@ -18,6 +18,7 @@ pytest.importorskip("mujoco")
 from teleop.devices import DeviceError
 from teleop.devices.mujoco_robot import MujocoRobot, default_scene
 from teleop.offline.sim import SimConfig, run_case
+from tests.ran import RAN
 
 DT = 0.001
 Run = tuple[dict[str, Any], np.ndarray, np.ndarray]
@@ -203,7 +204,7 @@ def test_teleop_run_with_the_mujoco_robot(tmp_path: Path) -> None:
         text=True,
         timeout=60,
     )
-    assert r.returncode == 0, r.stderr
+    assert r.returncode in RAN, r.stderr
     rep = json.loads((out / "report.json").read_text())
     assert rep["devices"]["hsi"] == {"spec": "protocol"}  # the operator built no robot
     robot = rep["devices"]["robot"]

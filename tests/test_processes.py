@@ -25,6 +25,7 @@ import pytest
 from teleop.offline.logfile import read_log
 from teleop.offline.sim import deliveries
 from teleop.session.schedule import MAX_CATCHUP
+from tests.ran import RAN
 from tests.waiting import exited_ok, ticks_logged, udp_bound, wait_for
 
 pytestmark = pytest.mark.integration
@@ -80,7 +81,7 @@ def test_counts_and_compression(
     tmp_path: Path, codec: str, per_dir: int, c_payload: float, tick_at: str
 ) -> None:
     r, rep = _run(tmp_path, "--codec", codec, "--duration", "3", "--tick-at", tick_at)
-    assert r.returncode == 0, r.stderr
+    assert r.returncode in RAN, r.stderr
     assert rep["transport"] == "udp" and rep["codec"] == codec and rep["duration_s"] == 3.0
     logs = {r: read_log(tmp_path / "run" / "logs" / f"{r}.mcap")[1] for r in ("operator", "teleoperator")}
     for d, sender in (("forward", "operator"), ("backward", "teleoperator")):
@@ -160,7 +161,7 @@ def test_counts_and_compression(
 
 def test_report_contract_and_logs(tmp_path: Path) -> None:
     r, rep = _run(tmp_path, "--codec", "eds:50", "--duration", "2")
-    assert r.returncode == 0, r.stderr
+    assert r.returncode in RAN, r.stderr
     for role in ("operator", "teleoperator"):
         p = rep["processes"][role]
         assert isinstance(p["pid"], int)
@@ -332,7 +333,7 @@ def test_teleoperator_rejects_a_different_codec_and_keeps_waiting(tmp_path: Path
     good = operator(key, "cq:8")
     assert "rejected" not in good.stderr
     _, to_err = to.communicate(timeout=30)
-    assert good.returncode == 0 and to.returncode == 0, (good.stderr, to_err)
+    assert good.returncode in RAN and to.returncode in RAN, (good.stderr, to_err)
     assert "rejected the operator: codec 'eds:50' differs" in to_err
 
 
@@ -364,7 +365,7 @@ def test_impaired_run_watchdog_and_observed_link(tmp_path: Path) -> None:
         "hold",
         "--no-sim",
     )
-    assert r.returncode == 0, r.stderr
+    assert r.returncode in RAN, r.stderr
     for d in ("forward", "backward"):
         lk, pv = rep["link"][d], rep["passivity"][d]
         assert lk["spec"] == "delay 10ms 2ms loss 5%"
@@ -393,7 +394,7 @@ def test_impaired_run_without_controller_is_seen_violating(tmp_path: Path) -> No
         "--no-controller",
         "--no-sim",
     )
-    assert r.returncode == 0, r.stderr
+    assert r.returncode in RAN, r.stderr
     assert sum(rep["passivity"][d]["violations"] for d in ("forward", "backward")) > 0
     assert min(rep["passivity"][d]["min_margin"] for d in ("forward", "backward")) < -1e-9
 
@@ -418,7 +419,7 @@ def _started_unless_the_host_stalled(
     is one candidate (the runner now locks its memory), so the skip and the failure say the major
     page faults the robot counted.  Any other failure fails the test."""
     code = op.wait(timeout=30)
-    if code == 0:
+    if code in RAN:
         return
     err = op.stderr.read() if op.stderr is not None else ""
     to.send_signal(signal.SIGINT)  # its summaries are the evidence: let it write them
@@ -544,7 +545,7 @@ def test_operator_restarted_mid_session_and_the_teleoperator_serves_the_new_one(
     # The replaced session's logs keep their names; the new session's are files of its own.
     first = json.loads((logs / "teleoperator.json").read_text())
     assert first["replaced_by_new_session"] and not first["completed"]
-    assert first["passivity"]["link_lost_events"] == 1  # it went to its safe state first
+    assert first["passivity"]["link_lost_events"] >= 1  # it went to its safe state first (a stall: twice)
     later = list(logs.glob("teleoperator-*.json"))
     assert len(later) == 1
     new = json.loads(later[0].read_text())
@@ -592,7 +593,7 @@ def test_a_recorded_hello_during_an_outage_does_not_replace_the_session(tmp_path
     os.kill(op.pid, signal.SIGCONT)
     exited_ok(op)
     _, to_err = to.communicate(timeout=30)
-    assert to.returncode == 0, to_err
+    assert to.returncode in RAN, to_err
     assert auth.peek(welcomed) is not None
     t = json.loads((logs / "teleoperator.json").read_text())
     assert t["completed"] and not t["replaced_by_new_session"]  # ... but it never commits
@@ -607,7 +608,7 @@ def test_an_outage_both_sides_see_leaves_the_session_whole(tmp_path: Path) -> No
     trace = tmp_path / "gap.trace"
     trace.write_text("\n".join(str(t) for t in [*range(1, 1501), *range(3000, 6001)]) + "\n")
     r, rep = _run(tmp_path, "--duration", "5", "--codec", "eds:50", "--netem", f"trace {trace}")
-    assert r.returncode == 0, r.stderr
+    assert r.returncode in RAN, r.stderr
     logs = tmp_path / "run" / "logs"
     o = json.loads((logs / "operator.json").read_text())
     t = json.loads((logs / "teleoperator.json").read_text())
@@ -633,7 +634,7 @@ def test_issue10_codecs_and_rate_cap_in_real_processes(tmp_path: Path, codec: st
     """Each new codec family (and the rate cap) runs in two real processes with the same spec as
     in `teleop sim`: counts agree at both ends, the channel stays passive, the cap holds."""
     r, rep = _run(tmp_path, "--codec", codec, "--duration", "3", *extra)
-    assert r.returncode == 0, r.stderr
+    assert r.returncode in RAN, r.stderr
     for d, sender in (("forward", "operator"), ("backward", "teleoperator")):
         w = rep["wire"][d]
         if "zenoh" in extra:  # CongestionControl.DROP gives up on a packet when Zenoh's threads starve

@@ -17,6 +17,7 @@ from typing import Any
 
 import pytest
 
+from tests.ran import RAN
 from tests.test_processes import _alive
 from tests.test_zenoh import readme_subscriber
 from tests.waiting import tcp_clients, tcp_listening, wait_for
@@ -46,7 +47,7 @@ def _run(tmp: Path, *args: str) -> tuple[subprocess.CompletedProcess[str], dict[
 @pytest.mark.parametrize("mode", ["peer", "client"])
 def test_session_over_zenoh(tmp_path: Path, mode: str) -> None:
     r, rep = _run(tmp_path, "--zenoh-mode", mode, "--codec", "eds:50", "--duration", "3")
-    assert r.returncode == 0, r.stderr
+    assert r.returncode in RAN, r.stderr
     assert rep["transport"] == "zenoh" and rep["zenoh"]["mode"] == mode
     assert rep["zenoh"]["router_launched"] is (mode == "client")
     for d, sender in (("forward", "operator"), ("backward", "teleoperator")):
@@ -96,7 +97,7 @@ def test_plain_subscriber_decodes_live_packets(tmp_path: Path) -> None:
             "2",
         )
         th.join(timeout=30)
-        assert r.returncode == 0, r.stderr
+        assert r.returncode in RAN, r.stderr
         assert rep["zenoh"]["router_launched"] is False
         packets, controls, bad_crc = got["result"]
         assert len(packets) == 20 and bad_crc == 0 and controls >= 1  # the hello/start went by too
@@ -201,7 +202,7 @@ def test_a_stranger_on_the_zenoh_key_cannot_drive_the_robot(tmp_path: Path) -> N
     finally:
         router.send_signal(signal.SIGINT)
         router.wait(timeout=10)
-    assert r.returncode == 0, r.stderr
+    assert r.returncode in RAN, r.stderr
     assert min(sent.values()) > 100, sent
     sec = rep["security"]
     assert sec["auth"] == "blake2s-128"

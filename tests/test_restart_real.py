@@ -21,6 +21,7 @@ from typing import Any
 
 import pytest
 
+from tests.ran import RAN
 from tests.test_processes import TELEOP, _free_port, _spawn
 from tests.waiting import ticks_logged, udp_bound, wait_for
 
@@ -97,8 +98,8 @@ def test_a_teleoperator_restarted_behind_a_2ms_link_rejoins_within_2s(tmp_path: 
         to2 = _spawn(
             "teleoperator", "--key-file", key, "--listen", f"127.0.0.1:{port}", "--log", to2_logs, "--quiet"
         )  # fmt: skip
-        assert op.wait(timeout=60) == 0, op.stderr.read() if op.stderr else ""
-        assert to2.wait(timeout=60) == 0, to2.stderr.read() if to2.stderr else ""
+        assert op.wait(timeout=60) in RAN, op.stderr.read() if op.stderr else ""
+        assert to2.wait(timeout=60) in RAN, to2.stderr.read() if to2.stderr else ""
     finally:
         relay.close()
     o = json.loads((tmp_path / "op" / "operator.json").read_text())
@@ -166,8 +167,8 @@ def test_socket_activation_serves_on_the_socket_systemd_bound(tmp_path: Path, ke
         _, err = op.communicate(timeout=60)
         if op.returncode != 0:
             to.kill()
-        assert op.returncode == 0, (err, to.communicate(timeout=10))
-        assert to.wait(timeout=60) == 0, to.stderr.read() if to.stderr else ""
+        assert op.returncode in RAN, (err, to.communicate(timeout=10))
+        assert to.wait(timeout=60) in RAN, to.stderr.read() if to.stderr else ""
     finally:
         to.kill()
     t = json.loads((tmp_path / "to" / "teleoperator.json").read_text())

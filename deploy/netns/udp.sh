@@ -48,7 +48,8 @@ ip netns exec "$NS_TO" "$TELEOP" teleoperator --key-file "$KEY" --listen 10.77.0
 pids+=($!)
 sleep 0.5
 ip netns exec "$NS_OP" "$TELEOP" operator --key-file "$KEY" --peer 10.77.0.2:7000 --listen 10.77.0.1:0 --log "$OUT/logs" \
-  --codec "$CODEC" --scenario "$SCENARIO" --duration "$DURATION" ${NETEM:+--netem "$NETEM"} --quiet
-wait "${pids[0]}"
+  --codec "$CODEC" --scenario "$SCENARIO" --duration "$DURATION" ${NETEM:+--netem "$NETEM"} --quiet \
+  || [ $? -eq 3 ]  # 3: a poor session (teleop/session/verdict.py), recorded whole: the report says why
+wait "${pids[0]}" || [ $? -eq 3 ]
 pids=()
 "$TELEOP" report "$OUT/logs" --out "$OUT" --transport udp

@@ -55,6 +55,7 @@ to_pid=$!
 pids+=("$to_pid")
 sleep 0.5
 ip netns exec "$NS_OP" "$TELEOP" operator --key-file "$KEY" "${Z[@]}" --zenoh-router tcp/10.77.1.2:7447 --log "$OUT/logs" \
-  --codec "$CODEC" --scenario "$SCENARIO" --duration "$DURATION" ${NETEM:+--netem "$NETEM"} --quiet
-wait "$to_pid"
+  --codec "$CODEC" --scenario "$SCENARIO" --duration "$DURATION" ${NETEM:+--netem "$NETEM"} --quiet \
+  || [ $? -eq 3 ]  # 3: a poor session (teleop/session/verdict.py), recorded whole: the report says why
+wait "$to_pid" || [ $? -eq 3 ]
 "$TELEOP" report "$OUT/logs" --out "$OUT" --transport zenoh

@@ -33,6 +33,7 @@ from teleop.limits import (
     MIN_LINK_TIMEOUT_S,
 )
 from teleop.session.settings import DEFAULTS, Passivity
+from teleop.session.verdict import Bounds
 
 MAX_GRACE_US = 900.0  # the wait for a late payload must end well within the 1 ms tick
 MAX_CONNECT_TIMEOUT_S = 86400.0  # a day: longer waits overflow the loop's nanosecond clock
@@ -518,6 +519,31 @@ def add_process_args(p: argparse.ArgumentParser) -> None:
     )
 
 
+def add_verdict_args(p: argparse.ArgumentParser) -> None:
+    """The bounds of a session's verdict (teleop.session.verdict): past them it is poor, exit 3."""
+    p.add_argument(
+        "--poor-share",
+        type=float_range("--poor-share", 0.0, 100.0, "%"),
+        default=100 * Bounds.share,
+        metavar="PCT",
+        help="a session is poor (its last line says why, exit status 3) when its link was lost, or "
+        "when the watchdog flagged, the passivity controller acted on, or the loop skipped or "
+        f"missed more than PCT%% of its ticks (default {100 * Bounds.share:g})",
+    )
+    p.add_argument(
+        "--poor-i-factor",
+        type=float_range("--poor-i-factor", 1.0, 1e9, ""),
+        default=Bounds.i_factor,
+        metavar="F",
+        help="with both logs (run, report): a session is also poor when its transparency I is more "
+        f"than F times off teleop sim's with the same settings (default {Bounds.i_factor:g})",
+    )
+
+
+def verdict_bounds(args: argparse.Namespace) -> Bounds:
+    return Bounds(share=args.poor_share / 100, i_factor=getattr(args, "poor_i_factor", Bounds.i_factor))
+
+
 def add_endpoint_args(p: argparse.ArgumentParser) -> None:
     """Options of one real process: its logs, its loop, what it prints."""
     p.add_argument(
@@ -529,6 +555,7 @@ def add_endpoint_args(p: argparse.ArgumentParser) -> None:
         f"127.0.0.1:PORT (default {LIVE_VIEW_PORT}; 0: any free port)",
     )
     add_process_args(p)
+    add_verdict_args(p)
     p.add_argument("--quiet", action="store_true", help="no summary line at the end")
     p.add_argument("--live", action="store_true", help="print a status line every second (traffic, watchdog)")
     p.add_argument(

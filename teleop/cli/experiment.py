@@ -35,6 +35,7 @@ from teleop.control.codecs import ACCEPTED
 from teleop.devices.scenarios import SCENARIOS
 from teleop.files import write_new
 from teleop.limits import MAX_SEED
+from teleop.session.verdict import POOR_EXIT
 
 MAX_RUNS = 1000
 
@@ -99,7 +100,10 @@ def _real_run(args: argparse.Namespace, spec: str, seed: int, out: Path) -> Any:
         if not args.keep_logs:
             shutil.rmtree(out / "logs", ignore_errors=True)
     rep = json.loads((out / "report.json").read_text())
-    error = None if rc == 0 else f"teleop run exited with {rc} (exit codes {rep.get('exit_codes')})"
+    # A poor session (exit 3: its link lost, its watchdog busy) ran and is measured: its figures
+    # count, and its passivity is judged as every run's is.
+    ran = rc in (0, POOR_EXIT)
+    error = None if ran else f"teleop run exited with {rc} (exit codes {rep.get('exit_codes')})"
     error = error or incomplete(rep)
     return RunResult(seed, real_passive(rep), rep["phases"], error, host_figures(rep)), rc
 

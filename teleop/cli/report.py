@@ -8,8 +8,9 @@ import os
 from pathlib import Path
 from typing import Any
 
-from teleop.cli.args import CliError, Subcommands, session_id
+from teleop.cli.args import CliError, Subcommands, add_verdict_args, session_id, verdict_bounds
 from teleop.cli.settings import private_dir
+from teleop.session.verdict import judge_report
 
 #: What a log whose summary was edited or damaged can raise while the report reads it: one line.
 _DAMAGE = (KeyError, TypeError, ValueError, ArithmeticError, IndexError, AttributeError)
@@ -24,11 +25,11 @@ def write_report(
     session: int | None = None,
     command: str = "teleop report",
     skip_sim: str | None = None,
-) -> None:
+) -> dict[str, Any]:
     """Build the report of ``session`` (default: the newest pair) from LOGS, add ``extra``, write
     OUT/report-SESSION.json (a new file, never over one), then OUT/report.json and the plots as
     the newest report's, print a summary.  Any damage in
-    the logs, or a report.json already there, is a :class:`CliError` (one line)."""
+    the logs, or a report.json already there, is a :class:`CliError` (one line).  Returns the report."""
     from teleop.cli.args import one_line
     from teleop.files import FileRefused
     from teleop.offline import report as session_report
@@ -71,6 +72,7 @@ def write_report(
         f"wrote {out / 'report.json'} (also kept as {kept.name})"
         + (f" and {', '.join(f.name for f in plots)}" if files else "")
     )
+    return rep
 
 
 def _write_new(out: Path, names: list[str], text: str) -> Path:
@@ -103,8 +105,10 @@ def cmd_report(args: argparse.Namespace) -> int:
     if not logs.is_dir():
         raise CliError(f"{logs}: not a folder: pass the folder both processes wrote with --log")
     out = private_dir(Path(args.out) if args.out else logs.parent, "--out")
-    write_report(logs, out, args, args.transport, session=args.session)
-    return 0
+    rep = write_report(logs, out, args, args.transport, session=args.session)
+    verdict = judge_report(rep, verdict_bounds(args))
+    print(verdict.line("teleop report"))
+    return verdict.exit_status
 
 
 def add_parser(sub: Subcommands) -> None:
@@ -112,7 +116,8 @@ def add_parser(sub: Subcommands) -> None:
         "report",
         help="build a report from the two processes' logs",
         description="Merge operator.mcap and teleoperator.mcap (written with --log) "
-        "into report.json, plots and a printed summary.",
+        "into report.json, plots and a printed summary, ending in a verdict: ok, or poor and why "
+        "(exit status 3; see --poor-share).",
     )
     rp.add_argument("logs", metavar="LOGDIR", help="folder holding both processes' logs")
     rp.add_argument("--out", metavar="DIR", help="report folder (default: LOGDIR's parent)")
@@ -136,6 +141,7 @@ def add_parser(sub: Subcommands) -> None:
         help="a trace file the session's 'trace FILE' link used (repeatable): the sim is re-run with "
         "it if its SHA-256 is the one the logs recorded (a log's path is never opened)",
     )
+    add_verdict_args(rp)
     rp.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     rp.add_argument("--no-sim", action="store_true", help="skip the teleop sim comparison")
     rp.set_defaults(func=cmd_report)

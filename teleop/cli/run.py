@@ -39,13 +39,16 @@ from teleop.cli.args import (
     add_passivity_args,
     add_process_args,
     add_session_args,
+    add_verdict_args,
     connect_timeout,
     int_range,
+    verdict_bounds,
 )
 from teleop.cli.endpoints import envelope_flags
 from teleop.cli.report import write_report
 from teleop.cli.settings import check_robot, private_dir, read_key, session_params
 from teleop.session.settings import DEFAULT_CODEC, DEFAULT_ENVELOPE, DEFAULT_SCENARIO, SETTINGS, Setting
+from teleop.session.verdict import POOR_EXIT, judge_report
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
 
@@ -289,7 +292,7 @@ def _run_pair(
         while any(p.poll() is None for p in procs):
             if time.monotonic() > limit:
                 raise CliError("the processes did not finish in time; stopped them")
-            if any(p.returncode not in (None, 0) for p in procs):
+            if any(p.returncode not in (None, 0, POOR_EXIT) for p in procs):
                 for p in procs:  # one side failed: do not leave the other waiting
                     if p.poll() is None:
                         p.send_signal(signal.SIGTERM)
@@ -314,6 +317,8 @@ def exits(codes: dict[str, int | None]) -> str:
                 return f"stopped by {signal.Signals(-code).name}"
             except ValueError:
                 return f"stopped by signal {-code}"
+        if code == POOR_EXIT:
+            return f"exited {code} (a poor session)"
         return "exited 0 (ok)" if code == 0 else f"exited {code}"
 
     return ", ".join(f"{role} {one(code)}" for role, code in codes.items())
@@ -370,12 +375,19 @@ def cmd_run(args: argparse.Namespace) -> int:
     if interrupted and not args.no_plots:
         args.no_plots = True
         print(f"teleop run: interrupted: plots not drawn (teleop report {logs} draws them)", flush=True)
-    write_report(
+    rep = write_report(
         logs, out, args, args.transport, extra, session=params.session, command="teleop run", skip_sim=skip
     )
     if interrupted and not params.until_stopped:  # an open session ends with Ctrl-C: that is no error
+        print("teleop run: verdict: interrupted (exit 130)", flush=True)
         return 130
-    return 0 if all(c == 0 for c in codes.values()) else 1
+    if any(c not in (0, POOR_EXIT) for c in codes.values()):
+        print(f"teleop run: verdict: failed (exit 1): {exits(codes)}", flush=True)
+        return 1
+    # Each child judged its own side (exit 3: poor); the report judges both and the real I too.
+    verdict = judge_report(rep, verdict_bounds(args))
+    print(verdict.line("teleop run"), flush=True)
+    return verdict.exit_status
 
 
 def add_parser(sub: Subcommands) -> None:
@@ -408,6 +420,7 @@ def add_parser(sub: Subcommands) -> None:
         help="teleoperator UDP port (default: a free one)",
     )
     add_process_args(r)
+    add_verdict_args(r)
     add_key_args(r, "default: a new key for this run, held in memory and handed to both processes")
     r.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     r.add_argument("--no-sim", action="store_true", help="skip the teleop sim comparison in the report")

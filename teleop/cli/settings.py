@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from teleop import limits
-from teleop.cli.args import CliError, connect_timeout, teleoperator_wait
+from teleop.cli.args import CliError, connect_timeout, teleoperator_wait, verdict_bounds
 from teleop.control.codecs import CodecError
 from teleop.devices.scenarios import SCENARIOS
 from teleop.session.settings import DEFAULTS, Channel
@@ -210,6 +210,7 @@ def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int
         use_uvloop=not args.asyncio,
         tick_at=args.tick_at,
         quiet=args.quiet,
+        bounds=verdict_bounds(args),
         live=args.live,
         wide=args.wide,
         grace_us=args.grace_us,
