@@ -537,7 +537,7 @@ def _print_case(c: dict[str, Any]) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.flood", description=__doc__.split("\n\n")[0])
     ap.add_argument("--rates", type=float, nargs="+", default=[10_000.0, 50_000.0, 100_000.0])
-    ap.add_argument("--classes", nargs="+", choices=CLASSES + START_CLASSES, default=list(CLASSES))
+    ap.add_argument("--classes", nargs="+", choices=CLASSES + START_CLASSES, help="default: every class")
     ap.add_argument("--duration", type=float, default=8.0, help="seconds of each session (>= 4)")
     ap.add_argument(
         "--udp-rcvbuf", type=int, metavar="KIB", help="the teleoperator's --udp-rcvbuf (default: its own)"
@@ -557,11 +557,12 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.start:
         a.out = a.out or "bench/results/flood_start.json"
-        a.classes = [c for c in a.classes if c in START_CLASSES] or list(START_CLASSES)
+        a.classes = [c for c in a.classes or START_CLASSES if c in START_CLASSES]
         if not 1 <= a.ports <= 10_000:
             ap.error("--ports must be 1 to 10000")
         return main_start(a, argv)
     a.out = a.out or "bench/results/flood.json"
+    a.classes = [c for c in a.classes or CLASSES if c in CLASSES]
     if a.duration < 4:
         ap.error("--duration must be at least 4 s")
     if a.repeats < 1:
