@@ -26,7 +26,20 @@ dropped), the host's full-buffer drops over the session (``/proc/net/snmp``), th
 and the rate the flood reached (sends attempted).
 Every datagram goes to 127.0.0.1 only; each flood is bounded in count and time.
 
+``--start`` measures something else (issue 49 item 6): a session *start* under a flood from many
+source ports (``--ports``, 2000 by default), which no address filter can refuse before the operator
+is known.  A teleoperator waits for an operator; the flood begins; one second later an operator
+starts a 1 s session.  Per case: whether the session started, the operator's handshake time
+(``waited_for_session_s``: from its endpoint's creation to the confirmed start) against the clean
+starts' median, the wall time from its launch to its exit, and what the kernel dropped (the
+teleoperator's ``kernel_drops``: its socket filter's refusals and a full buffer's; the host's
+``RcvbufErrors``).  Classes: ``junk_handshake`` (a valid handshake-key header, 100 random bytes, a
+tag that fails: what anyone can send) and ``recorded_hello`` (authentic hellos an eavesdropper
+recorded).  The host's load average is recorded before and after: on a shared host the figure is
+that host's, not the stack's alone.
+
     python -m bench.flood [--rates 10000 50000 100000] [--duration 8] [--out bench/results/flood.json]
+    python -m bench.flood --start [--ports 2000] [--rates 30000 100000] [--out bench/results/flood_start.json]
 """
 
 from __future__ import annotations
@@ -56,6 +69,9 @@ TELEOP = [sys.executable, "-m", "teleop.cli"]
 UDP_CLASSES = ("random", "big_handshake", "big_session", "recorded_hello")
 ZENOH_CLASSES = ("zenoh_oversize",)
 CLASSES = UDP_CLASSES + ZENOH_CLASSES
+START_CLASSES = ("junk_handshake", "recorded_hello")
+#: ``--start``: the operator launches this long after the flood began (s), and runs this long a session.
+START_AFTER_FLOOD_S, START_SESSION_S = 1.0, 1.0
 ZENOH_PREFIX = "bench/flood"
 ZENOH_SAMPLE_BYTES = 60_000
 
@@ -107,17 +123,20 @@ def payloads(kind: str, psk: bytes) -> list[bytes]:
         return [b"T\x10" + (i + 1).to_bytes(8, "big") + secrets.token_bytes(60_000) for i in range(8)]
     if kind == "big_session":
         return [b"T\x12" + (i + 1).to_bytes(8, "big") + secrets.token_bytes(60_000) for i in range(8)]
+    if kind == "junk_handshake":  # passes every length and kind check; only its MAC fails
+        return [b"T\x10" + (i + 1).to_bytes(8, "big") + secrets.token_bytes(116) for i in range(64)]
     return recorded_hellos(psk)
 
 
-def _paced(send: Callable[[int], None], rate: float, seconds: float) -> int:
-    """Call ``send(n)`` ``rate`` times a second for ``seconds``, in batches of at most 64 with the
-    clock read between them (a sender slower than ``rate`` once sent its whole backlog in one batch,
-    past its end); it sleeps 0.5 ms when it is ahead.  Returns the count."""
+def _paced(send: Callable[[int], None], rate: float, seconds: float, stop: Any = None) -> int:
+    """Call ``send(n)`` ``rate`` times a second for ``seconds`` (or until ``stop.value`` is set), in
+    batches of at most 64 with the clock read between them (a sender slower than ``rate`` once sent
+    its whole backlog in one batch, past its end); it sleeps 0.5 ms when it is ahead.  Returns the
+    count."""
     n, t0 = 0, time.monotonic()
     end = t0 + seconds
     batch = 64
-    while (now := time.monotonic()) < end:
+    while (now := time.monotonic()) < end and not (stop is not None and stop.value):
         due = int((now - t0) * rate)
         for _ in range(min(due - n, batch)):
             send(n)
@@ -138,6 +157,8 @@ def flood(
     secs: Any,
     cpus: set[int] | None = None,
     sink: bool = False,
+    ports: int = 1,
+    stop: Any = None,
 ) -> None:
     """The flood process: ``rate`` datagrams a second of ``data`` (``payloads(kind)``, made by the
     parent before the session) to 127.0.0.1:``port`` (a UDP port, or for ``zenoh_oversize`` the
@@ -150,7 +171,10 @@ def flood(
     flood's own whose socket filter drops them all, so the kernel does the same work per datagram
     (the send, the loopback receive, one filter run) and nothing reaches the session: what the
     session's lateness loses then is the attacker's CPU on this 2-core host, not what the endpoint
-    spends refusing."""
+    spends refusing.
+
+    ``ports``: send from that many sockets of 127.0.0.1 in turn (a source port each), as a flood from
+    many addresses would; ``stop``: a shared flag that ends the flood early once set."""
     if cpus is not None:
         os.sched_setaffinity(0, cpus)
     time.sleep(max(0.0, start_at - time.monotonic()))
@@ -159,7 +183,11 @@ def flood(
         sent.value = _zenoh_flood(port, rate, end_at - t0)
         secs.value = time.monotonic() - t0
         return
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    socks = []
+    for _ in range(max(1, ports)):
+        sk = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sk.bind((LOOPBACK, 0))
+        socks.append(sk)
     if sink:
         from transport import sockfilter
 
@@ -170,11 +198,12 @@ def flood(
 
     def send(n: int) -> None:
         with contextlib.suppress(OSError):  # a full socket buffer: the kernel drops, we go on
-            s.sendto(data[n % len(data)], (LOOPBACK, port))
+            socks[n % len(socks)].sendto(data[n % len(data)], (LOOPBACK, port))
 
-    sent.value = _paced(send, rate, end_at - t0)
+    sent.value = _paced(send, rate, end_at - t0, stop)
     secs.value = time.monotonic() - t0
-    s.close()
+    for sk in socks:
+        sk.close()
 
 
 def _zenoh_flood(port: int, rate: float, seconds: float) -> int:
@@ -310,6 +339,156 @@ def session(
     }
 
 
+def start_session(
+    key_file: str,
+    psk: bytes,
+    kind: str | None,
+    rate: float,
+    ports: int,
+    rcvbuf_kib: int | None = None,
+    connect_timeout: float = 10.0,
+) -> dict[str, Any]:
+    """One session start under a flood of ``kind`` from ``ports`` source ports (``--start``), or
+    without one (``kind`` None): the flood begins once the teleoperator waits, the operator
+    :data:`START_AFTER_FLOOD_S` later; the flood ends when the operator has exited."""
+    data = payloads(kind, psk) if kind is not None else []
+    port = _free_port()
+    ctx = mp.get_context("spawn")
+    sent, secs, stop = ctx.Value("q", 0), ctx.Value("d", 0.0), ctx.Value("b", False)
+    t0 = time.monotonic()
+    flood_at = t0 + 2.0  # the teleoperator's interpreter is up and waiting by then
+    op_at = flood_at + START_AFTER_FLOOD_S
+    proc = None
+    if kind is not None:
+        end_at = op_at + connect_timeout + START_SESSION_S + 10.0  # the stop flag ends it first
+        args = (port, kind, data, rate, flood_at, end_at, sent, secs, None, False, ports, stop)
+        proc = ctx.Process(target=flood, args=args, daemon=True)
+        proc.start()
+    with tempfile.TemporaryDirectory(prefix="teleop-flood-start-") as tmp:
+        logs, ologs = Path(tmp) / "logs", Path(tmp) / "ologs"
+        to = subprocess.Popen(
+            [*TELEOP, "teleoperator", "--key-file", key_file, "--listen", f"{LOOPBACK}:{port}",
+             "--log", str(logs), "--quiet", "--wait", str(connect_timeout + 15),
+             *(["--udp-rcvbuf", str(rcvbuf_kib)] if rcvbuf_kib is not None else [])],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        time.sleep(max(0.0, op_at - time.monotonic()))
+        overflow0 = _rcvbuf_errors()
+        launched = time.monotonic()
+        op = subprocess.Popen(
+            [*TELEOP, "operator", "--key-file", key_file, "--peer", f"{LOOPBACK}:{port}",
+             "--listen", f"{LOOPBACK}:0", "--codec", "eds:50", "--duration", str(START_SESSION_S),
+             "--connect-timeout", str(connect_timeout), "--log", str(ologs), "--quiet"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        _, op_err = op.communicate(timeout=connect_timeout + START_SESSION_S + 60)
+        wall = time.monotonic() - launched
+        stop.value = True
+        if proc is not None:
+            proc.join(10)
+        overflow = _rcvbuf_errors() - overflow0
+        if to.poll() is None:
+            to.terminate()  # no session came: it would wait on
+        _, to_err = to.communicate(timeout=30)
+        o = _json(ologs / "operator.json")
+        t = _json(logs / "teleoperator.json")
+    orx, trx = o.get("received") or {}, t.get("received") or {}
+    return {
+        "class": kind or "clean",
+        "rate": rate if kind else 0,
+        "ports": ports if kind else 0,
+        "sent": int(sent.value),
+        "flood_s": round(float(secs.value), 3),
+        "operator_rc": op.returncode,
+        "started": op.returncode == 0 and bool(o.get("completed")),
+        "handshake_s": o.get("waited_for_session_s"),
+        "launch_to_exit_s": round(wall, 3),
+        "handshake_rtt_us": o.get("handshake_rtt_us"),
+        "operator_error": (op_err or "").strip().splitlines()[-1:] or None,
+        "to_kernel_drops": trx.get("kernel_drops"),
+        "to_rcvbuf_bytes": trx.get("rcvbuf_bytes"),
+        "to_handshake_throttled": t.get("handshake_throttled"),
+        "to_security": t.get("security"),
+        "operator_kernel_drops": orx.get("kernel_drops"),
+        "rcvbuf_errors": overflow,
+        "to_stderr_tail": (to_err or "").strip().splitlines()[-2:],
+    }
+
+
+def _json(path: Path) -> dict[str, Any]:
+    with contextlib.suppress(OSError, ValueError):
+        doc = json.loads(path.read_text())
+        return doc if isinstance(doc, dict) else {}
+    return {}
+
+
+def _load() -> dict[str, float]:
+    """The host's load average (``uptime``'s three figures): the bench shares its host."""
+    one, five, fifteen = os.getloadavg()
+    return {"1min": one, "5min": five, "15min": fifteen}
+
+
+def main_start(a: argparse.Namespace, argv: list[str] | None) -> int:
+    """``--start``: session starts under floods from many ports against clean starts (issue 49)."""
+    psk = auth.generate_key()
+    load_before = _load()
+    clean: list[dict[str, Any]] = []
+    cases: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="teleop-flood-key-") as kd:
+        key_file = str(Path(kd) / "k")
+        auth.write_key_file(key_file, psk)
+
+        def show(c: dict[str, Any]) -> None:
+            print(
+                f"{c['class']:15s} {c['rate']:8.0f}/s from {c['ports']} ports: started {c['started']},"
+                f" handshake {c['handshake_s']} s, launch to exit {c['launch_to_exit_s']} s, TO kernel"
+                f" drops {c['to_kernel_drops']}, host full-buffer drops {c['rcvbuf_errors']}",
+                flush=True,
+            )
+
+        for _ in range(a.repeats):
+            clean.append(start_session(key_file, psk, None, 0, 0, a.udp_rcvbuf))
+            show(clean[-1])
+        for kind in a.classes:
+            for rate in a.rates:
+                for _ in range(a.repeats):
+                    cases.append(start_session(key_file, psk, kind, rate, a.ports, a.udp_rcvbuf))
+                    show(cases[-1])
+        clean.append(start_session(key_file, psk, None, 0, 0, a.udp_rcvbuf))  # and one after
+        show(clean[-1])
+    hs = [c["handshake_s"] for c in clean if c["started"] and c["handshake_s"] is not None]
+    ref = statistics.median(hs) if hs else None
+    for c in cases:
+        c["handshake_ratio"] = c["handshake_s"] / ref if ref and c["started"] and c["handshake_s"] else None
+        c["within_2x"] = c["handshake_ratio"] is not None and c["handshake_ratio"] <= 2.0
+    out = {
+        "host": {
+            "platform": platform.platform(),
+            "cpus": os.cpu_count(),
+            "python": platform.python_version(),
+            "shared": True,  # a host other work ran on: its load average below
+            "load_before": load_before,
+            "load_after": _load(),
+        },
+        "command": "python -m bench.flood " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "ports": a.ports,
+        "session_s": START_SESSION_S,
+        "operator_after_flood_s": START_AFTER_FLOOD_S,
+        "udp_rcvbuf_kib": a.udp_rcvbuf,
+        "repeats": a.repeats,
+        "clean": clean,
+        "clean_handshake_s": ref,
+        "cases": cases,
+        "within_2x": sum(c["within_2x"] for c in cases),
+        "cases_run": len(cases),
+    }
+    path = Path(a.out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_result(path, out)
+    print(f"{out['within_2x']} of {out['cases_run']} starts within 2x of clean ({ref} s); wrote {path}")
+    return 0
+
+
 def _reference(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """The baseline a transport's cases are held to: its first run's figures, with the lateness p99
     the median of all its runs (one before the floods and one after each class: a single quiet
@@ -358,7 +537,7 @@ def _print_case(c: dict[str, Any]) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.flood", description=__doc__.split("\n\n")[0])
     ap.add_argument("--rates", type=float, nargs="+", default=[10_000.0, 50_000.0, 100_000.0])
-    ap.add_argument("--classes", nargs="+", choices=CLASSES, default=list(CLASSES))
+    ap.add_argument("--classes", nargs="+", choices=CLASSES + START_CLASSES, help="default: every class")
     ap.add_argument("--duration", type=float, default=8.0, help="seconds of each session (>= 4)")
     ap.add_argument(
         "--udp-rcvbuf", type=int, metavar="KIB", help="the teleoperator's --udp-rcvbuf (default: its own)"
@@ -372,8 +551,18 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="also run each UDP case's flood into a drop-all socket of the flood's own (flood: sink)",
     )
-    ap.add_argument("--out", default="bench/results/flood.json")
+    ap.add_argument("--start", action="store_true", help="session starts under a flood from many ports")
+    ap.add_argument("--ports", type=int, default=2000, help="--start: source ports the flood sends from")
+    ap.add_argument("--out", help="default bench/results/flood.json (--start: flood_start.json)")
     a = ap.parse_args(argv)
+    if a.start:
+        a.out = a.out or "bench/results/flood_start.json"
+        a.classes = [c for c in a.classes or START_CLASSES if c in START_CLASSES]
+        if not 1 <= a.ports <= 10_000:
+            ap.error("--ports must be 1 to 10000")
+        return main_start(a, argv)
+    a.out = a.out or "bench/results/flood.json"
+    a.classes = [c for c in a.classes or CLASSES if c in CLASSES]
     if a.duration < 4:
         ap.error("--duration must be at least 4 s")
     if a.repeats < 1:

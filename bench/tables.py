@@ -1208,12 +1208,80 @@ def cpu_session() -> Table:
     )
 
 
+def flood_start(
+    source: str = "flood_start.json",
+    command: str = "python -m bench.flood --start --ports 2000 --rates 30000 100000 --repeats 2",
+) -> Table:
+    """bench.flood --start: a session start under a flood from many source ports, against clean starts."""
+    b = Builder(source)
+    rows: list[tuple[Cell, ...]] = []
+    for i, c in enumerate(b.doc["clean"]):
+        p = f"clean[{i}]"
+        rows.append(
+            ("none", "-", "-", "-", "yes" if c["started"] else "**no**",
+             b.one(f"{p}.handshake_s", ".2f") if c["handshake_s"] is not None else "-",
+             "-", b.one(f"{p}.launch_to_exit_s", ".1f"), "-", b.one(f"{p}.rcvbuf_errors", ".0f"))
+        )  # fmt: skip
+    for i, c in enumerate(b.doc["cases"]):
+        p = f"cases[{i}]"
+        rows.append(
+            (
+                c["class"],
+                b.one(f"{p}.rate", ".0f"),
+                ("{}", (b.fig(f"{p}.sent", ".0f", scale=1.0 / c["flood_s"]),)) if c["flood_s"] else "-",
+                b.one(f"{p}.ports", ".0f"),
+                "yes" if c["started"] else "**no**",
+                b.one(f"{p}.handshake_s", ".2f") if c["handshake_s"] is not None else "-",
+                b.one(f"{p}.handshake_ratio", ".1f") if c.get("handshake_ratio") is not None else "-",
+                b.one(f"{p}.launch_to_exit_s", ".1f"),
+                b.one(f"{p}.to_kernel_drops", ".0f") if c["to_kernel_drops"] is not None else "-",
+                b.one(f"{p}.rcvbuf_errors", ".0f"),
+            )
+        )
+    host = b.doc["host"]
+    load = f"{host['load_before']['1min']:.1f} before, {host['load_after']['1min']:.1f} after"
+    rcvbuf = b.doc.get("udp_rcvbuf_kib")
+    buffer = f"a {rcvbuf} KiB receive buffer" if rcvbuf else "the default 16 MiB receive buffer"
+    return Table(
+        source.removesuffix(".json").replace("_", "-"),
+        source,
+        command,
+        (
+            "flood",
+            "rate asked [/s]",
+            "reached [/s]",
+            "source ports",
+            "started",
+            "handshake [s]",
+            "x clean",
+            "launch to exit [s]",
+            "robot's kernel drops",
+            "host's full-buffer drops",
+        ),
+        tuple(rows),
+        note=(
+            f" The teleoperator with {buffer}; the operator starts a {b.doc['session_s']:g} s session"
+            f" {b.doc['operator_after_flood_s']:g} s into the flood. handshake: the operator's"
+            " `waited_for_session_s`; x clean: against the clean starts' median. The robot's kernel"
+            " drops (its socket filter's and its full buffer's) are read from its log, written only"
+            " when a session ran there. A shared 2-core host: its load average (1 min) was"
+            f" {load}."
+        ),
+    )
+
+
 TABLES: dict[str, Callable[[], Table]] = {
     "sweep": sweep,
     "fronts": fronts,
     "frontier0": frontier0,
     "frontier0-pool": lambda: frontier0("frontier0_pool.json", "python -m bench.frontier0 --pool"),
     "flood": flood,
+    "flood-start": flood_start,
+    "flood-start-rcvbuf": lambda: flood_start(
+        "flood_start_rcvbuf.json",
+        "python -m bench.flood --start --ports 2000 --rates 30000 100000 --udp-rcvbuf 256"
+        " --out bench/results/flood_start_rcvbuf.json",
+    ),
     "transports": transports,
     "fleet": fleet,
     "fleet-sessions": fleet_sessions,

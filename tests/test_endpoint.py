@@ -437,10 +437,12 @@ def test_foreign_junk_takes_the_cheap_path_with_the_full_paths_counts(monkeypatc
     assert port is not None
     real, foreign_calls = port.receive, []
 
-    def spy(data: bytes, t: float, k: int, play: bool = True, from_peer: bool = True) -> Any:
+    def spy(
+        data: bytes, t: float, k: int, play: bool = True, from_peer: bool = True, clock: float | None = None
+    ) -> Any:
         if not from_peer:
             foreign_calls.append(data)
-        return real(data, t, k, play, from_peer)
+        return real(data, t, k, play, from_peer, clock)
 
     monkeypatch.setattr(port, "receive", spy)
     rejected, foreign = port.security.rejected, to.ep.foreign

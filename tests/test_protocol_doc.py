@@ -9,6 +9,7 @@ or JSON for ``inputs``); the constants are the block after ``<!-- constants -->`
 from __future__ import annotations
 
 import ast
+import contextlib
 import hashlib
 import importlib
 import inspect
@@ -525,7 +526,8 @@ def test_the_link_loss_table_is_what_the_node_does() -> None:
     [("EDS:050", "eds:50"), ("cq:8:1.50", "cq:8:1.5"), ("pd:5.0", "pd:5"), ("pd:5:100", "pd:5"),
      ("dct:020:02", "dct:20:2"), ("cq:8:1.2345678", "cq:8:1.23457"), ("eds:+5", "eds:5"),
      ("eds:5_0", "eds:50"), ("pdr:0.8:100:0.8", "pdr:0.8"),
-     ("pdr:0.8:100:0.8:30:30:C0.50", "pdr:0.8:100:0.8:30:30:c0.5")],
+     ("pdr:0.8:100:0.8:30:30:C0.50", "pdr:0.8:100:0.8:30:30:c0.5"),
+     ("pdr:0.8:100:0.8:-0:30", "pdr:0.8:100:0.8:0:30")],
 )  # fmt: skip
 def test_canonical_codec_specs(given: str, canonical: str) -> None:
     """Section 3.5: the canonical form both sides build their codec from."""
@@ -832,3 +834,247 @@ def test_the_contents_list_every_section() -> None:
     contents = DOC.split("## 1. Overview", 1)[0]
     for number, title in re.findall(r"^## (\d+)\. (.+)$", DOC, re.M):
         assert f"[{number} " in contents, f"section {number} ({title}) is not in the contents"
+
+
+# --- issue 49: the gaps an outside implementation had to guess at ----------------------------------
+def test_every_message_kind_travels_under_the_key_the_document_gives_it() -> None:
+    """Section 2.2 (MUST): hello, welcome, retry and reject under K_hs; start, started and bye under
+    the session key; and a message under the other kind's key is refused after parsing."""
+    assert {c.kind for c in protocol.HANDSHAKE_KINDS} == {"hello", "welcome", "retry", "reject"}
+    assert set(protocol.KINDS) - {c.kind for c in protocol.HANDSHAKE_KINDS} == {"start", "started", "bye"}
+    text = " ".join(_section("2.2").split())
+    assert "**The key of each message kind** (MUST, both sides)" in text
+    assert "`hello`, `welcome`, `retry` and `reject` travel under the handshake key only" in text
+    assert "`start`, `started`, `bye` and data under the session key of the sender's direction only" in text
+
+
+def test_the_jump_bound_runs_on_the_receivers_monotonic_clock_across_tick_0() -> None:
+    """Section 2.4: ``elapsed`` counts from the start's acceptance on the handshake's clock.  An
+    operator whose first data packet is 2000 counters past its start, 0.3 s later, is within the
+    bound (1024 + 4000 * 0.3 = 2224); on a session clock that starts again at tick 0 the robot
+    counted no time since the start and refused it as a jump (bound 1024)."""
+    from teleop.session.endpoint import State
+
+    from .vnet import VirtualNet, params
+
+    net = VirtualNet(0.1)
+    to = net.teleoperator()
+    op = net.operator(params(duration=1.0))
+    net.seconds(5.0, stop=lambda: op.ep.port is not None)
+    assert op.ep.state == State.STARTING and op.ep.port is not None
+    op.ep.port.keys.tx.counter += 2000  # its next datagram, its first data packet, skips 2000
+    net.seconds(5.0, stop=lambda: (port := to.ep.port) is not None and port.node.counters.accepted > 0)
+    assert to.ep.port is not None
+    assert to.ep.port.security.counter_jumps == 0 and to.ep.port.node.counters.accepted > 0
+    assert "the same clock before tick 0 (a `start`, a `started`) and after it" in " ".join(DOC.split())
+
+
+def test_a_candidate_keeps_four_addresses_in_all_the_first_for_good() -> None:
+    """Section 4.3 step 3: 4 addresses in all, the first and the 3 latest others: a start from the
+    first address, or from one of the 3 latest, is answered; from one evicted, not."""
+    secret, t = bytes(32), 10**12
+    addrs = [(f"10.0.0.{i}", 5000 + i) for i in range(1, 7)]
+
+    def handshake(start_from: tuple[str, int]) -> str:
+        to = protocol.TeleoperatorHandshake({}, now_ns=t, timeout_s=10.0, psk=PSK, cookie_secret=secret)
+        hello: dict[str, Any] = {"t": "hello", "v": 1, "t_ns": 7, "nonce": NONCE_OP, **_params().to_msg()}
+        sealer, opener = (
+            auth.Sealer(K_HS, auth.HANDSHAKE, wire.FORWARD),
+            auth.Opener(K_HS, auth.HANDSHAKE, wire.BACKWARD),
+        )
+        nonce_to = b""
+        for a in addrs:  # the same operator's hello (one nonce) from six addresses, in this order
+            body = msgpack.packb(
+                {**hello, "cookie": protocol.make_cookie(secret, a, NONCE_OP, t)}, use_bin_type=True
+            )
+            (welcome,) = [protocol.parse(opener.verify(d)[1]) for d, _ in to.receive(sealer.seal(body), a, t)]
+            assert isinstance(welcome, protocol.Welcome)
+            nonce_to = welcome.nonce
+        k_fwd, _ = auth.session_keys(PSK, SESSION, NONCE_OP, nonce_to)
+        start = protocol.encode(protocol.Start(SESSION, t + 300_000_000, rtt_ns=100_000))
+        out = to.receive(auth.Sealer(k_fwd, auth.SESSION, wire.FORWARD).seal(start), start_from, t)
+        return "started" if out else "nothing"
+
+    assert handshake(addrs[0]) == "started"  # the first, kept for good
+    assert [handshake(a) for a in addrs[3:]] == ["started"] * 3  # the 3 latest
+    assert [handshake(a) for a in addrs[1:3]] == ["nothing"] * 2  # evicted by the 5th and 6th
+    assert protocol.CANDIDATE_ADDRS == 4
+    assert "**4** addresses in all, the first kept for good and the **3** latest others" in " ".join(
+        DOC.split()
+    )
+
+
+def _byes_of(session: int, out: list[tuple[Any, bytes]]) -> list[Any]:
+    """The session-key byes of ``session`` among the datagrams ``out`` (the body is not encrypted)."""
+    found = []
+    for _, data in out:
+        hdr = auth.peek(data)
+        body = data[auth.HEADER_BYTES : -auth.TAG_BYTES]
+        if hdr is None or hdr[0] != auth.SESSION or not protocol.is_control(body):
+            continue
+        with contextlib.suppress(ProtocolError):
+            msg = protocol.parse(body)
+            if isinstance(msg, protocol.Bye) and msg.session == session:
+                found.append(msg)
+    return found
+
+
+def _recorder(sent: list[tuple[Any, bytes]]) -> Any:
+    """A tap that keeps (source, datagram) of everything sent and delivers it unchanged."""
+
+    def tap(now: int, src: Any, dst: Any, data: bytes) -> list[tuple[Any, Any, bytes]]:
+        sent.append((src, data))
+        return [(src, dst, data)]
+
+    return tap
+
+
+def test_a_ghost_ends_with_no_bye() -> None:
+    """Sections 4.3 step 8 and 4.6: a teleoperator ends a session its operator never joined at once,
+    with no linger and no bye; it waits for an operator again."""
+    from teleop.session.endpoint import EndReason, SessionEnded, State
+
+    from .vnet import TO, VirtualNet, params
+
+    net = VirtualNet(0.1)
+    to = net.teleoperator()
+    op = net.operator(params(duration=0.0))
+    sent: list[tuple[Any, bytes]] = []
+    net.tap = _recorder(sent)
+    net.seconds(20.0, stop=lambda: op.ep.state != State.HANDSHAKE)
+    net.kill(op.addr)  # dies once its start was confirmed: the robot's session is a ghost
+    net.seconds(30.0, stop=lambda: bool(to.of(SessionEnded)))
+    net.seconds(1.0)
+    (ev,) = to.of(SessionEnded)
+    assert ev.reason == EndReason.PEER_SILENT and to.ep.state == State.HANDSHAKE
+    assert not _byes_of(7, [(s, d) for s, d in sent if s == TO])
+    assert "no linger and **no `bye`**" in " ".join(_section("4.3").split())
+
+
+def test_a_takeover_sends_the_old_operator_no_bye_and_runs_the_new_session_from_its_tick_0() -> None:
+    """Sections 4.5 and 4.6: the replaced session ends at once with no bye; the new session is run
+    as any the robot commits to, from its own tick 0 when its start came ahead of it."""
+    from teleop.session.endpoint import EndReason, Replaced, SessionEnded, State
+
+    from .vnet import OP, TO, VirtualNet, params
+
+    net = VirtualNet(0.5)
+    to = net.teleoperator()
+    op = net.operator(params(duration=8.0))
+    net.seconds(5.0, stop=lambda: op.ep.state == to.ep.state == State.RUNNING)
+    net.seconds(1.0)
+    sent: list[tuple[Any, bytes]] = []
+    net.tap = _recorder(sent)
+    net.kill(OP)
+    net.seconds(0.3)
+    op2 = net.operator(params(session=8, duration=2.0), addr=("10.0.0.4", 5000), offset_ns=3 * 10**9)
+    net.seconds(5.0, stop=lambda: op2.ep.state == State.RUNNING)
+    (rp,) = to.of(Replaced)
+    assert (rp.old_session, rp.new_session) == (7, 8)
+    assert [e.reason for e in to.of(SessionEnded)] == [EndReason.REPLACED]
+    assert not _byes_of(7, [(s, d) for s, d in sent if s == TO])
+    new = to.started()[-1]
+    assert new.params.session == 8 and new.k0 == 0  # its own tick 0, not the old session's count
+    assert "its first tick is tick 0 when the start came ahead of it" in " ".join(_section("4.5").split())
+
+
+def test_the_robot_starts_within_its_phase_range_whatever_the_hello_says() -> None:
+    """Section 5.1: the hello's ``phase`` only caps where the robot starts; the start is the stated
+    formula, in [0.25, max(0.25, min(phase, 0.9))], and a hello below 0.25 or above 0.9 is valid."""
+    from teleop.session.link.phase import ClockTracker
+
+    for dt in (1e-3, 1e-4, 1e-2):
+        for phase in (0.0, 0.1, 0.25, 0.5, 0.95, 0.999):
+            p = ClockTracker(dt, phase, moves_phase=True).phase
+            assert p == max(0.25, min(phase, 150e-6 / dt, 0.9)), (dt, phase)
+            assert 0.25 <= p <= max(0.25, min(phase, 0.9))
+            params = SessionParams(session=7, codec="none", scenario="step", dof=1, b=1, full_scale=2,
+                                   duration=1, dt=dt, phase=phase)  # fmt: skip
+            assert SessionParams.from_msg(params.to_msg()).phase == phase
+    assert "`p = max(0.25, min(phase, 150 us / dt, 0.9))`" in " ".join(_section("5.1").split())
+
+
+def test_conceal_repeats_the_payloads_value_not_what_the_guard_let_through() -> None:
+    """Section 3.7 step 6: ``last`` is the payload's value as decoded, before the guard of step 7."""
+    node = make_node(
+        "teleoperator", scenario="step", dof=1, dt=0.001, b=1.0, codec="none", full_scale=2.0,
+        session=9, options=PortOptions(on_loss="conceal"),
+    )  # fmt: skip
+    codec = make_codec("none", 1, 2.0)
+    payload = codec.encoder().encode(np.array([1.0]))
+    assert payload is not None
+    value = float(codec.raw.dequantize(codec.raw.quantize(np.array([1.0])))[0])
+    tiny = 0.25 * 0.5e-3 * value**2  # a quarter of the sample's energy: the guard cuts it to half
+    node.receive_packet(wire.Packet(9, wire.FORWARD, 0, 0, 0, codec.codec_id, payload, tiny))
+    node.tick(0.0)
+    assert float(node.wave_in[0]) == pytest.approx(0.5 * value)  # what the guard let through
+    assert float(node.decoder.next()[0]) == value  # what conceal plays next: the payload's value
+
+
+def test_the_report_bucket_is_refilled_to_the_last_tick_run() -> None:
+    """Section 3.7 step 7: ``t`` is the session time of the last tick the node ran before it took
+    the report (here tick 99 of 100 ran: 0.099 s), not of the tick about to run (0.1 s)."""
+    dt = 0.001
+    node = make_node(
+        "teleoperator", scenario="step", dof=1, dt=dt, b=1.0, codec="none", full_scale=2.0,
+        session=9, options=PortOptions(),
+    )  # fmt: skip
+    p_max = node.guard.max_power
+    depth = 0.2 * p_max
+    payload = make_codec("none", 1, 2.0).encoder().encode(np.array([0.0]))
+    assert payload is not None
+
+    def report(seq: int, energy: float) -> None:
+        node.receive_packet(wire.Packet(9, wire.FORWARD, seq, seq, 0, 0, payload, energy))
+
+    node.tick(0.0)
+    report(0, depth)  # the first report empties the bucket (t_prev = 0, tick 0's time)
+    for k in range(1, 100):
+        node.tick(k * dt)
+    before = node.guard.report.energy_reports_clamped
+    report(1, depth + p_max * 99.5 * dt)  # half a tick more than 99 ticks' refill
+    assert node.guard.report.energy_reports_clamped == before + 1
+    text = " ".join(_section("3.7").split())
+    assert "the session time `j dt` of the last tick the receiving node ran before it accepted" in text
+
+
+def test_integers_in_any_msgpack_format_and_never_negative() -> None:
+    """Sections 3.1 and 4.1: any msgpack integer format that holds the value; a negative integer is
+    out of every int field's range and refused."""
+    body = (
+        b"\x9a" + msgpack.packb(b"TW", use_bin_type=True) + b"\x01" + b"\xd0\x09" + b"\x00"
+        + b"\xd0\x05" + b"\x00\x00\x00" + msgpack.packb(b"\0\0", use_bin_type=True) + msgpack.packb(0.0)
+    )  # fmt: skip
+    body += zlib.crc32(body).to_bytes(4, "little")
+    pkt = wire.decode(body)
+    assert (pkt.session, pkt.seq) == (9, 5)  # int 8 (d0) holds them as well as a fixint
+    neg = msgpack.packb([b"TW", 1, 9, 0, -1, 0, 0, 0, b"\0\0", 0.0], use_bin_type=True)
+    with pytest.raises(wire.WireError, match="field seq must be an unsigned integer <= 4294967295, got -1"):
+        wire.decode(neg + zlib.crc32(neg).to_bytes(4, "little"))
+    text = " ".join(DOC.split())
+    assert "`field seq must be an unsigned integer <= 4294967295, got -1`" in text
+    msg = _params().to_msg()
+    with pytest.raises(ProtocolError, match=re.escape("seed must be an integer in 0..4294967295, got -1")):
+        SessionParams.from_msg({**msg, "seed": -1})
+    assert "`seed must be an integer in 0..4294967295, got -1`" in " ".join(_section("4.1").split())
+
+
+@pytest.mark.parametrize(
+    ("sent", "canonical"),
+    [("2ms", None), (" 2", "2"), ("02", "2"), ("2.0", "2"), (".5", "0.5"), ("1e1", "10"), ("1_0", "10"),
+     ("-0", "0"), ("OFF", "off"), ("\u0662", "2")],
+)  # fmt: skip
+def test_a_robot_refuses_every_spelling_of_playout_but_the_canonical_one(
+    sent: str, canonical: str | None
+) -> None:
+    """Section 4.2: the robot names no normalisation; each spelling the table lists is refused in one
+    line naming the field (and its canonical form, when the spelling names a valid one)."""
+    msg = _params().to_msg()
+    with pytest.raises(ProtocolError, match="playout") as e:
+        SessionParams.from_msg({**msg, "playout": sent})
+    assert "\n" not in str(e.value)
+    if canonical is not None:
+        assert f"canonical form '{canonical}'" in str(e.value)
+        assert SessionParams.from_msg({**msg, "playout": canonical}).playout == canonical
+    listed = f'`"{sent}"`' if sent != "\u0662" else "a non-ASCII digit"
+    assert listed in DOC

@@ -1113,7 +1113,9 @@ class Endpoint:
             port.receive(data, t, k, play, from_peer=False)  # counted as a rejection
             self.foreign += 1
             return
-        msg = port.receive(data, t, k, play)
+        # The jump bound on the clock the handshake's window ran on (PROTOCOL.md 2.4), not the
+        # session's, which starts again at tick 0 and moves with it.
+        msg = port.receive(data, t, k, play, clock=now_ns / 1e9)
         if msg is not None:
             self._control(msg, now_ns)
 

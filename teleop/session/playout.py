@@ -72,7 +72,7 @@ def parse_playout(text: str) -> str:
         raise ValueError(what) from None
     if not 0.0 <= ms <= MAX_EXTRA_MS or not math.isfinite(ms):
         raise ValueError(what)
-    return f"{ms:g}"
+    return f"{ms + 0.0:g}"  # "-0" is "0": a zero has no sign (PROTOCOL.md 4.2)
 
 
 @dataclass

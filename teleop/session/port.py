@@ -706,7 +706,13 @@ class Port:
 
     # --- inbound -------------------------------------------------------------------------
     def receive(
-        self, data: bytes, t: float, k: int, play: bool = True, from_peer: bool = True
+        self,
+        data: bytes,
+        t: float,
+        k: int,
+        play: bool = True,
+        from_peer: bool = True,
+        clock: float | None = None,
     ) -> protocol.Message | None:
         """Take one datagram that arrived at session time ``t`` during tick ``k``.
 
@@ -714,8 +720,11 @@ class Port:
         against the replay window and (with ``play``) handed to the node; a control message is
         parsed and returned for the session logic.  Anything else is counted and dropped.  A
         datagram from another address (``from_peer`` False) may only be a handshake message.
-        Never raises.
+        ``clock``: the arrival on the receiver's monotonic clock (s), which the replay window's jump
+        bound runs on (PROTOCOL.md 2.4: the handshake's clock, not the session's, whose tick 0 may
+        move); ``t`` if not given (one clock throughout, as in ``teleop sim``).  Never raises.
         """
+        mono = t if clock is None else clock
         sec = self.security
         hdr = auth.peek(data)
         if hdr is not None and hdr[0] == auth.HANDSHAKE:
@@ -736,7 +745,7 @@ class Port:
             return None
         k = max(k, 0)
         if body[:1] != b"\x9a":  # not a 10-element msgpack array: a control message
-            return self._control(body, auth.SESSION) if self._accept(counter, t) else None
+            return self._control(body, auth.SESSION) if self._accept(counter, mono) else None
         node = self.node
         try:
             pkt = wire.decode(body)
@@ -748,7 +757,7 @@ class Port:
         ours = pkt.session == node.session and pkt.direction == node.rx_direction
         if ours:
             self.observer.observe(t, pkt.seq, pkt.t_us / 1e6, len(data))
-        if not self._accept(counter, t):
+        if not self._accept(counter, mono):
             return None
         if ours:
             self.clock.observe(k, t - pkt.tick * self.dt)

@@ -283,6 +283,12 @@ def _defaults(spec: str, params: tuple[Param, ...], values: dict[str, float]) ->
     return values
 
 
+def _g(x: float) -> str:
+    """``%g`` without a sign on zero: ``-0`` names the same value as ``0`` and is no canonical form
+    (PROTOCOL.md 3.5; issue 49)."""
+    return f"{x + 0.0:g}"
+
+
 def _canonical(name: str, v: dict[str, float]) -> str:
     """The shortest positional form that means the same (PROTOCOL.md 3.5, canonical spec)."""
     if name == "none":
@@ -290,16 +296,16 @@ def _canonical(name: str, v: dict[str, float]) -> str:
     if name in ("ids", "eds"):
         return f"{name}:{int(v['K'])}"
     if name == "cq":
-        return f"cq:{int(v['BITS'])}" + (f":{v['RANGE']:g}" if "RANGE" in v else "")
+        return f"cq:{int(v['BITS'])}" + (f":{_g(v['RANGE'])}" if "RANGE" in v else "")
     if name == "dct":
         return f"dct:{int(v['N'])}:{int(v['M'])}"
-    pct, hb = f"{v['PCT']:g}", int(v["MAXMS"])
+    pct, hb = _g(v["PCT"]), int(v["MAXMS"])
     if name in ("pd", "pdp"):
         return f"{name}:{pct}" + (f":{hb}" if hb != DEFAULT_HEARTBEAT_MS else "")
-    bpct, fr, br = f"{v['BPCT']:g}", f"{v['FR']:g}", f"{v['BR']:g}"
+    bpct, fr, br = _g(v["BPCT"]), _g(v["FR"]), _g(v["BR"])
     tail = [bpct, fr, br] if (v["FR"], v["BR"]) != (100.0, 100.0) else [bpct]
     if "KAPPA" in v:
-        tail = [bpct, fr, br, f"c{100.0 * (v['KAPPA'] / 100.0):g}"]
+        tail = [bpct, fr, br, f"c{_g(100.0 * (v['KAPPA'] / 100.0))}"]
     if tail == [pct]:
         tail = []
     return ":".join(["pdr", pct, *([str(hb)] if tail or hb != DEFAULT_HEARTBEAT_MS else []), *tail])
