@@ -132,7 +132,7 @@ def _side(
     path: Path, max_tick: int, extra: dict[str, list[bytes]] | None = None
 ) -> dict[str, npt.NDArray[Any]]:
     """The columns the export needs of one log, from tick 0, and ``ran``."""
-    got = read_columns(path, _TOPICS, max_tick, extra)
+    got = read_columns(path, _TOPICS, max_tick, extra, names=_COLUMNS)
     if not got["ran"].size:
         raise LogError(f"{path}: no tick in the log")
     return {c: got[c] for c in (*_COLUMNS, "ran")}
