@@ -206,6 +206,66 @@ def read_episodes(log_dir: Path, fps: int, session: int | None = None) -> list[E
     return episodes
 
 
+def _window(fps: int, dt: float) -> int:
+    """Samples a frame: ``1/fps`` must hold a whole number of the session's samples."""
+    w = 1.0 / (fps * dt)
+    if abs(w - round(w)) > 1e-9 or round(w) < 1:
+        rate = round(1 / dt)
+        allowed = ", ".join(str(f) for f in range(1, rate + 1) if rate % f == 0)
+        raise ExportError(
+            f"--fps {fps}: a frame must hold a whole number of the session's {rate} Hz samples "
+            f"(one of {allowed})"
+        )
+    return round(w)
+
+
+def _features(
+    op: dict[str, npt.NDArray[Any]], to: dict[str, npt.NDArray[Any]], sl: slice, n_all: int
+) -> dict[str, npt.NDArray[Any]]:
+    """The per-tick features over the episode's ticks ``sl``, from both sides' columns."""
+    return {
+        "action": to["v"][sl],
+        "observation.operator.velocity": op["v"][sl],
+        "observation.operator.force": op["f"][sl],
+        "observation.robot.force": to["f"][sl],
+        "observation.time": to["play_time_s"][sl],
+        "observation.channel.forward_sent": (op["tx_seq"][sl] >= 0).astype(np.uint8),
+        "observation.channel.backward_sent": (to["tx_seq"][sl] >= 0).astype(np.uint8),
+        "observation.channel.forward_margin": to["energy_margin_observed"][sl],
+        "observation.channel.backward_margin": op["energy_margin_observed"][sl],
+        "observation.channel.forward_controller": _acted(to["controller_ticks"])[sl],
+        "observation.channel.backward_controller": _acted(op["controller_ticks"])[sl],
+        "observation.channel.forward_delay": _delay(
+            to["rx_seq"][:n_all], to["play_time_s"][:n_all], op["tx_seq"][:n_all], op["send_time_s"][:n_all]
+        )[sl],
+        "observation.channel.backward_delay": _delay(
+            op["rx_seq"][:n_all], op["play_time_s"][:n_all], to["tx_seq"][:n_all], to["send_time_s"][:n_all]
+        )[sl],
+    }
+
+
+def _add_state(
+    ep: Episode, state: tuple[npt.NDArray[Any], list[str], npt.NDArray[Any]], win: int, a: int, end: int
+) -> None:
+    """The robot's own state, at its own rate, on the frames' grid (NaN where a sample is missing);
+    left out, said in the notes, where a frame would not hold whole samples."""
+    ks, names, values = state
+    if ks.size:
+        every = int(np.diff(ks).min()) if ks.size > 1 else win
+        if win % every:
+            ep.notes.append(f"the robot's state (every {every} ticks) is left out: a frame of {win} ticks "
+                         "must hold whole samples (--fps)")  # fmt: skip
+        else:
+            grid = np.arange(a - a % every + (every if a % every else 0), end, every)
+            full = np.full((grid.size, len(names)), math.nan)
+            at = np.searchsorted(ks, grid)
+            hit = at < ks.size
+            hit[hit] = ks[at[hit]] == grid[hit]
+            full[hit] = values[at[hit]]
+            ep.ticks["observation.robot.state"] = full
+            ep.state_names, ep.state_every = names, every
+
+
 def read_episode(
     log_dir: Path,
     fps: int,
@@ -231,14 +291,7 @@ def read_episode(
     sid, summary, params = seen[to_path] if to_path in seen else log_session(to_path)
     op_summary = (seen[op_path] if op_path in seen else log_session(op_path))[1]
     p = checked_params(to_path, params)
-    w = 1.0 / (fps * p.dt)
-    if abs(w - round(w)) > 1e-9 or round(w) < 1:
-        rate = round(1 / p.dt)
-        allowed = ", ".join(str(f) for f in range(1, rate + 1) if rate % f == 0)
-        raise ExportError(
-            f"--fps {fps}: a frame must hold a whole number of the session's {rate} Hz samples "
-            f"(one of {allowed})"
-        )
+    win = _window(fps, p.dt)
     for path, finished in ((op_path, op_summary), (to_path, summary)):
         if not finished:
             notes.append(f"{path.name}: its process did not finish the log (killed?): the episode ends "
@@ -255,7 +308,6 @@ def read_episode(
         op, to = op_job.result(), to_job.result()
     n_all = min(op["ran"].size, to["ran"].size)
     both = np.flatnonzero(op["ran"][:n_all] & to["ran"][:n_all])
-    win = round(w)
     if both.size == 0:
         raise ExportError(f"{log_dir}: no tick that both sides ran: no episode")
     a, b = int(both[0]), int(both[-1]) + 1
@@ -271,44 +323,12 @@ def read_episode(
         )
     end = a + frames * win
     sl = slice(a, end)
-    ticks: dict[str, npt.NDArray[Any]] = {
-        "action": to["v"][sl],
-        "observation.operator.velocity": op["v"][sl],
-        "observation.operator.force": op["f"][sl],
-        "observation.robot.force": to["f"][sl],
-        "observation.time": to["play_time_s"][sl],
-        "observation.channel.forward_sent": (op["tx_seq"][sl] >= 0).astype(np.uint8),
-        "observation.channel.backward_sent": (to["tx_seq"][sl] >= 0).astype(np.uint8),
-        "observation.channel.forward_margin": to["energy_margin_observed"][sl],
-        "observation.channel.backward_margin": op["energy_margin_observed"][sl],
-        "observation.channel.forward_controller": _acted(to["controller_ticks"])[sl],
-        "observation.channel.backward_controller": _acted(op["controller_ticks"])[sl],
-        "observation.channel.forward_delay": _delay(
-            to["rx_seq"][:n_all], to["play_time_s"][:n_all], op["tx_seq"][:n_all], op["send_time_s"][:n_all]
-        )[sl],
-        "observation.channel.backward_delay": _delay(
-            op["rx_seq"][:n_all], op["play_time_s"][:n_all], to["tx_seq"][:n_all], to["send_time_s"][:n_all]
-        )[sl],
-    }
+    ticks = _features(op, to, sl, n_all)
     # The robot's kind (a spec's name: ``franka:HOST`` is ``franka``; its host stays out of a dataset).
     spec = (summary.get("device") or {}).get("spec") if isinstance(summary.get("device"), dict) else None
     robot = str(spec).split(":", 1)[0][:64] if spec else ""
     ep = Episode(str(log_dir), sid, p.dt, p.dof, a, ticks, robot=robot, scenario=p.scenario, notes=notes)
-    ks, names, values = read_states(to_path, max_tick, states["state"])
-    if ks.size:
-        every = int(np.diff(ks).min()) if ks.size > 1 else win
-        if win % every:
-            notes.append(f"the robot's state (every {every} ticks) is left out: a frame of {win} ticks "
-                         "must hold whole samples (--fps)")  # fmt: skip
-        else:
-            grid = np.arange(a - a % every + (every if a % every else 0), end, every)
-            full = np.full((grid.size, len(names)), math.nan)
-            at = np.searchsorted(ks, grid)
-            hit = at < ks.size
-            hit[hit] = ks[at[hit]] == grid[hit]
-            full[hit] = values[at[hit]]
-            ep.ticks["observation.robot.state"] = full
-            ep.state_names, ep.state_every = names, every
+    _add_state(ep, read_states(to_path, max_tick, states["state"]), win, a, end)
     return ep
 
 
@@ -440,16 +460,9 @@ def _tasks_table(tasks: list[str]) -> Any:
     return table.replace_schema_metadata({b"pandas": json.dumps(meta).encode()})
 
 
-def export(
-    episodes: list[Episode], tasks: list[str], out: Path, fps: int, notes: list[str] | None = None
-) -> dict[str, Any]:
-    """Write ``episodes`` (``tasks[i]`` the task of episode ``i``) as a LeRobot v3.0 dataset into
-    the new folder ``out`` (it must not exist, or be empty: a dataset is never written over).
-    Written into a fresh folder beside it, renamed into place whole: a failed export leaves none.
-    Returns info.json's content; what the caller should be told is added to ``notes``."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
+def _one_kind(episodes: list[Episode], notes: list[str]) -> None:
+    """One dataset holds sessions of one kind (DoF, rate); robots with other states lose that one
+    feature, said in ``notes``."""
     first = episodes[0]
     for ep in episodes[1:]:
         if (ep.dof, ep.dt) != (first.dof, first.dt):
@@ -459,7 +472,6 @@ def export(
                 "or record them with the same --dof)"
             )
     layouts = {(tuple(ep.state_names), ep.state_every) for ep in episodes}
-    notes = notes if notes is not None else []
     if len(layouts) > 1:  # robots with other states (a MuJoCo robot and a Franka): no common feature
         notes.append(
             "observation.robot.state is left out: the episodes' robots log different states "
@@ -468,24 +480,152 @@ def export(
         for ep in episodes:
             ep.state_names, ep.state_every = [], 0
             ep.ticks.pop("observation.robot.state", None)
-    win = round(1.0 / (fps * first.dt))
-    feats = [f for f in FEATURES if f.per != "state" or first.state_names]
-    task_list = list(dict.fromkeys(tasks))
-    info_features: dict[str, Any] = {}
+
+
+def _info_features(feats: list[Feature], first: Episode, win: int) -> dict[str, Any]:
+    """info.json's ``features``: ours with their units and reasons, then LeRobot's own columns."""
+    out: dict[str, Any] = {}
     for f in feats:
-        info_features[f.name] = {
+        out[f.name] = {
             "dtype": f.dtype, "shape": _shape(f, first, win), "names": _names(f, first),
             "unit": f.unit, "description": f.why,
         }  # fmt: skip
-    info_features["timestamp_ns"] = {
+    out["timestamp_ns"] = {
         "dtype": "int64", "shape": [1], "names": None, "unit": "ns",
         "description": "the frame's first sample, exactly: ns since the episode's first tick (timestamp "
         "is float32 and rounds)",
     }  # fmt: skip
     for name, dtype in (("timestamp", "float32"), ("frame_index", "int64"), ("episode_index", "int64"),
                         ("index", "int64"), ("task_index", "int64")):  # fmt: skip
-        info_features[name] = {"dtype": dtype, "shape": [1], "names": None}
+        out[name] = {"dtype": dtype, "shape": [1], "names": None}
+    return out
 
+
+def _episode_table(
+    ep: Episode, e_i: int, index: int, task_index: int, feats: list[Feature], win: int, fps: int
+) -> tuple[Any, dict[str, dict[str, npt.NDArray[Any]]]]:
+    """One episode's frames as a pyarrow table, and each column's stats."""
+    import pyarrow as pa
+
+    frames = next(iter(ep.ticks.values())).shape[0] // win
+    cols: dict[str, Any] = {}
+    stats: dict[str, dict[str, npt.NDArray[Any]]] = {}
+    for f in feats:
+        x = _frames(ep.ticks[f.name], frames)
+        cols[f.name] = _list_array(x)
+        stats[f.name] = _stats(x)
+    fi = np.arange(frames, dtype=np.int64)
+    own = {
+        "timestamp_ns": fi * win * round(ep.dt * 1e9),
+        "timestamp": (fi / fps).astype(np.float32),
+        "frame_index": fi,
+        "episode_index": np.full(frames, e_i, dtype=np.int64),
+        "index": index + fi,
+        "task_index": np.full(frames, task_index, dtype=np.int64),
+    }
+    for name, a in own.items():
+        cols[name] = pa.array(a)
+        stats[name] = _stats(a)
+    return pa.table(cols), stats
+
+
+class _DataFiles:
+    """LeRobot's data files: a new file past DATA_FILES_SIZE_IN_MB, a new chunk past CHUNKS_SIZE."""
+
+    def __init__(self, root: Path) -> None:
+        self.root, self.chunk, self.file, self.size = root, 0, 0, 0
+        self.writer: Any = None
+
+    def write(self, table: Any) -> tuple[int, int]:
+        """Append ``table``; returns the (chunk, file) it went into."""
+        import pyarrow.parquet as pq
+
+        if self.writer is not None and self.size + table.nbytes > DATA_FILES_SIZE_IN_MB << 20:
+            self.close()
+            self.file += 1
+            if self.file == CHUNKS_SIZE:
+                self.chunk, self.file = self.chunk + 1, 0
+        if self.writer is None:
+            path = self.root / DATA_PATH.format(chunk_index=self.chunk, file_index=self.file)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self.writer = pq.ParquetWriter(path, table.schema, compression="zstd")
+        self.writer.write_table(table)
+        self.size += table.nbytes
+        return self.chunk, self.file
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+        self.writer, self.size = None, 0
+
+
+def _write(tmp: Path, episodes: list[Episode], tasks: list[str], fps: int) -> dict[str, Any]:
+    """The dataset's files into ``tmp``; returns info.json's content."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    first = episodes[0]
+    win = round(1.0 / (fps * first.dt))
+    feats = [f for f in FEATURES if f.per != "state" or first.state_names]
+    task_list = list(dict.fromkeys(tasks))
+    for d in ("meta", "meta/episodes/chunk-000", "data/chunk-000"):
+        os.makedirs(tmp / d, 0o755, exist_ok=True)
+    ep_rows: list[dict[str, Any]] = []
+    all_stats: dict[str, list[dict[str, npt.NDArray[Any]]]] = {}
+    index = 0
+    files = _DataFiles(tmp)
+    for e_i, ep in enumerate(episodes):
+        table, ep_stats = _episode_table(ep, e_i, index, task_list.index(tasks[e_i]), feats, win, fps)
+        chunk_i, file_i = files.write(table)
+        frames = table.num_rows
+        row: dict[str, Any] = {
+            "episode_index": e_i,
+            "tasks": [tasks[e_i]],
+            "length": frames,
+            "data/chunk_index": chunk_i,
+            "data/file_index": file_i,
+            "dataset_from_index": index,
+            "dataset_to_index": index + frames,
+            "meta/episodes/chunk_index": 0,
+            "meta/episodes/file_index": 0,
+        }
+        for name, st in ep_stats.items():
+            for s, v in st.items():
+                row[f"stats/{name}/{s}"] = v.tolist()
+            all_stats.setdefault(name, []).append(st)
+        ep_rows.append(row)
+        index += frames
+    files.close()
+    pq.write_table(pa.Table.from_pylist(ep_rows), tmp / EPISODES_PATH.format(chunk_index=0, file_index=0))
+    pq.write_table(_tasks_table(task_list), tmp / "meta/tasks.parquet")
+    _json(tmp / "meta/stats.json", _jsonable({k: _aggregate(v) for k, v in all_stats.items()}))
+    info = {
+        "codebase_version": CODEBASE_VERSION,
+        "robot_type": ", ".join(dict.fromkeys(ep.robot for ep in episodes if ep.robot)) or None,
+        "total_episodes": len(episodes),
+        "total_frames": index,
+        "total_tasks": len(task_list),
+        "chunks_size": CHUNKS_SIZE,
+        "data_files_size_in_mb": DATA_FILES_SIZE_IN_MB,
+        "video_files_size_in_mb": 500,
+        "fps": fps,
+        "splits": {"train": f"0:{len(episodes)}"},
+        "data_path": DATA_PATH,
+        "video_path": None,
+        "features": _info_features(feats, first, win),
+    }
+    _json(tmp / "meta/info.json", info)
+    return info
+
+
+def export(
+    episodes: list[Episode], tasks: list[str], out: Path, fps: int, notes: list[str] | None = None
+) -> dict[str, Any]:
+    """Write ``episodes`` (``tasks[i]`` the task of episode ``i``) as a LeRobot v3.0 dataset into
+    the new folder ``out`` (it must not exist, or be empty: a dataset is never written over).
+    Written into a fresh folder beside it, renamed into place whole: a failed export leaves none.
+    Returns info.json's content; what the caller should be told is added to ``notes``."""
+    _one_kind(episodes, notes if notes is not None else [])
     out = out.absolute()
     if out.is_symlink() or (out.exists() and (not out.is_dir() or any(out.iterdir()))):
         raise ExportError(f"--out {out}: already there and not an empty folder: a dataset is never "
@@ -493,86 +633,7 @@ def export(
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
     os.mkdir(tmp, 0o755)
     try:
-        for d in ("meta", "meta/episodes/chunk-000", "data/chunk-000"):
-            os.makedirs(tmp / d, 0o755, exist_ok=True)
-        ep_rows: list[dict[str, Any]] = []
-        all_stats: dict[str, list[dict[str, npt.NDArray[Any]]]] = {}
-        index = 0
-        chunk_i = file_i = 0
-        file_bytes = 0
-        writer: Any = None
-        for e_i, ep in enumerate(episodes):
-            n = next(iter(ep.ticks.values())).shape[0]
-            frames = n // win
-            cols: dict[str, Any] = {}
-            ep_stats: dict[str, dict[str, npt.NDArray[Any]]] = {}
-            for f in feats:
-                x = _frames(ep.ticks[f.name], frames)
-                cols[f.name] = _list_array(x)
-                ep_stats[f.name] = _stats(x)
-            fi = np.arange(frames, dtype=np.int64)
-            own = {
-                "timestamp_ns": fi * win * round(ep.dt * 1e9),
-                "timestamp": (fi / fps).astype(np.float32),
-                "frame_index": fi,
-                "episode_index": np.full(frames, e_i, dtype=np.int64),
-                "index": index + fi,
-                "task_index": np.full(frames, task_list.index(tasks[e_i]), dtype=np.int64),
-            }
-            for name, a in own.items():
-                cols[name] = pa.array(a)
-                ep_stats[name] = _stats(a)
-            table = pa.table(cols)
-            if writer is not None and file_bytes + table.nbytes > DATA_FILES_SIZE_IN_MB << 20:
-                writer.close()
-                writer, file_bytes = None, 0
-                file_i += 1
-                if file_i == CHUNKS_SIZE:
-                    chunk_i, file_i = chunk_i + 1, 0
-            if writer is None:
-                path = tmp / DATA_PATH.format(chunk_index=chunk_i, file_index=file_i)
-                path.parent.mkdir(parents=True, exist_ok=True)
-                writer = pq.ParquetWriter(path, table.schema, compression="zstd")
-            writer.write_table(table)
-            file_bytes += table.nbytes
-            row: dict[str, Any] = {
-                "episode_index": e_i,
-                "tasks": [tasks[e_i]],
-                "length": frames,
-                "data/chunk_index": chunk_i,
-                "data/file_index": file_i,
-                "dataset_from_index": index,
-                "dataset_to_index": index + frames,
-                "meta/episodes/chunk_index": 0,
-                "meta/episodes/file_index": 0,
-            }
-            for name, st in ep_stats.items():
-                for s, v in st.items():
-                    row[f"stats/{name}/{s}"] = v.tolist()
-                all_stats.setdefault(name, []).append(st)
-            ep_rows.append(row)
-            index += frames
-        if writer is not None:
-            writer.close()
-        pq.write_table(pa.Table.from_pylist(ep_rows), tmp / EPISODES_PATH.format(chunk_index=0, file_index=0))
-        pq.write_table(_tasks_table(task_list), tmp / "meta/tasks.parquet")
-        _json(tmp / "meta/stats.json", _jsonable({k: _aggregate(v) for k, v in all_stats.items()}))
-        info = {
-            "codebase_version": CODEBASE_VERSION,
-            "robot_type": ", ".join(dict.fromkeys(ep.robot for ep in episodes if ep.robot)) or None,
-            "total_episodes": len(episodes),
-            "total_frames": index,
-            "total_tasks": len(task_list),
-            "chunks_size": CHUNKS_SIZE,
-            "data_files_size_in_mb": DATA_FILES_SIZE_IN_MB,
-            "video_files_size_in_mb": 500,
-            "fps": fps,
-            "splits": {"train": f"0:{len(episodes)}"},
-            "data_path": DATA_PATH,
-            "video_path": None,
-            "features": info_features,
-        }
-        _json(tmp / "meta/info.json", info)
+        info = _write(tmp, episodes, tasks, fps)
         if out.exists():
             os.rmdir(out)  # empty (checked above): the rename needs it gone or empty
         os.rename(tmp, out)
