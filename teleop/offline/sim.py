@@ -343,23 +343,45 @@ def _trace(op: Port, to: Port, dt: float) -> Trace:
     return tr
 
 
-def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]:
-    n_ticks, dt = _ticks(op), cfg.dt
-    tr = _trace(op, to, dt)
-    window = max(1, round(cfg.window_ms / 1e3 / dt))
+def _directions(cfg: SimConfig, tr: Trace, n_ticks: int, codec: Codec) -> dict[str, Any]:
+    """Each direction's packets, bytes and compression (average and minimum instantaneous)."""
+    window = max(1, round(cfg.window_ms / 1e3 / cfg.dt))
     raw_per_tick = np.full(n_ticks, float(codec.raw_bytes_per_tick))
-    baseline_total = 2.0 * n_ticks * codec.raw_bytes_per_tick
     pay = tr.payload_bytes
-    per_dir: dict[str, Any] = {}
-    for d in wire.DIRECTIONS:
-        per_dir[d] = {
+    return {
+        d: {
             "packets": int(np.count_nonzero(pay[d])),
             "payload_bytes": int(pay[d].sum()),
             "packet_bytes": int(tr.packet_bytes[d].sum()),
             "compression": metrics.compression(n_ticks * codec.raw_bytes_per_tick, float(pay[d].sum())),
             "min_instant_compression": metrics.min_instant_compression(raw_per_tick, pay[d], window),
         }
-    sent_total = float(sum(a.sum() for a in pay.values()))
+        for d in wire.DIRECTIONS
+    }
+
+
+def _energy(tr: Trace, o: dict[str, Any], t: dict[str, Any]) -> dict[str, Any]:
+    """Energy sent and played each way (the operator's view ``o``, the teleoperator's ``t``)."""
+    return {
+        "forward": {
+            "sent": o["energy"]["sent"],
+            "played": t["energy"]["played"],
+            "min_margin": float(tr.margin_fwd.min()),
+        },
+        "backward": {
+            "sent": t["energy"]["sent"],
+            "played": o["energy"]["played"],
+            "min_margin": float(tr.margin_bwd.min()),
+        },
+    }
+
+
+def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]:
+    n_ticks, dt = _ticks(op), cfg.dt
+    tr = _trace(op, to, dt)
+    baseline_total = 2.0 * n_ticks * codec.raw_bytes_per_tick
+    per_dir = _directions(cfg, tr, n_ticks, codec)
+    sent_total = float(sum(a.sum() for a in tr.payload_bytes.values()))
     side = {
         "forward": op.summary(peer_produced=_sent_into(to.shim, to), peer_dropped_by_limit=_dropped(to)),
         "backward": to.summary(peer_produced=_sent_into(op.shim, op), peer_dropped_by_limit=_dropped(op)),
@@ -389,18 +411,7 @@ def _summary(cfg: SimConfig, op: Port, to: Port, codec: Codec) -> dict[str, Any]
         "added_delay_ticks": codec.added_delay_ticks,
         # Eq. (4): energy into the communication two-port = forward margin + backward margin.
         "two_port_min_energy": float((tr.margin_fwd + tr.margin_bwd).min()),
-        "energy": {
-            "forward": {
-                "sent": o["energy"]["sent"],
-                "played": t["energy"]["played"],
-                "min_margin": float(tr.margin_fwd.min()),
-            },
-            "backward": {
-                "sent": t["energy"]["sent"],
-                "played": o["energy"]["played"],
-                "min_margin": float(tr.margin_bwd.min()),
-            },
-        },
+        "energy": _energy(tr, o, t),
         # The watchdog of each direction, at its receiver (margins from in-band reports).
         "passivity": {"forward": _no_dir(t["passivity"]), "backward": _no_dir(o["passivity"])},
         "directions": per_dir,
