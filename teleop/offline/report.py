@@ -821,12 +821,9 @@ def figure_title(rep: dict[str, Any]) -> str:
     return ", ".join(x for x in (str(rep.get("codec")), arch, f"over {rep.get('transport')}", net) if x)
 
 
-def summary_text(rep: dict[str, Any], command: str = "teleop run") -> str:
-    """The printed report; its first line names the ``command`` that printed it."""
-    lines = [
-        f"{command}: {rep['scenario']} scenario, codec {rep['codec']}, {rep['dof']} DoF, "
-        f"{rep['duration_s']:g} s over {rep['transport']}"
-    ]
+def _process_lines(rep: dict[str, Any]) -> list[str]:
+    """Each process's loop, then each direction's packets and bytes on the wire."""
+    lines: list[str] = []
     for role, pr in rep["processes"].items():
         if pr is None:
             lines.append(
@@ -855,6 +852,12 @@ def summary_text(rep: dict[str, Any], command: str = "teleop run") -> str:
             f"wire {w['compression_wire']:.2f}:1  min instantaneous (100 ms) "
             f"{w['min_instant_compression_wire']:.2f}:1  received {w['received_packets']}"
         )
+    return lines
+
+
+def _transparency_lines(rep: dict[str, Any]) -> list[str]:
+    """I (eq. 7) against the sim's, the replay with this run's deliveries, per phase, I_dc."""
+    lines: list[str] = []
     tr = rep["transparency"]
     extra = ""
     if "I_sim" in tr:
@@ -895,6 +898,12 @@ def summary_text(rep: dict[str, Any], command: str = "teleop run") -> str:
             f"  delay taken out ({dc['forward']:g} / {dc['backward']:g} ms): I_dc = {tr['I_dc']:.4e}  "
             f"HSI-TO drift max {1e3 * drift['max']:.2f} mm, at the end {1e3 * drift['final']:.2f} mm"
         )
+    return lines
+
+
+def _channel_lines(rep: dict[str, Any]) -> list[str]:
+    """Each direction's watchdog and link, then its playout buffer."""
+    lines: list[str] = []
     for d, pv in (rep["passivity"] or {}).items():
         lk = rep["link"][d]
         delay = lk["delay_ms"]["p50"]  # the median: a skew put right in session leaves early samples
@@ -917,6 +926,18 @@ def summary_text(rep: dict[str, Any], command: str = "teleop run") -> str:
                 f"{dl['p99']:.0f} ms (p99), max {dl['max']:.0f} ms{cost}; late {pl['late']}, "
                 f"reordered and put back in order {pl['reordered_fixed']}"
             )
+    return lines
+
+
+def summary_text(rep: dict[str, Any], command: str = "teleop run") -> str:
+    """The printed report; its first line names the ``command`` that printed it."""
+    lines = [
+        f"{command}: {rep['scenario']} scenario, codec {rep['codec']}, {rep['dof']} DoF, "
+        f"{rep['duration_s']:g} s over {rep['transport']}"
+    ]
+    lines += _process_lines(rep)
+    lines += _transparency_lines(rep)
+    lines += _channel_lines(rep)
     lines += _latency_lines(rep)
     for d, cap in rep.get("rate_cap", {}).items():
         if cap:
