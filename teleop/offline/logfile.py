@@ -775,6 +775,27 @@ def topic_lines(
     return out
 
 
+def _arrow_column(col: Any, topic: str, f: str, kind: str, dof: int) -> npt.NDArray[Any]:
+    """One field of a topic's messages as float64, held to the DoF (``dof``: 0 until the first vector
+    field says it) and to :data:`MAX_TICK_VALUE`."""
+    import pyarrow.compute as pc
+
+    if kind == "vec":
+        lengths = pc.list_value_length(col).to_numpy(zero_copy_only=False)
+        width = dof or (int(lengths[0]) if lengths.size else 0)
+        if col.null_count or (lengths != width).any():
+            raise LogError(f"{topic}: {f} must have {width} values (DoF) in every message")
+        if width > MAX_DOF:
+            raise LogError(f"{topic}: {f} has {width} values (at most {MAX_DOF} DoF)")
+        flat = col.flatten().to_numpy(zero_copy_only=False)
+        x: npt.NDArray[Any] = flat.astype(np.float64).reshape(-1, width)
+    else:
+        x = col.to_numpy(zero_copy_only=False).astype(np.float64)
+    if (np.abs(x) > MAX_TICK_VALUE).any():
+        raise LogError(f"a {topic} message has {f} beyond {MAX_TICK_VALUE:g} in size")
+    return x
+
+
 def read_columns(
     path: Path,
     topics: tuple[str, ...],
@@ -791,7 +812,6 @@ def read_columns(
     ``names``: only these of the record's names (the rest of a message is skipped unconverted:
     a sixth less time for an export, measured)."""
     import pyarrow as pa
-    import pyarrow.compute as pc
     import pyarrow.json as pj
 
     role = _role(path)
@@ -822,21 +842,8 @@ def read_columns(
                 raise LogError(f"a /ROLE/{t} message has no tick number k")
             c["k"] = k.to_numpy()
             for f, name, kind in fields[t]:
-                col = table.column(f).combine_chunks()
-                if kind == "vec":
-                    lengths = pc.list_value_length(col).to_numpy(zero_copy_only=False)
-                    width = dof or (int(lengths[0]) if lengths.size else 0)
-                    if col.null_count or (lengths != width).any():
-                        raise LogError(f"/ROLE/{t}: {f} must have {width} values (DoF) in every message")
-                    if width > MAX_DOF:
-                        raise LogError(f"/ROLE/{t}: {f} has {width} values (at most {MAX_DOF} DoF)")
-                    dof = width
-                    flat = col.flatten().to_numpy(zero_copy_only=False).astype(np.float64)
-                    c[name] = flat.reshape(-1, width)
-                else:
-                    c[name] = col.to_numpy(zero_copy_only=False).astype(np.float64)
-                if (np.abs(c[name]) > MAX_TICK_VALUE).any():
-                    raise LogError(f"a /ROLE/{t} message has {f} beyond {MAX_TICK_VALUE:g} in size")
+                c[name] = _arrow_column(table.column(f).combine_chunks(), f"/ROLE/{t}", f, kind, dof)
+                dof = c[name].shape[1] if kind == "vec" else dof
             ks = c["k"]
             if ks.min() < 0 or (np.diff(ks) <= 0).any():
                 raise LogError(f"/ROLE/{t}: tick numbers must increase from 0 (ticks are logged in order)")

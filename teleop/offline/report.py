@@ -547,6 +547,82 @@ def _process(s: dict[str, Any]) -> dict[str, Any] | None:
     }
 
 
+def _energy(fold: _Fold, op: dict[str, Any], to: dict[str, Any]) -> dict[str, Any]:
+    """Energy sent and played each way, from each side's summary, and the margins' minima."""
+    return {
+        "forward": {
+            "sent": (op.get("energy") or {}).get("sent"),
+            "played": (to.get("energy") or {}).get("played"),
+            "min_margin": fold.fwd.minimum() if fold.any_valid else None,
+        },
+        "backward": {
+            "sent": (to.get("energy") or {}).get("sent"),
+            "played": (op.get("energy") or {}).get("played"),
+            "min_margin": fold.bwd.minimum() if fold.any_valid else None,
+        },
+    }
+
+
+def _compare_sim(
+    rep: dict[str, Any], logs: _Logs, compare_sim: bool, skip_sim: str | None, traces: tuple[Path, ...]
+) -> None:
+    """``teleop sim`` with the session's settings beside the real I, or ``sim_skipped`` saying why
+    not: the caller's reason, a trace file not given, a third-party or hardware device (said even
+    when no sim was asked for)."""
+    fold, p = logs.fold, logs.params
+    op, to = logs.summaries["operator"], logs.summaries["teleoperator"]
+    dt, ticks = p.dt, fold.n
+    netem = {"forward": p.netem_forward, "backward": p.netem_backward}
+    if compare_sim and skip_sim is not None:  # the caller's reason (a Ctrl-C: end within a second)
+        compare_sim = False
+        rep["sim_skipped"] = skip_sim
+    if compare_sim:
+        netem, why = _trace_specs(logs.paths, p, traces)
+        if why is not None:
+            compare_sim = False
+            rep["sim_skipped"] = why
+    specs = {r: (rep["devices"][r] or {}).get("spec") for r in ("hsi", "robot")}
+    # The sim rebuilds the devices only if they are built-ins: a log file never names a module to import.
+    sim_devices = {r: devices.builtin_only(specs[r], r) for r in ("hsi", "robot")}
+    # ... and never one that is hardware: a report is offline, only a session touches an arm.
+    hardware = [
+        f"{r} {specs[r]}" for r in ("hsi", "robot") if sim_devices[r] and devices.is_hardware(specs[r], r)
+    ]
+    if hardware:
+        compare_sim = False
+        rep["sim_skipped"] = f"the {' and the '.join(hardware)} is hardware, which the sim never connects to"
+    elif any(specs[r] is not None and sim_devices[r] is None for r in specs):
+        compare_sim = False
+        rep["sim_skipped"] = "a third-party device: the sim rebuilds built-in devices only"
+    if compare_sim:
+        sim_ticks = min(ticks, fold.sim_ticks)
+        sim = run_case(
+            SimConfig.of_session(
+                p,
+                duration=sim_ticks * dt,
+                netem_forward=netem["forward"],
+                netem_backward=netem["backward"],
+                # The allowance each real receiver's playout buffer settled on (its median), so the
+                # comparison is like for like: delay costs transparency through the wave loop.
+                playout_floor=(_settled_allowance(to, dt), _settled_allowance(op, dt)),
+                hsi=sim_devices["hsi"],
+                robot=sim_devices["robot"],
+            )
+        )
+        i_sim = sim.summary["I"]
+        # A long session is compared over its first SIM_CAP_S: the real I over those ticks.
+        i_cmp = fold.i_sim_window * dt
+        rep["transparency"].update(
+            I_sim=i_sim,
+            sim_s=sim_ticks * dt,
+            I_over_sim_s=i_cmp,
+            relative_difference=abs(i_cmp - i_sim) / i_sim if i_sim else None,
+        )
+        # The simulation's wire blocks, counted by the same port code: equal counts without impairment.
+        rep["sim_wire"] = sim.summary["wire"]
+        _replay(rep, fold, p, sim_ticks, sim_devices)
+
+
 def build(
     log_dir: Path,
     transport: str,
@@ -613,75 +689,16 @@ def build(
         "two_port_min_energy": fold.min_two_port(),
         # The same on the session clock: every tick's energy in, reported or not (Fold._run).
         "two_port_min_energy_clock": fold.min_two_port_clock(),
-        "energy": {
-            "forward": {
-                "sent": (op.get("energy") or {}).get("sent"),
-                "played": (to.get("energy") or {}).get("played"),
-                "min_margin": fold.fwd.minimum() if fold.any_valid else None,
-            },
-            "backward": {
-                "sent": (to.get("energy") or {}).get("sent"),
-                "played": (op.get("energy") or {}).get("played"),
-                "min_margin": fold.bwd.minimum() if fold.any_valid else None,
-            },
-        },
+        "energy": _energy(fold, op, to),
     }
     missing = [role for role, s in logs.summaries.items() if not s]
     if missing:
         rep["summary_missing"] = missing  # killed before it finished its log: its ticks are reported
     if logs.notes:
         rep["notes"] = logs.notes
-    netem = {"forward": p.netem_forward, "backward": p.netem_backward}
-    if compare_sim and skip_sim is not None:  # the caller's reason (a Ctrl-C: end within a second)
-        compare_sim = False
-        rep["sim_skipped"] = skip_sim
-    if compare_sim:
-        netem, why = _trace_specs(logs.paths, p, traces)
-        if why is not None:
-            compare_sim = False
-            rep["sim_skipped"] = why
     # Each side's device as its own log says (a local choice, see teleop.devices).
     rep["devices"] = {"hsi": op.get("device"), "robot": to.get("device")}
-    specs = {r: (rep["devices"][r] or {}).get("spec") for r in ("hsi", "robot")}
-    # The sim rebuilds the devices only if they are built-ins: a log file never names a module to import.
-    sim_devices = {r: devices.builtin_only(specs[r], r) for r in ("hsi", "robot")}
-    # ... and never one that is hardware: a report is offline, only a session touches an arm.
-    hardware = [
-        f"{r} {specs[r]}" for r in ("hsi", "robot") if sim_devices[r] and devices.is_hardware(specs[r], r)
-    ]
-    if hardware:
-        compare_sim = False
-        rep["sim_skipped"] = f"the {' and the '.join(hardware)} is hardware, which the sim never connects to"
-    elif any(specs[r] is not None and sim_devices[r] is None for r in specs):
-        compare_sim = False
-        rep["sim_skipped"] = "a third-party device: the sim rebuilds built-in devices only"
-    if compare_sim:
-        sim_ticks = min(ticks, fold.sim_ticks)
-        sim = run_case(
-            SimConfig.of_session(
-                p,
-                duration=sim_ticks * dt,
-                netem_forward=netem["forward"],
-                netem_backward=netem["backward"],
-                # The allowance each real receiver's playout buffer settled on (its median), so the
-                # comparison is like for like: delay costs transparency through the wave loop.
-                playout_floor=(_settled_allowance(to, dt), _settled_allowance(op, dt)),
-                hsi=sim_devices["hsi"],
-                robot=sim_devices["robot"],
-            )
-        )
-        i_sim = sim.summary["I"]
-        # A long session is compared over its first SIM_CAP_S: the real I over those ticks.
-        i_cmp = fold.i_sim_window * dt
-        rep["transparency"].update(
-            I_sim=i_sim,
-            sim_s=sim_ticks * dt,
-            I_over_sim_s=i_cmp,
-            relative_difference=abs(i_cmp - i_sim) / i_sim if i_sim else None,
-        )
-        # The simulation's wire blocks, counted by the same port code: equal counts without impairment.
-        rep["sim_wire"] = sim.summary["wire"]
-        _replay(rep, fold, p, sim_ticks, sim_devices)
+    _compare_sim(rep, logs, compare_sim, skip_sim, traces)
     return rep
 
 
