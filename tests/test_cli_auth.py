@@ -202,7 +202,7 @@ def test_run_makes_a_private_key_for_both_children_in_memory(tmp_path: Path) -> 
     args = _run_args(tmp_path)
     params = session_params(args, 1234)
     with run_key(args) as key:
-        cmds = build_commands(args, params, tmp_path / "logs", key)
+        cmds = build_commands(args, params, tmp_path, key)
         path = _key_path(cmds.teleoperator)
         assert _key_path(cmds.operator) == path and path.is_absolute()
         assert _in_memory(path) and key.pass_fds == (int(path.name),)  # never on disk
@@ -232,7 +232,7 @@ def test_run_with_a_key_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) ->
     monkeypatch.chdir(tmp_path)
     args = _run_args(tmp_path, "--key-file", "given.key")  # relative: the children get it absolute
     with run_key(args) as rk:
-        cmds = build_commands(args, session_params(args, 7), tmp_path / "logs", rk)
+        cmds = build_commands(args, session_params(args, 7), tmp_path, rk)
     assert _key_path(cmds.operator) == _key_path(cmds.teleoperator) == tmp_path / "given.key"
     assert rk.source == "key-file" and rk.key_id == auth.key_id(key)
     assert (tmp_path / "given.key").exists()  # the user's key stays
@@ -241,7 +241,7 @@ def test_run_with_a_key_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) ->
 def test_run_insecure(tmp_path: Path) -> None:
     args = _run_args(tmp_path, "--insecure")
     with run_key(args) as rk:
-        cmds = build_commands(args, session_params(args, 7), tmp_path / "logs", rk)
+        cmds = build_commands(args, session_params(args, 7), tmp_path, rk)
     for cmd in (cmds.operator, cmds.teleoperator):
         assert "--insecure" in cmd and "--key-file" not in cmd
     assert (rk.source, rk.key_id) == ("insecure", "insecure")
@@ -256,7 +256,7 @@ def test_run_bad_key_file(tmp_path: Path) -> None:
 def test_the_router_of_a_run_gets_no_key(tmp_path: Path) -> None:
     args = _run_args(tmp_path, "--transport", "zenoh", "--zenoh-mode", "client")
     with run_key(args) as rk:
-        cmds = build_commands(args, session_params(args, 7), tmp_path / "logs", rk)
+        cmds = build_commands(args, session_params(args, 7), tmp_path, rk)
     assert cmds.net.router is not None and "router" in cmds.net.router
     assert "--key-file" not in cmds.net.router and "--insecure" not in cmds.net.router
     assert "--key-file" in cmds.operator and "--key-file" in cmds.teleoperator

@@ -190,7 +190,7 @@ def test_cli_rejects_a_bad_device(
     assert message in err
 
 
-def test_run_passes_each_device_to_its_own_side_only() -> None:
+def test_run_passes_each_device_to_its_own_side_only(tmp_path: Path) -> None:
     from teleop.cli.run import RunKey, build_commands
 
     args = argparse.Namespace(
@@ -212,7 +212,7 @@ def test_run_passes_each_device_to_its_own_side_only() -> None:
         ),
         1,
     )  # fmt: skip
-    cmds = build_commands(args, params, Path("/tmp/logs"), RunKey(["--insecure"], "insecure", "0"))
+    cmds = build_commands(args, params, tmp_path, RunKey(["--insecure"], "insecure", "0"))
     assert cmds.teleoperator[cmds.teleoperator.index("--robot") + 1] == "mujoco"
     assert "--hsi" not in cmds.teleoperator
     assert cmds.operator[cmds.operator.index("--hsi") + 1] == "step"

@@ -322,13 +322,13 @@ def test_a_robot_that_says_nan_in_a_session_keeps_the_link() -> None:
 
 
 def test_run_hands_its_children_the_table_and_its_robot_admits_exactly_that(tmp_path: Any) -> None:
-    """``teleop run``'s user chose the settings for both sides: the operator child proposes every
-    setting of the table as given, and the robot child's envelope admits them (and, with the
-    defaults, nothing wider)."""
+    """``teleop run``'s user chose the settings for both sides: both children get them as data (a
+    session file, no session flag re-spelled), the operator proposes every setting of the table as
+    given, and the robot's envelope admits them (and, with the defaults, nothing wider)."""
     from teleop.cli.endpoints import robot_envelope
     from teleop.cli.parser import build_parser
     from teleop.cli.run import TELEOP, RunKey, build_commands
-    from teleop.cli.settings import session_params
+    from teleop.cli.settings import read_session_file, session_params
 
     argv = ["run", "--range", "16", "--b", "0.5", "--no-controller", "--link-timeout", "1000"]
     argv += ["--playout", "300", "--codec", "cq:8", "--rate-cap", "64kbit", "--passivity", "tdpa"]
@@ -336,16 +336,43 @@ def test_run_hands_its_children_the_table_and_its_robot_admits_exactly_that(tmp_
     params = session_params(args, 9)
     assert DEFAULT_ENVELOPE.check(params) is not None  # a default robot would refuse these
     cmds = build_commands(args, params, tmp_path, RunKey(["--insecure"], "insecure", "0"))
+    for cmd in (cmds.operator, cmds.teleoperator):
+        assert not {"--codec", "--range", "--b", "--playout", "--max-range", "--allow-passivity"} & set(cmd)
     op = build_parser().parse_args(cmds.operator[len(TELEOP) :])
-    assert session_params(op, 9) == params
+    assert read_session_file(op.session_file) == params
     to = build_parser().parse_args(cmds.teleoperator[len(TELEOP) :])
-    env = robot_envelope(to)
+    env = robot_envelope(to, read_session_file(to.session_file))
     assert env.check(params) is None
     assert env == DEFAULT_ENVELOPE.admitting(params)
+    plain_args = build_parser().parse_args(["run"])
     plain = build_commands(
-        build_parser().parse_args(["run"]),
-        session_params(build_parser().parse_args(["run"]), 9),
-        tmp_path,
-        RunKey(["--insecure"], "insecure", "0"),
+        plain_args, session_params(plain_args, 10), tmp_path, RunKey(["--insecure"], "insecure", "0")
     )
-    assert robot_envelope(build_parser().parse_args(plain.teleoperator[len(TELEOP) :])) == DEFAULT_ENVELOPE
+    to = build_parser().parse_args(plain.teleoperator[len(TELEOP) :])
+    assert robot_envelope(to, read_session_file(to.session_file)) == DEFAULT_ENVELOPE
+
+
+def test_a_session_file_is_read_as_strictly_as_a_hello(tmp_path: Any) -> None:
+    """A session file is data a process reads: refused by size and kind first, then every field
+    held as a hello's is, each failure one line naming the file."""
+    from teleop.cli.args import CliError
+    from teleop.cli.parser import build_parser
+    from teleop.cli.settings import read_session_file, session_params, write_session_file
+
+    params = session_params(build_parser().parse_args(["run", "--codec", "ids:2"]), 11)
+    good = write_session_file(tmp_path, params)
+    assert read_session_file(str(good)) == params
+    with pytest.raises(CliError, match="outputs are never overwritten"):
+        write_session_file(tmp_path, params)  # never over an earlier one
+    cases = {
+        "bad.json": (b"{not json", "not a session file"),
+        "list.json": (b"[1, 2]", "not a session file"),
+        "dof.json": (good.read_bytes().replace(b'"dof": 2', b'"dof": 0'), "dof must be"),
+        "codec.json": (good.read_bytes().replace(b'"ids:2"', b'"IDS:2"'), "codec"),
+        "big.json": (b" " * (70 * 1024), "bytes"),
+    }
+    for name, (body, said) in cases.items():
+        (tmp_path / name).write_bytes(body)
+        with pytest.raises(CliError, match=said) as e:
+            read_session_file(str(tmp_path / name))
+        assert "\n" not in str(e.value) and (name in str(e.value)), str(e.value)

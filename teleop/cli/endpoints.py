@@ -8,6 +8,7 @@ The router takes no key: it forwards opaque bytes, and the endpoints authenticat
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 from collections.abc import Callable
@@ -36,7 +37,14 @@ from teleop.cli.args import (
     udp_addr,
     zenoh_config_file,
 )
-from teleop.cli.settings import check_duration, check_robot, endpoint_options, netem, session_params
+from teleop.cli.settings import (
+    check_duration,
+    check_robot,
+    endpoint_options,
+    netem,
+    read_session_file,
+    session_params,
+)
 from teleop.control.passivity import ON_LOSS
 from teleop.devices.scenarios import SCENARIOS
 from teleop.limits import MAX_B, MAX_LINK_TIMEOUT_S, MAX_RANGE, MIN_LINK_TIMEOUT_S
@@ -60,7 +68,10 @@ def cmd_operator(args: argparse.Namespace) -> int:
 
     if args.transport == "udp" and args.peer is None:
         raise CliError("--peer HOST:PORT is required with --transport udp (the teleoperator's address)")
-    params = session_params(args, args.session or new_session_id())
+    if args.session_file is not None:  # teleop run's: its settings as data, the session flags unread
+        params = read_session_file(args.session_file)
+    else:
+        params = session_params(args, args.session or new_session_id())
     return run_endpoint(endpoint_options(args, "operator", args.listen), params)
 
 
@@ -82,6 +93,9 @@ def cmd_teleoperator(args: argparse.Namespace) -> int:
         check_duration(args.duration, dof)
     if args.dof is not None:
         check_robot(args.robot, args.dof)
+    # teleop run's robot admits exactly the session its user chose for both sides (a file of data,
+    # read by the hello's parser), and knows its impairment (a trace file only its own may name).
+    told = read_session_file(args.session_file) if args.session_file is not None else None
     pins = Pins(
         codec=args.codec,  # canonical already (the --codec type)
         scenario=args.scenario,
@@ -89,11 +103,11 @@ def cmd_teleoperator(args: argparse.Namespace) -> int:
         b=args.b,
         full_scale=args.range,
         duration=args.duration,
-        netem_forward=netem(args, "forward") or None,
-        netem_backward=netem(args, "backward") or None,
+        netem_forward=(told.netem_forward if told else netem(args, "forward")) or None,
+        netem_backward=(told.netem_backward if told else netem(args, "backward")) or None,
         rate_cap=args.rate_cap,
     )
-    envelope = robot_envelope(args)  # before the endpoint: a bad limit stops here, in one line
+    envelope = robot_envelope(args, told)  # before the endpoint: a bad limit stops here, in one line
     opts = endpoint_options(args, "teleoperator", args.listen or ("127.0.0.1", 0))
     opts.local_limits = envelope
     from teleop.cli.args import one_line
@@ -137,11 +151,20 @@ def _unscaled(lim: _Limit, v: float) -> float:
     return v / lim.scale if lim.scale != 1.0 else v
 
 
-def robot_envelope(args: argparse.Namespace) -> Any:
+def robot_envelope(args: argparse.Namespace, told: Any = None) -> Any:
     """This robot's envelope (``teleop.session.settings.Envelope``), what it affords whatever an operator
     proposes: each limit from its flag, else the default; a pinned --range or --b widens the
     default limit to it (a robot is never refused its own setting), and one given beyond an
-    explicit limit is an error."""
+    explicit limit is an error.  ``told``: the session of a ``--session-file``, which a robot whose
+    user chose it for both sides admits (widened just enough; its device's DoF stays its limit)."""
+    env = _envelope(args)
+    if told is None:
+        return env
+    admitted = env.admitting(told).owning_backward(told.netem_backward)
+    return dataclasses.replace(admitted, max_dof=env.max_dof)
+
+
+def _envelope(args: argparse.Namespace) -> Any:
     from teleop.session.settings import Envelope
 
     e = DEFAULT_ENVELOPE
@@ -238,6 +261,7 @@ def add_operator_parser(sub: Subcommands) -> None:
     add_endpoint_args(o)
     add_key_args(o, "required unless --insecure")
     add_transport_args(o)
+    add_session_file_arg(o, "propose the session FILE holds instead of the one the session flags make")
     o.set_defaults(func=cmd_operator)
 
 
@@ -280,7 +304,18 @@ def add_teleoperator_parser(sub: Subcommands) -> None:
         help="over Zenoh, this robot's description (teleop robots) names the session holding it "
         "(default: busy, without whose)",
     )
+    add_session_file_arg(t, "admit the session FILE holds (its settings and its impairment), as a robot "
+                         "whose user chose them for both sides")  # fmt: skip
     t.set_defaults(func=cmd_teleoperator)
+
+
+def add_session_file_arg(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument(
+        "--session-file",
+        metavar="FILE",
+        help=f"{what}: a session's settings as data (JSON: the hello's fields, PROTOCOL.md 4.2), how "
+        "teleop run hands them to its two processes",
+    )
 
 
 @dataclass(frozen=True)
@@ -300,8 +335,7 @@ class _Limit:
         return self.flag[2:].replace("-", "_")
 
 
-#: The envelope's numeric limits: their flags, the flags ``teleop run`` passes its robot
-#: (:func:`envelope_flags`) and what :func:`robot_envelope` reads, from one list.
+#: The envelope's numeric limits: their flags and what :func:`robot_envelope` reads, from one list.
 LIMITS: tuple[_Limit, ...] = (
     _Limit(
         "max_range", "--max-range", 1.0, positive_float("max range", MAX_RANGE, "sqrt(W)"), "R",
@@ -356,22 +390,6 @@ LIMITS: tuple[_Limit, ...] = (
         "beyond it (default {default})",
     ),
 )  # fmt: skip
-
-
-def envelope_flags(env: Any) -> list[str]:
-    """The teleoperator's flags that make :func:`robot_envelope` give ``env`` (only those that
-    differ from the default): how ``teleop run`` tells its robot what it admits."""
-    e = DEFAULT_ENVELOPE
-    out: list[str] = []
-    for lim in LIMITS:
-        if getattr(env, lim.field) != getattr(e, lim.field):
-            out += [lim.flag, repr(_scaled(lim, getattr(env, lim.field)))]
-    for name, flag in (("passivity", "--allow-passivity"), ("on_loss", "--allow-on-loss")):
-        if getattr(env, name) != getattr(e, name):
-            out += [flag, ",".join(getattr(env, name))]
-    if env.uncontrolled_on_loss:
-        out += ["--allow-no-controller", ",".join(env.uncontrolled_on_loss)]
-    return out
 
 
 def add_envelope_args(t: argparse.ArgumentParser) -> None:

@@ -44,10 +44,9 @@ from teleop.cli.args import (
     int_range,
     verdict_bounds,
 )
-from teleop.cli.endpoints import envelope_flags
 from teleop.cli.report import write_report
-from teleop.cli.settings import check_robot, private_dir, read_key, session_params
-from teleop.session.settings import DEFAULT_CODEC, DEFAULT_ENVELOPE, DEFAULT_SCENARIO, SETTINGS, Setting
+from teleop.cli.settings import check_robot, private_dir, read_key, session_params, write_session_file
+from teleop.session.settings import DEFAULT_CODEC, DEFAULT_SCENARIO
 from teleop.session.verdict import POOR_EXIT, judge_report
 
 TELEOP = [sys.executable, "-m", "teleop.cli"]
@@ -182,24 +181,21 @@ class Commands:
 
 
 def build_commands(args: argparse.Namespace, params: Any, logs: Path, key: RunKey) -> Commands:
-    """Both children's command lines: network, process and key options, and the operator's session."""
+    """Both children's command lines: network, process and key options, and the session as data.
+
+    The session goes to both as a file of the hello's fields (``--session-file``), never re-spelled
+    as flags: the operator proposes it, the teleoperator admits exactly it (the user chose it for
+    both sides) and knows its impairment (a trace file only its own may name)."""
     net = _network(args, params.session)
-    common = [*_process_options(args, logs), *key.options]
+    session = ["--session-file", str(write_session_file(logs, params))]
+    common = [*_process_options(args, logs), *key.options, *session]
     # Each side's device is its own local choice: the robot goes to the teleoperator only.
     robot = ["--robot", args.robot] if args.robot is not None else []
     hsi = ["--hsi", args.hsi] if args.hsi is not None else []
     view_op, view_to = _live_view_options(args)
-    # The teleoperator is told the impairment too: it accepts a hello naming a trace file only if
-    # it named that file itself.
-    netem = [
-        *(("--netem-forward", params.netem_forward) if params.netem_forward else ()),
-        *(("--netem-backward", params.netem_backward) if params.netem_backward else ()),
-    ]
-    # The user chose these settings for both sides: the robot's envelope admits exactly them.
-    envelope = envelope_flags(DEFAULT_ENVELOPE.admitting(params))
-    to_cmd = [*TELEOP, "teleoperator", *net.teleoperator, *robot, *netem, *envelope, *view_to, *common]
+    to_cmd = [*TELEOP, "teleoperator", *net.teleoperator, *robot, *view_to, *common]
     live = [] if args.no_live else ["--live", *(["--wide"] if args.wide else [])]
-    op_cmd = [*TELEOP, "operator", *net.operator, *live, *hsi, *view_op, *_session_options(params), *common]
+    op_cmd = [*TELEOP, "operator", *net.operator, *live, *hsi, *view_op, *common]
     return Commands(net, to_cmd, op_cmd)
 
 
@@ -220,24 +216,6 @@ def _live_view_options(args: argparse.Namespace) -> tuple[list[str], list[str]]:
     if port == MAX_PORT:
         raise CliError(f"--live-view needs PORT and PORT + 1 (one per process): at most {MAX_PORT - 1}")
     return ["--live-view", str(port)], ["--live-view", str(port + 1 if port else 0)]
-
-
-def _as_flag(s: Setting, v: Any) -> list[str]:
-    """One setting of the table as the operator's option (floats by repr: no rounding)."""
-    assert s.flag is not None
-    if s.field == "controller":
-        return [] if v else [s.flag]
-    if s.field == "rate_cap":
-        return [s.flag, f"{v!r}bit"] if v else []
-    if s.field == "link_timeout":
-        return [s.flag, repr(v * 1e3)]
-    return [s.flag, v if isinstance(v, str) else repr(v) if isinstance(v, float) else str(v)]
-
-
-def _session_options(params: Any) -> list[str]:
-    """The operator's options that make it propose exactly ``params``: every setting of the table
-    (``teleop.session.settings.SETTINGS``) that has an operator flag."""
-    return [a for s in SETTINGS if s.flag is not None for a in _as_flag(s, getattr(params, s.field))]
 
 
 def _die_with_parent() -> None:

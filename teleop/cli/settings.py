@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import os
 from pathlib import Path
 from typing import Any
@@ -163,6 +164,48 @@ def session_params(args: argparse.Namespace, session: int) -> Any:
     if why is not None:
         raise CliError(why)
     return params
+
+
+#: A session file is one hello's parameters: a few hundred bytes, refused by size before it is read.
+MAX_SESSION_FILE_BYTES = 64 * 1024
+
+
+def write_session_file(folder: Path, params: Any) -> Path:
+    """``params`` as data for ``teleop run``'s children (``--session-file``): the hello's own fields
+    (PROTOCOL.md 4.2, ``SessionParams.to_msg``) in JSON, in a new file of the run's private folder.
+    Why not flags: turning settings back into options for a child to parse again needed a special
+    case per setting (issue 50); the hello's fields have one writer and one strict reader."""
+    from teleop.files import FileRefused, write_new
+
+    path = folder / f".session-{params.session}.json"
+    body = json.dumps({"session": params.to_msg()}, default=str, indent=1).encode()
+    try:
+        write_new(path, body)
+    except FileRefused as e:
+        raise CliError(str(e)) from None
+    return path
+
+
+def read_session_file(path: str) -> Any:
+    """The session a ``--session-file`` holds, read by the hello's parser (``SessionParams.from_msg``:
+    every field present, typed and in range; the file's own netem specs are its owner's, as a
+    teleoperator's flags are); CliError in one line if it is not one."""
+    from teleop.errors import one_line
+    from teleop.files import FileRefused, read_regular
+    from teleop.session.protocol import ProtocolError, SessionParams
+
+    try:
+        doc = json.loads(read_regular(path, MAX_SESSION_FILE_BYTES, "--session-file"))
+        m = doc["session"]
+        own = [v for k in ("netem_forward", "netem_backward") if isinstance(v := m.get(k), str)]
+        return SessionParams.from_msg(m, local_netem=own)
+    except FileRefused as e:  # (its text names the flag and the file)
+        raise CliError(one_line(e)) from None
+    except ProtocolError as e:
+        raise CliError(f"--session-file {path}: {one_line(e)}") from None
+    except (ValueError, KeyError, TypeError, AttributeError) as e:  # not JSON, not a map, no session
+        why = f"{type(e).__name__}: {one_line(e)}"
+        raise CliError(f"--session-file {path}: not a session file ({why})") from None
 
 
 NO_KEY = (
