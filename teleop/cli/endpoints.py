@@ -13,7 +13,7 @@ import os
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from teleop.cli.args import (
     MAX_CONNECT_TIMEOUT_S,
@@ -58,8 +58,12 @@ from teleop.session.settings import (
     MAX_BACKWARD_QUEUE,
     MIN_FADE_S,
     PASSIVITY,
+    Envelope,
     Passivity,
 )
+
+if TYPE_CHECKING:
+    from teleop.session.protocol import SessionParams
 
 
 def cmd_operator(args: argparse.Namespace) -> int:
@@ -151,7 +155,7 @@ def _unscaled(lim: _Limit, v: float) -> float:
     return v / lim.scale if lim.scale != 1.0 else v
 
 
-def robot_envelope(args: argparse.Namespace, told: Any = None) -> Any:
+def robot_envelope(args: argparse.Namespace, told: SessionParams | None = None) -> Envelope:
     """This robot's envelope (``teleop.session.settings.Envelope``), what it affords whatever an operator
     proposes: each limit from its flag, else the default; a pinned --range or --b widens the
     default limit to it (a robot is never refused its own setting), and one given beyond an
@@ -164,9 +168,7 @@ def robot_envelope(args: argparse.Namespace, told: Any = None) -> Any:
     return dataclasses.replace(admitted, max_dof=env.max_dof)
 
 
-def _envelope(args: argparse.Namespace) -> Any:
-    from teleop.session.settings import Envelope
-
+def _envelope(args: argparse.Namespace) -> Envelope:
     e = DEFAULT_ENVELOPE
 
     def widened(

@@ -11,13 +11,18 @@ import contextlib
 import json
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from teleop import limits
 from teleop.cli.args import CliError, connect_timeout, teleoperator_wait, verdict_bounds
 from teleop.control.codecs import CodecError
 from teleop.devices.scenarios import SCENARIOS
 from teleop.session.settings import DEFAULTS, Channel
+
+if TYPE_CHECKING:  # typed for mypy, imported when used: `teleop --help` loads neither shell nor sim
+    from shell.options import EndpointOptions, ZenohOptions
+    from teleop.offline.sim import SimConfig
+    from teleop.session.protocol import SessionParams
 
 
 def check_robot(spec: str | None, dof: int) -> None:
@@ -116,7 +121,7 @@ def channel(args: argparse.Namespace, codec: str = DEFAULTS.codec) -> Channel:
     )
 
 
-def sim_config(args: argparse.Namespace) -> Any:
+def sim_config(args: argparse.Namespace) -> SimConfig:
     """The resolved ``SimConfig`` of a simulating command (sim, sweep, experiment): the model,
     impairment and passivity options; CliError says what is wrong."""
     from teleop.control.codecs import CodecError
@@ -138,7 +143,7 @@ def sim_config(args: argparse.Namespace) -> Any:
         raise CliError(str(e)) from None
 
 
-def session_params(args: argparse.Namespace, session: int) -> Any:
+def session_params(args: argparse.Namespace, session: int) -> SessionParams:
     """The SessionParams an operator proposes (``run`` and ``operator``), every default filled in."""
     from teleop.session.port import build_refusal
     from teleop.session.protocol import SessionParams
@@ -170,7 +175,7 @@ def session_params(args: argparse.Namespace, session: int) -> Any:
 MAX_SESSION_FILE_BYTES = 64 * 1024
 
 
-def write_session_file(folder: Path, params: Any) -> Path:
+def write_session_file(folder: Path, params: SessionParams) -> Path:
     """``params`` as data for ``teleop run``'s children (``--session-file``): the hello's own fields
     (PROTOCOL.md 4.2, ``SessionParams.to_msg``) in JSON, in a new file of the run's private folder.
     Why not flags: turning settings back into options for a child to parse again needed a special
@@ -186,7 +191,7 @@ def write_session_file(folder: Path, params: Any) -> Path:
     return path
 
 
-def read_session_file(path: str) -> Any:
+def read_session_file(path: str) -> SessionParams:
     """The session a ``--session-file`` holds, read by the hello's parser (``SessionParams.from_msg``:
     every field present, typed and in range; the file's own netem specs are its owner's, as a
     teleoperator's flags are); CliError in one line if it is not one."""
@@ -237,7 +242,7 @@ def endpoint_key(args: argparse.Namespace) -> tuple[bytes, bool]:
     return read_key(args.key_file), False
 
 
-def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int]) -> Any:
+def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int]) -> EndpointOptions:
     """The EndpointOptions of one real process (``operator`` or ``teleoperator``)."""
     from shell.options import EndpointOptions
 
@@ -268,7 +273,7 @@ def endpoint_options(args: argparse.Namespace, role: str, listen: tuple[str, int
     )
 
 
-def zenoh_options(args: argparse.Namespace) -> Any:
+def zenoh_options(args: argparse.Namespace) -> ZenohOptions:
     from shell.options import ZenohOptions
 
     connect = list(args.zenoh_connect or [])

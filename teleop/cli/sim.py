@@ -183,6 +183,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
         fresh_out(out, ["results.json"])
     codecs = list(dict.fromkeys(args.codec or SECTION_V_CODECS))
     base = sim_config(args)
+    assert base.b is not None and base.full_scale is not None  # sim_config fills both from the scenario
     try:
         doc, cases = run_set(codecs, base)
     except (ValueError, CodecError, OSError) as e:
