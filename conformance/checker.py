@@ -29,6 +29,7 @@ import json
 import math
 import secrets
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -653,110 +654,117 @@ def audit_envelopes(
     dof: int,
     earlier: tuple[tuple[bytes, bytes], ...] = (),
 ) -> None:
-    """PROTOCOL.md 2.1, 2.3, 2.4 and 4.5 over every datagram the peer sent (from ``peer``; every
-    one on Zenoh): a tag that verifies under the key of its kind, a valid header with the reserved
-    bits zero, the sender's direction, counters that never repeat nor jump, no datagram longer
-    than the largest message of its key kind.  Identical copies (two Zenoh subscribers) count once.
-    ``earlier``: (this direction's, the other's) session keys of sessions before this one."""
-    seen: set[bytes] = set()
-    bad_tag = bad_header = reserved = wrong_kind = wrong_dir = oversize = reused = jumps = n = 0
-    first: dict[str, str] = {}
-    highest: dict[bytes, tuple[int, int]] = {}  # key -> (highest counter, its receive time)
-    used: dict[bytes, set[int]] = {}
+    """PROTOCOL.md 2.1, 2.2, 2.3, 2.4 and 4.5 over every datagram the peer sent (from ``peer``;
+    every one on Zenoh): a tag that verifies under the key of its kind, a valid header with the
+    reserved bits zero, the sender's direction, a handshake message under the handshake key,
+    counters that never repeat nor jump, no datagram sent twice, none longer than the largest
+    message of its key kind.  ``earlier``: (this direction's, the other's) session keys of
+    sessions before this one."""
     sessions = [*earlier, *(((k_session, k_session_other),) if k_session is not None else ())]
-    limit = {
-        auth.HANDSHAKE: wire.MAX_HANDSHAKE_DATAGRAM_BYTES,
-        auth.SESSION: wire.max_session_datagram_bytes(dof),
-    }
-    copies = wrong_body = 0
+    audit = _Audit(direction, k_hs, sessions, dof)
     for data, src, t in sorted(log, key=lambda e: e[2]):
-        if peer is not None and src != peer:
-            continue
-        if data in seen:  # sent twice: a resend copied, not sealed anew (2.3)
-            copies += 1
-            first.setdefault("copy", f"{len(data)} bytes, counter {int.from_bytes(data[2:10], 'big')}")
-            continue
-        seen.add(data)
-        n += 1
-        if len(data) < auth.OVERHEAD:
-            bad_header += 1
-            first.setdefault("header", f"{len(data)} bytes")
-            continue
-        magic, flags, counter = data[0:1], data[1], int.from_bytes(data[2:10], "big")
-        kind: int | None = None
-        mac_key = k_hs
-        if _mac_ok(k_hs, data):
-            kind = auth.HANDSHAKE
-        for mine, other in sessions:
-            if kind is not None:
-                break
-            if _mac_ok(mine, data):
-                kind, mac_key = auth.SESSION, mine
-            elif other is not None and _mac_ok(other, data):
-                kind = -1
-                wrong_dir += 1  # sealed under the other direction's session key
-                first.setdefault("direction", "sealed under the other direction's session key")
-        if kind == -1:
-            continue
-        if kind == auth.HANDSHAKE and not _handshake_body_ok(data, direction):
-            wrong_body += 1
-            first.setdefault("body", f"counter {counter}: {_what_body(data)} under K_hs")
-        if kind is None:
-            bad_tag += 1
-            first.setdefault("tag", f"counter {counter}, flags 0x{flags:02x}, {len(data)} bytes")
-            continue
-        if magic != auth.MAGIC or flags >> 4 != auth.ENVELOPE_VERSION or counter == 0:
-            bad_header += 1
-            first.setdefault("header", f"magic {magic!r}, flags 0x{flags:02x}, counter {counter}")
-        if flags & 0x0C:
-            reserved += 1
-            first.setdefault("reserved", f"flags 0x{flags:02x}, counter {counter}")
-        if (flags >> 1) & 1 != kind:
-            wrong_kind += 1
-            first.setdefault("kind", f"flags 0x{flags:02x} under the {('handshake', 'session')[kind]} key")
-        if flags & 1 != direction:
-            wrong_dir += 1
-            first.setdefault("direction", f"flags 0x{flags:02x}, counter {counter}")
-        if len(data) > limit[kind]:
-            oversize += 1
-            first.setdefault("oversize", f"{len(data)} > {limit[kind]} bytes")
-        if counter in used.setdefault(mac_key, set()):
-            reused += 1
-            first.setdefault("reused", f"counter {counter}")
-        used[mac_key].add(counter)
-        if kind == auth.SESSION and mac_key in highest:
-            top, at = highest[mac_key]
-            if counter > top + 1024 + 4000 * max(0, t - at) / 1e9:
-                jumps += 1
-                first.setdefault("jump", f"counter {counter} after {top}, {(t - at) / 1e6:.1f} ms later")
-        if mac_key not in highest or counter > highest[mac_key][0]:
-            highest[mac_key] = (counter, t)
+        if peer is None or src == peer:
+            audit.add(data, t)
+    n, count, first = audit.n, audit.count, audit.first
     rows = (
-        ("2.1", "MUST", "every datagram's tag verifies under the key of its kind and direction", bad_tag,
-         f"of {n} do not verify", "tag"),
-        ("2.1", "MUST", "every header is valid: magic T, version 1, counter not 0", bad_header, "bad",
-         "header"),
-        ("2.1", "MUST", "the reserved flag bits (3-2) are zero", reserved, "with them set", "reserved"),
-        ("2.1", "MUST", "the kind bit names the key the datagram is sealed under", wrong_kind, "wrong",
-         "kind"),
-        ("2.1", "MUST", "the direction bit is the sender's, on every datagram", wrong_dir, "wrong",
-         "direction"),
-        ("2.2", "MUST", RULE_KEY_PER_KIND, wrong_body, "not", "body"),
-        ("2.3", "MUST NOT", "reuse a counter under a key", reused, "reused", "reused"),
-        ("2.3", "MUST NOT", RULE_COPY, copies, "copies", "copy"),
+        ("2.1", "MUST", "every datagram's tag verifies under the key of its kind and direction", "tag",
+         f"of {n} do not verify"),
+        ("2.1", "MUST", "every header is valid: magic T, version 1, counter not 0", "header", "bad"),
+        ("2.1", "MUST", "the reserved flag bits (3-2) are zero", "reserved", "with them set"),
+        ("2.1", "MUST", "the kind bit names the key the datagram is sealed under", "kind", "wrong"),
+        ("2.1", "MUST", "the direction bit is the sender's, on every datagram", "direction", "wrong"),
+        ("2.2", "MUST", RULE_KEY_PER_KIND, "body", "not"),
+        ("2.3", "MUST NOT", "reuse a counter under a key", "reused", "reused"),
+        ("2.3", "MUST NOT", RULE_COPY, "copy", "copies"),
+        ("2.3, 2.4", "MUST", RULE_JUMP, "jump", "jumps"),
+        ("4.5", "MUST NOT", RULE_OVERSIZE, "oversize", "too long"),
     )  # fmt: skip
-    if n == 0:
-        for section, level, rule, *_ in rows:
+    for section, level, rule, key, what in rows:
+        if n == 0:
             r.check(section, level, rule, None, "no datagram of the peer's arrived")
-        r.check("2.3, 2.4", "MUST", RULE_JUMP, None, "no datagram of the peer's arrived")
-        r.check("4.5", "MUST NOT", RULE_OVERSIZE, None, "no datagram of the peer's arrived")
-        return
-    for section, level, rule, count, what, key in rows:
-        r.check(section, level, rule, count == 0, f"{count} {what}; {first.get(key, '')}")
-    r.check("2.3, 2.4", "MUST", RULE_JUMP, jumps == 0, f"{jumps} jumps; {first.get('jump', '')}")
-    r.check(
-        "4.5", "MUST NOT", RULE_OVERSIZE, oversize == 0, f"{oversize} too long; {first.get('oversize', '')}"
-    )
+        else:
+            r.check(section, level, rule, count[key] == 0, f"{count[key]} {what}; {first.get(key, '')}")
+
+
+class _Audit:
+    """The envelope audit's account, datagram by datagram in receive order: each fault counted
+    under its name, with the first one's detail."""
+
+    def __init__(
+        self, direction: int, k_hs: bytes, sessions: list[tuple[bytes, bytes | None]], dof: int
+    ) -> None:
+        self.direction, self.k_hs, self.sessions = direction, k_hs, sessions
+        self.n = 0
+        self.count: Counter[str] = Counter()
+        self.first: dict[str, str] = {}
+        self.seen: set[bytes] = set()
+        self.highest: dict[bytes, tuple[int, int]] = {}  # key -> (highest counter, its receive time)
+        self.used: dict[bytes, set[int]] = {}
+        self.limit = {
+            auth.HANDSHAKE: wire.MAX_HANDSHAKE_DATAGRAM_BYTES,
+            auth.SESSION: wire.max_session_datagram_bytes(dof),
+        }
+
+    def fault(self, what: str, detail: str) -> None:
+        self.count[what] += 1
+        self.first.setdefault(what, detail)
+
+    def add(self, data: bytes, t: int) -> None:
+        if data in self.seen:  # sent twice: a resend copied, not sealed anew (2.3)
+            self.fault("copy", f"{len(data)} bytes, counter {int.from_bytes(data[2:10], 'big')}")
+            return
+        self.seen.add(data)
+        self.n += 1
+        if len(data) < auth.OVERHEAD:
+            self.fault("header", f"{len(data)} bytes")
+            return
+        flags, counter = data[1], int.from_bytes(data[2:10], "big")
+        kind, key = self._key_of(data)
+        if kind is None:
+            self.fault("tag", f"counter {counter}, flags 0x{flags:02x}, {len(data)} bytes")
+            return
+        if kind < 0:  # (counted: sealed under the other direction's session key)
+            return
+        if kind == auth.HANDSHAKE and not _handshake_body_ok(data, self.direction):
+            self.fault("body", f"counter {counter}: {_what_body(data)} under K_hs")
+        self._header(data, kind)
+        self._counter(key, kind, counter, t)
+
+    def _key_of(self, data: bytes) -> tuple[int | None, bytes]:
+        """(kind, key) the tag verifies under: -1 for the other direction's session key."""
+        if _mac_ok(self.k_hs, data):
+            return auth.HANDSHAKE, self.k_hs
+        for mine, other in self.sessions:
+            if _mac_ok(mine, data):
+                return auth.SESSION, mine
+            if other is not None and _mac_ok(other, data):
+                self.fault("direction", "sealed under the other direction's session key")
+                return -1, other
+        return None, b""
+
+    def _header(self, data: bytes, kind: int) -> None:
+        magic, flags, counter = data[0:1], data[1], int.from_bytes(data[2:10], "big")
+        if magic != auth.MAGIC or flags >> 4 != auth.ENVELOPE_VERSION or counter == 0:
+            self.fault("header", f"magic {magic!r}, flags 0x{flags:02x}, counter {counter}")
+        if flags & 0x0C:
+            self.fault("reserved", f"flags 0x{flags:02x}, counter {counter}")
+        if (flags >> 1) & 1 != kind:
+            self.fault("kind", f"flags 0x{flags:02x} under the {('handshake', 'session')[kind]} key")
+        if flags & 1 != self.direction:
+            self.fault("direction", f"flags 0x{flags:02x}, counter {counter}")
+        if len(data) > self.limit[kind]:
+            self.fault("oversize", f"{len(data)} > {self.limit[kind]} bytes")
+
+    def _counter(self, key: bytes, kind: int, counter: int, t: int) -> None:
+        if counter in self.used.setdefault(key, set()):
+            self.fault("reused", f"counter {counter}")
+        self.used[key].add(counter)
+        if kind == auth.SESSION and key in self.highest:
+            top, at = self.highest[key]
+            if counter > top + 1024 + 4000 * max(0, t - at) / 1e9:
+                self.fault("jump", f"counter {counter} after {top}, {(t - at) / 1e6:.1f} ms later")
+        if key not in self.highest or counter > self.highest[key][0]:
+            self.highest[key] = (counter, t)
 
 
 RULE_KEY_PER_KIND = (
@@ -1232,113 +1240,35 @@ def _session_as_operator(
     session = secrets.randbelow(2**32 - 2) + 1
     p = params_for(session, codec, duration + (TAKEOVER_EXTRA_S if then is not None else 0.0))
     ep = Endpoint.operator(p, peer, _factory("operator", UNDER_REPORT), now_ns=time.monotonic_ns(), psk=k_r)
-    data: _DataCheck | None = None
-
-    def tap(d: bytes, t: int) -> None:
-        if data is not None:
-            data(d, t)
-
-    drv = _Driver(a, ep, tap)
+    data: list[_DataCheck] = []
+    drv = _Driver(a, ep, lambda d, t: data[0](d, t) if data else None)
     # Stop as soon as the session is agreed (STARTING), before either side's first tick, so the
     # data check sees the teleoperator's very first packet (seq 0).
     drv.run(lambda: ep.state != State.HANDSHAKE, 15.0)
-    r.check(
-        "4.3",
-        "MUST",
-        "the reference operator's handshake completes (retry, welcome, start, started)",
-        ep.running,
-        ep.state.value,
-    )
+    rule = "the reference operator's handshake completes (retry, welcome, start, started)"
+    r.check("4.3", "MUST", rule, ep.running, ep.state.value)
     if not ep.running or ep.port is None:
+        why = f"no session: the handshake ended {ep.state.value}"
+        for section, level, rule in SESSION_PROBE_RULES:
+            r.check(section, level, rule, None, why)
+        _skip_data_rules(r, why, codec)
+        if then is not None:  # (the takeover's rules, which that session would have shown)
+            _skip_data_rules(r, why, DEADBAND_CODEC, TAKEOVER_TAG, audit=False)
         return
-    _, bwd = auth.session_keys(k_r, session, ep.port.keys.nonce, _nonce(ep.peer_nonce))
-    data = _DataCheck(bwd, wire.BACKWARD, session, make_codec(CodecSpec.parse(codec), 2, 2.0).codec_id)
-    # A byte-identical copy of the start it took is a replay: refused by the window, unanswered
-    # (2.4, 4.3 step 6).  Then a resent start, sealed anew (its counter goes on), gets a started.
-    started_start = [d for d in drv.sent if isinstance(_start_of(d), protocol.Start)]
-    if started_start:
-        a.send(started_start[0], peer)
-        # Answered, if at all, by its tick 0 (it may be setting its session up until then).
-        drv.run(lambda: ep.finished or ep.k >= REPLAY_WAIT_TICKS, 12.0)
-    # Each start we sealed gets one started (MUST); one more is the replay's answer.
-    t_resend = time.monotonic_ns()
-    answers = sum(
-        1
-        for d, src, t in a.log
-        if t < t_resend
-        and (o := _open(bwd, auth.SESSION, wire.BACKWARD, d))
-        and isinstance(_parse(o[1]), protocol.Started)
-    )
-    replay_answers = max(0, answers - len(started_start))
-    resend_from = data.started
-    for _ in range(2):  # (two, each sealed anew: Zenoh may drop one on a loaded host)
-        a.send(ep.port.seal(protocol.Start(session, ep.start_ns + ep.offset_ns)), peer)
-    # A rejoin offer of the running session, from the operator's address: MUST NOT be answered (4.4).
-    offer = protocol.Hello(p, time.monotonic_ns(), rejoin=True, nonce=ep.port.keys.nonce)
-    a.send(ep.port.keys.hs_tx.seal(protocol.encode(offer)), peer)
-    answered_offer: list[protocol.Message] = []
-
-    def tap2(d: bytes, t: int) -> None:
-        tap(d, t)
-        m = _from_to(k_hs, d)
-        if m is not None and getattr(m, "t_ns", None) == offer.t_ns:  # an answer to this offer
-            answered_offer.append(m)
-
-    t_busy = time.monotonic() + 0.3
-    busy_done = [False]
-    busy: list[protocol.Message] = []
+    fwd, bwd = auth.session_keys(k_r, session, ep.port.keys.nonce, _nonce(ep.peer_nonce))
+    data.append(_DataCheck(bwd, wire.BACKWARD, session, make_codec(CodecSpec.parse(codec), 2, 2.0).codec_id))
     ticks = round(duration / p.dt)
-
-    def until() -> bool:
-        if not busy_done[0] and time.monotonic() >= t_busy:
-            busy_done[0] = True
-            busy.extend(_probe_busy(b, peer, sealer, k_hs))
-        return ep.finished or (then is not None and ep.k >= ticks)
-
-    drv.tap = tap2
-    drv.run(until, duration + 10.0)
-    events = drv.events
-    rule = "answer a replayed start (a byte-identical copy of the one it took)"
-    ok = replay_answers == 0 if started_start else None
-    r.check(
-        "2.4, 4.3 step 6", "MUST NOT", rule, ok, f"{answers} started for {len(started_start)} start(s) sealed"
-    )
-    r.check(
-        "4.3 step 6",
-        "MUST",
-        "a resent start is answered with another started",
-        data.started - resend_from >= 1,
-        f"{data.started - resend_from} started",
-    )
-    _started_counter_check(r, a.log, bwd, len(started_start))
-    r.nonces.append(("the main session", _nonce(ep.peer_nonce)))
-    r.check(
-        "4.4 step 2",
-        "MUST NOT",
-        "a running teleoperator answers a hello of its own session",
-        not answered_offer,
-        f"answered with {[m.kind for m in answered_offer]}",
-    )
-    ok = any(isinstance(m, protocol.Reject) and m.why == protocol.BUSY for m in busy)
-    r.check(
-        "4.5",
-        "MUST",
-        "another operator's hello (with its cookie) gets a reject 'busy'",
-        ok,
-        f"got {[m.kind for m in busy]}",
-    )
-    _data_checks(r, data, codec, ticks, bye=then is None)
+    _probed_session(r, _Probes(a, b, peer, sealer, k_hs, ep, drv, data[0]), duration, then, ticks)
+    _data_checks(r, data[0], codec, ticks, bye=then is None)
     # The earliest a teleoperator's tick 0 may run on this clock: it places its phase where the
     # operator's packets land, within [PHASE_MIN, PHASE_MAX] of a period (5.1).
     t0 = ep.start_ns + round(PHASE_MIN * p.dt * 1e9)
-    rtt = max((e.rtt_ns for e in events if isinstance(e, SessionStarted)), default=0)
-    stream_checks(
-        r, data, codec, p.dof, p.full_scale, p.dt, t0, p.passivity, phase_max=rtt // 2 + PHASE_SLACK_NS
-    )
-    passive_port_check(r, data, drv.reports, codec, p.passivity)
-    ended = [e.summary for e in events if isinstance(e, SessionEnded)]
+    rtt = max((e.rtt_ns for e in drv.events if isinstance(e, SessionStarted)), default=0)
+    slack = rtt // 2 + PHASE_SLACK_NS
+    stream_checks(r, data[0], codec, p.dof, p.full_scale, p.dt, t0, p.passivity, phase_max=slack)
+    passive_port_check(r, data[0], drv.reports, codec, p.passivity)
+    ended = [e.summary for e in drv.events if isinstance(e, SessionEnded)]
     _summary_checks(r, ended[0] if ended else (ep.summary() if then is not None else None))
-    fwd, bwd = auth.session_keys(k_r, session, ep.port.keys.nonce, _nonce(ep.peer_nonce))
     log = a.log + (b.log if a.distinct_addresses else [])
     keys: list[tuple[bytes, bytes]] = [*(earlier or []), (bwd, fwd)]
     if then is not None:  # we fall silent: its link goes lost, and the deadband session takes over
@@ -1346,6 +1276,101 @@ def _session_as_operator(
         log += then.log if a.distinct_addresses else []
     sender = peer if a.distinct_addresses else None
     audit_envelopes(r, log, sender, wire.BACKWARD, k_hs, *keys[-1], p.dof, tuple(keys[:-1]))
+
+
+RULE_REPLAY = "answer a replayed start (a byte-identical copy of the one it took)"
+RULE_RESENT = "a resent start is answered with another started"
+RULE_STARTED_1 = "its first started is sealed with counter 1 (the session counter starts at 1)"
+RULE_OWN_OFFER = "a running teleoperator answers a hello of its own session"
+RULE_BUSY = "another operator's hello (with its cookie) gets a reject 'busy'"
+#: The rules the main session's probes judge: SKIP with why when it never started.
+SESSION_PROBE_RULES = (
+    ("2.4, 4.3 step 6", "MUST NOT", RULE_REPLAY),
+    ("4.3 step 6", "MUST", RULE_RESENT),
+    ("2.3, 4.3 step 6", "MUST", RULE_STARTED_1),
+    ("4.4 step 2", "MUST NOT", RULE_OWN_OFFER),
+    ("4.5", "MUST", RULE_BUSY),
+)
+
+
+@dataclass
+class _Probes:
+    """What the main session's probes send through and judge by."""
+
+    a: _Carrier
+    b: _Carrier
+    peer: Addr
+    sealer: auth.Sealer
+    k_hs: bytes
+    ep: Endpoint
+    drv: _Driver
+    data: _DataCheck
+
+
+def _probed_session(r: Result, pr: _Probes, duration: float, then: _Carrier | None, ticks: int) -> None:
+    """Run the main session with its probes: a replayed start (2.4, 4.3 step 6), two resent ones
+    sealed anew, a rejoin offer of the running session from its operator's address (4.4), another
+    operator's hello (4.5); ``then``: stop after ``ticks`` of ours (a takeover follows)."""
+    ep, drv, a = pr.ep, pr.drv, pr.a
+    assert ep.port is not None and ep.params is not None
+    session = ep.params.session
+    # A byte-identical copy of the start it took is a replay: refused by the window, unanswered
+    # (2.4, 4.3 step 6).  Then a resent start, sealed anew (its counter goes on), gets a started.
+    started_start = [d for d in drv.sent if isinstance(_start_of(d), protocol.Start)]
+    if started_start:
+        a.send(started_start[0], pr.peer)
+        # Answered, if at all, by its tick 0 (it may be setting its session up until then).
+        drv.run(lambda: ep.finished or ep.k >= REPLAY_WAIT_TICKS, 12.0)
+    # Each start we sealed gets one started (MUST); one more is the replay's answer.
+    bwd = pr.data.key
+    answers = sum(1 for d, _, _ in a.log if _counter_of(bwd, wire.BACKWARD, d, protocol.Started))
+    resend_from = pr.data.started
+    for _ in range(2):  # (two, each sealed anew: Zenoh may drop one on a loaded host)
+        a.send(ep.port.seal(protocol.Start(session, ep.start_ns + ep.offset_ns)), pr.peer)
+    # A rejoin offer of the running session, from the operator's address: MUST NOT be answered (4.4).
+    offer = protocol.Hello(ep.params, time.monotonic_ns(), rejoin=True, nonce=ep.port.keys.nonce)
+    a.send(ep.port.keys.hs_tx.seal(protocol.encode(offer)), pr.peer)
+    answered: list[protocol.Message] = []
+    busy: list[protocol.Message] = []
+    probed = [False]
+    tap, t_busy = drv.tap, time.monotonic() + 0.3
+
+    def tap2(d: bytes, t: int) -> None:
+        tap(d, t)
+        m = _from_to(pr.k_hs, d)
+        if m is not None and getattr(m, "t_ns", None) == offer.t_ns:  # an answer to this offer
+            answered.append(m)
+
+    def until() -> bool:
+        if not probed[0] and time.monotonic() >= t_busy:
+            probed[0] = True
+            busy.extend(_probe_busy(pr.b, pr.peer, pr.sealer, pr.k_hs))
+        return ep.finished or (then is not None and ep.k >= ticks)
+
+    drv.tap = tap2
+    drv.run(until, duration + 10.0)
+    ok = max(0, answers - len(started_start)) == 0 if started_start else None
+    r.check(
+        "2.4, 4.3 step 6",
+        "MUST NOT",
+        RULE_REPLAY,
+        ok,
+        f"{answers} started for {len(started_start)} start(s) sealed",
+    )
+    r.check(
+        "4.3 step 6",
+        "MUST",
+        RULE_RESENT,
+        pr.data.started - resend_from >= 1,
+        f"{pr.data.started - resend_from} started",
+    )
+    _started_counter_check(r, a.log, bwd, len(started_start))
+    r.nonces.append(("the main session", _nonce(ep.peer_nonce)))
+    r.check(
+        "4.4 step 2", "MUST NOT", RULE_OWN_OFFER, not answered, f"answered with {[m.kind for m in answered]}"
+    )
+    ok = any(isinstance(m, protocol.Reject) and m.why == protocol.BUSY for m in busy)
+    r.check("4.5", "MUST", RULE_BUSY, ok, f"got {[m.kind for m in busy]}")
 
 
 #: What the upper bound of a teleoperator's phase (5.1) allows beyond half the handshake's round
@@ -1360,7 +1385,7 @@ def _started_counter_check(r: Result, log: list[tuple[bytes, Addr, int]], bwd: b
     """2.3, 4.3 step 6: the session counter starts at 1 with the first started.  A started lost on
     the way hides it when our start was resent (``starts`` > 1): then no verdict."""
     counters = sorted(c for d, _, _ in log if (c := _counter_of(bwd, wire.BACKWARD, d, protocol.Started)))
-    rule = "its first started is sealed with counter 1 (the session counter starts at 1)"
+    rule = RULE_STARTED_1
     ok: bool | None = True if 1 in counters else (False if counters and starts == 1 else None)
     detail = f"counters {counters[:6]}, {starts} start(s) sent before the first started"
     r.check("2.3, 4.3 step 6", "MUST", rule, ok, detail)
@@ -1393,6 +1418,7 @@ def _summary_checks(r: Result, summary: Any, tag: str = "") -> None:
 #: teleoperator with another codec, the suite then drives one of these (:func:`_deadband_session`).
 DEADBAND_CODECS = ("pd", "pdp")
 DEADBAND_CODEC = "pd:5"
+TAKEOVER_TAG = f" ({DEADBAND_CODEC} session, taking over)"
 TAKEOVER_EXTRA_S = 5.0  # the main session proposes this much more than it runs, to be taken over
 TAKEOVER_WAIT_S = 5.0  # how long the deadband session's hello may be answered 'busy' meanwhile
 
@@ -1407,7 +1433,7 @@ def _deadband_session(
     This session runs to its end, ``duration`` long as the main one: its energy rules, and the bye
     rules (4.6) the main one could not show, are checked on it.  Returns its (backward, forward)
     session keys, if it ran."""
-    tag = f" ({DEADBAND_CODEC} session, taking over)"
+    tag = TAKEOVER_TAG
     session = secrets.randbelow(2**32 - 2) + 1
     p = params_for(session, DEADBAND_CODEC, duration)
     make = _factory("operator", UNDER_REPORT)

@@ -274,6 +274,29 @@ def test_a_teleoperator_that_refuses_the_deadband_takeover_gets_every_rule_repor
     assert rc == 0 and not _failed(result), out
 
 
+def test_a_teleoperator_that_refuses_the_main_session_gets_every_rule_reported(
+    tmp_path: Path, key: str
+) -> None:
+    """A robot pinned to another codec rejects the session proposed: the handshake rule fails, and
+    the session's rules (its probes, data, stream, envelope audit, the takeover's) are SKIP with
+    why, none left out (issue 49: they were omitted)."""
+    rc, result, out = _check_teleoperator(
+        tmp_path, key, None, "--no-ghost-probe", "--codec", "eds:50", robot=("--codec", "ids:10")
+    )
+    checks = result["checks"]
+    assert isinstance(checks, list)
+    assert "the reference operator's handshake completes" in " ".join(_failed(result)), out
+    skipped = " ".join(
+        c["rule"] for c in checks if c["passed"] is None and c["detail"].startswith("no session")
+    )
+    for rule in (
+        "answer a replayed start", "every data body decodes", "its phase <= 0.9", "a passive port sends back",
+        "every datagram's tag verifies", "its own counter) (pd:5",
+    ):  # fmt: skip
+        assert rule in skipped, out
+    assert rc == 1, out
+
+
 def test_an_operator_that_never_says_hello_gets_every_session_rule_reported(tmp_path: Path, key: str) -> None:
     """No hello in --timeout: the hello rule fails, and the session's rules are SKIP with why."""
     out_json = tmp_path / "conf.json"
