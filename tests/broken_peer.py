@@ -317,6 +317,96 @@ def _keeps_ghost() -> None:  # 4.3 step 8: a TO that holds a session its operato
     node._Node.expect_first_by = lambda self, t: None  # type: ignore[method-assign]
 
 
+def _phase_097() -> None:  # 5.1: a teleoperator that ticks 0.97 of a period after the operator (<= 0.9)
+    from teleop.session.link import phase
+
+    init = phase.ClockTracker.__init__
+
+    def pinned(self: Any, dt: float, phase: float = 0.0, moves_phase: bool = False) -> None:
+        init(self, dt, 0.97 if moves_phase else phase, False)  # (the operator's keeps 0)
+
+    phase.ClockTracker.__init__ = pinned  # type: ignore[method-assign]
+
+
+def _started_counter_2() -> None:  # 2.3, 4.3 step 6: a TO whose session counter starts at 2
+    from teleop.session import auth, wire
+
+    init = auth.Sealer.__init__
+
+    def from_2(self: Any, key: bytes, kind: int, direction: int, counter: int = 1) -> None:
+        bump = kind == auth.SESSION and direction == wire.BACKWARD and counter == 1
+        init(self, key, kind, direction, 2 if bump else counter)
+
+    auth.Sealer.__init__ = from_2  # type: ignore[method-assign]
+
+
+def _start_copies() -> None:  # 2.3, 4.3 step 5: an operator that resends its start byte for byte
+    from teleop.session import auth, protocol
+
+    seal = auth.Sealer.seal
+    first: dict[int, bytes] = {}  # sealer -> its first start, sealed once
+
+    def copied(self: Any, body: bytes) -> bytes:
+        if not (protocol.is_control(body) and isinstance(protocol.parse(body), protocol.Start)):
+            return seal(self, body)
+        return first.setdefault(id(self), seal(self, body))
+
+    auth.Sealer.seal = copied  # type: ignore[method-assign]
+
+
+def _data_under_handshake_key() -> None:  # 2.2: one data packet sealed under K_hs (kind bit 0)
+    from teleop.session import auth, protocol
+
+    init, seal = auth.Sealer.__init__, auth.Sealer.seal
+    handshake: dict[int, Any] = {}  # direction -> this process's newest handshake-key sealer
+    count = [0]
+
+    def remember(self: Any, key: bytes, kind: int, direction: int, counter: int = 1) -> None:
+        init(self, key, kind, direction, counter)
+        if kind == auth.HANDSHAKE:
+            handshake[direction] = self
+
+    def sealed(self: Any, body: bytes) -> bytes:
+        kind, direction = (self._flags >> 1) & 1, self._flags & 1
+        if kind == auth.SESSION and not protocol.is_control(body) and direction in handshake:
+            count[0] += 1
+            if count[0] == FAULT_AT:
+                return seal(handshake[direction], body)
+        return seal(self, body)
+
+    auth.Sealer.__init__ = remember  # type: ignore[method-assign]
+    auth.Sealer.seal = sealed  # type: ignore[method-assign]
+
+
+def _nonces(nonce: bytes) -> None:
+    """Every handshake nonce (16 bytes) this process draws is ``nonce`` (its cookie secret stays random)."""
+    import secrets
+
+    from teleop.session import endpoint
+
+    init = endpoint.Endpoint.__init__
+
+    def fixed(self: Any, *a: Any, **kw: Any) -> None:
+        kw["rng"] = lambda n: nonce if n == len(nonce) else secrets.token_bytes(n)
+        init(self, *a, **kw)
+
+    endpoint.Endpoint.__init__ = fixed  # type: ignore[method-assign]
+
+
+def _zero_nonce() -> None:  # 2.2: the nonce is all zero, not from a cryptographic random source
+    _nonces(bytes(16))
+
+
+def _constant_nonce() -> None:  # 2.2: one nonce for every handshake (not fresh)
+    _nonces(bytes(range(1, 17)))
+
+
+def _five_byes() -> None:  # 4.6: five copies of the bye, each its own counter: no fault (conforms)
+    from teleop.session import endpoint
+
+    endpoint.BYE_COPIES = 5
+
+
 BREAKS = {
     "keeps-ghost": _keeps_ghost,
     "no-cookie": _no_cookie,
@@ -348,6 +438,13 @@ BREAKS = {
     "payload-1": _payload_1,
     "wrong-session": _wrong_session,
     "wrong-direction-field": _wrong_direction_field,
+    "phase-0.97": _phase_097,
+    "started-counter-2": _started_counter_2,
+    "start-copies": _start_copies,
+    "data-under-handshake-key": _data_under_handshake_key,
+    "zero-nonce": _zero_nonce,
+    "constant-nonce": _constant_nonce,
+    "five-byes": _five_byes,
 }
 
 if __name__ == "__main__":

@@ -102,6 +102,8 @@ def test_the_projects_teleoperator_conforms(tmp_path: Path, key: str) -> None:
     assert rc == 0 and not _failed(result), out
     assert result["passed"] == len(result["checks"]) >= 18, out  # type: ignore[arg-type]
     assert "0 failed" in out
+    not_checkable = result["not_checkable"]
+    assert isinstance(not_checkable, list) and any("skipped counter" in n for n in not_checkable), out
 
 
 def test_the_projects_operator_conforms(tmp_path: Path, key: str) -> None:
@@ -177,6 +179,40 @@ def test_a_teleoperator_with_a_wire_fault_is_caught_by_its_rule(
     assert _failed_in(result, section, rule), out
 
 
+@pytest.mark.parametrize(
+    "role,brk,codec,rules",
+    [
+        ("teleoperator", "phase-0.97", "none", ["its phase <= 0.9"]),
+        ("teleoperator", "started-counter-2", "none", ["its first started is sealed with counter 1"]),
+        ("teleoperator", "data-under-handshake-key", "none", ["every handshake-key body is a handshake"]),
+        ("teleoperator", "zero-nonce", "none", ["its nonce_to is random", "a new handshake draws a new"]),
+        ("teleoperator", "constant-nonce", "none", ["a new handshake draws a new nonce_to"]),
+        ("teleoperator", "five-byes", "pd:5", []),  # (the number of copies is the sender's: 4.6)
+        ("operator", "start-copies", "eds:50", ["a resent start is sealed anew", "send a datagram twice"]),
+        ("operator", "data-under-handshake-key", "eds:50", ["every handshake-key body is a handshake"]),
+        ("operator", "zero-nonce", "eds:50", ["its nonce_op is random"]),
+        ("operator", "five-byes", "eds:50", []),
+        # (its handshake fails for its own reason: the reject rule passes, it went on after the reject)
+        ("operator", "ignores-retry", "eds:50", ["after a retry it says hello again with the cookie"]),
+    ],
+)
+def test_a_fault_fails_its_own_rules_and_no_other(
+    tmp_path: Path, key: str, role: str, brk: str, codec: str, rules: list[str]
+) -> None:
+    """Issue 49: every MUST seen on the wire is checked by the rule it breaks, and a rule fails only
+    when its own condition does (five byes, each its own counter, once failed "up to 3 copies"; an
+    operator whose handshake failed for its own reasons, "MUST NOT end its handshake on a reject")."""
+    if role == "teleoperator":
+        args = ("--codec", codec, "--duration", str(FAULT_SESSION_S))
+        rc, result, out = _check_teleoperator(tmp_path, key, brk, *args)
+    else:
+        rc, result, out = _check_operator(tmp_path, key, brk, codec, timeout=8)
+    failed = _failed(result)
+    assert all(any(rule in f for f in failed) for rule in rules), out
+    assert all(any(rule in f for rule in rules) for f in failed), out
+    assert rc == (1 if rules else 0), out
+
+
 def test_the_projects_teleoperator_conforms_with_a_deadband(tmp_path: Path, key: str) -> None:
     """The deadband's budget rule passes for the reference (the fault above is not the rule misfiring)."""
     rc, result, out = _check_teleoperator(tmp_path, key, None, "--codec", "pd:5")
@@ -236,6 +272,29 @@ def test_a_teleoperator_that_refuses_the_deadband_takeover_gets_every_rule_repor
     bye = [c for c in checks if c["section"] == "4.6"]
     assert len(bye) == 2 and all(c["passed"] is None and "no session" in c["detail"] for c in bye), out
     assert rc == 0 and not _failed(result), out
+
+
+def test_a_teleoperator_that_refuses_the_main_session_gets_every_rule_reported(
+    tmp_path: Path, key: str
+) -> None:
+    """A robot pinned to another codec rejects the session proposed: the handshake rule fails, and
+    the session's rules (its probes, data, stream, envelope audit, the takeover's) are SKIP with
+    why, none left out (issue 49: they were omitted)."""
+    rc, result, out = _check_teleoperator(
+        tmp_path, key, None, "--no-ghost-probe", "--codec", "eds:50", robot=("--codec", "ids:10")
+    )
+    checks = result["checks"]
+    assert isinstance(checks, list)
+    assert "the reference operator's handshake completes" in " ".join(_failed(result)), out
+    skipped = " ".join(
+        c["rule"] for c in checks if c["passed"] is None and c["detail"].startswith("no session")
+    )
+    for rule in (
+        "answer a replayed start", "every data body decodes", "its phase <= 0.9", "a passive port sends back",
+        "every datagram's tag verifies", "its own counter) (pd:5",
+    ):  # fmt: skip
+        assert rule in skipped, out
+    assert rc == 1, out
 
 
 def test_an_operator_that_never_says_hello_gets_every_session_rule_reported(tmp_path: Path, key: str) -> None:

@@ -214,3 +214,21 @@ def test_a_second_robot_of_one_name_is_refused_in_one_line() -> None:
 
 def _bad_prefix() -> fl.Description:
     raise ValueError("prefix must be a plain key like teleop/robots/a, got 'a b'")
+
+
+def test_teleop_robots_shows_what_a_robot_sent_escaped_on_one_line() -> None:
+    """A robot's name, a problem quoting what it sent, its kind and prefix reach the terminal
+    escaped: no forged second line, no escape sequence (issue 49)."""
+    from teleop.cli.robots import table
+
+    evil = "arm\x1b[2J\nFAKE robot"
+    rows = [
+        {"name": evil, "trusted": False, "problem": f"bad field {evil!s}"},
+        {"name": evil, "trusted": True, "state": "free\r", "holder": None, "dof": 2, "kind": "sim\x07",
+         "prefix": "teleop/robots/\x9b31m"},
+    ]  # fmt: skip
+    lines = table(rows, 0.01)
+    assert len(lines) == 4 and len("\n".join(lines).splitlines()) == 4, lines
+    text = "\n".join(lines[2:])
+    assert not any(c in text for c in "\x1b\r\x07\x9b"), lines
+    assert "arm\\x1b[2J\\x0aFAKE robot" in lines[2] and "\\x9b31m" in lines[3], lines

@@ -95,8 +95,10 @@ def add_parser(sub: Subcommands) -> None:
         "--duration",
         type=float_range("duration", 0.5, 60.0, "s"),
         default=1.5,
-        help="seconds of each session run with a teleoperator: the main one, and the deadband one that "
-        "takes it over (default 1.5)",
+        help="with a teleoperator: seconds of data checked in each session the suite runs with it: the "
+        "main one (proposed 5 s longer, left silent after this long so that the pd:5 session takes "
+        "it over), and that pd:5 session (proposed and run this long). The ghost probe's session "
+        "(4.3 step 8) is proposed 30 s long and ends within 2 s + R whatever this says (default 1.5)",
     )
     c.add_argument(
         "--timeout",

@@ -16,6 +16,7 @@ from typing import Any
 
 from teleop.cli.args import CliError, Subcommands, add_key_args, positive_float, robot_name, zenoh_config_file
 from teleop.cli.settings import endpoint_key
+from teleop.errors import one_line
 
 
 def _row(r: Any) -> dict[str, Any]:
@@ -58,20 +59,32 @@ def cmd_robots(args: argparse.Namespace) -> int:
         json.dump({"robots": rows, "seconds": round(took, 4)}, sys.stdout, indent=1)
         print()
         return 0
+    print("\n".join(table(rows, took)))
+    return 0
+
+
+def table(rows: list[dict[str, Any]], took: float) -> list[str]:
+    """The listing's lines.  Every field a robot sent (its name, a problem's text quoting it, its
+    kind and prefix) is shown escaped with ``one_line``: a robot on the router, trusted or not,
+    must not forge a line or drive the terminal with an escape sequence."""
     trusted = sum(r["trusted"] for r in rows)
-    print(f"{len(rows)} robots ({trusted} trusted) in {took * 1e3:.0f} ms")
-    print(f"  {'NAME':<20} {'STATE':<6} {'HELD BY':<12} {'DOF':>3}  {'KIND':<8} PREFIX")
+    lines = [
+        f"{len(rows)} robots ({trusted} trusted) in {took * 1e3:.0f} ms",
+        f"  {'NAME':<20} {'STATE':<6} {'HELD BY':<12} {'DOF':>3}  {'KIND':<8} PREFIX",
+    ]
     for r in rows:
+        name = one_line(r["name"])
         if not r["trusted"]:
-            print(f"  {r['name']:<20} UNTRUSTED: {r['problem']}")
+            lines.append(f"  {name:<20} UNTRUSTED: {one_line(r['problem'])}")
             continue
         holder = (
             f"{r['holder']:#010x}"
             if r["holder"] is not None
             else ("-" if r["state"] == "free" else "(hidden)")
         )
-        print(f"  {r['name']:<20} {r['state']:<6} {holder:<12} {r['dof']:>3}  {r['kind']:<8} {r['prefix']}")
-    return 0
+        state, kind, prefix = (one_line(r[k]) for k in ("state", "kind", "prefix"))
+        lines.append(f"  {name:<20} {state:<6} {holder:<12} {r['dof']:>3}  {kind:<8} {prefix}")
+    return lines
 
 
 def add_parser(sub: Subcommands) -> None:
