@@ -43,7 +43,8 @@ from teleop.control.codecs.base import RAW_BITS, CodecError, RawFormat, unpack16
 from teleop.control.codecs.deadband import SLOPE_SCALE
 from teleop.errors import one_line
 from teleop.session import auth, protocol, wire
-from teleop.session.endpoint import Endpoint, Failed, SessionEnded, SessionStarted, State, session_port
+from teleop.session.endpoint import Endpoint, State, session_port
+from teleop.session.events import Failed, SessionEnded, SessionStarted
 from teleop.session.link import Addr
 from teleop.session.link.phase import PHASE_MAX, PHASE_MIN
 from teleop.session.port import Port, PortKeys

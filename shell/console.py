@@ -14,12 +14,11 @@ from typing import Any
 
 from teleop.errors import one_line
 from teleop.session import auth
-from teleop.session.endpoint import (
+from teleop.session.events import (
     ClockShifted,
     EndReason,
     Event,
     Failed,
-    Failure,
     HelloRejected,
     LinkLost,
     LinkRestored,
@@ -28,6 +27,7 @@ from teleop.session.endpoint import (
     SessionEnded,
     Unverified,
 )
+from teleop.session.protocol import Failure
 from teleop.session.summary import ProcessSummary, SessionSummary
 from transport.base import Addr, Transport
 

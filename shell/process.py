@@ -20,8 +20,9 @@ from teleop.devices import DeviceError
 from teleop.errors import one_line
 from teleop.session import auth
 from teleop.session import fleet as fl
-from teleop.session.endpoint import Endpoint, Monitor, PortFactory, State, TickPolicy
+from teleop.session.endpoint import Endpoint, Monitor, PortFactory, State
 from teleop.session.protocol import PROTOCOL_VERSION, Pins, SessionParams
+from teleop.session.schedule import TickPolicy
 from teleop.session.summary import SessionSummary
 from teleop.session.verdict import judge_process
 from transport.base import Transport

@@ -21,23 +21,19 @@ from typing import Any
 
 from teleop.devices import DeviceError
 from teleop.errors import TeleopError
-from teleop.session.endpoint import (
+from teleop.session.endpoint import Endpoint, Monitor, PortFactory, session_port
+from teleop.session.events import (
     AdmissionChanged,
     ClockShifted,
-    Endpoint,
     EndReason,
     Failed,
-    Monitor,
-    PortFactory,
     SessionEnded,
     SessionStarted,
-    TickPolicy,
     TicksEnded,
-    session_port,
 )
 from teleop.session.port import Port, PortKeys
 from teleop.session.protocol import SessionParams
-from teleop.session.schedule import EARLY_MARGIN_NS
+from teleop.session.schedule import EARLY_MARGIN_NS, TickPolicy
 from teleop.session.summary import SessionSummary
 from transport.base import Transport
 

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from teleop.control import metrics
-from teleop.session.endpoint import ClockShifted, SessionEnded, State
+from teleop.session.endpoint import State
+from teleop.session.events import ClockShifted, SessionEnded
 from teleop.session.link.phase import latency
 from teleop.session.summary import SessionSummary
 

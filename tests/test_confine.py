@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 
 import teleop.offline.sim as sim
 from teleop.control.confine import CONTACT_MEMORY_S, MAX_STIFFNESS, Confinement, confined
-from teleop.session.endpoint import SessionEnded
+from teleop.session.events import SessionEnded
 from teleop.session.node import TeleoperatorNode
 from teleop.session.settings import DEFAULT_ENVELOPE, Envelope
 

@@ -14,19 +14,18 @@ import msgpack
 import pytest
 
 from teleop.session import auth, protocol
-from teleop.session.endpoint import (
-    REJOIN_OFFER_INTERVAL_NS,
+from teleop.session.endpoint import REJOIN_OFFER_INTERVAL_NS, State
+from teleop.session.events import (
     EndReason,
     Failed,
-    Failure,
     LinkLost,
     LinkRestored,
     PeerRestarted,
     Replaced,
     SessionEnded,
     SessionStarted,
-    State,
 )
+from teleop.session.protocol import Failure
 from teleop.session.settings import Envelope
 from teleop.session.summary import SessionSummary
 

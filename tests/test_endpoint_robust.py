@@ -10,15 +10,8 @@ from typing import Any
 import pytest
 
 from teleop.session import auth, protocol
-from teleop.session.endpoint import (
-    GHOST_MARGIN_NS,
-    EndReason,
-    Failed,
-    PeerRestarted,
-    SessionEnded,
-    State,
-    ghost_round_trip,
-)
+from teleop.session.endpoint import GHOST_MARGIN_NS, State, ghost_round_trip
+from teleop.session.events import EndReason, Failed, PeerRestarted, SessionEnded
 from teleop.session.summary import SessionSummary
 
 from .vnet import MS, OP, TO, Host, VirtualNet, params
@@ -324,7 +317,7 @@ def test_handshake_junk_cannot_spend_a_genuine_operators_budget(name: str, flood
 def test_recorded_hellos_from_many_ports_cannot_spend_the_cookie_share() -> None:
     """The global budget's cookie-less share drained by authentic recorded hellos (no valid cookie
     for their ports): the genuine operator's hellos with its cookie draw on the reserved share."""
-    from teleop.session.endpoint import HANDSHAKE_BURST_ALL, HandshakeLimiter
+    from teleop.session.admission import HANDSHAKE_BURST_ALL, HandshakeLimiter
 
     lim = HandshakeLimiter()
     spent = sum(lim.allow((f"10.9.{i // 250}.{i % 250}", 1), 0) for i in range(5000))
@@ -389,7 +382,8 @@ def test_a_robot_says_what_it_refused_unverified_at_once_then_once_a_second() ->
     import itertools
 
     from teleop.session import auth
-    from teleop.session.endpoint import Endpoint, Unverified
+    from teleop.session.endpoint import Endpoint
+    from teleop.session.events import Unverified
 
     from .vnet import PSK, port_factory
 

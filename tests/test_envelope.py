@@ -16,10 +16,10 @@ from hypothesis import strategies as st
 
 from teleop.control.wave import WaveImpedance
 from teleop.offline.sim import SimConfig, run_case
-from teleop.session.endpoint import Failed, Failure, HelloRejected, SessionEnded
+from teleop.session.events import Failed, HelloRejected, SessionEnded
 from teleop.session.node import TeleoperatorNode
 from teleop.session.port import make_node
-from teleop.session.protocol import SessionParams
+from teleop.session.protocol import Failure, SessionParams
 from teleop.session.settings import DEFAULT_ENVELOPE, SETTINGS, Envelope, Passivity, settings_table
 
 from .vnet import VirtualNet, params

@@ -12,7 +12,8 @@ import random
 
 import pytest
 
-from teleop.session.endpoint import Failed, SessionEnded, State
+from teleop.session.endpoint import State
+from teleop.session.events import Failed, SessionEnded
 from teleop.session.protocol import Failure
 from tests.vnet import OP, TO, VirtualNet, params
 

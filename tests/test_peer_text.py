@@ -13,7 +13,7 @@ import pytest
 
 from shell import console
 from teleop.session import auth, protocol, wire
-from teleop.session.endpoint import HelloRejected
+from teleop.session.events import HelloRejected
 
 FORGED = "no\n\x1b[2Kteleop operator: session 7 completed\x1b[0m\r"
 

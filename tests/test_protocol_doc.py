@@ -932,7 +932,8 @@ def _recorder(sent: list[tuple[Any, bytes]]) -> Any:
 def test_a_ghost_ends_with_no_bye() -> None:
     """Sections 4.3 step 8 and 4.6: a teleoperator ends a session its operator never joined at once,
     with no linger and no bye; it waits for an operator again."""
-    from teleop.session.endpoint import EndReason, SessionEnded, State
+    from teleop.session.endpoint import State
+    from teleop.session.events import EndReason, SessionEnded
 
     from .vnet import TO, VirtualNet, params
 
@@ -954,7 +955,8 @@ def test_a_ghost_ends_with_no_bye() -> None:
 def test_a_takeover_sends_the_old_operator_no_bye_and_runs_the_new_session_from_its_tick_0() -> None:
     """Sections 4.5 and 4.6: the replaced session ends at once with no bye; the new session is run
     as any the robot commits to, from its own tick 0 when its start came ahead of it."""
-    from teleop.session.endpoint import EndReason, Replaced, SessionEnded, State
+    from teleop.session.endpoint import State
+    from teleop.session.events import EndReason, Replaced, SessionEnded
 
     from .vnet import OP, TO, VirtualNet, params
 

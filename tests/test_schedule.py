@@ -11,16 +11,10 @@ from typing import Any
 
 import numpy as np
 
-from teleop.session.endpoint import (
-    AdmissionChanged,
-    Endpoint,
-    SessionEnded,
-    State,
-    Strangers,
-    TickPolicy,
-    TicksEnded,
-)
-from teleop.session.schedule import EARLY_MARGIN_NS, LoopFigures
+from teleop.session.admission import Strangers
+from teleop.session.endpoint import Endpoint, State
+from teleop.session.events import AdmissionChanged, SessionEnded, TicksEnded
+from teleop.session.schedule import EARLY_MARGIN_NS, LoopFigures, TickPolicy
 from teleop.session.summary import SessionSummary
 
 from .vnet import EVE, MS, OP, Host, VirtualNet, params

@@ -11,7 +11,8 @@ from typing import Any
 import pytest
 
 from teleop.session import auth, wire
-from teleop.session.endpoint import FLOOD_SAMPLE, Admission, State, Strangers
+from teleop.session.admission import FLOOD_SAMPLE, Admission, Strangers
+from teleop.session.endpoint import State
 from tests.waiting import wait_for
 from transport.sockfilter import compile_filter
 from transport.udp import UdpTransport, kernel_drops

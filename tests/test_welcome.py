@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from teleop import limits
-from teleop.session.endpoint import Failed, HelloRejected
+from teleop.session.events import Failed, HelloRejected
 from teleop.session.protocol import SessionParams
 from teleop.session.settings import (
     DEFAULT_ENVELOPE,

@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from teleop.session import auth
-from teleop.session.endpoint import Endpoint, Event, SessionStarted, session_port
+from teleop.session.endpoint import Endpoint, session_port
+from teleop.session.events import Event, SessionStarted
 from teleop.session.link import Addr
 from teleop.session.port import Port, PortKeys
 from teleop.session.protocol import SessionParams

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any, Protocol
 
-from teleop.session.endpoint import Admission
+from teleop.session.admission import Admission
 from teleop.session.link import Addr
 
 __all__ = ["Addr", "Transport"]

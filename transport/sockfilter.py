@@ -1,5 +1,5 @@
 """A kernel socket filter (classic BPF, ``SO_ATTACH_FILTER``) compiled from an endpoint's
-:class:`teleop.session.endpoint.Admission`: what the endpoint cannot take is dropped by the kernel before
+:class:`teleop.session.admission.Admission`: what the endpoint cannot take is dropped by the kernel before
 the process is woken, copied or charged for it.
 
 *Why.*  Refusing a datagram in Python costs the 1 kHz loop a ``recvfrom`` and a turn of its drain,
@@ -31,7 +31,7 @@ import sys
 from typing import NamedTuple
 
 from teleop.session import auth
-from teleop.session.endpoint import Admission, Strangers
+from teleop.session.admission import Admission, Strangers
 
 SO_ATTACH_FILTER = 26
 SO_DETACH_FILTER = 27

@@ -43,7 +43,7 @@ import sys
 import time
 from typing import Any
 
-from teleop.session.endpoint import Admission
+from teleop.session.admission import Admission
 from teleop.session.wire import MAX_DATAGRAM_BYTES
 
 from . import sockfilter

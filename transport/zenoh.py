@@ -72,7 +72,7 @@ import zenoh
 from teleop.errors import TeleopError
 from teleop.files import MAX_CONFIG_BYTES, create_new, read_regular
 from teleop.session import auth
-from teleop.session.endpoint import Admission
+from teleop.session.admission import Admission
 from teleop.session.wire import MAX_DATAGRAM_BYTES
 
 Addr = tuple[str, int]

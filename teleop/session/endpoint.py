@@ -49,10 +49,27 @@ import enum
 import secrets
 from collections import deque
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
-from typing import Any, NamedTuple, TypeAlias
+from typing import Any, TypeAlias
 
 from teleop.session import auth, protocol, wire
+from teleop.session.admission import FLOOD_HOLD_NS, FLOOD_SAMPLE, Admission, HandshakeLimiter, Strangers
+from teleop.session.events import (
+    AdmissionChanged,
+    ClockShifted,
+    EndReason,
+    Event,
+    Failed,
+    HelloRejected,
+    LinkLost,
+    LinkRestored,
+    PeerBye,
+    PeerRestarted,
+    Replaced,
+    SessionEnded,
+    SessionStarted,
+    TicksEnded,
+    Unverified,
+)
 from teleop.session.link import Addr
 from teleop.session.port import Port, PortKeys, build_refusal
 from teleop.session.protocol import Failure, SessionParams
@@ -68,37 +85,18 @@ from teleop.session.settings import Envelope
 from teleop.session.summary import EndpointSummary, RejoinFigures
 
 __all__ = [
-    "FLOOD_SAMPLE",
     "GHOST_MARGIN_NS",
     "GRACE_RESUME_TICKS",
     "JOIN_AHEAD_TICKS",
     "REJOIN_COLLECT_NS",
     "REJOIN_OFFER_INTERVAL_NS",
     "REJOIN_SAMPLES",
-    "Admission",
-    "AdmissionChanged",
-    "ClockShifted",
-    "EndReason",
     "Endpoint",
-    "Event",
-    "Failed",
-    "Failure",
-    "HandshakeLimiter",
-    "HelloRejected",
-    "LinkLost",
-    "LinkRestored",
     "Monitor",
-    "PeerBye",
-    "PeerRestarted",
     "PortFactory",
-    "Replaced",
-    "SessionEnded",
-    "SessionStarted",
     "State",
-    "Strangers",
-    "TickPolicy",
-    "TicksEnded",
-    "Unverified",
+    "ghost_round_trip",
+    "session_port",
 ]
 
 REJOIN_OFFER_INTERVAL_NS = 250_000_000  # operator, link lost: an offer this often
@@ -127,95 +125,6 @@ LINGER_SHIM_GRACE_NS = 2_000_000_000  # how long after the linger the shim's bac
 GRACE_STREAK = 3  # grace waits missed in a row before grace rests
 GRACE_RESUME_TICKS = 200  # ... for this many ticks (the link is late by ms, not us)
 EVENTS_KEPT = 1024  # a flood of rejected hellos cannot grow the event queue
-HANDSHAKE_RATE = 50.0  # handshake datagrams/s one source address may cost us (burst 20) ...
-HANDSHAKE_BURST = 20.0
-HANDSHAKE_RATE_ALL = 1000.0  # ... and all sources together (burst 200): bounds the loop's cost
-HANDSHAKE_BURST_ALL = 200.0
-#: Reserved for hellos with a valid cookie (a sender proven to receive at its address): a flood of
-#: cookie-less hellos (recordings replayed from many ports) cannot spend it.
-HANDSHAKE_RATE_COOKIE = 250.0
-HANDSHAKE_BURST_COOKIE = 50.0
-LIMITER_SOURCES = 4096  # source addresses remembered (oldest forgotten first)
-#: Under a handshake flood (the limiter dropped within FLOOD_HOLD_NS) a transport that can filter
-#: keeps strangers' handshake datagrams 1 in FLOOD_SAMPLE (see Admission).
-FLOOD_SAMPLE = 64
-FLOOD_HOLD_NS = 1_000_000_000
-
-
-class Strangers(enum.IntEnum):
-    """What an endpoint takes from addresses other than its peer (:class:`Admission`)."""
-
-    ALL = 0  # anything (no peer yet, or a takeover is possible)
-    HANDSHAKE = 1  # handshake-key datagrams only (another operator's hello gets busy or a retry)
-    NONE = 2  # nothing (an operator in session: only its teleoperator speaks to it)
-
-
-class Admission(NamedTuple):
-    """What the endpoint can take now, for a transport able to refuse datagrams before they reach
-    the process (``transport.udp`` compiles it into a kernel socket filter).  Only a coarse
-    prefilter: the endpoint still checks every datagram that passes, and a transport that ignores
-    this (Zenoh, a test) only counts the refusals elsewhere; the sampling under a flood may also
-    drop another operator's hello the limiter would have passed (during a session it could only
-    have been answered busy or with a retry, and hellos are retried).  Issue 21: a flood
-    costs a syscall and a Python loop turn per datagram if it reaches the process, nothing if the
-    kernel refuses it."""
-
-    max_bytes: int  # any datagram longer than this (either key kind)
-    peer: Addr | None  # None: no peer (yet), everyone is treated as the peer
-    strangers: Strangers
-    max_handshake_bytes: int  # a stranger's handshake datagram longer than this is refused
-    sample: int  # strangers' handshake datagrams kept 1 in ``sample`` (1: all; >1 under a flood)
-
-
-class HandshakeLimiter:
-    """Token buckets on handshake work: per source address and for all sources together.
-
-    A hello costs an unpack, maybe a full parse (~0.2 ms) and a reply; a genuine operator sends a
-    few a second.  **Who may spend a budget** (issue 35): while the robot waits for an operator (or
-    may be taken over), a handshake datagram is charged only once its MAC verified, so junk, whatever
-    address it claims, spends no one's budget (it costs a MAC and is counted ``unauthenticated``);
-    a hello with a valid cookie for its source is charged to buckets of its own (per source, and a
-    global share reserved for them), so recorded cookie-less hellos replayed from many ports cannot
-    spend what a genuine operator's second hello needs.  While a session runs with its link up, no
-    stranger can start anything (busy): strangers' handshake datagrams are charged before the MAC
-    (``cookie`` False), which keeps a flood's cost to a dictionary lookup each and drives the kernel
-    filter's sampling (:class:`Admission`).  The running session's peer is never limited."""
-
-    def __init__(self) -> None:
-        # (source, cookie-bearing) -> (tokens, last refill ns): the two kinds never share a bucket
-        self._per: dict[tuple[Addr, bool], tuple[float, int]] = {}
-        self._all = (HANDSHAKE_BURST_ALL, 0)
-        self._cookie = (HANDSHAKE_BURST_COOKIE, 0)
-        self.dropped = 0
-        self.last_drop_ns: int | None = None
-
-    @staticmethod
-    def _take(tokens: float, last: int, now_ns: int, rate: float, burst: float) -> tuple[float, bool]:
-        tokens = min(burst, tokens + max(0, now_ns - last) * rate / 1e9)
-        return (tokens - 1.0, True) if tokens >= 1.0 else (tokens, False)
-
-    def allow(self, addr: Addr, now_ns: int, cookie: bool = False) -> bool:
-        """Whether one more handshake datagram from ``addr`` may be worked on (``cookie``: a hello
-        whose MAC verified and whose cookie is valid for ``addr``)."""
-        key = (addr, cookie)
-        tokens, last = self._per.pop(key, (HANDSHAKE_BURST, now_ns))
-        tokens, ok = self._take(tokens, last, now_ns, HANDSHAKE_RATE, HANDSHAKE_BURST)
-        self._per[key] = (tokens, now_ns)  # newest last
-        if len(self._per) > LIMITER_SOURCES:
-            del self._per[next(iter(self._per))]
-        if ok and cookie:
-            rate, burst = HANDSHAKE_RATE_COOKIE, HANDSHAKE_BURST_COOKIE
-            c_tokens, reserved = self._take(*self._cookie, now_ns, rate, burst)
-            self._cookie = (c_tokens, now_ns)
-            if reserved:
-                return True  # (else the general share, below)
-        if ok:
-            all_tokens, ok = self._take(*self._all, now_ns, HANDSHAKE_RATE_ALL, HANDSHAKE_BURST_ALL)
-            self._all = (all_tokens, now_ns)
-        if not ok:
-            self.dropped += 1
-            self.last_drop_ns = now_ns
-        return ok
 
 
 class State(enum.Enum):
@@ -227,127 +136,6 @@ class State(enum.Enum):
     FAILED = "failed"
 
 
-class EndReason(enum.Enum):
-    COMPLETED = "completed"  # the agreed ticks ran
-    STOPPED = "stopped"  # stopped locally (a signal)
-    PEER_BYE = "peer_bye"  # an open session whose peer said bye
-    REPLACED = "replaced"  # teleoperator: a new operator took the silent one's place
-    DEVICE_FAULT = "device_fault"  # this side's device ended the session (a reflex): bye says why
-    PEER_FAULT = "peer_fault"  # the peer's device ended it: its bye said why
-    PEER_SILENT = "peer_silent"  # teleoperator: not one packet from the operator since its start
-
-
-@dataclass(frozen=True)
-class SessionStarted:
-    params: SessionParams
-    peer: Addr
-    start_ns: int  # the session's tick 0 on this clock
-    t0_ns: int  # when tick 0 is due on this clock (the teleoperator runs ``phase`` behind)
-    k0: int  # the first tick this process runs (> 0: it joined a running session)
-    joined_late: bool
-    offset_ns: int = 0  # operator: teleoperator's clock - ours, and the exchange's round trip
-    rtt_ns: int = 0
-    device: Any = None  # the device that paces this session's ticks (a real arm), if any
-
-
-@dataclass(frozen=True)
-class TicksEnded:
-    """The session's ticks are over (it lingers now, or was replaced): ``loop`` is their timing
-    (an endpoint whose ticks are timers only: :class:`TickPolicy`)."""
-
-    k: int
-    loop: LoopFigures
-
-
-@dataclass(frozen=True)
-class AdmissionChanged:
-    """What the endpoint can take changed (:meth:`Endpoint.admission`): for the transport's filter
-    and its length limit (an endpoint whose ticks are timers only)."""
-
-    admission: Admission
-
-
-@dataclass(frozen=True)
-class PeerRestarted:
-    """Operator: a restarted teleoperator took the session over (re-keyed, new energy epoch)."""
-
-    k: int
-    rtt_ns: int  # of the exchange that placed its start: the start's error is at most half this
-
-
-@dataclass(frozen=True)
-class ClockShifted:
-    """The peer's packets seemed to arrive before they were sent: this side's tick 0 moved
-    ``ticks`` earlier (its loop skips them), instead of running tick ``k`` (``teleop.session.link.phase``)."""
-
-    k: int
-    ticks: int
-
-
-@dataclass(frozen=True)
-class Replaced:
-    old_session: int
-    new_session: int
-
-
-@dataclass(frozen=True)
-class PeerBye:
-    produced: int
-
-
-@dataclass(frozen=True)
-class LinkLost:
-    k: int
-
-
-@dataclass(frozen=True)
-class LinkRestored:
-    k: int
-
-
-@dataclass(frozen=True)
-class HelloRejected:
-    why: str
-
-
-@dataclass(frozen=True)
-class Unverified:
-    """Datagrams a waiting robot dropped because their tag did not verify under its key: so far
-    ``count``, the last from ``addr`` for ``why``.  Said at the first, then at most once a second:
-    a wrong key on one side looks like a missing peer unless the other says what it refused."""
-
-    count: int
-    addr: Addr
-    why: str
-
-
-@dataclass(frozen=True)
-class SessionEnded:
-    reason: EndReason
-    summary: EndpointSummary  # SessionSummary(summary).document() is its JSON map
-
-
-@dataclass(frozen=True)
-class Failed:
-    reason: Failure
-    detail: str
-
-
-Event: TypeAlias = (
-    SessionStarted
-    | ClockShifted
-    | PeerRestarted
-    | Replaced
-    | PeerBye
-    | LinkLost
-    | LinkRestored
-    | HelloRejected
-    | Unverified
-    | SessionEnded
-    | Failed
-    | TicksEnded
-    | AdmissionChanged
-)
 #: Makes a session's port: (params, first tick, keys, tick 0 on this clock) -> Port.  The shell's
 #: factory adds its log sink and device; tests give one with an in-memory record.
 PortFactory: TypeAlias = Callable[[SessionParams, int, PortKeys, int], Port]

@@ -35,7 +35,7 @@ class EndpointSummary:
     role: str
     peer: str
     completed: bool
-    end: str | None  # teleop.session.endpoint.EndReason's value
+    end: str | None  # teleop.session.events.EndReason's value
     peer_said_bye: bool
     first_tick: int
     replaced_by_new_session: bool
