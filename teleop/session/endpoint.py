@@ -566,13 +566,13 @@ class Endpoint:
         port.sent(k, self.session_time(max(now_ns, deadline)))
         self.k, self._rx_k = k, k + 1
         self._retime(k)
-        lost = port.node.link_lost
+        lost = port.link_lost
         if lost != self._link_lost:
             self._link_lost = lost
             self._events.append(LinkLost(k) if lost else LinkRestored(k))
             if lost:
                 self._next_offer = now_ns
-        if lost and self.role == "teleoperator" and port.node.counters.accepted == 0:
+        if lost and self.role == "teleoperator" and not port.heard_from_peer:
             self._end(EndReason.PEER_SILENT, now_ns)  # a ghost: free the robot for an operator
         elif k + 1 >= self.params.ticks:
             self._end(EndReason.COMPLETED, now_ns)
@@ -745,7 +745,7 @@ class Endpoint:
         port = self.port
         if port is None or not self.grace_limit_ns or k < self._grace_resume:
             return False
-        return not port.payload_ready(k) and port.node.counters.accepted > 0
+        return not port.payload_ready(k) and port.heard_from_peer
 
     def grace_until(self, k: int, deadline_ns: int) -> int | None:
         """Grace: tick ``k``'s payload is due and not here yet; poll for it until the returned time
@@ -836,17 +836,14 @@ class Endpoint:
             # and acting no longer than its cap after its operator's last packet.
             self.port.confine(self._limits)
         if k0:
-            self.port.node.joined_late()
-        due_s = (first_due_ns - start_ns) / 1e9
-        self.port.node.expect_first_by(due_s - self.port.node.link_timeout if lost_at else due_s)
+            self.port.joined_late()
+        self.port.expect_first_by((first_due_ns - start_ns) / 1e9, lost_at=lost_at)
         self.state = State.STARTING
         self._link_lost = False
         device = None
         if self._policy is not None:
             period = round(params.dt * 1e9)
-            dev = getattr(self.port.node, "device", None)
-            if getattr(dev, "paced", False) is True and callable(getattr(dev, "wait", None)):
-                device = dev
+            device = self.port.paced_device()
             self._device, self._device_last = device, t0_ns + (k0 - 1) * period
             self._loop = LoopFigures(period, device_paced=device is not None)
             self._next_k, self._early_at, self._grace_until, self._hold_until = k0, None, None, 0
@@ -977,7 +974,7 @@ class Endpoint:
                 self._out.append((port.seal(self._rj_start), self._peer()))
                 self._rj_resends += 1
                 self._rj_next = now_ns + self._rj_interval
-        if not port.node.link_lost or now_ns < self._next_offer:
+        if not port.link_lost or now_ns < self._next_offer:
             return
         self._next_offer = now_ns + REJOIN_OFFER_INTERVAL_NS
         self._offers.append(now_ns)
@@ -1055,7 +1052,7 @@ class Endpoint:
     def _takeover_possible(self, port: Port | None) -> bool:
         """A teleoperator whose running session's link is lost may be taken over (PROTOCOL.md 4.5)."""
         running = self.role == "teleoperator" and self.state == State.RUNNING
-        return running and port is not None and port.node.link_lost
+        return running and port is not None and port.link_lost
 
     def _own_offer(self, data: bytes) -> bool:
         """Whether ``data`` is an authentic hello of this very session (our operator's rejoin offer)."""

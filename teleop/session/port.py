@@ -889,6 +889,31 @@ class Port:
         """How late the real-time loop started tick ``k`` (recorded with the tick)."""
         self.rec.lateness(k, lateness_ns)
 
+    # --- the node's link, for the endpoint (it never reaches into the node) ---------------------
+    @property
+    def link_lost(self) -> bool:
+        """The peer's packets stopped for the link timeout (or never came by their due time)."""
+        return self.node.link_lost
+
+    @property
+    def heard_from_peer(self) -> bool:
+        """At least one of the peer's packets was accepted in this session."""
+        return self.node.counters.accepted > 0
+
+    def joined_late(self) -> None:
+        """This side joined a running session: its energy budget starts at the first packet."""
+        self.node.joined_late()
+
+    def expect_first_by(self, t: float, *, lost_at: bool = False) -> None:
+        """The peer's first packet is due by session time ``t``; ``lost_at``: rather, the link is
+        lost at ``t`` if none came (the node counts its link timeout from when it was due)."""
+        self.node.expect_first_by(t - self.node.link_timeout if lost_at else t)
+
+    def paced_device(self) -> Any:
+        """The device that paces the ticks (a real arm: ``paced`` and a ``wait``), or None."""
+        dev = getattr(self.node, "device", None)
+        return dev if getattr(dev, "paced", False) is True and callable(getattr(dev, "wait", None)) else None
+
     def payload_ready(self, k: int) -> bool:
         """Whether tick ``k``'s payload is here: due from the playout buffer or queued in the decoder,
         from a payload whose ticks ``tick + d .. tick + d + P - 1`` reach ``k``.  A payload taken late
