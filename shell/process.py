@@ -20,9 +20,8 @@ from teleop.devices import DeviceError
 from teleop.errors import one_line
 from teleop.session import auth
 from teleop.session import fleet as fl
-from teleop.session.endpoint import Endpoint, Monitor, PortFactory, State
+from teleop.session.endpoint import Endpoint, PortFactory, State
 from teleop.session.protocol import PROTOCOL_VERSION, Pins, SessionParams
-from teleop.session.schedule import TickPolicy
 from teleop.session.summary import SessionSummary
 from teleop.session.verdict import judge_process
 from transport.base import Transport
@@ -130,11 +129,9 @@ async def _endpoint(opts: EndpointOptions, params: SessionParams | None, pins: P
         "psk": key,
         "connect_timeout_s": opts.connect_timeout,
         "linger_s": opts.linger,
-        "grace_us": opts.grace_us,
     }
 
-    def build(make_port: PortFactory, ticks: TickPolicy, monitor: Monitor) -> Endpoint:
-        kw.update(ticks=ticks, monitor=monitor)
+    def build(make_port: PortFactory) -> Endpoint:
         if opts.role == "operator":
             peer = ZENOH_PEER if opts.transport == "zenoh" else opts.peer
             assert params is not None and peer is not None

@@ -1,12 +1,13 @@
-"""The real-time runner: a :class:`teleop.session.endpoint.Endpoint` between the clock and a transport.
+"""The real-time runner: an endpoint and its scheduler between the clock and a transport.
 
-The endpoint holds the whole session (handshake, start, rejoin, takeover, busy, bye, linger), each
-tick and when it is due (its timers, ``teleop.session.schedule``: early drain, early tick, grace,
-skips); it is sans-I/O and tested in virtual time.  This module only does I/O: it waits (on the
-socket, or a sleep then a spin: ``shell.realtime.PreciseSleep``), reads, feeds the endpoint,
-fires its timer, sends, and turns its events into log messages, console lines
-(``shell.console``) and ``ROLE.json`` (``shell.records``).  Clocks are ``time.monotonic_ns``.
-A stop (SIGINT/SIGTERM) ends the session, which lingers; the logs are still written.
+The endpoint (``teleop.session.endpoint``) holds the whole session (handshake, start, rejoin,
+takeover, busy, bye, linger) and each tick; its scheduler (``teleop.session.scheduler``) when each
+tick is due (its timers: early drain, early tick, grace, skips); both are sans-I/O and tested in
+virtual time.  This module only does I/O: it waits (on the socket, or a sleep then a spin:
+``shell.realtime.PreciseSleep``), reads, feeds the scheduler, fires its timer, sends, and turns
+its events into log messages, console lines (``shell.console``) and ``ROLE.json``
+(``shell.records``).  Clocks are ``time.monotonic_ns``.  A stop (SIGINT/SIGTERM) ends the
+session, which lingers; the logs are still written.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from typing import Any
 
 from teleop.devices import DeviceError
 from teleop.errors import TeleopError
-from teleop.session.endpoint import Endpoint, Monitor, PortFactory, session_port
+from teleop.session.endpoint import Endpoint, PortFactory, session_port
 from teleop.session.events import (
     AdmissionChanged,
     ClockShifted,
@@ -34,6 +35,7 @@ from teleop.session.events import (
 from teleop.session.port import Port, PortKeys
 from teleop.session.protocol import SessionParams
 from teleop.session.schedule import EARLY_MARGIN_NS, TickPolicy
+from teleop.session.scheduler import Scheduler
 from teleop.session.summary import SessionSummary
 from transport.base import Transport
 
@@ -79,7 +81,7 @@ class Runner:
         tr: Transport,
         stop: Stop,
         records: Records,
-        build: Callable[[PortFactory, TickPolicy, Monitor], Endpoint],
+        build: Callable[[PortFactory], Endpoint],
     ) -> None:
         self.opts, self.tr, self.stop, self.records = opts, tr, stop, records
         self.clock = time.monotonic_ns
@@ -100,8 +102,9 @@ class Runner:
         self._created = self.clock()
         self._waited: dict[int, float] = {}  # session id -> s from this process's start to its start
         self.summary: SessionSummary | None = None
-        policy = TickPolicy(early_tick=opts.tick_at == "wake", early_ns=opts.spin_us * 1000 + EARLY_MARGIN_NS)
-        self.ep = build(self._port, policy, self.watch)
+        early = opts.spin_us * 1000 + EARLY_MARGIN_NS
+        policy = TickPolicy(early_tick=opts.tick_at == "wake", early_ns=early, grace_us=opts.grace_us)
+        self.ep = Scheduler(build(self._port), policy, self.watch)
         # The imports' objects frozen now (~17 ms), before the handshake: the freeze at each
         # session's start then collects only what came since (~0.1 ms), which matters for a late
         # joiner, whose first tick is 20 ticks after its start.
@@ -239,7 +242,7 @@ class Runner:
             console.say(o, ev)
             if isinstance(ev, SessionStarted):
                 self.started(ev)
-            elif isinstance(ev, TicksEnded):
+            elif isinstance(ev, TicksEnded) and ev.loop is not None:  # (a scheduler's: always)
                 spin = 0 if ev.loop.device_paced else self.sleeper.spin
                 cpu0, wall0 = self._ticks0 or (time.process_time(), self.clock())
                 cpu, wall, host = time.process_time() - cpu0, (self.clock() - wall0) / 1e9, HostMarks.now()

@@ -1,8 +1,8 @@
-"""Ticks as timers (``teleop.session.schedule``, ``Endpoint(ticks=TickPolicy(...))``), in virtual time:
-the policy the real-time runner used to hold (early drain, early tick, grace, skips, the loop's
-figures, admission changes, a device that paces the ticks) runs in the endpoint, driven only by
-``get_timer``/``handle_timer`` (tests/vnet.py calls it as a precise runner does: also ``spin_ns``
-before each timer)."""
+"""Ticks as timers (``teleop.session.schedule``, ``Scheduler(endpoint, TickPolicy(...))``), in virtual
+time: the policy the real-time runner used to hold (early drain, early tick, grace, skips, the
+loop's figures, admission changes, a device that paces the ticks) runs in the scheduler beside the
+endpoint, driven only by ``get_timer``/``handle_timer`` (tests/vnet.py calls it as a precise runner
+does: also ``spin_ns`` before each timer)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from teleop.session.admission import Strangers
 from teleop.session.endpoint import Endpoint, State
 from teleop.session.events import AdmissionChanged, SessionEnded, TicksEnded
 from teleop.session.schedule import EARLY_MARGIN_NS, LoopFigures, TickPolicy
+from teleop.session.scheduler import Scheduler
 from teleop.session.summary import SessionSummary
 
 from .vnet import EVE, MS, OP, Host, VirtualNet, params
@@ -53,6 +54,12 @@ def pair(
     return op, to
 
 
+def sched(h: Host) -> Scheduler:
+    """The scheduler that runs the host's ticks."""
+    assert h.sched is not None
+    return h.sched
+
+
 def summary(h: Host) -> dict[str, Any]:
     (ev,) = h.of(SessionEnded)[-1:]
     return SessionSummary(ev.summary).document()
@@ -79,7 +86,7 @@ def test_a_timed_session_completes_every_tick_on_its_deadline_and_counts_its_dep
         # Called on each deadline exactly (virtual time): no lateness; the datagrams left then, or
         # after a grace wait for a payload (a tick due with its payload missing runs when it comes).
         assert loop.lateness_q.max_abs == 0
-        assert loop.send_lateness_q.max_abs <= h.ep.grace_limit_ns
+        assert loop.send_lateness_q.max_abs <= sched(h).grace_limit_ns
         assert loop.send_lateness_q.count == loop.ticks
         ks = [k for k, _ in h.ep.ticked]  # type: ignore[attr-defined]
         assert ks == list(range(st.k0, 1000)), "every tick once, in order"
@@ -97,7 +104,7 @@ def test_the_early_tick_runs_in_the_spin_and_its_datagrams_leave_on_the_deadline
         loop = loop_of(h)
         # Never before the deadline (the percentiles are of absolute values: the early ones are
         # checked by the spy below), and after it only by a grace wait.
-        assert loop.send_lateness_q.max_abs <= h.ep.grace_limit_ns
+        assert loop.send_lateness_q.max_abs <= sched(h).grace_limit_ns
         ticked, early = h.ep.ticked, h.ep.early  # type: ignore[attr-defined]
         # All but the last tick (whose bye must not overtake it) and those waiting for a payload.
         assert len(early) >= 0.9 * len(ticked), (len(early), len(ticked))
@@ -125,21 +132,21 @@ def test_the_early_drain_feeds_while_each_datagram_ends_before_the_margin_and_th
     net = VirtualNet(0.5)
     _op, to = pair(net, duration=4.0, policy=TickPolicy(early_tick=False))
     net.seconds(5.0, stop=lambda: to.ep.state == State.RUNNING and net.now > 2_000_000_000)
-    ep, now = to.ep, to.clock(net.now)
-    while (deadline := ep.get_timer()) is not None and deadline <= now:  # what is due at once
-        ep.handle_timer(now)
-        ep.datagrams_to_send(now)
+    ep, io, now = to.ep, sched(to), to.clock(net.now)
+    while (deadline := io.get_timer()) is not None and deadline <= now:  # what is due at once
+        io.handle_timer(now)
+        io.datagrams_to_send(now)
     assert deadline is not None
     now = deadline - TickPolicy().early_ns + 10_000  # in the spin
     before = ep.foreign
     for i in range(20):
-        ep.receive_datagram(b"junk %d" % i, EVE, now)  # a stranger's: each fed is counted foreign
+        io.receive_datagram(b"junk %d" % i, EVE, now)  # a stranger's: each fed is counted foreign
     assert ep.foreign == before, "queued while the ticks run, not fed"
     fed_at = []
     cost = 25_000  # each call comes this long after the last: what feeding one cost
     while now < deadline:
         n = ep.foreign
-        ep.handle_timer(now)
+        io.handle_timer(now)
         if ep.foreign > n:
             fed_at.append(now)
         now += cost
@@ -148,7 +155,7 @@ def test_the_early_drain_feeds_while_each_datagram_ends_before_the_margin_and_th
     assert all(t + cost <= deadline - EARLY_MARGIN_NS + 30_000 for t in fed_at)  # within its estimate
     assert fed_at[-1] <= deadline - EARLY_MARGIN_NS
     ticked = len(ep.ticked)  # type: ignore[attr-defined]
-    ep.handle_timer(deadline)
+    io.handle_timer(deadline)
     assert ep.foreign - before == 20, "the rest at the deadline"
     assert len(ep.ticked) == ticked + 1  # type: ignore[attr-defined]
 
@@ -163,16 +170,16 @@ def test_grace_waits_for_a_late_payload_and_the_tick_runs_when_it_comes() -> Non
     while to.ep.state != State.CLOSED and steps < 200_000:
         steps += 1
         net.run(net.now + 50_000)
-        if to.ep.awaiting_payload:
-            t = to.ep.get_timer()
+        if sched(to).awaiting_payload:
+            t = sched(to).get_timer()
             assert t is not None
             waits.append(t - to.clock(net.now))
     s = summary(to)
     assert s["completed"]
     g = s["grace"]
     assert g["waits"] > 0 and waits
-    assert max(waits) <= to.ep.grace_limit_ns
-    assert g["waited_us_total"] <= g["waits"] * to.ep.grace_limit_ns / 1e3 + 1e-6
+    assert max(waits) <= sched(to).grace_limit_ns
+    assert g["waited_us_total"] <= g["waits"] * sched(to).grace_limit_ns / 1e3 + 1e-6
     assert g["missed"] < g["waits"], "some payloads came within grace and their tick ran then"
 
 
@@ -229,14 +236,15 @@ def test_a_device_paced_session_runs_the_tick_its_clock_says_missed_ahead_and_si
     (st,) = to.started()
     assert st.device is None  # the sim's devices do not pace; this one does, from here on:
     ep: Any = to.ep
-    ep._device = dev  # (a model's device: the test gives the endpoint a paced one, as _begin would)
+    io: Any = sched(to)
+    io._device = dev  # (a model's device: the test gives the scheduler a paced one, as a start would)
     period, k0 = 1_000_000, st.k0
 
     def device_tick(t: int) -> None:
-        ep.handle_timer(t)
-        ep.datagrams_to_send(t)
-        while (timer := ep.get_timer()) is not None and timer <= t:  # the settle, at once
-            ep.handle_timer(t)
+        io.handle_timer(t)
+        io.datagrams_to_send(t)
+        while (timer := io.get_timer()) is not None and timer <= t:  # the settle, at once
+            io.handle_timer(t)
 
     t = st.t0_ns + (k0 + 10) * period
     net.run(t - to.offset_ns)  # (the network delivers; it runs no tick of a paced endpoint)
@@ -247,12 +255,12 @@ def test_a_device_paced_session_runs_the_tick_its_clock_says_missed_ahead_and_si
     assert [k for k, _ in ep.ticked] == [k0 + 10, k0 + 11] and dev.holds == 1
     device_tick(t + 6 * period)  # five device ticks missed: the tick the clock says
     assert [k for k, _ in ep.ticked] == [k0 + 10, k0 + 11, k0 + 16]
-    assert ep._loop.missed == 10 + 4 and ep._loop.ahead == 1 and ep._loop.ticks == 3
-    timer = ep.get_timer()
+    assert io._loop.missed == 10 + 4 and io._loop.ahead == 1 and io._loop.ticks == 3
+    timer = io.get_timer()
     assert timer == t + 6 * period + 1_000_000_000
-    ep.handle_timer(timer)  # silent for a second
+    io.handle_timer(timer)  # silent for a second
     assert ep.state == State.LINGER and "did not tick for 1.0 s" in ep.fault_why
-    assert any(isinstance(e, TicksEnded) for e in iter(ep.next_event, None))
+    assert any(isinstance(e, TicksEnded) for e in iter(io.next_event, None))
 
 
 def test_figures_percentiles_are_of_the_deadline_instant() -> None:
@@ -308,7 +316,7 @@ def test_an_early_tick_that_ends_the_session_still_counts_its_deadline() -> None
     op, to = pair(net, duration=0.0, spin_ns=SPIN_NS)
     net.seconds(6.0, stop=lambda: to.ep.state == State.RUNNING)
     net.seconds(0.5)
-    op.ep.stop(op.clock(net.now))
+    sched(op).stop(op.clock(net.now))
     net.seconds(3.0)
     for h in (op, to):
         assert summary(h)["completed"], h.addr
@@ -325,11 +333,11 @@ def test_a_robot_stopped_while_it_waits_for_a_payload_counts_only_the_ticks_it_r
     net.seconds(0.5)
     net.stall(OP, net.now + 10_000 * MS)  # silent: nothing more from the operator
     steps = 0
-    while not to.ep.awaiting_payload and steps < 20_000:
+    while not sched(to).awaiting_payload and steps < 20_000:
         steps += 1
         net.run(net.now + 50_000)
-    assert to.ep.awaiting_payload
-    to.ep.stop(to.clock(net.now))
+    assert sched(to).awaiting_payload
+    sched(to).stop(to.clock(net.now))
     net.seconds(2.0)
     assert summary(to)["end"] == "stopped"
     ran = to.ep.ran  # type: ignore[attr-defined]

@@ -1,6 +1,7 @@
 """A virtual-time network for endpoints: seeded, deterministic, milliseconds of wall time a second.
 
-Hosts are :class:`teleop.session.endpoint.Endpoint`\\ s at addresses, each with its own clock (an offset from
+Hosts are :class:`teleop.session.endpoint.Endpoint`\\ s at addresses (their ticks run by the network,
+or by a :class:`teleop.session.scheduler.Scheduler` around each), each with its own clock (an offset from
 the network's), joined by links with a one-way delay per direction and seeded loss.  The loop jumps
 from one instant to the next: a datagram's arrival, an endpoint's timer, a tick's deadline.  An
 adversary sees every datagram (``tap``) and may drop, copy, redirect or inject; a host can be killed
@@ -22,6 +23,8 @@ from teleop.session.events import Event, SessionStarted
 from teleop.session.link import Addr
 from teleop.session.port import Port, PortKeys
 from teleop.session.protocol import SessionParams
+from teleop.session.schedule import TickPolicy
+from teleop.session.scheduler import Scheduler
 from teleop.session.settings import Envelope
 
 PSK = bytes(range(32))
@@ -62,11 +65,17 @@ class Host:
     events: list[Event] = field(default_factory=list)
     next_k: int | None = None  # the next tick to run (None: no session running)
     sent: int = 0
-    #: The endpoint's ticks are its timers (``ticks=TickPolicy``): the network does not tick it.
-    #: ``spin_ns``: it is also called that long before each timer, as a precise runner's spin is.
-    timed: bool = False
+    #: The endpoint's ticks are a scheduler's timers (``ticks=TickPolicy``): the network does not
+    #: tick it, and drives the scheduler instead of the endpoint.  ``spin_ns``: it is also called
+    #: that long before each timer, as a precise runner's spin is.
+    sched: Scheduler | None = None
     spin_ns: int = 0
     early_for: int | None = None  # the timer it was last called early for
+
+    @property
+    def io(self) -> Endpoint | Scheduler:
+        """What the network drives: the scheduler if the host has one, else the endpoint."""
+        return self.sched if self.sched is not None else self.ep
 
     def clock(self, t: int) -> int:
         return t + self.offset_ns
@@ -124,7 +133,7 @@ class VirtualNet:
             now_ns=self.now + offset_ns,
             psk=auth.robot_key(PSK, name),
             rng=self.rand(),
-            **{k: v for k, v in kw.items() if k not in ("cls", "spin_ns")},
+            **{k: v for k, v in kw.items() if k not in ("cls", "spin_ns", "ticks")},
         )
         return self._add(addr, ep, offset_ns, kw)
 
@@ -146,14 +155,16 @@ class VirtualNet:
             psk=auth.robot_key(PSK, name),
             local_limits=limits,
             rng=self.rand(),
-            **{k: v for k, v in kw.items() if k not in ("cls", "spin_ns")},
+            **{k: v for k, v in kw.items() if k not in ("cls", "spin_ns", "ticks")},
         )
         return self._add(addr, ep, offset_ns, kw)
 
     def _add(self, addr: Addr, ep: Endpoint, offset_ns: int, kw: dict[str, Any] | None = None) -> Host:
-        """``kw``: the endpoint's options (``ticks``: its ticks are timers) and ``spin_ns`` (Host)."""
-        timed, spin = (kw or {}).get("ticks") is not None, (kw or {}).get("spin_ns", 0)
-        h = self.hosts[addr] = Host(addr, ep, offset_ns, timed=timed, spin_ns=spin)
+        """``kw``: the endpoint's options, ``ticks`` (a :class:`TickPolicy`: a scheduler runs its
+        ticks as timers) and ``spin_ns`` (Host)."""
+        policy: TickPolicy | None = (kw or {}).get("ticks")
+        sched = Scheduler(ep, policy) if policy is not None else None
+        h = self.hosts[addr] = Host(addr, ep, offset_ns, sched=sched, spin_ns=(kw or {}).get("spin_ns", 0))
         self._flush(h)
         return h
 
@@ -190,12 +201,13 @@ class VirtualNet:
             self.inject(s, d, b, delay)
 
     def _flush(self, h: Host) -> None:
-        for data, dst in h.ep.datagrams_to_send(h.clock(self.now)):
+        io = h.io
+        for data, dst in io.datagrams_to_send(h.clock(self.now)):
             h.sent += 1
             self._send(h.addr, dst, data)
-        while (ev := h.ep.next_event()) is not None:
+        while (ev := io.next_event()) is not None:
             h.events.append(ev)
-            if isinstance(ev, SessionStarted) and not h.timed:
+            if isinstance(ev, SessionStarted) and h.sched is None:
                 h.next_k = ev.k0
         if not h.ep.running:
             h.next_k = None
@@ -209,7 +221,7 @@ class VirtualNet:
         t = None
         if h.next_k is not None and (p := ep.params) is not None:
             t = ep.t0_ns + h.next_k * round(p.dt * 1e9) - h.offset_ns
-        if (timer := ep.get_timer()) is not None:
+        if (timer := h.io.get_timer()) is not None:
             if h.spin_ns and h.early_for != timer:  # called a spin before it (Host.spin_ns)
                 timer -= h.spin_ns
             timer = max(timer - h.offset_ns, self.now)
@@ -249,20 +261,20 @@ class VirtualNet:
                     heapq.heappush(q, (self.stalled[dst], self._seq, src, dst, data))
                     continue
                 self.delivered += 1
-                to.ep.receive_datagram(data, src, now + to.offset_ns)
+                to.io.receive_datagram(data, src, now + to.offset_ns)
                 self._flush(to)
             for h in list(hosts.values()):
                 if self.stalled and self._asleep(h.addr):
                     continue
-                ep = h.ep
+                ep, io = h.ep, h.io
                 local = now + h.offset_ns  # the host's clock
-                timer = ep.get_timer()
+                timer = io.get_timer()
                 if timer is not None and local >= timer:
-                    ep.handle_timer(local)
+                    io.handle_timer(local)
                     self._flush(h)
                 elif timer is not None and h.spin_ns and h.early_for != timer and local >= timer - h.spin_ns:
                     h.early_for = timer  # in the spin: it may work early
-                    ep.handle_timer(local)
+                    io.handle_timer(local)
                     self._flush(h)
                 if h.next_k is not None and (p := ep.params) is not None:
                     period = round(p.dt * 1e9)

@@ -1095,6 +1095,8 @@ class Endpoint:
             self._events.append(TicksEnded(self.k, self._loop))
             self._device, self._grace_until, self._admit_next = None, None, 0  # (an early tick's
             # deadline is still met: handle_timer then)
+        else:
+            self._events.append(TicksEnded(self.k))
         if reason == EndReason.REPLACED:
             self._close()
             return

@@ -21,7 +21,6 @@ __all__ = [
     "EndReason",
     "Event",
     "Failed",
-    "Failure",
     "HelloRejected",
     "LinkLost",
     "LinkRestored",
@@ -60,17 +59,18 @@ class SessionStarted:
 
 @dataclass(frozen=True)
 class TicksEnded:
-    """The session's ticks are over (it lingers now, or was replaced): ``loop`` is their timing
-    (an endpoint whose ticks are timers only: :class:`TickPolicy`)."""
+    """The session's ticks are over after tick ``k`` (it lingers now, or was replaced).  ``loop``:
+    their timing, from the :class:`teleop.session.scheduler.Scheduler` that ran them (None from the
+    endpoint itself, whose caller ran them)."""
 
     k: int
-    loop: LoopFigures
+    loop: LoopFigures | None = None
 
 
 @dataclass(frozen=True)
 class AdmissionChanged:
-    """What the endpoint can take changed (:meth:`Endpoint.admission`): for the transport's filter
-    and its length limit (an endpoint whose ticks are timers only)."""
+    """What the endpoint can take changed (:meth:`Endpoint.admission`), said by the scheduler: for
+    the transport's filter and its length limit (an endpoint whose ticks are timers only)."""
 
     admission: Admission
 

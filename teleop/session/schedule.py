@@ -1,13 +1,14 @@
 """When a real-time endpoint ticks, and what its loop's timing was: sans-I/O, in the caller's time.
 
 The policy that used to live in the real-time runner (``shell.runner``) is here, so that it
-runs, and is tested, in virtual time: the endpoint's ``get_timer`` says each tick's deadline, ``handle_timer``
-runs the tick that is due (:class:`TickPolicy`), and :class:`LoopFigures` counts how the deadlines
-were met.  Tick ``k`` of a session is due at ``t0 + k * period``; ``t0`` is the endpoint's and
-moves (the teleoperator's phase follows the operator: ``teleop.session.link.phase``).
+runs, and is tested, in virtual time: the scheduler's (``teleop.session.scheduler``) ``get_timer``
+says each tick's deadline, its ``handle_timer`` runs the tick that is due (:class:`TickPolicy`), and
+:class:`LoopFigures` counts how the deadlines were met.  Tick ``k`` of a session is due at
+``t0 + k * period``; ``t0`` is the endpoint's and moves (the teleoperator's phase follows the
+operator: ``teleop.session.link.phase``).
 
 **Early work.** A precise runner sleeps until a spin before each deadline and spins the rest, and
-that spin is CPU burnt for timing alone.  It may call ``handle_timer`` during the spin: the endpoint
+that spin is CPU burnt for timing alone.  It may call ``handle_timer`` during the spin: the scheduler
 then feeds what arrived (the *early drain*: each datagram only while its expected cost, a running
 mean, still ends :data:`EARLY_MARGIN_NS` before the deadline) and, with ``early_tick``, runs the tick
 itself and holds its datagrams until the deadline.  Why: on a host whose wake-ups are late by tens
@@ -50,14 +51,17 @@ MAX_CATCHUP = 20
 
 @dataclass(frozen=True)
 class TickPolicy:
-    """How an endpoint whose ticks are timers runs them.  ``early_tick``: run a tick in the time
-    before its deadline when ``handle_timer`` is called then (``--tick-at wake``), holding its
-    datagrams until the deadline; else from the deadline (``--tick-at deadline``).  ``early_ns``:
-    the earliest before a deadline that counts as the spin's time (the runner's spin bound)."""
+    """How a :class:`teleop.session.scheduler.Scheduler` runs an endpoint's ticks.  ``early_tick``:
+    run a tick in the time before its deadline when ``handle_timer`` is called then (``--tick-at
+    wake``), holding its datagrams until the deadline; else from the deadline (``--tick-at
+    deadline``).  ``early_ns``: the earliest before a deadline that counts as the spin's time (the
+    runner's spin bound).  ``grace_us``: how long past its deadline a tick waits for a payload that
+    is due and missing (``--grace-us``; 0: never)."""
 
     early_tick: bool = True
     early_ns: int = 200_000
     max_catchup: int = MAX_CATCHUP
+    grace_us: float = 400.0
 
 
 def _q() -> Quantiles:
