@@ -14,7 +14,7 @@ import msgpack
 import pytest
 
 from teleop.session import auth, protocol
-from teleop.session.endpoint import REJOIN_OFFER_INTERVAL_NS, State
+from teleop.session.endpoint import State
 from teleop.session.events import (
     EndReason,
     Failed,
@@ -26,6 +26,7 @@ from teleop.session.events import (
     SessionStarted,
 )
 from teleop.session.protocol import Failure
+from teleop.session.rejoin import REJOIN_OFFER_INTERVAL_NS
 from teleop.session.settings import Envelope
 from teleop.session.summary import SessionSummary
 
@@ -127,7 +128,7 @@ def test_a_rejoin_whose_started_is_lost_is_confirmed_by_the_next_resend() -> Non
     net.seconds(4.0, stop=lambda: len(starteds) >= 2)
     assert len(starteds) == 2 and starteds[1] - starteds[0] <= 25 * MS  # one resend interval later
     net.seconds(0.1)
-    assert op.ep._rj_start is None and op.ep._rj_resends <= 2
+    assert op.ep._rejoin.start is None and op.ep._rejoin.resends <= 2
     assert to2.ep.state == State.RUNNING and len(starteds) == 2
 
 

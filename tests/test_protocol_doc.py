@@ -308,7 +308,7 @@ def _code_map() -> dict[str, object]:
     from teleop.control import passivity
     from teleop.control.codecs import base, frequency
     from teleop.devices import scenarios
-    from teleop.session import endpoint, schedule
+    from teleop.session import endpoint, rejoin, schedule
 
     hs = protocol.OperatorHandshake
     return {
@@ -395,11 +395,11 @@ def _code_map() -> dict[str, object]:
         "REFERENCE_LINK_TIMEOUT_S": _default(SessionParams, "link_timeout"),
         "REFERENCE_FADE_TIME_S": _default(PortOptions, "fade_time"),
         "REFERENCE_MAX_CATCHUP": _default(schedule.TickPolicy, "max_catchup"),
-        "REFERENCE_REJOIN_OFFER_INTERVAL_NS": endpoint.REJOIN_OFFER_INTERVAL_NS,
-        "REFERENCE_REJOIN_SAMPLES": endpoint.REJOIN_SAMPLES,
-        "REFERENCE_REJOIN_COLLECT_NS": endpoint.REJOIN_COLLECT_NS,
-        "REFERENCE_REJOIN_START_RESEND_NS": endpoint.START_RESEND_NS,
-        "REFERENCE_REJOIN_START_RESENDS": endpoint.START_RESENDS,
+        "REFERENCE_REJOIN_OFFER_INTERVAL_NS": rejoin.REJOIN_OFFER_INTERVAL_NS,
+        "REFERENCE_REJOIN_SAMPLES": rejoin.REJOIN_SAMPLES,
+        "REFERENCE_REJOIN_COLLECT_NS": rejoin.REJOIN_COLLECT_NS,
+        "REFERENCE_REJOIN_START_RESEND_NS": rejoin.START_RESEND_NS,
+        "REFERENCE_REJOIN_START_RESENDS": rejoin.START_RESENDS,
         "REFERENCE_JOIN_AHEAD_TICKS": endpoint.JOIN_AHEAD_TICKS,
         "REFERENCE_SILENT_MIN_NS": endpoint.SILENT_MIN_NS,
         "REFERENCE_GHOST_MARGIN_NS": endpoint.GHOST_MARGIN_NS,

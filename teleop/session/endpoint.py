@@ -7,17 +7,15 @@ An :class:`Endpoint` has aioquic's ``QuicConnection`` surface, the same for both
     ep.get_timer()  /  ep.handle_timer(now_ns)   # when to come back even if nothing arrives
     ep.next_event()                              # SessionStarted, PeerRestarted, Replaced, ...
 
-With a :class:`TickPolicy` (the real-time runner) the 1 kHz ticks are timers too: ``get_timer``
-says each tick's deadline (or its grace limit) and ``handle_timer`` runs the tick that is due,
-early in the spin before its deadline if called then (``teleop.session.schedule``: early drain,
-early tick, grace, skips, the loop's figures).  Without one the caller runs each tick with
-``ep.tick(k, now_ns)`` at ``t0_ns + k dt`` (the virtual-time tests' network).
+The caller runs each tick with ``ep.tick(k, now_ns)`` at ``t0_ns + k dt``: a
+:class:`teleop.session.scheduler.Scheduler` beside it (the real-time runner's: its timers, early
+drain, early tick, grace, skips, device pacing), or the virtual-time tests' network.  The endpoint
+has one mode and no clock of its own; what it receives is handled at once.
 
 It never reads a clock, opens a socket or a file, or sleeps: ``now_ns`` is the caller's monotonic
 clock, so the same object runs live in ``shell.runner`` and in virtual time in the tests
 (two endpoints joined by the seeded link model, with faults and an adversary).  Every protocol
-decision and constant of the session lives here, and when each tick runs; the runner only waits,
-reads, feeds and sends.
+decision and constant of the session lives here; when each tick runs is the scheduler's.
 
 **The session's life.** ``HANDSHAKE`` (``teleop.session.protocol``'s state machines: the operator's hellos,
 the teleoperator's cookie, welcome and start) -> ``STARTING`` (agreed; tick ``k0`` is due at
@@ -26,13 +24,11 @@ the teleoperator's cookie, welcome and start) -> ``STARTING`` (agreed; tick ``k0
 ``FAILED`` with a :class:`Failure`.  A teleoperator whose operator was replaced goes from
 ``RUNNING`` straight to ``STARTING`` of the new session (event :class:`Replaced`).
 
-**Rejoin** (operator, link lost): an offer (a hello of the running session, ``rejoin``) every
-:data:`REJOIN_OFFER_INTERVAL_NS`, so that a restarted teleoperator can take the session over.  A
-retry's cookie is taken and the offer resent at once; so is the next offer after each welcome,
-until :data:`REJOIN_SAMPLES` welcomes of one teleoperator nonce (or :data:`REJOIN_COLLECT_NS`).  The
-exchange with the smallest round trip places the start on the teleoperator's clock: its error is
-at most half that round trip (NTP: the one-way delays differ by at most the round trip), which
-PROTOCOL.md states as the rejoin's bound; slow answers are used, not refused.
+**Rejoin** (operator, link lost): offers to a restarted teleoperator, so that it can take the
+session over (``teleop.session.rejoin``).  The exchange with the smallest round trip places the
+start on the teleoperator's clock: its error is at most half that round trip (NTP: the one-way
+delays differ by at most the round trip), which PROTOCOL.md states as the rejoin's bound; slow
+answers are used, not refused.
 
 **Takeover** (teleoperator, link lost): handshake datagrams, and session datagrams that are not
 our operator's, go to a handshake of their own; the session is replaced only when that handshake
@@ -54,7 +50,6 @@ from typing import Any, TypeAlias
 from teleop.session import auth, protocol, wire
 from teleop.session.admission import FLOOD_HOLD_NS, FLOOD_SAMPLE, Admission, HandshakeLimiter, Strangers
 from teleop.session.events import (
-    AdmissionChanged,
     ClockShifted,
     EndReason,
     Event,
@@ -73,37 +68,20 @@ from teleop.session.events import (
 from teleop.session.link import Addr
 from teleop.session.port import Port, PortKeys, build_refusal
 from teleop.session.protocol import Failure, SessionParams
-from teleop.session.schedule import (
-    ADMIT_EVERY_NS,
-    DEVICE_SILENT_NS,
-    EARLY_COST_START_NS,
-    EARLY_MARGIN_NS,
-    LoopFigures,
-    TickPolicy,
-)
+from teleop.session.rejoin import Rejoin
 from teleop.session.settings import Envelope
 from teleop.session.summary import EndpointSummary, RejoinFigures
 
 __all__ = [
     "GHOST_MARGIN_NS",
-    "GRACE_RESUME_TICKS",
     "JOIN_AHEAD_TICKS",
-    "REJOIN_COLLECT_NS",
-    "REJOIN_OFFER_INTERVAL_NS",
-    "REJOIN_SAMPLES",
     "Endpoint",
-    "Monitor",
     "PortFactory",
     "State",
     "ghost_round_trip",
     "session_port",
 ]
 
-REJOIN_OFFER_INTERVAL_NS = 250_000_000  # operator, link lost: an offer this often
-REJOIN_SAMPLES = 4  # welcomes of one restarted teleoperator before the start is placed
-REJOIN_COLLECT_NS = 2_000_000_000  # or this long after the first of them
-START_RESEND_NS = 20_000_000  # a rejoin's start, until started (or the new peer's data) arrives ...
-START_RESENDS = 50  # ... at most this often, each max(START_RESEND_NS, rtt / 8) apart: >= 6 round trips
 JOIN_AHEAD_TICKS = 20  # a late joiner starts this many ticks ahead of now (it still has to set up)
 START_GUARD_NS = 2_000_000  # a start closer than this (or past) is joined late
 #: Operator: the teleoperator's first data packet is due by tick 0 plus the larger of this and two
@@ -122,8 +100,6 @@ GHOST_MARGIN_NS = 1_900_000_000
 LEAD_FIXED_NS = 150_000_000
 BYE_COPIES = 3
 LINGER_SHIM_GRACE_NS = 2_000_000_000  # how long after the linger the shim's backlog may still go out
-GRACE_STREAK = 3  # grace waits missed in a row before grace rests
-GRACE_RESUME_TICKS = 200  # ... for this many ticks (the link is late by ms, not us)
 EVENTS_KEPT = 1024  # a flood of rejected hellos cannot grow the event queue
 
 
@@ -139,9 +115,6 @@ class State(enum.Enum):
 #: Makes a session's port: (params, first tick, keys, tick 0 on this clock) -> Port.  The shell's
 #: factory adds its log sink and device; tests give one with an in-memory record.
 PortFactory: TypeAlias = Callable[[SessionParams, int, PortKeys, int], Port]
-#: Called after each tick's datagrams left: (port, tick, session time, the loop's figures).  The
-#: shell's live view and status line; the port is the one its factory made.
-Monitor: TypeAlias = Callable[[Port, int, float, LoopFigures], None]
 
 
 def ghost_round_trip(stated_ns: int | None, lead_left_ns: int) -> int:
@@ -170,13 +143,8 @@ class Endpoint:
         psk: bytes,
         connect_timeout_s: float = 10.0,
         linger_s: float = 0.2,
-        grace_us: float = 400.0,
         rng: Callable[[int], bytes] = secrets.token_bytes,
-        ticks: TickPolicy | None = None,
-        monitor: Monitor | None = None,
     ) -> None:
-        """``ticks``: the ticks are timers (:meth:`get_timer`, :meth:`handle_timer`), run as it says;
-        None: the caller runs each with :meth:`tick` (the virtual-time tests' network)."""
         if role not in ("operator", "teleoperator"):
             raise ValueError(f"role must be operator or teleoperator, got {role!r}")
         self.role = role
@@ -184,7 +152,6 @@ class Endpoint:
         self.psk = psk
         self.connect_timeout_s = connect_timeout_s
         self.linger_ns = round(linger_s * 1e9)
-        self.grace_limit_ns = round(grace_us * 1e3)
         self._rng = rng
         self.state = State.HANDSHAKE
         self._events: deque[Event] = deque(maxlen=EVENTS_KEPT)
@@ -192,38 +159,19 @@ class Endpoint:
         self.port: Port | None = None
         self.params: SessionParams | None = None
         self.peer: Addr | None = None
-        self.start_ns = 0
-        self.t0_ns = 0
-        self.k0 = 0
+        self.start_ns = self.t0_ns = self.k0 = 0
         self.k = 0  # the last tick run (or k0 before the first)
         # The tick a datagram received now belongs to: the one about to run (what the playout
         # buffer measures transit against; counting it against the last one run plays a tick early).
         self._rx_k = 0
-        self._stopped = False
-        self._ended: EndReason | None = None
-        self.peer_bye: protocol.Bye | None = None
-        self.fault_why = ""  # what this side's device said when it ended the session (fault)
-        self.foreign = 0
+        self._reset_session_state()
         self._handshake_info: dict[str, Any] = {}
         self.peer_nonce: bytes | None = None  # operator: the teleoperator's, from the welcome it took
         self.offset_ns = 0  # operator: the teleoperator's clock minus ours
         self._link_lost = False
         # operator
         self._op_hs: protocol.OperatorHandshake | None = None
-        # t_ns of rejoin offers not yet answered: at a 2 s round trip some 16 are in flight
-        self._offers: deque[int] = deque(maxlen=64)
-        self._next_offer = 0
-        self._rj_cookie: bytes | None = None
-        self._rj_nonce: bytes | None = None
-        self._rj_samples: list[tuple[int, int]] = []  # (rtt, offset) of one teleoperator nonce
-        self._rj_first = 0
-        # A rejoin's start, resent until confirmed: sealed anew each time (a byte-identical copy
-        # would be a replay, refused unanswered by the teleoperator that took the first).
-        self._rj_start: protocol.Start | None = None
-        self._rj_resends = 0
-        self._rj_next = 0
-        self._rj_interval = START_RESEND_NS
-        self.rejoin_offers = self.rejoins = self.rejoin_retries = 0
+        self._rejoin = Rejoin()  # a restarted teleoperator's (teleop.session.rejoin)
         # teleoperator
         self._to_hs: protocol.TeleoperatorHandshake | None = None
         self._takeover: protocol.TeleoperatorHandshake | None = None
@@ -235,43 +183,23 @@ class Endpoint:
         # The longest datagram of each key kind (index: auth.HANDSHAKE, auth.SESSION); the session
         # bound is narrowed to the agreed DoF once a session starts.
         self._max_len = [wire.MAX_HANDSHAKE_DATAGRAM_BYTES, wire.MAX_DATAGRAM_BYTES]
-        self.oversize = 0
-        self._rejections_seen = 0
+        self.oversize = self._rejections_seen = 0
         self._unverified_seen, self._unverified_next = 0, 0
-        self.own_offers_ignored = 0
-        self.busy_rejects = 0
-        self.retries_sent = 0
-        self.replaced = False
         self.ghost_ns: int | None = None  # teleoperator: when a session never heard from ends
         self.start_rtt_ns: int | None = None  # teleoperator: the round trip its start stated
         self.committed_ns = 0  # teleoperator: when it committed to the session's start
-        # grace
-        self.grace = {"limit_us": grace_us, "waits": 0, "missed": 0, "waited_us_total": 0.0}
-        self._grace_streak = self._grace_resume = 0
-        # linger
         self._linger_end = 0
+
+    def _reset_session_state(self) -> None:
+        """What each session starts with (at start-up, for a takeover, after a ghost)."""
+        self._stopped = False
+        self._ended: EndReason | None = None
+        self.peer_bye: protocol.Bye | None = None
+        self.fault_why = ""  # what this side's device said when it ended the session (fault)
+        self.replaced = False
+        self.foreign = 0  # datagrams from an address other than the peer's, dropped
+        self.own_offers_ignored = self.busy_rejects = self.retries_sent = 0
         self._bye_sent = False
-        # ticks as timers (TickPolicy)
-        self._policy = ticks
-        self._monitor = monitor
-        self._now = 0  # the latest time handle_timer was given: "at once"
-        self._next_k = 0  # the tick due next
-        self._loop: LoopFigures | None = None
-        self._pending: deque[tuple[bytes, Addr, int]] = deque()  # received, fed at the next handle_timer
-        self._cost = EARLY_COST_START_NS  # a datagram's cost to feed, running mean (the early drain)
-        self._fed_at: int | None = None
-        self._early_at: tuple[int, int] | None = None  # the tick run early and its deadline, not yet met
-        self._hold_until = 0  # an early tick's datagrams (and what follows them) leave at its deadline
-        self._quiet_until = 0  # handle_timer has nothing to do before this (the spin's early work done)
-        self._grace_until: int | None = None
-        self._grace_t0 = 0
-        # (k, deadline, its session's port and figures): a tick's datagrams about to leave, and left
-        self._out_tick: tuple[int, int, Port, LoopFigures] | None = None
-        self._departed: tuple[int, int, Port, LoopFigures] | None = None  # (settle it)
-        self._device: Any = None  # paces the ticks (a real arm)
-        self._device_last = 0
-        self._admit_next = 0
-        self._admitted: Admission | None = None
 
     # --- construction -----------------------------------------------------------------------
     @classmethod
@@ -370,16 +298,8 @@ class Endpoint:
         return self._limiter.dropped
 
     def receive_datagram(self, data: bytes, addr: Addr, now_ns: int) -> None:
-        """A datagram from ``addr`` received at ``now_ns``.  Never raises: whatever it is, it is
-        taken, or counted and dropped.  While timed ticks run (:class:`TickPolicy`) it is only queued,
-        for :meth:`handle_timer` (the early drain decides when each is worth its cost)."""
-        if self._policy is not None and self._device is None and self.running:
-            self._pending.append((data, addr, now_ns))
-            self._quiet_until = 0
-            return
-        self._receive(data, addr, now_ns)
-
-    def _receive(self, data: bytes, addr: Addr, now_ns: int) -> None:
+        """A datagram from ``addr`` received at ``now_ns``, handled at once.  Never raises: whatever
+        it is, it is taken, or counted and dropped."""
         hdr = auth.peek(data)
         if hdr is not None and len(data) > self._max_len[hdr[0]]:
             self.oversize += 1  # longer than any message of its key kind: refused by length alone
@@ -403,14 +323,7 @@ class Endpoint:
             self._session_datagram(data, hdr, addr, now_ns)
 
     def datagrams_to_send(self, now_ns: int) -> list[tuple[bytes, Addr]]:
-        """What to send now (a welcome is stamped with ``now_ns`` as it leaves: NTP's t3).  An early
-        tick's datagrams, and what came after them, wait for its deadline."""
-        if self._policy is not None and now_ns >= self._admit_next:
-            self._admit(now_ns)
-        if now_ns < self._hold_until:
-            return []
-        if self._out_tick is not None:
-            self._departed, self._out_tick = self._out_tick, None
+        """What to send now (a welcome is stamped with ``now_ns`` as it leaves: NTP's t3)."""
         if self.state == State.HANDSHAKE and self._op_hs is not None:
             assert self.peer is not None
             self._out += [(d, self.peer) for d in self._op_hs.poll(now_ns)]
@@ -424,49 +337,15 @@ class Endpoint:
         out, self._out = self._out, []
         return out
 
-    def _admit(self, now_ns: int) -> None:
-        self._admit_next = now_ns + ADMIT_EVERY_NS
-        a = self.admission(now_ns)
-        if a != self._admitted:
-            self._admitted = a
-            self._events.append(AdmissionChanged(a))
-
-    @property
-    def awaiting_payload(self) -> bool:
-        """A tick is waiting for its payload (grace): a datagram that comes before :meth:`get_timer`
-        may let it run, so a caller should wait on its socket rather than sleep."""
-        return self._grace_until is not None
-
     def get_timer(self) -> int | None:
-        """When :meth:`handle_timer` must be called next (ns on the caller's clock); None: finished.
-        With a :class:`TickPolicy` each tick's deadline is a timer (or its grace limit, or the
-        device's silence limit when a device paces the ticks)."""
-        policy = self._policy
-        if policy is not None:  # "at once" is the latest time it was given
-            if self._departed is not None:
-                return self._now  # a tick's datagrams left: settle them
-            if self.running and self._device is None:
-                if self._grace_until is not None:  # what came may be the payload
-                    ready = self._pending or self.payload_ready(self._next_k)
-                    return self._now if ready else self._grace_until
-                d = self._early_at[1] if self._early_at is not None else self._deadline(self._next_k)
-                # What came is fed at once, but in the spin only as the early drain allows.
-                return self._now if self._pending and self._now < d - policy.early_ns else d
-            if self.running:
-                return self._device_last + DEVICE_SILENT_NS
-            if self._hold_until > self._now:
-                return self._hold_until
-            if self._pending:
-                return self._now
+        """When :meth:`handle_timer` must be called next (ns on the caller's clock), for the
+        handshake, the rejoin and the linger (the ticks are the caller's); None: nothing is due."""
         if self.state == State.HANDSHAKE:
             hs = self._op_hs or self._to_hs
             assert hs is not None
             return hs.next_timer()
         if self.state == State.RUNNING and self.role == "operator":
-            timers = [t for t in (self._rj_next if self._rj_start is not None else None,) if t is not None]
-            if self._link_lost:
-                timers.append(self._next_offer)
-            return min(timers) if timers else None
+            return self._rejoin.timer(self._link_lost)
         if self.state == State.LINGER:
             if not self._bye_sent:
                 due = self._shim_due_ns()
@@ -475,24 +354,7 @@ class Endpoint:
         return None
 
     def handle_timer(self, now_ns: int) -> None:
-        """The timer is due.  With a :class:`TickPolicy` it may also be called before a tick's
-        deadline, in the time a precise caller spins before it: the endpoint feeds what arrived and
-        may run the tick early (``teleop.session.schedule``); with a paced device, each call after
-        the device ticked runs the session's tick its clock says."""
-        if now_ns < self._quiet_until:
-            return  # in a spin, with nothing to do before the deadline (called on every turn of it)
-        if self._policy is not None:
-            self._now = now_ns
-            if self._departed is not None:
-                self._settle(now_ns)
-                return
-            if self.running:
-                self._timed_tick(self._policy, now_ns)
-                return
-            if self._early_at is not None and now_ns >= self._early_at[1]:
-                self._met_early(now_ns)
-            while self._pending:
-                self._receive(*self._pending.popleft())
+        """The timer is due: the handshake's retries and timeouts, a rejoin's offers, the linger."""
         if self.state == State.HANDSHAKE and self._to_hs is not None:
             self._to_hs.poll(now_ns)
             if self._to_hs.error is not None:
@@ -532,10 +394,6 @@ class Endpoint:
         ``k`` at or past the session's end (a stall skipped over it) ends the session instead.
         Returns whether the tick ran (its model and record): the loop's figures count only those."""
         assert self.port is not None and self.params is not None and self.peer is not None
-        while self._pending:  # what came before the tick is its
-            self._receive(*self._pending.popleft())
-            if self.port is None or not self.running:
-                return False
         if not self.running:
             return False
         if k >= self.params.ticks:
@@ -571,7 +429,7 @@ class Endpoint:
             self._link_lost = lost
             self._events.append(LinkLost(k) if lost else LinkRestored(k))
             if lost:
-                self._next_offer = now_ns
+                self._rejoin.next_offer = now_ns
         if lost and self.role == "teleoperator" and not port.heard_from_peer:
             self._end(EndReason.PEER_SILENT, now_ns)  # a ghost: free the robot for an operator
         elif k + 1 >= self.params.ticks:
@@ -582,155 +440,6 @@ class Endpoint:
             self._end(EndReason.PEER_FAULT, now_ns)
         return True
 
-    # --- ticks as timers (TickPolicy, teleop.session.schedule) ----------------------------------
-    def _deadline(self, k: int) -> int:
-        assert self.params is not None
-        return self.t0_ns + k * round(self.params.dt * 1e9)
-
-    def _feed(self, limit: int | None = None) -> bool:
-        """Feed the queued datagrams (at most ``limit``); False if the session they fed to was
-        replaced or ended on the way (a takeover's start)."""
-        port, n = self.port, 0
-        while self._pending and (limit is None or n < limit):
-            self._receive(*self._pending.popleft())
-            n += 1
-            if self.port is not port or not self.running:
-                return False
-        return True
-
-    def _timed_tick(self, policy: TickPolicy, now: int) -> None:
-        if self._device is not None:
-            self._paced_tick(now)
-            return
-        k = self._next_k
-        # An early tick's deadline stays its own (its tick may have moved t0: the phase, a skew).
-        deadline = self._early_at[1] if self._early_at is not None else self._deadline(k)
-        if now < deadline:
-            if now >= deadline - policy.early_ns:
-                self._early(policy, k, deadline, now)
-            else:
-                self._fed_at = None
-                self._feed()
-            return
-        self._fed_at = None  # (the spin is over: the next call's time says nothing of a feed's cost)
-        if self._early_at is not None:  # run early: its deadline is met now, its datagrams leave
-            self._met_early(now)
-            self._next_k = k + 1
-            self._feed()
-            return
-        if not self._feed():
-            return
-        loop = self._loop
-        assert loop is not None and self.params is not None
-        if self._grace_until is None:
-            period = round(self.params.dt * 1e9)
-            late = now - deadline
-            if late > policy.max_catchup * period:  # a stall: skip, counted, rather than catch up
-                # ... the session's ticks only: a stall past its end skips to the end (the loop's
-                # ticks and skipped ticks add up to the session's, a report's invariant).
-                jump = min(late // period, max(self.params.ticks - k, 0))
-                loop.skipped += jump
-                k += jump
-                late -= jump * period
-                deadline += jump * period
-                self._next_k = k
-            loop.started(late, now)
-            if self.grace_needed(k):
-                self.grace["waits"] += 1
-                self._grace_until, self._grace_t0 = deadline + self.grace_limit_ns, now
-                return
-        else:
-            if not self.payload_ready(k) and now < self._grace_until:
-                return
-            self._grace_until = None
-            self.grace_result(k, now - self._grace_t0)
-        self._next_k = k + 1
-        port = self.port
-        assert port is not None
-        if not self.tick(k, now):  # not run (stopped during its grace, a skew): not a loop tick
-            loop.not_run()
-            return
-        self._out_tick = (k, deadline, port, loop)
-
-    def _met_early(self, now: int) -> None:
-        """The deadline of the tick run early is met (also once that tick ended the session)."""
-        assert self._early_at is not None and self._loop is not None
-        deadline, self._early_at = self._early_at[1], None
-        self._loop.started(now - deadline, now)
-
-    def _early(self, policy: TickPolicy, k: int, deadline: int, now: int) -> None:
-        """Before the deadline, in the spin's time: the early drain, then maybe the early tick."""
-        if self._fed_at is not None:  # the datagram fed at the last call (in this spin) cost this
-            self._cost += (min(now - self._fed_at, policy.early_ns) - self._cost) // 8
-            self._fed_at = None
-        if self._early_at is not None:
-            return
-        if not policy.early_tick:
-            if self._pending and now + self._cost <= deadline - EARLY_MARGIN_NS:
-                self._fed_at = now
-                self._feed(1)
-            else:
-                self._quiet_until = deadline  # nothing more before it: the caller's spin stays tight
-            return
-        # What arrived before this tick is its (left for after the tick, every payload would count
-        # a tick late whenever the playout buffer held something releasable, and auto playout would
-        # add that tick for good: measured, most of a session one tick above its floor).
-        if not self._feed():
-            return  # a takeover's new session
-        self._quiet_until = deadline
-        if self.grace_needed(k) or k + 1 >= (self.params.ticks if self.params else 0):
-            return  # a payload to wait for, or the last tick: at the deadline
-        port, loop = self.port, self._loop
-        assert port is not None and loop is not None
-        self._hold_until = deadline
-        self._early_at = (k, deadline)
-        if not self.tick(k, now):  # not run (a skew moved tick 0): its deadline is no loop tick
-            self._early_at, self._hold_until = None, 0
-            return
-        self._out_tick = (k, deadline, port, loop)
-
-    def _paced_tick(self, now: int) -> None:
-        """A device that paces the session ticked at ``now``: the session tick the clock says (the
-        tick due nearest ``now``, or the next if that one ran: never twice; ticks it skipped are
-        missed deadlines, counted; over a tick ahead of the clock, it holds, counted).  Silent for
-        :data:`DEVICE_SILENT_NS`, it ends the session with a fault."""
-        assert self.params is not None and self._loop is not None
-        if now >= self._device_last + DEVICE_SILENT_NS:
-            self.fault(now, f"the device did not tick for {(now - self._device_last) / 1e9:.1f} s")
-            return
-        self._device_last = now
-        period, k, loop = round(self.params.dt * 1e9), self._next_k, self._loop
-        due = (now - self.t0_ns + period // 2) // period
-        if k > due + 1:
-            loop.ahead += 1
-            hold = getattr(self._device, "hold", None)
-            if callable(hold):
-                hold()
-            return
-        if due > k:
-            loop.missed += due - k
-            k = due
-        deadline = self._deadline(k)
-        loop.started(now - deadline, now)
-        self._next_k = k + 1
-        port = self.port
-        assert port is not None
-        if not self.tick(k, now):
-            loop.not_run()
-            return
-        self._out_tick = (k, deadline, port, loop)
-
-    def _settle(self, now: int) -> None:
-        """A tick's datagrams left: what could wait for them (the record's seal, the live view)."""
-        assert self._departed is not None
-        k, deadline, port, loop = self._departed  # (its own session's, if another began since)
-        self._departed = None
-        loop.departed(now, deadline)
-        port.settle()
-        port.loop_timing(k, loop.last_lateness_ns)
-        if self._monitor is not None:
-            self._monitor(port, k, self.session_time(now), loop)
-
     def _retime(self, k: int) -> None:
         """The teleoperator's phase follows where the operator's packets land (``teleop.session.link.phase``),
         so that it ticks when the operator's packet is due (a skewed tick 0 is put right before a
@@ -739,35 +448,6 @@ class Endpoint:
         assert port is not None and params is not None
         port.clock.advance(k)
         self.t0_ns = self.start_ns + round(port.clock.phase * params.dt * 1e9)
-
-    def grace_needed(self, k: int) -> bool:
-        """Whether tick ``k`` would wait for its payload (:meth:`grace_until`), without counting a wait."""
-        port = self.port
-        if port is None or not self.grace_limit_ns or k < self._grace_resume:
-            return False
-        return not port.payload_ready(k) and port.heard_from_peer
-
-    def grace_until(self, k: int, deadline_ns: int) -> int | None:
-        """Grace: tick ``k``'s payload is due and not here yet; poll for it until the returned time
-        rather than play a gap (None: do not wait).  Report the outcome with :meth:`grace_result`."""
-        if not self.grace_needed(k):
-            return None
-        self.grace["waits"] += 1
-        return deadline_ns + self.grace_limit_ns
-
-    def payload_ready(self, k: int) -> bool:
-        return self.port is not None and self.port.payload_ready(k)
-
-    def grace_result(self, k: int, waited_ns: int) -> None:
-        self.grace["waited_us_total"] += waited_ns / 1e3
-        if self.payload_ready(k):
-            self._grace_streak = 0
-            return
-        self.grace["missed"] += 1
-        self._grace_streak += 1
-        if self._grace_streak >= GRACE_STREAK:  # a delayed or jittery link: packets are ms late; rest
-            self._grace_resume = k + GRACE_RESUME_TICKS
-            self._grace_streak = 0
 
     # --- handshake outcomes ------------------------------------------------------------------
     def _check_operator_handshake(self, now_ns: int) -> None:
@@ -840,18 +520,7 @@ class Endpoint:
         self.port.expect_first_by((first_due_ns - start_ns) / 1e9, lost_at=lost_at)
         self.state = State.STARTING
         self._link_lost = False
-        device = None
-        if self._policy is not None:
-            period = round(params.dt * 1e9)
-            device = self.port.paced_device()
-            self._device, self._device_last = device, t0_ns + (k0 - 1) * period
-            self._loop = LoopFigures(period, device_paced=device is not None)
-            self._next_k, self._early_at, self._grace_until, self._hold_until = k0, None, None, 0
-            self._quiet_until = 0
-            self._admit_next = 0
-        self._events.append(
-            SessionStarted(params, peer, start_ns, t0_ns, k0, late, offset_ns, rtt_ns, device)
-        )
+        self._events.append(SessionStarted(params, peer, start_ns, t0_ns, k0, late, offset_ns, rtt_ns))
 
     def _fail(self, reason: Failure, detail: str) -> None:
         self.state = State.FAILED
@@ -911,8 +580,8 @@ class Endpoint:
             return
         if isinstance(msg, protocol.Start) and self.role == "teleoperator":
             self._out.append((self.port.seal(protocol.Started(self.params.session)), self._peer()))
-        elif isinstance(msg, protocol.Started) and self._rj_start is not None:
-            self._rj_start = None  # the restarted teleoperator confirmed our rejoin's start
+        elif isinstance(msg, protocol.Started) and self._rejoin.start is not None:
+            self._rejoin.start = None  # the restarted teleoperator confirmed our rejoin's start
         elif isinstance(msg, protocol.Bye) and self.peer_bye is None:
             self.peer_bye = msg
             self._events.append(PeerBye(msg.produced))
@@ -949,65 +618,39 @@ class Endpoint:
             self.foreign += 1
             return
         msg = port.control(body)
-        if isinstance(msg, protocol.Retry) and msg.session == params.session and msg.t_ns in self._offers:
-            self._offers.remove(msg.t_ns)
-            self._rj_cookie = msg.cookie
-            self.rejoin_retries += 1
-            self._next_offer = now_ns  # offer again at once, with the cookie
+        if not isinstance(msg, protocol.Retry | protocol.Welcome) or msg.session != params.session:
+            return
+        if not self._rejoin.answers(msg.t_ns):
+            return
+        if isinstance(msg, protocol.Retry):
+            self._rejoin.retried(msg.cookie, now_ns)
             self._operator_timers(now_ns)
-        elif isinstance(msg, protocol.Welcome) and msg.session == params.session and msg.t_ns in self._offers:
-            self._offers.remove(msg.t_ns)
-            self._rejoin_sample(msg, now_ns)
+            return
+        offset, rtt = protocol.ntp_offset(msg.t_ns, msg.t2, msg.t3, now_ns)
+        if rtt >= 0:
+            self._rejoin_sample(msg.nonce, rtt, offset, now_ns)
 
     def _peer(self) -> Addr:
         assert self.peer is not None
         return self.peer
 
-    # --- operator: rejoin a restarted teleoperator ----------------------------------------------
+    # --- operator: rejoin a restarted teleoperator (teleop.session.rejoin) -----------------------
     def _operator_timers(self, now_ns: int) -> None:
         port, params = self.port, self.params
         assert port is not None and params is not None
-        if self._rj_start is not None and now_ns >= self._rj_next:
-            if self._rj_resends >= START_RESENDS:
-                self._rj_start = None
-            else:
-                self._out.append((port.seal(self._rj_start), self._peer()))
-                self._rj_resends += 1
-                self._rj_next = now_ns + self._rj_interval
-        if not port.link_lost or now_ns < self._next_offer:
-            return
-        self._next_offer = now_ns + REJOIN_OFFER_INTERVAL_NS
-        self._offers.append(now_ns)
-        hello = protocol.Hello(
-            params, t_ns=now_ns, rejoin=True, nonce=port.keys.nonce, cookie=self._rj_cookie
-        )
-        self._out.append((port.seal(hello), self._peer()))
-        self.rejoin_offers += 1
+        self._out += [(d, self._peer()) for d in self._rejoin.due(port, params, now_ns)]
 
-    def _rejoin_sample(self, m: protocol.Welcome, t4: int) -> None:
+    def _rejoin_sample(self, nonce: bytes, rtt: int, offset: int, t4: int) -> None:
         """A restarted teleoperator welcomed an offer: one NTP exchange; with enough, the start."""
         port, params = self.port, self.params
         assert port is not None and params is not None
-        t1 = m.t_ns
-        offset, rtt = protocol.ntp_offset(t1, m.t2, m.t3, t4)
-        if rtt < 0:
-            return
-        if m.nonce != self._rj_nonce:  # another (newer) teleoperator process: start over
-            self._rj_nonce, self._rj_samples, self._rj_first = m.nonce, [], t4
-        self._rj_samples.append((rtt, offset))
-        if len(self._rj_samples) < REJOIN_SAMPLES and t4 - self._rj_first < REJOIN_COLLECT_NS:
-            self._next_offer = t4  # the next offer at once: the handshake's cadence
-            self._operator_timers(t4)
-            return
-        rtt, offset = min(self._rj_samples)
-        port.peer_restarted(m.nonce)  # its new nonce keys the rest of the session
-        start = protocol.Start(params.session, start_ns=self.start_ns + offset, rejoin=True, rtt_ns=rtt)
-        self._rj_start, self._rj_resends, self._rj_next = start, 0, t4
-        self._rj_interval = max(START_RESEND_NS, rtt // protocol.START_RESEND_DIV)
-        self._rj_nonce, self._rj_samples = None, []
-        self._offers.clear()
-        self.rejoins += 1
-        self._events.append(PeerRestarted(self.k, rtt))
+        best = self._rejoin.sample(nonce, rtt, offset, t4)
+        if best is not None:
+            rtt, offset = best
+            port.peer_restarted(nonce)  # its new nonce keys the rest of the session
+            start = protocol.Start(params.session, start_ns=self.start_ns + offset, rejoin=True, rtt_ns=rtt)
+            self._rejoin.place(start, rtt, t4)
+            self._events.append(PeerRestarted(self.k, rtt))
         self._operator_timers(t4)
 
     # --- teleoperator: takeover by a new operator --------------------------------------------
@@ -1073,30 +716,11 @@ class Endpoint:
         self._rejections_seen = 0
         self._to_hs = self._new_to_handshake(now_ns)
 
-    def _reset_session_state(self) -> None:
-        self._stopped = False
-        self._ended = None
-        self.peer_bye = None
-        self.fault_why = ""
-        self.replaced = False
-        self.foreign = 0
-        self.own_offers_ignored = self.busy_rejects = self.retries_sent = 0
-        self.grace = {"limit_us": self.grace["limit_us"], "waits": 0, "missed": 0, "waited_us_total": 0.0}
-        self._grace_streak = self._grace_resume = 0
-        self._bye_sent = False
-
     # --- the end ------------------------------------------------------------------------------
     def _end(self, reason: EndReason, now_ns: int) -> None:
         """The ticks are over: linger (unless replaced: its operator is gone), then close."""
         self._ended = reason
-        if self._policy is not None and self._loop is not None:
-            if self._grace_until is not None:  # its deadline was counted; waiting, it never runs
-                self._loop.not_run()
-            self._events.append(TicksEnded(self.k, self._loop))
-            self._device, self._grace_until, self._admit_next = None, None, 0  # (an early tick's
-            # deadline is still met: handle_timer then)
-        else:
-            self._events.append(TicksEnded(self.k))
+        self._events.append(TicksEnded(self.k))
         if reason == EndReason.REPLACED:
             self._close()
             return
@@ -1163,9 +787,9 @@ class Endpoint:
             first_tick=self.k0,
             replaced_by_new_session=ended == EndReason.REPLACED,
             rejoin=RejoinFigures(
-                offers=self.rejoin_offers,
-                retries=self.rejoin_retries,
-                rejoins=self.rejoins,
+                offers=self._rejoin.offers_sent,
+                retries=self._rejoin.retries,
+                rejoins=self._rejoin.rejoins,
                 own_offers_ignored=self.own_offers_ignored,
             ),
             busy_rejects=self.busy_rejects,
@@ -1174,7 +798,6 @@ class Endpoint:
             retries_sent=self.retries_sent,
             foreign=self.foreign,
             shim={"spec": spec_tx, **shim} if shim else None,
-            grace=dict(self.grace),
             params=params,
             handshake=dict(self._handshake_info),
             port=port.summary(

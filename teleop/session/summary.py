@@ -46,11 +46,13 @@ class EndpointSummary:
     retries_sent: int
     foreign: int  # datagrams from an address other than the peer's, dropped
     shim: dict[str, Any] | None  # the outgoing netem shim's spec and counters
-    grace: dict[str, Any]
     params: SessionParams
     handshake: dict[str, Any]  # clock_offset_ns and handshake_rtt_us, or joined_late
     port: dict[str, Any]  # teleop.session.port.Port.summary: sent, received, link_received, ...
     fault: str = ""  # why a device ended the session (this side's, or the peer's bye said), else ""
+    #: The scheduler's grace figures (limit_us, waits, missed, waited_us_total: it fills them in);
+    #: empty from an endpoint whose caller ran its ticks.
+    grace: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
