@@ -174,8 +174,8 @@ def _late_5() -> None:  # 5.1: ticks run 5 periods late
 
     begin, retime = endpoint.Endpoint._begin, endpoint.Endpoint._retime
 
-    def late(self: Any, params: Any, peer: Any, start_ns: int, t0_ns: int, *a: Any, **kw: Any) -> None:
-        begin(self, params, peer, start_ns, t0_ns + 5 * round(params.dt * 1e9), *a, **kw)
+    def late(self: Any, ev: Any, *a: Any, **kw: Any) -> None:
+        begin(self, dataclasses.replace(ev, t0_ns=ev.t0_ns + 5 * round(ev.params.dt * 1e9)), *a, **kw)
 
     def late_again(self: Any, k: int) -> None:  # (the schedule is set again before each tick)
         retime(self, k)

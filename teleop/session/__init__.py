@@ -1,5 +1,6 @@
 """The sans-I/O session: the wire format and its MACs, the handshake (protocol), one side's node and
-port, and the endpoint that turns datagrams and ``now`` into datagrams, events and timers.
+port, the endpoint that turns datagrams and ``now`` into datagrams, events and timers, and the
+scheduler beside it that decides when each of its ticks runs.
 
 The session's path takes ``now`` and never reads a clock or a socket, so ``teleop sim``, the
 virtual-time tests and the two real processes run the same code.  Two helpers read files, each

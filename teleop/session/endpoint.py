@@ -5,7 +5,7 @@ An :class:`Endpoint` has aioquic's ``QuicConnection`` surface, the same for both
     ep.receive_datagram(data, addr, now_ns)      # every datagram, with its receive time
     for data, addr in ep.datagrams_to_send(now_ns): sock.sendto(data, addr)
     ep.get_timer()  /  ep.handle_timer(now_ns)   # when to come back even if nothing arrives
-    ep.next_event()                              # SessionStarted, PeerRestarted, Replaced, ...
+    ep.next_event()                              # SessionStarted, TicksEnded, Replaced, ...
 
 The caller runs each tick with ``ep.tick(k, now_ns)`` at ``t0_ns + k dt``: a
 :class:`teleop.session.scheduler.Scheduler` beside it (the real-time runner's: its timers, early
@@ -462,10 +462,10 @@ class Endpoint:
             self._handshake_info = {"clock_offset_ns": hs.offset_ns, "handshake_rtt_us": hs.rtt_ns / 1e3}
             self.peer_nonce, self.offset_ns = hs.peer_nonce, hs.offset_ns
             first_due = hs.start_ns + max(SILENT_MIN_NS, 2 * hs.rtt_ns)
-            self._begin(
-                self.params, self.peer, hs.start_ns, hs.start_ns, 0, False, keys, first_due, hs.offset_ns,
-                hs.rtt_ns,
-            )  # fmt: skip
+            started = SessionStarted(
+                self.params, self.peer, hs.start_ns, hs.start_ns, 0, False, hs.offset_ns, hs.rtt_ns
+            )
+            self._begin(started, keys, first_due)
 
     def _from_to_handshake(self, hs: protocol.TeleoperatorHandshake, now_ns: int) -> None:
         """A teleoperator handshake completed: run its session (late, if it already runs)."""
@@ -481,33 +481,15 @@ class Endpoint:
         self.start_rtt_ns, self.committed_ns = hs.start_rtt_ns, now_ns
         self.ghost_ns = max(hs.start_ns, now_ns) + ghost_round_trip(hs.start_rtt_ns, hs.start_ns - now_ns)
         self.ghost_ns += GHOST_MARGIN_NS
-        self._begin(p, hs.peer, hs.start_ns, t0, k0, late, keys, self.ghost_ns, lost_at=True)
+        self._begin(SessionStarted(p, hs.peer, hs.start_ns, t0, k0, late), keys, self.ghost_ns, lost_at=True)
 
-    def _begin(
-        self,
-        params: SessionParams,
-        peer: Addr,
-        start_ns: int,
-        t0_ns: int,
-        k0: int,
-        late: bool,
-        keys: PortKeys,
-        first_due_ns: int,
-        offset_ns: int = 0,
-        rtt_ns: int = 0,
-        lost_at: bool = False,
-    ) -> None:
-        """``first_due_ns``: when the peer's first packet is due (its link lost a link timeout
-        later); ``lost_at``: when the link is lost if no packet came (the teleoperator's ghost)."""
-        self.params, self.peer, self.start_ns, self.t0_ns, self.k0, self.k = (
-            params,
-            peer,
-            start_ns,
-            t0_ns,
-            k0,
-            k0,
-        )
-        self._rx_k = k0
+    def _begin(self, ev: SessionStarted, keys: PortKeys, first_due_ns: int, lost_at: bool = False) -> None:
+        """The session ``ev`` says starts (and is said, once it does).  ``first_due_ns``: when the
+        peer's first packet is due (its link lost a link timeout later); ``lost_at``: when the link
+        is lost if no packet came (the teleoperator's ghost)."""
+        params, start_ns, k0 = ev.params, ev.start_ns, ev.k0
+        self.params, self.peer, self.start_ns, self.t0_ns = params, ev.peer, start_ns, ev.t0_ns
+        self.k0 = self.k = self._rx_k = k0
         self._max_len[auth.SESSION] = wire.max_session_datagram_bytes(params.dof)
         self.port = self._make_port(params, k0, keys, start_ns)
         if self.role == "teleoperator":
@@ -520,7 +502,7 @@ class Endpoint:
         self.port.expect_first_by((first_due_ns - start_ns) / 1e9, lost_at=lost_at)
         self.state = State.STARTING
         self._link_lost = False
-        self._events.append(SessionStarted(params, peer, start_ns, t0_ns, k0, late, offset_ns, rtt_ns))
+        self._events.append(ev)
 
     def _fail(self, reason: Failure, detail: str) -> None:
         self.state = State.FAILED
