@@ -24,7 +24,7 @@ from typing import Any
 
 from bench import write_result
 
-PRINTED = re.compile(r"\(([\d.]+) s of session\).* in ([\d.]+) s \(CPU ([\d.]+) s\)")
+PRINTED = re.compile(r", ([\d.]+) s of session\).* in ([\d.]+) s \(CPU ([\d.]+) s\)")
 
 
 def _one(logs: Path, out: Path) -> dict[str, float]:

@@ -442,6 +442,42 @@ def transports() -> Table:
     )
 
 
+def export() -> Table:
+    """bench.export: teleop export --to lerobot against the length of the session it exports."""
+    b = Builder("export.json")
+    rows = []
+    for label in b.doc["sessions"]:
+        p = f"sessions.{label}"
+        rows.append(
+            (
+                f"`{label}`",
+                b.one(f"{p}.session_s", ".0f", template="{} s"),
+                b.one(f"{p}.logs_mb", ".1f", template="{} MB"),
+                (
+                    "{} s ({} to {})",
+                    (
+                        b.fig(f"{p}.printed_s.median", ".2f"),
+                        b.fig(f"{p}.printed_s.min", ".2f"),
+                        b.fig(f"{p}.printed_s.max", ".2f"),
+                    ),
+                ),
+                b.one(f"{p}.cpu_s.median", ".2f", template="{} s"),
+                b.one(f"{p}.fraction_printed", ".2f", scale=100, template="{} %"),
+                b.one(f"{p}.command_s.median", ".2f", template="{} s"),
+            )
+        )
+    load = b.doc["host"]["load_before"][0], b.doc["host"]["load_after"][0]
+    return Table(
+        "export",
+        "export.json",
+        "python -m bench.export LOGDIR ...",
+        ("session", "length", "logs", "export (printed; median, range)", "its CPU", "of the session "
+         "(the aim: at most 2 %)", "the whole command (Python's start included)"),
+        tuple(rows),
+        note=f" {b.doc['repeats']} runs each; the host's load {load[0]:.2f} before, {load[1]:.2f} after.",
+    )  # fmt: skip
+
+
 def soak_memory() -> Table:
     b = Builder("soak.json")
     rows = []
@@ -1285,6 +1321,7 @@ TABLES: dict[str, Callable[[], Table]] = {
     "transports": transports,
     "fleet": fleet,
     "fleet-sessions": fleet_sessions,
+    "export": export,
     "soak-memory": soak_memory,
     "soak-loop": soak_loop,
     "log-cost": log_cost,
