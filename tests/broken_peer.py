@@ -222,6 +222,24 @@ def _wave_field() -> None:  # 9: an operator that sends passivity "wave" (it MUS
     protocol.encode = with_wave
 
 
+def _codec_upper() -> None:  # 4.1, 4.2: an operator that spells its hello's codec in capitals
+    import msgpack
+
+    from teleop.session import protocol
+
+    encode = protocol.encode
+
+    def upper(msg: Any) -> bytes:
+        body = encode(msg)
+        if not isinstance(msg, protocol.Hello):
+            return body
+        m = msgpack.unpackb(body, raw=False)
+        m["codec"] = str(m["codec"]).upper()  # EDS:50: the same codec, not its canonical text
+        return bytes(msgpack.packb(m, use_bin_type=True))
+
+    protocol.encode = upper
+
+
 def _array16() -> None:  # 3.1: data bodies encoded as msgpack array 16 (dc 00 0a), not fixarray
     import zlib
 
@@ -428,6 +446,7 @@ BREAKS = {
     "start-skew": _start_skew,
     "short-lead": _short_lead,
     "wave-field": _wave_field,
+    "codec-upper": _codec_upper,
     "array16": _array16,
     "answers-replays": _answers_replays,
     "bad-crc": _bad_crc,

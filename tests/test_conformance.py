@@ -235,6 +235,8 @@ def test_the_projects_teleoperator_conforms_with_a_deadband(tmp_path: Path, key:
         ("energy-2x", "pd:5", "3.6", "the reports grow by at most 1.5x what the payloads play"),
         ("short-lead", "eds:50", "4.3 step 5", "the start's lead is at least 3 rtt + 150 ms"),
         ("wave-field", "eds:50", "8", "its hello leaves passivity out for a wave session"),
+        # (issue 49: an outside operator's EDS:050 went unnoticed; the robot refuses it, the checker says why)
+        ("codec-upper", "eds:50", "4.2", "its hello parses, with a 16-byte nonce and valid parameters"),
     ],
 )
 def test_an_operator_with_a_wire_fault_is_caught_by_its_rule(
