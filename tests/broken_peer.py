@@ -204,40 +204,31 @@ def _short_lead() -> None:  # 4.3 step 5: an operator whose start lead is 100 ms
     protocol.start_lead = lambda *a, **kw: 100_000_000
 
 
-def _wave_field() -> None:  # 9: an operator that sends passivity "wave" (it MUST leave it out)
+def _on_hello(change: Any) -> None:
+    """Every hello this process encodes has its msgpack map rewritten by ``change(m)``."""
     import msgpack
 
     from teleop.session import protocol
 
     encode = protocol.encode
 
-    def with_wave(msg: Any) -> bytes:
+    def changed(msg: Any) -> bytes:
         body = encode(msg)
         if not isinstance(msg, protocol.Hello):
             return body
         m = msgpack.unpackb(body, raw=False)
-        m.setdefault("passivity", "wave")
+        change(m)
         return bytes(msgpack.packb(m, use_bin_type=True))
 
-    protocol.encode = with_wave
+    protocol.encode = changed
+
+
+def _wave_field() -> None:  # 9: an operator that sends passivity "wave" (it MUST leave it out)
+    _on_hello(lambda m: m.setdefault("passivity", "wave"))
 
 
 def _codec_upper() -> None:  # 4.1, 4.2: an operator that spells its hello's codec in capitals
-    import msgpack
-
-    from teleop.session import protocol
-
-    encode = protocol.encode
-
-    def upper(msg: Any) -> bytes:
-        body = encode(msg)
-        if not isinstance(msg, protocol.Hello):
-            return body
-        m = msgpack.unpackb(body, raw=False)
-        m["codec"] = str(m["codec"]).upper()  # EDS:50: the same codec, not its canonical text
-        return bytes(msgpack.packb(m, use_bin_type=True))
-
-    protocol.encode = upper
+    _on_hello(lambda m: m.update(codec=str(m["codec"]).upper()))  # EDS:50: not its canonical text
 
 
 def _array16() -> None:  # 3.1: data bodies encoded as msgpack array 16 (dc 00 0a), not fixarray

@@ -131,7 +131,8 @@ def float_range(what: str, lo: float, hi: float, unit: str) -> Callable[[str], f
     def parse(text: str) -> float:
         v = _finite(what, text)
         if not lo <= v <= hi:
-            raise argparse.ArgumentTypeError(f"{what} must be {lo:g} to {hi:g} {unit}, got {text!r}")
+            span = f"{lo:g} to {hi:g}" + (f" {unit}" if unit else "")
+            raise argparse.ArgumentTypeError(f"{what} must be {span}, got {text!r}")
         return v
 
     return parse
