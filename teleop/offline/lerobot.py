@@ -598,7 +598,9 @@ class _DataFiles:
         if self.writer is None:
             path = self.root / DATA_PATH.format(chunk_index=self.chunk, file_index=self.file)
             path.parent.mkdir(parents=True, exist_ok=True)
-            self.writer = pq.ParquetWriter(path, table.schema, compression="zstd")
+            # No dictionary encoding: the columns are measured floats, few repeat; trying it took
+            # half the write, and the file is a fifth smaller without (10 s session: 17 -> 9 ms).
+            self.writer = pq.ParquetWriter(path, table.schema, compression="zstd", use_dictionary=False)
         self.writer.write_table(table)
         self.size += table.nbytes
         return self.chunk, self.file
