@@ -103,6 +103,29 @@ _WALL: list[float] = []  # when the run began (time.monotonic)
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         _IN_SUITE[item.nodeid] = "integration" if item.get_closest_marker("integration") else "fast"
+    _serial_alone(config, items)
+
+
+def _serial_alone(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Only a process-starting test can be serial (it measures time or load, or holds a host-wide
+    resource: it never runs beside another; see :func:`pytest_runtest_setup`)."""
+    serial = [i for i in items if i.get_closest_marker("serial")]
+    wrong = [i.nodeid for i in serial if not i.get_closest_marker("integration")]
+    if wrong:
+        raise pytest.UsageError(f"marked serial but not integration: {', '.join(wrong[:5])}")
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """A serial test under pytest-xdist with two workers or more fails, saying how to run it: a
+    timing result taken beside another test is not one to trust (each worker collects, so this is
+    where the worker count is known)."""
+    workers = int(getattr(item.config, "workerinput", {}).get("workercount", 1))
+    if workers > 1 and item.get_closest_marker("serial"):
+        pytest.fail(
+            f"a serial test under -n {workers}: it measures time or load, or holds the host; run it "
+            "alone (-m serial, no -n) and the others with -m 'not serial'",
+            pytrace=False,
+        )
 
 
 def pytest_sessionstart(session: pytest.Session) -> None:

@@ -82,6 +82,7 @@ def _free_port() -> int:
 
 
 @pytest.mark.integration
+@pytest.mark.serial
 def test_a_handshake_only_delayer_is_put_right_in_session_between_real_processes(
     tmp_path: Path, key: str
 ) -> None:

@@ -94,6 +94,7 @@ def test_bad_arguments_are_refused_in_one_line_before_anything_runs(
 
 
 @pytest.mark.integration  # a child python and its own child
+@pytest.mark.serial
 def test_the_session_cpu_counts_every_process_below_from_the_start(tmp_path: Path) -> None:
     """SessionCpu sums the CPU of the processes below a pid (a grandchild too), from when the
     session starts, over the time from then to their exit."""

@@ -33,6 +33,7 @@ def _netns() -> str:
 
 @needs_netns
 @pytest.mark.integration
+@pytest.mark.serial
 def test_udp_between_two_namespaces(tmp_path: Path) -> None:
     teleop = str(Path(sys.executable).with_name("teleop"))
     env = {**os.environ, "TELEOP": teleop, "OUT": str(tmp_path), "DURATION": "2", "CODEC": "eds:50"}
@@ -54,6 +55,7 @@ def test_udp_between_two_namespaces(tmp_path: Path) -> None:
 
 @needs_netns
 @pytest.mark.integration
+@pytest.mark.serial
 def test_zenoh_through_a_router_in_a_third_namespace(tmp_path: Path) -> None:
     teleop = str(Path(sys.executable).with_name("teleop"))
     env = {**os.environ, "TELEOP": teleop, "OUT": str(tmp_path), "DURATION": "2", "CODEC": "eds:50"}

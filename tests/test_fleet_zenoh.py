@@ -94,6 +94,7 @@ class Lister:
         self.session.close()
 
 
+@pytest.mark.serial
 def test_a_hundred_robots_are_listed_within_100_ms(router: str, key: tuple[Path, bytes]) -> None:
     fleet = robots(router, key[0], "sim", 100)
     try:
@@ -137,6 +138,7 @@ def _gone_within(lister: Lister, name: str, act: Any) -> float:
     return time.monotonic() - t0
 
 
+@pytest.mark.serial
 def test_a_killed_teleoperator_leaves_the_listing_within_2_s(router: str, key: tuple[Path, bytes]) -> None:
     lister = Lister(router, key[1])
     to = subprocess.Popen(
@@ -153,6 +155,7 @@ def test_a_killed_teleoperator_leaves_the_listing_within_2_s(router: str, key: t
         lister.close()
 
 
+@pytest.mark.serial
 def test_a_frozen_robot_leaves_the_listing_within_its_lease(router: str, key: tuple[Path, bytes]) -> None:
     """SIGSTOP: no close, no FIN, no keep-alive, as with a pulled cable: the router's lease ends it."""
     lister = Lister(router, key[1])

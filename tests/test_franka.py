@@ -436,6 +436,7 @@ def _pos(dev: FrankaRobot) -> np.ndarray:
 
 @pytest.mark.integration
 @needs_pylibfranka
+@pytest.mark.serial
 def test_the_device_against_franky_sim(franky_sim: Sim) -> None:
     dev = _connect(franky_sim, f"franka:{franky_sim.host}:force=spring")
     try:
@@ -488,6 +489,7 @@ def _free_port() -> int:
 
 @pytest.mark.integration
 @needs_pylibfranka
+@pytest.mark.serial
 def test_a_session_driving_franky_sim(franky_sim: Sim, tmp_path: Path) -> None:
     port = _free_port()
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
@@ -578,6 +580,7 @@ def test_a_session_driving_franky_sim(franky_sim: Sim, tmp_path: Path) -> None:
 
 @pytest.mark.integration
 @needs_pylibfranka
+@pytest.mark.serial
 def test_a_second_teleoperator_on_a_held_arm_says_why_before_it_answers_anyone(
     franky_sim: Sim, tmp_path: Path
 ) -> None:

@@ -197,6 +197,7 @@ def test_quantiles_bin_their_exact_samples_as_they_bin_later_ones() -> None:
 
 # --- MCAP --------------------------------------------------------------------------------------
 @pytest.mark.integration  # the log's writer process
+@pytest.mark.serial
 def test_the_writer_process_yields_to_the_loops(tmp_path: Path) -> None:
     """The log's writer runs under SCHED_IDLE, so that a waking 1 kHz loop preempts it at once
     (bench/soak.py measured what a niced writer cost the loops' p99)."""
@@ -211,6 +212,7 @@ def test_the_writer_process_yields_to_the_loops(tmp_path: Path) -> None:
 
 
 @pytest.mark.integration  # the log's writer process
+@pytest.mark.serial
 def test_the_writer_finishes_at_the_processs_priority_once_no_loop_ticks(tmp_path: Path) -> None:
     """At the close the writer's threads leave SCHED_IDLE (with the privilege that takes): on a
     host whose cores other work keeps busy, an idle writer's backlog kept the process alive for

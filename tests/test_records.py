@@ -179,6 +179,7 @@ def _wall0_ns(path: Path, topic: str) -> int:
 
 
 @pytest.mark.integration
+@pytest.mark.serial
 def test_kill_9_of_the_robot_beside_cpu_hogs_loses_at_most_the_stated_bound(tmp_path: Path) -> None:
     """Two CPU hogs (one per core of this 2-core host) beside a session; the robot is killed
     5 s in.  Its log holds every tick it ran up to the bound (LOG_CHUNK_TICKS + MAX_AHEAD_TICKS),

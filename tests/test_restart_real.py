@@ -83,6 +83,7 @@ def _operator(
 
 
 @pytest.mark.integration
+@pytest.mark.serial
 def test_a_teleoperator_restarted_behind_a_2ms_link_rejoins_within_2s(tmp_path: Path, key: str) -> None:
     port = _free_port()
     relay = DelayRelay(("127.0.0.1", port), 0.002)

@@ -40,3 +40,25 @@ def test_a_test_without_a_process_starts_none() -> None:
     seen = len(conftest._STARTED)
     assert sum(range(10)) == 45
     assert conftest._STARTED[seen:] == []
+
+
+@pytest.mark.integration
+@pytest.mark.serial
+def test_a_serial_test_runs_alone() -> None:
+    """The README's last test command runs the serial tests without pytest-xdist: one at a time."""
+    import os
+
+    assert os.environ.get("PYTEST_XDIST_WORKER") is None
+
+
+@pytest.mark.integration  # a pytest of its own, with two workers
+def test_a_serial_test_under_two_workers_fails_saying_how_to_run_it() -> None:
+    """A timing test run beside another would give a result not to trust: under -n 2 it fails,
+    naming the command that runs it alone."""
+    node = f"{__file__}::test_a_serial_test_runs_alone"
+    r = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-n", "2", "-p", "no:cacheprovider", node],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "a serial test under -n 2" in r.stdout and "(-m serial, no -n)" in r.stdout, r.stdout
