@@ -10,6 +10,7 @@ Medians and ranges, the host's load before and after: a shared 2-core machine's 
 from __future__ import annotations
 
 import argparse
+import compileall
 import json
 import os
 import re
@@ -22,7 +23,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench import write_result
+from bench import ROOT, write_result
 
 PRINTED = re.compile(r", ([\d.]+) s of session\).* in ([\d.]+) s \(CPU ([\d.]+) s\)")
 
@@ -61,6 +62,11 @@ def main(argv: list[str] | None = None) -> int:
     labels = args.label or [p.name for p in args.logs]
     if len(labels) != len(args.logs):
         raise SystemExit("give one --label per log folder")
+    # Compiled first, as an install that may write its caches is after its first run: with
+    # PYTHONDONTWRITEBYTECODE set (this project's machines) every command would compile the
+    # modules it imports anew, and the figure would be that, not the export.
+    for package in ("teleop", "shell", "transport", "conformance"):
+        compileall.compile_dir(ROOT / package, quiet=2)
     load_before = os.getloadavg()
     sessions: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp:
