@@ -111,6 +111,18 @@ def test_a_hundred_robots_are_listed_within_100_ms(router: str, key: tuple[Path,
         stop(fleet)
 
 
+def test_a_router_admits_more_than_the_351_sessions_shared_memory_allowed(router: str) -> None:
+    """One `teleop router` opened 351 plain client sessions and timed out every later one while
+    Zenoh's shared-memory transport was on (its default); off (transport.zenoh), it admits them up to
+    its max_sessions.  Opened one after another from one process, as bench.fleet counts them."""
+    out = subprocess.run(
+        [sys.executable, "-m", "bench.fleet", "--worker", "limit", "--router", router, "--max-pairs", "420"],
+        capture_output=True, text=True, timeout=120, cwd=ROOT,
+    )  # fmt: skip
+    got = json.loads(out.stdout)
+    assert got["admitted"] == 420, got
+
+
 def test_a_forged_robot_is_listed_untrusted(router: str, key: tuple[Path, bytes]) -> None:
     genuine = robots(router, key[0], "arm", 1)
     forged = robots(router, key[0], "fake", 1, "--stranger")

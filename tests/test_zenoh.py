@@ -174,6 +174,21 @@ def test_make_config_scouting_off_and_explicit_endpoints(tmp_path: Path) -> None
     assert get(cl, "transport/link/tx/queue/size/real_time") == 16
 
 
+def test_a_routers_shared_memory_is_off(tmp_path: Path) -> None:
+    """With it on, a router admitted 351 client sessions (tests/test_fleet_zenoh.py has the count);
+    off even where its file asks (no teleop datagram reaches its threshold); endpoints keep Zenoh's
+    default."""
+
+    def shm(c: zenoh.Config) -> Any:
+        return json.loads(c.get_json("transport/shared_memory/enabled"))
+
+    assert shm(make_config("router", listen=["tcp/127.0.0.1:7447"])) is False
+    f = tmp_path / "r.json5"
+    f.write_text("{transport: {shared_memory: {enabled: true}}}")
+    assert shm(make_config("router", listen=["tcp/127.0.0.1:7447"], config_file=str(f))) is False
+    assert shm(make_config("client", connect=["tcp/127.0.0.1:7447"])) is True
+
+
 @pytest.mark.parametrize(
     "name",
     ["peer", "client", "router", "tls/router-tls", "tls/client-tls", "tls/router-mtls", "tls/client-mtls"],

@@ -88,6 +88,12 @@ _RT_QUEUE = "transport/link/tx/queue/size/real_time"
 _MAX_MESSAGE = "transport/link/rx/max_message_size"
 _USRPWD = "transport/auth/usrpwd"
 _LEASE = "transport/link/tx/lease"
+#: Zenoh's shared-memory transport (on by default in 1.x): a router with it admitted 351 client
+#: sessions here and timed out every later one, whatever its max_sessions; without it, up to
+#: max_sessions (tests/test_fleet_zenoh.py).  teleop's datagrams are far below its 3 KiB threshold,
+#: so it never carried one: a router has it off (Zenoh's config cannot tell a file's "on" from its
+#: default, so a file cannot turn it back on).
+_SHM = "transport/shared_memory/enabled"
 _KEEP_ALIVE = "transport/link/tx/keep_alive"
 #: An announcing robot's lease (Zenoh's default is 10 s): silent this long, its router drops it, and
 #: its liveliness token with it.  Keep-alives go FLEET_KEEP_ALIVE times a lease (every 250 ms).
@@ -156,7 +162,8 @@ def make_config(
 
     ``mode`` always wins; ``listen``/``connect`` replace the file's lists when given (an endpoint
     list left unset everywhere is empty, never Zenoh's all-interfaces default).  Scouting is forced
-    off; the REAL_TIME transmit queue is ``RT_QUEUE_BATCHES`` unless the file changes it.  In client
+    off; the REAL_TIME transmit queue is ``RT_QUEUE_BATCHES`` unless the file changes it; a router's
+    shared memory is off (``_SHM``: it capped the sessions).  In client
     mode the connect timeout is ``CLIENT_CONNECT_TIMEOUT_MS`` unless the file sets
     one.  A robot that announces itself (``announcing``, transport.fleet) gets the lease
     ``FLEET_LEASE_MS`` unless the file sets one, so a robot whose cable is pulled leaves every
@@ -206,6 +213,8 @@ def make_config(
         put(_KEEP_ALIVE, FLEET_KEEP_ALIVE)
     if unset(_RT_QUEUE):
         put(_RT_QUEUE, RT_QUEUE_BATCHES)
+    if mode == "router":
+        put(_SHM, False)
     max_msg = _get(config, _MAX_MESSAGE)
     if not (isinstance(max_msg, int) and 0 < max_msg <= MAX_MESSAGE_BYTES):
         put(_MAX_MESSAGE, MAX_MESSAGE_BYTES)
