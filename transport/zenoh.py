@@ -151,6 +151,15 @@ def _get(config: Any, key: str) -> Any:
     return json.loads(config.get_json(key))
 
 
+def _check_lists(listen: list[str] | None, connect: list[str] | None) -> None:
+    """Each endpoint list a list of strings, each one an endpoint (ValueError says which)."""
+    for what, eps in (("listen", listen), ("connect", connect)):
+        if eps is not None and (not isinstance(eps, list) or not all(isinstance(e, str) for e in eps)):
+            raise ValueError(f"{what} endpoints must be a list of strings, got {eps!r}")
+        for ep in eps or []:
+            _check_endpoint(ep, what)
+
+
 def make_config(
     mode: str = "peer",
     listen: list[str] | None = None,
@@ -171,11 +180,7 @@ def make_config(
     """
     if mode not in MODES:
         raise ValueError(f"Zenoh mode must be one of {', '.join(MODES)}, got {mode!r}")
-    for what, eps in (("listen", listen), ("connect", connect)):
-        if eps is not None and (not isinstance(eps, list) or not all(isinstance(e, str) for e in eps)):
-            raise ValueError(f"{what} endpoints must be a list of strings, got {eps!r}")
-        for ep in eps or []:
-            _check_endpoint(ep, what)
+    _check_lists(listen, connect)
     default = zenoh.Config()
     if config_file is None:
         config = zenoh.Config()
