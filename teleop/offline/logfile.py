@@ -643,6 +643,27 @@ def _state_names(layout: list[tuple[str, int]]) -> list[str]:
     return [f"{n}.{i}" if w >= 0 else n for n, w in layout for i in range(max(w, 1))]
 
 
+def _json_table(data: bytes, schema: Any, unexpected: str) -> Any:
+    """Newline-delimited JSON parsed by pyarrow against ``schema`` (``unexpected``: what a field
+    outside it does, pyarrow's ``unexpected_field_behavior``); its ArrowInvalid/ArrowTypeError pass."""
+    import pyarrow as pa
+    import pyarrow.json as pj
+
+    return pj.read_json(
+        pa.py_buffer(data),
+        read_options=pj.ReadOptions(block_size=max(1 << 20, 4 * MAX_TICK_MESSAGE_BYTES)),
+        parse_options=pj.ParseOptions(explicit_schema=schema, unexpected_field_behavior=unexpected),
+    )
+
+
+def _list_values(col: Any) -> tuple[npt.NDArray[np.int64], npt.NDArray[Any]]:
+    """A list column's lengths, and its values laid end to end, through its offsets rather than
+    pyarrow.compute (whose import alone was 0.04 s of an export)."""
+    offsets = col.offsets.to_numpy()
+    values = col.values.to_numpy(zero_copy_only=False)[int(offsets[0]) : int(offsets[-1])]
+    return np.diff(offsets), values
+
+
 def _states_arrow(
     blocks: list[bytes], max_tick: int
 ) -> tuple[npt.NDArray[np.int64], list[str], npt.NDArray[np.float64]] | None:
@@ -650,7 +671,6 @@ def _states_arrow(
     10 s session's export, a tenth of the Python walk); None wherever it would not give exactly
     what the walk gives, which then says what is wrong."""
     import pyarrow as pa
-    import pyarrow.json as pj
 
     data = b"".join(blocks)
     first = next((ln for ln in data.split(b"\n", 64) if ln.strip()), None)
@@ -666,11 +686,7 @@ def _states_arrow(
     fields = [(n, pa.list_(pa.float64()) if w >= 0 else pa.float64()) for n, w in layout]
     schema = pa.schema([("k", pa.int64()), ("t", pa.float64()), *fields])
     try:
-        table = pj.read_json(
-            pa.py_buffer(data),
-            read_options=pj.ReadOptions(block_size=max(1 << 20, 4 * MAX_TICK_MESSAGE_BYTES)),
-            parse_options=pj.ParseOptions(explicit_schema=schema, unexpected_field_behavior="error"),
-        )
+        table = _json_table(data, schema, "error")
     except (pa.ArrowInvalid, pa.ArrowTypeError):
         return None
     k = table.column("k").combine_chunks()
@@ -683,10 +699,10 @@ def _states_arrow(
         if col.null_count:
             return None
         if w >= 0:
-            offsets = col.offsets.to_numpy()
-            if (np.diff(offsets) != w).any() or col.values.null_count:
+            lengths, flat = _list_values(col)
+            if (lengths != w).any() or col.values.null_count:
                 return None
-            parts.append(col.values.to_numpy(zero_copy_only=False)[offsets[0] : offsets[-1]].reshape(-1, w))
+            parts.append(flat.reshape(-1, w))
         else:
             parts.append(col.to_numpy(zero_copy_only=False).reshape(-1, 1))
     names = _state_names(layout)
@@ -867,15 +883,12 @@ def _arrow_column(col: Any, topic: str, f: str, kind: str, dof: int) -> npt.NDAr
     """One field of a topic's messages as float64, held to the DoF (``dof``: 0 until the first vector
     field says it) and to :data:`MAX_TICK_VALUE`."""
     if kind == "vec":
-        # Through the list's offsets, not pyarrow.compute (its import alone is 0.04 s of an export).
-        offsets = col.offsets.to_numpy()
-        lengths = np.diff(offsets)
+        lengths, flat = _list_values(col)
         width = dof or (int(lengths[0]) if lengths.size else 0)
         if col.null_count or (lengths != width).any():
             raise LogError(f"{topic}: {f} must have {width} values (DoF) in every message")
         if width > MAX_DOF:
             raise LogError(f"{topic}: {f} has {width} values (at most {MAX_DOF} DoF)")
-        flat = col.values.to_numpy(zero_copy_only=False)[int(offsets[0]) : int(offsets[-1])]
         x: npt.NDArray[Any] = flat.astype(np.float64).reshape(-1, width)
     else:
         x = col.to_numpy(zero_copy_only=False).astype(np.float64)
@@ -900,7 +913,6 @@ def read_columns(
     ``names``: only these of the record's names (the rest of a message is skipped unconverted:
     a sixth less time for an export, measured)."""
     import pyarrow as pa
-    import pyarrow.json as pj
 
     role = _role(path)
     wanted = ("signals", *(t for t in topics if t != "signals"))
@@ -918,11 +930,7 @@ def read_columns(
         c: dict[str, npt.NDArray[Any]] = {}
         if data:
             try:
-                table = pj.read_json(
-                    pa.py_buffer(data),
-                    read_options=pj.ReadOptions(block_size=max(1 << 20, 4 * MAX_TICK_MESSAGE_BYTES)),
-                    parse_options=pj.ParseOptions(explicit_schema=schema, unexpected_field_behavior="ignore"),
-                )
+                table = _json_table(data, schema, "ignore")
             except (pa.ArrowInvalid, pa.ArrowTypeError) as e:
                 raise LogError(f"a /ROLE/{t} message does not follow its schema: {str(e)[:200]}") from None
             k = table.column("k")
